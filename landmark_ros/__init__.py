@@ -1,0 +1,1 @@
+"""Landmark-based perception for multi-robot teams (ROS 2 Jazzy)."""

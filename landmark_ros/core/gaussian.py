@@ -1,0 +1,431 @@
+"""
+Gaussians: product fusion, covariance intersection, Mahalanobis gate, checks.
+
+Symbols
+-------
+m1, m2 : means, shape (n,) or (N, n).
+P1, P2 : their covariances, shape (n, n) or (N, n, n).
+x : a point, shape (n,) or (N, n).
+d2 : squared Mahalanobis distance, shape () or (N,).
+
+"""
+
+import math
+
+from landmark_ros.core._arrays import as_matrices, as_vectors, symmetrise, transpose
+import numpy as np
+
+
+COVARIANCE_OK = 0
+COVARIANCE_NONFINITE = 1
+COVARIANCE_ASYMMETRIC = 2
+COVARIANCE_NOT_PSD = 3
+COVARIANCE_PROBLEMS = {
+    COVARIANCE_NONFINITE: 'covariance_nonfinite',
+    COVARIANCE_ASYMMETRIC: 'covariance_asymmetric',
+    COVARIANCE_NOT_PSD: 'covariance_not_psd',
+}
+"""Names of the codes ``covariance_status`` returns, as counters and logs use them."""
+
+
+def _pair(m1, P1, m2, P2):
+    n = np.shape(m1)[-1] if np.ndim(m1) else 0
+    m1 = as_vectors(m1, n, 'm1')
+    m2 = as_vectors(m2, n, 'm2')
+    return m1, as_matrices(P1, n, 'P1'), m2, as_matrices(P2, n, 'P2')
+
+
+def _solve_vec(A, b):
+    """Solve ``A x = b`` for vectors ``b`` of shape (n,) or (N, n)."""
+    return np.linalg.solve(A, b[..., None])[..., 0]
+
+
+def fuse(m1, P1, m2, P2):
+    """
+    Fuse two independent Gaussian estimates of the same quantity (their product).
+
+    Computed in covariance form, so one of ``P1``, ``P2`` may be singular (an exactly
+    known quantity) as long as ``P1 + P2`` is invertible. The result is symmetric in
+    its two arguments.
+
+    Parameters
+    ----------
+    m1 : array_like, shape (n,) or (N, n)
+        Mean of the first estimate.
+    P1 : array_like, shape (n, n) or (N, n, n)
+        Covariance of the first estimate.
+    m2 : array_like, shape (n,) or (N, n)
+        Mean of the second estimate.
+    P2 : array_like, shape (n, n) or (N, n, n)
+        Covariance of the second estimate.
+
+    Returns
+    -------
+    m : ndarray, shape (n,) or (N, n)
+    P : ndarray, shape (n, n) or (N, n, n)
+
+    Raises
+    ------
+    numpy.linalg.LinAlgError
+        If ``P1 + P2`` is singular.
+
+    """
+    m1, P1, m2, P2 = _pair(m1, P1, m2, P2)
+    S = P1 + P2
+    # P1 S^-1 P2 equals P1 - P1 S^-1 P1 and treats both inputs alike.
+    P = symmetrise(P1 @ np.linalg.solve(S, P2))
+    m = (P2 @ _solve_vec(S, m1)[..., None] + P1 @ _solve_vec(S, m2)[..., None])[..., 0]
+    return m, P
+
+
+def information(P):
+    """
+    Return the information matrix ``P^-1`` (solved, not inverted).
+
+    Parameters
+    ----------
+    P : ndarray, shape (n, n) or (N, n, n), positive definite
+        Covariance matrices.
+
+    Returns
+    -------
+    ndarray, shape (n, n) or (N, n, n)
+
+    """
+    eye = np.broadcast_to(np.eye(P.shape[-1]), P.shape)
+    return symmetrise(np.linalg.solve(P, eye))
+
+
+def fuse_many(ms, Ps):
+    """
+    Fuse ``N`` independent estimates of one quantity by summing their information.
+
+    Parameters
+    ----------
+    ms : array_like, shape (N, n)
+        Means of the estimates.
+    Ps : array_like, shape (N, n, n), each positive definite
+        Their covariances.
+
+    Returns
+    -------
+    m : ndarray, shape (n,)
+    P : ndarray, shape (n, n)
+
+    Raises
+    ------
+    ValueError
+        If there is no estimate or the shapes do not match.
+
+    """
+    ms = np.asarray(ms, dtype=np.float64)
+    if ms.ndim != 2 or ms.shape[0] == 0:
+        raise ValueError(f'ms must have shape (N, n) with N >= 1, got {ms.shape}')
+    Ps = as_matrices(Ps, ms.shape[1], 'Ps')
+    if Ps.shape[0:1] != ms.shape[0:1]:
+        raise ValueError(f'ms and Ps disagree on N: {ms.shape} and {Ps.shape}')
+    Y = information(Ps)
+    P = information(Y.sum(axis=0))
+    m = P @ (Y @ ms[..., None]).sum(axis=0)[..., 0]
+    return m, P
+
+
+def covariance_intersection_omega(P1, P2):
+    """
+    Return the weight ``omega`` in [0, 1] that minimises ``det(P)`` in CI.
+
+    ``P^-1 = omega P1^-1 + (1 - omega) P2^-1``. ``log det P^-1`` is concave in omega,
+    so the optimum is unique: in closed form for 2x2 matrices, by golden-section search
+    otherwise.
+
+    Parameters
+    ----------
+    P1 : array_like, shape (n, n) or (N, n, n), positive definite
+        Covariance of the first estimate.
+    P2 : array_like, shape (n, n) or (N, n, n), positive definite
+        Covariance of the second estimate.
+
+    Returns
+    -------
+    omega : float or ndarray, shape () or (N,)
+
+    """
+    P1 = np.asarray(P1, dtype=np.float64)
+    P2 = np.asarray(P2, dtype=np.float64)
+    A, B = information(P1), information(P2)
+    A, B = np.broadcast_arrays(A, B)
+    if A.shape[-1] == 2:
+        return _omega_2x2(A, B)
+    return _omega_golden(A, B)
+
+
+def _omega_2x2(A, B):
+    # det(B + w D) = det B + w t + w^2 det D, maximised over [0, 1].
+    D = A - B
+    t = (B[..., 0, 0] * D[..., 1, 1] + B[..., 1, 1] * D[..., 0, 0]
+         - B[..., 0, 1] * D[..., 1, 0] - B[..., 1, 0] * D[..., 0, 1])
+    det_D = D[..., 0, 0] * D[..., 1, 1] - D[..., 0, 1] * D[..., 1, 0]
+    with np.errstate(divide='ignore', invalid='ignore'):
+        stationary = np.clip(np.where(det_D < 0.0, -t / (2.0 * det_D), 0.0), 0.0, 1.0)
+    candidates = np.stack([np.zeros_like(t), np.ones_like(t), stationary], axis=-1)
+    value = candidates * t[..., None] + candidates ** 2 * det_D[..., None]
+    best = np.take_along_axis(candidates, np.argmax(value, axis=-1)[..., None], axis=-1)
+    return best[..., 0][()]
+
+
+def _omega_golden(A, B, iterations=80):
+    def log_det(w):
+        return np.linalg.slogdet(w[..., None, None] * A + (1.0 - w[..., None, None]) * B)[1]
+
+    ratio = (math.sqrt(5.0) - 1.0) / 2.0
+    lo = np.zeros(A.shape[:-2])
+    hi = np.ones(A.shape[:-2])
+    for _ in range(iterations):
+        w1 = hi - ratio * (hi - lo)
+        w2 = lo + ratio * (hi - lo)
+        left = log_det(w1) >= log_det(w2)
+        hi = np.where(left, w2, hi)
+        lo = np.where(left, lo, w1)
+    return (0.5 * (lo + hi))[()]
+
+
+def covariance_intersection(m1, P1, m2, P2, omega=None):
+    """
+    Fuse two estimates whose cross-correlation is unknown (covariance intersection).
+
+    ``P^-1 = omega P1^-1 + (1 - omega) P2^-1`` and
+    ``P^-1 m = omega P1^-1 m1 + (1 - omega) P2^-1 m2``: consistent whatever the
+    correlation between the two errors.
+
+    Parameters
+    ----------
+    m1 : array_like, shape (n,) or (N, n)
+        Mean of the first estimate.
+    P1 : array_like, shape (n, n) or (N, n, n), positive definite
+        Covariance of the first estimate.
+    m2 : array_like, shape (n,) or (N, n)
+        Mean of the second estimate.
+    P2 : array_like, shape (n, n) or (N, n, n), positive definite
+        Covariance of the second estimate.
+    omega : float or array_like, shape () or (N,), optional
+        Weight of the first estimate in [0, 1]; by default the one that minimises
+        ``det(P)`` (``covariance_intersection_omega``).
+
+    Returns
+    -------
+    m : ndarray, shape (n,) or (N, n)
+    P : ndarray, shape (n, n) or (N, n, n)
+
+    Raises
+    ------
+    ValueError
+        If ``omega`` is outside [0, 1].
+
+    """
+    m1, P1, m2, P2 = _pair(m1, P1, m2, P2)
+    if omega is None:
+        omega = covariance_intersection_omega(P1, P2)
+    omega = np.asarray(omega, dtype=np.float64)
+    if np.any((omega < 0.0) | (omega > 1.0)) or not np.all(np.isfinite(omega)):
+        raise ValueError(f'omega must lie in [0, 1], got {omega}')
+    # CI is the product of the two Gaussians with covariances inflated by 1/omega.
+    w = omega[..., None, None]
+    with np.errstate(divide='ignore', invalid='ignore'):
+        inner = (omega > 0.0) & (omega < 1.0)
+        w_safe = np.where(inner[..., None, None], w, 0.5)
+        m, P = fuse(m1, P1 / w_safe, m2, P2 / (1.0 - w_safe))
+    first = (omega >= 1.0)[..., None]
+    second = (omega <= 0.0)[..., None]
+    m = np.where(first, m1, np.where(second, m2, m))
+    P = np.where(first[..., None], P1, np.where(second[..., None], P2, P))
+    return m, P
+
+
+def mahalanobis_sq(x, mean, P):
+    """
+    Return the squared Mahalanobis distance ``(x - mean)^T P^-1 (x - mean)``.
+
+    Compare it with ``chi2_threshold`` directly: both are squared quantities.
+    Angular components are not wrapped here; pass wrapped differences if needed.
+
+    Parameters
+    ----------
+    x : array_like, shape (n,) or (N, n)
+        The point (or chi-square value) to evaluate.
+    mean : array_like, shape (n,) or (N, n)
+        Centre of the ellipse.
+    P : array_like, shape (n, n) or (N, n, n), positive definite
+        Covariance matrices.
+
+    Returns
+    -------
+    d2 : float or ndarray, shape () or (N,)
+
+    """
+    x = np.asarray(x, dtype=np.float64)
+    d = x - np.asarray(mean, dtype=np.float64)
+    P = as_matrices(P, d.shape[-1], 'P')
+    return np.sum(d * _solve_vec(P, d), axis=-1)[()]
+
+
+def gate(d2, chi2_threshold):
+    """
+    Return True where a squared Mahalanobis distance passes the gate.
+
+    Parameters
+    ----------
+    d2 : float or ndarray, shape () or (N,)
+        Squared Mahalanobis distances.
+    chi2_threshold : float
+        From ``chi2_threshold(dof, probability)``.
+
+    Returns
+    -------
+    bool or ndarray of bool, same shape as ``d2``
+
+    """
+    return (np.asarray(d2) <= chi2_threshold)[()]
+
+
+def chi2_survival(x, dof):
+    """
+    Return ``P(X > x)`` for a chi-square variable ``X`` with integer ``dof``.
+
+    Uses the closed forms for integer degrees of freedom (no scipy).
+
+    Parameters
+    ----------
+    x : float
+        The point (or chi-square value) to evaluate.
+    dof : int, >= 1
+        Degrees of freedom.
+
+    Returns
+    -------
+    float
+
+    """
+    if x <= 0.0:
+        return 1.0
+    half = 0.5 * x
+    if dof % 2 == 0:
+        term, total = 1.0, 1.0
+        for i in range(1, dof // 2):
+            term *= half / i
+            total += term
+        return math.exp(-half) * total
+    term, total = 1.0, 1.0
+    for i in range(1, (dof - 1) // 2):
+        term *= x / (2 * i + 1)
+        total += term
+    tail = math.sqrt(2.0 * x / math.pi) * math.exp(-half) * total if dof > 1 else 0.0
+    return math.erfc(math.sqrt(half)) + tail
+
+
+def chi2_threshold(dof, probability):
+    """
+    Return the chi-square quantile: ``P(X <= threshold) = probability``.
+
+    Parameters
+    ----------
+    dof : int
+        Degrees of freedom, 1 to 100 (1 to 3 cover points, observations and poses).
+    probability : float
+        In (0, 1), e.g. 0.999 to keep 99.9 % of consistent observations.
+
+    Returns
+    -------
+    float
+        The threshold for ``mahalanobis_sq``.
+
+    Raises
+    ------
+    ValueError
+        If ``dof`` or ``probability`` is out of range.
+
+    """
+    if int(dof) != dof or not 1 <= dof <= 100:
+        raise ValueError(f'dof must be an integer from 1 to 100, got {dof!r}')
+    if not 0.0 < probability < 1.0:
+        raise ValueError(f'probability must lie in (0, 1), got {probability!r}')
+    dof = int(dof)
+    tail = 1.0 - probability
+    lo, hi = 0.0, float(dof)
+    while chi2_survival(hi, dof) > tail:
+        lo, hi = hi, 2.0 * hi
+    for _ in range(200):
+        mid = 0.5 * (lo + hi)
+        if mid in (lo, hi):
+            break
+        if chi2_survival(mid, dof) > tail:
+            lo = mid
+        else:
+            hi = mid
+    return 0.5 * (lo + hi)
+
+
+def covariance_status(P, rtol=1e-9):
+    """
+    Check covariances: finite, symmetric and positive semi-definite.
+
+    Parameters
+    ----------
+    P : array_like, shape (n, n) or (N, n, n)
+        Covariance matrices.
+    rtol : float
+        Tolerance relative to the largest absolute entry of each matrix, for the
+        asymmetry and for the most negative eigenvalue.
+
+    Returns
+    -------
+    int or ndarray of int, shape () or (N,)
+        ``COVARIANCE_OK`` or the first problem found: ``COVARIANCE_NONFINITE``,
+        ``COVARIANCE_ASYMMETRIC``, ``COVARIANCE_NOT_PSD``.
+
+    """
+    P = np.asarray(P, dtype=np.float64)
+    if P.ndim not in (2, 3) or P.shape[-1] != P.shape[-2]:
+        raise ValueError(f'P must have shape (n, n) or (N, n, n), got {P.shape}')
+    finite = np.all(np.isfinite(P), axis=(-2, -1))
+    safe = np.where(finite[..., None, None], P, 0.0)
+    scale = np.max(np.abs(safe), axis=(-2, -1))
+    tol = rtol * scale
+    symmetric = np.max(np.abs(safe - transpose(safe)), axis=(-2, -1)) <= tol
+    psd = np.linalg.eigvalsh(symmetrise(safe))[..., 0] >= -tol
+    status = np.where(~finite, COVARIANCE_NONFINITE,
+                      np.where(~symmetric, COVARIANCE_ASYMMETRIC,
+                               np.where(~psd, COVARIANCE_NOT_PSD, COVARIANCE_OK)))
+    return status[()]
+
+
+def validate_covariance(P, name='covariance', rtol=1e-9):
+    """
+    Raise unless every covariance is finite, symmetric and positive semi-definite.
+
+    Parameters
+    ----------
+    P : array_like, shape (n, n) or (N, n, n)
+        Covariance matrices.
+    name : str
+        Name used in error messages.
+    rtol : float
+        See ``covariance_status``.
+
+    Returns
+    -------
+    ndarray
+        ``P`` as float64.
+
+    Raises
+    ------
+    ValueError
+        Naming the first bad matrix and its problem.
+
+    """
+    status = np.atleast_1d(covariance_status(P, rtol))
+    bad = np.flatnonzero(status)
+    if bad.size:
+        raise ValueError(
+            f'{name}: {bad.size} matrix(es) rejected, first at index {bad[0]}: '
+            f'{COVARIANCE_PROBLEMS[int(status[bad[0]])]}')
+    return np.asarray(P, dtype=np.float64)

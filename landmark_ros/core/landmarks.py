@@ -1,0 +1,356 @@
+"""
+The chapter's operations on uncertain poses and landmarks.
+
+Each function returns an estimate and its first-order covariance, propagated
+through the Jacobians of ``pose2`` and ``sensors``. Inputs are independent.
+
+Symbols
+-------
+pose, p1, p2 : robot poses in the world, shape (3,) or (N, 3).
+P_pose, P1, P2 : their covariances, shape (3, 3) or (N, 3, 3).
+sensor_pose : the sensor in the robot frame, shape (3,) or (N, 3), exact.
+z : range-bearing observation, shape (2,) or (N, 2); R its noise covariance.
+m : landmark in the world, shape (2,) or (N, 2); P_m its covariance.
+
+"""
+
+from landmark_ros.core import pose2, sensors
+from landmark_ros.core._arrays import as_matrices, as_vectors, sandwich
+import numpy as np
+
+
+def sensor_in_world(pose, P_pose, sensor_pose=None):
+    """
+    Compose an exactly known sensor mounting into an uncertain robot pose.
+
+    Parameters
+    ----------
+    pose : array_like, shape (3,) or (N, 3)
+        Pose (x, y, theta).
+    P_pose : array_like, shape (3, 3) or (N, 3, 3)
+        Covariance of the pose.
+    sensor_pose : array_like, shape (3,) or (N, 3), optional
+        Sensor pose in the robot frame; ``None`` means the robot origin.
+
+    Returns
+    -------
+    s : ndarray, shape (3,) or (N, 3)
+        Sensor pose in the world.
+    P_s : ndarray, shape (3, 3) or (N, 3, 3)
+
+    """
+    pose = as_vectors(pose, 3, 'pose')
+    P_pose = as_matrices(P_pose, 3, 'P_pose')
+    if sensor_pose is None:
+        return pose, P_pose
+    J_s_pose, _ = pose2.compose_jacobians(pose, sensor_pose)
+    return pose2.compose(pose, sensor_pose), sandwich(J_s_pose, P_pose)
+
+
+def polar_covariance(r, angle, R):
+    """
+    Return the Cartesian covariance of a polar measurement ``(r, angle)``.
+
+    ``J R J^T`` with ``J = [[cos, -r sin], [sin, r cos]]``, the Jacobian of
+    ``sensors.polar_to_cartesian``, in closed form.
+
+    Parameters
+    ----------
+    r : ndarray, shape () or (N,) [m]
+        Range.
+    angle : ndarray, shape () or (N,) [rad]
+        The bearing in the frame the result is wanted in.
+    R : ndarray, shape (2, 2) or (N, 2, 2)
+        Covariance of ``(r, angle)``.
+
+    Returns
+    -------
+    ndarray, shape (2, 2) or (N, 2, 2) [m^2]
+
+    """
+    return symmetric_2x2(*_polar_terms(r, np.cos(angle), np.sin(angle), R))
+
+
+def lever_arm_covariance(e, P_pose):
+    """
+    Return the covariance a pose error gives a point rigidly attached to the robot.
+
+    A world point ``m`` fixed in the robot frame moves with the pose as
+    ``J_m_pose = [[1, 0, -e_y], [0, 1, e_x]]`` where ``e = m - (x, y)`` is the lever
+    arm from the robot origin; this returns ``J_m_pose P_pose J_m_pose^T`` in closed
+    form.
+
+    Parameters
+    ----------
+    e : ndarray, shape (2,) or (N, 2) [m]
+        Lever arm from the robot origin to the point, in the world frame.
+    P_pose : ndarray, shape (3, 3) or (N, 3, 3)
+        Covariance of the pose.
+
+    Returns
+    -------
+    ndarray, shape (2, 2) or (N, 2, 2) [m^2]
+
+    """
+    return symmetric_2x2(*_lever_arm_terms(e[..., 0], e[..., 1], P_pose))
+
+
+def symmetric_2x2(xx, xy, yy):
+    """
+    Build symmetric 2x2 matrices from their three distinct entries.
+
+    Parameters
+    ----------
+    xx, xy, yy : float or ndarray, shape () or (N,)
+        Entries (0, 0), (0, 1) = (1, 0) and (1, 1).
+
+    Returns
+    -------
+    ndarray, shape (2, 2) or (N, 2, 2)
+
+    """
+    xx, xy, yy = np.broadcast_arrays(xx, xy, yy)
+    out = np.empty(xx.shape + (2, 2))
+    out[..., 0, 0] = xx
+    out[..., 0, 1] = xy
+    out[..., 1, 0] = xy
+    out[..., 1, 1] = yy
+    return out
+
+
+def _lever_arm_terms(ex, ey, P_pose):
+    xx, xy, yy = P_pose[..., 0, 0], P_pose[..., 0, 1], P_pose[..., 1, 1]
+    xt, yt, tt = P_pose[..., 0, 2], P_pose[..., 1, 2], P_pose[..., 2, 2]
+    return (xx - 2.0 * ey * xt + ey * ey * tt,
+            xy + ex * xt - ey * yt - ex * ey * tt,
+            yy + 2.0 * ex * yt + ex * ex * tt)
+
+
+def _polar_terms(r, cos, sin, R):
+    rr, rb, bb = R[..., 0, 0], 0.5 * (R[..., 0, 1] + R[..., 1, 0]), R[..., 1, 1]
+    # Columns of J: u = (cos, sin) and w = r (-sin, cos).
+    wx, wy = -r * sin, r * cos
+    return (rr * cos * cos + 2.0 * rb * cos * wx + bb * wx * wx,
+            rr * cos * sin + rb * (cos * wy + sin * wx) + bb * wx * wy,
+            rr * sin * sin + 2.0 * rb * sin * wy + bb * wy * wy)
+
+
+def _world_terms(pose, P_pose, z, R, sensor_pose):
+    # landmark_from_observation and the sandwiches of its Jacobians (composed with the
+    # mounting) in closed form, sharing cos and sin: the observer's hot path. The tests
+    # check it against the generic Jacobians.
+    s = pose if sensor_pose is None else pose2.compose(pose, sensor_pose)
+    r = z[..., 0]
+    angle = s[..., 2] + z[..., 1]
+    cos, sin = np.cos(angle), np.sin(angle)
+    mx, my = s[..., 0] + r * cos, s[..., 1] + r * sin
+    pose_terms = _lever_arm_terms(mx - pose[..., 0], my - pose[..., 1], P_pose)
+    return np.stack([mx, my], axis=-1), pose_terms, _polar_terms(r, cos, sin, R)
+
+
+def _checked(pose, P_pose, z, R, sensor_pose):
+    pose = as_vectors(pose, 3, 'pose')
+    P_pose = as_matrices(P_pose, 3, 'P_pose')
+    z = as_vectors(z, 2, 'z')
+    R = as_matrices(R, 2, 'R')
+    if sensor_pose is not None:
+        sensor_pose = as_vectors(sensor_pose, 3, 'sensor_pose')
+    sensors.check_range(z[..., 0])
+    return pose, P_pose, z, R, sensor_pose
+
+
+def landmark_to_world_parts(pose, P_pose, z, R, sensor_pose=None):
+    """
+    Place an observed landmark in the world, keeping the two covariance terms apart.
+
+    The pose term is shared by every observation made from the same pose (correlated
+    errors); the sensor term is independent per observation. Their sum is the
+    covariance ``landmark_to_world`` returns.
+
+    Parameters
+    ----------
+    pose : array_like, shape (3,) or (N, 3)
+        Pose (x, y, theta).
+    P_pose : array_like, shape (3, 3) or (N, 3, 3)
+        Covariance of the pose.
+    z : array_like, shape (2,) or (N, 2)
+        Range-bearing observation (range [m], bearing [rad]).
+    R : array_like, shape (2, 2) or (N, 2, 2)
+        Covariance of the observation noise.
+    sensor_pose : array_like, shape (3,) or (N, 3), optional
+        Sensor pose in the robot frame; ``None`` means the robot origin.
+
+    Returns
+    -------
+    m : ndarray, shape (2,) or (N, 2)
+    P_m_pose : ndarray, shape (2, 2) or (N, 2, 2)
+        ``J_m_pose P_pose J_m_pose^T``.
+    P_m_sensor : ndarray, shape (2, 2) or (N, 2, 2)
+        ``J_m_z R J_m_z^T``.
+
+    Raises
+    ------
+    ValueError
+        If a range is below ``sensors.MIN_RANGE`` or a shape is wrong.
+
+    """
+    m, pose_terms, sensor_terms = _world_terms(*_checked(pose, P_pose, z, R, sensor_pose))
+    return m, symmetric_2x2(*pose_terms), symmetric_2x2(*sensor_terms)
+
+
+_BLOCK = 16384
+"""Rows per block in ``landmark_to_world``: keeps the temporaries in the CPU cache."""
+
+
+def landmark_to_world(pose, P_pose, z, R, sensor_pose=None):
+    """
+    Place an observed landmark in the world with its covariance.
+
+    ``m = g(pose (+) sensor_pose, z)`` and
+    ``P_m = J_m_pose P_pose J_m_pose^T + J_m_z R J_m_z^T``.
+
+    Parameters
+    ----------
+    pose : array_like, shape (3,) or (N, 3)
+        Pose (x, y, theta).
+    P_pose : array_like, shape (3, 3) or (N, 3, 3)
+        Covariance of the pose.
+    z : array_like, shape (2,) or (N, 2)
+        Range-bearing observation (range [m], bearing [rad]).
+    R : array_like, shape (2, 2) or (N, 2, 2)
+        Covariance of the observation noise.
+    sensor_pose : array_like, shape (3,) or (N, 3), optional
+        Sensor pose in the robot frame; ``None`` means the robot origin.
+
+    Returns
+    -------
+    m : ndarray, shape (2,) or (N, 2)
+    P_m : ndarray, shape (2, 2) or (N, 2, 2)
+
+    Raises
+    ------
+    ValueError
+        If a range is below ``sensors.MIN_RANGE`` or a shape is wrong.
+
+    """
+    args = _checked(pose, P_pose, z, R, sensor_pose)
+    single_ndims = (1, 2, 1, 2, 1)
+    shape = np.broadcast_shapes(*(a.shape[:a.ndim - d] for a, d in
+                                  zip(args, single_ndims) if a is not None))
+    m = np.empty(shape + (2,))
+    P_m = np.empty(shape + (2, 2))
+    count = shape[0] if shape else 1
+    for start in range(0, count, _BLOCK):
+        rows = slice(start, start + _BLOCK) if shape else ...
+        block = [a if a is None or a.ndim == d else a[rows]
+                 for a, d in zip(args, single_ndims)]
+        m[rows], (pxx, pxy, pyy), (sxx, sxy, syy) = _world_terms(*block)
+        P_block = P_m[rows]
+        P_block[..., 0, 0] = pxx + sxx
+        P_block[..., 0, 1] = P_block[..., 1, 0] = pxy + sxy
+        P_block[..., 1, 1] = pyy + syy
+    return m, P_m
+
+
+def relative_pose(p1, P1, p2, P2, method='between'):
+    """
+    Return the pose of robot 2 seen from robot 1, ``(-) p1 (+) p2``, with covariance.
+
+    Parameters
+    ----------
+    p1 : array_like, shape (3,) or (N, 3)
+        Pose of robot 1.
+    P1 : array_like, shape (3, 3) or (N, 3, 3)
+        Covariance of the first estimate.
+    p2 : array_like, shape (3,) or (N, 3)
+        Pose of robot 2.
+    P2 : array_like, shape (3, 3) or (N, 3, 3)
+        Covariance of the second estimate.
+    method : {'between', 'composition'}
+        ``'between'`` uses the direct inverse composition and its Jacobians;
+        ``'composition'`` inverts ``p1`` first, then composes (two chained steps).
+        Both give the same result.
+
+    Returns
+    -------
+    p12 : ndarray, shape (3,) or (N, 3)
+    P12 : ndarray, shape (3, 3) or (N, 3, 3)
+
+    Raises
+    ------
+    ValueError
+        If ``method`` is unknown or a shape is wrong.
+
+    """
+    P1 = as_matrices(P1, 3, 'P1')
+    P2 = as_matrices(P2, 3, 'P2')
+    if method == 'between':
+        J_12_1, J_12_2 = pose2.between_jacobians(p1, p2)
+        return pose2.between(p1, p2), sandwich(J_12_1, P1) + sandwich(J_12_2, P2)
+    if method == 'composition':
+        p1_inv = pose2.inverse(p1)
+        P1_inv = sandwich(pose2.inverse_jacobian(p1), P1)
+        J_12_inv, J_12_2 = pose2.compose_jacobians(p1_inv, p2)
+        return pose2.compose(p1_inv, p2), sandwich(J_12_inv, P1_inv) + sandwich(J_12_2, P2)
+    raise ValueError(f"method must be 'between' or 'composition', got {method!r}")
+
+
+def predict_observation(pose, P_pose, m, P_m, sensor_pose=None):
+    """
+    Predict the range-bearing observation of an uncertain landmark.
+
+    ``z = h(pose (+) sensor_pose, m)`` and
+    ``P_z = J_z_pose P_pose J_z_pose^T + J_z_m P_m J_z_m^T`` (add the sensor noise
+    ``R`` to get the innovation covariance).
+
+    Parameters
+    ----------
+    pose : array_like, shape (3,) or (N, 3)
+        Pose (x, y, theta).
+    P_pose : array_like, shape (3, 3) or (N, 3, 3)
+        Covariance of the pose.
+    m : array_like, shape (2,) or (N, 2)
+        Landmark position in the world.
+    P_m : array_like, shape (2, 2) or (N, 2, 2)
+        Covariance of the landmark.
+    sensor_pose : array_like, shape (3,) or (N, 3), optional
+        Sensor pose in the robot frame; ``None`` means the robot origin.
+
+    Returns
+    -------
+    z : ndarray, shape (2,) or (N, 2)
+    P_z : ndarray, shape (2, 2) or (N, 2, 2)
+
+    Raises
+    ------
+    ValueError
+        If the landmark is closer than ``sensors.MIN_RANGE`` to the sensor.
+
+    """
+    s, P_s = sensor_in_world(pose, P_pose, sensor_pose)
+    P_m = as_matrices(P_m, 2, 'P_m')
+    J_z_s, J_z_m = sensors.observe_jacobians(s, m)
+    return sensors.observe(s, m), sandwich(J_z_s, P_s) + sandwich(J_z_m, P_m)
+
+
+def nees(m, P_m, m_true):
+    """
+    Return the normalised estimation error squared of estimates against truth.
+
+    Parameters
+    ----------
+    m : array_like, shape (n,) or (N, n)
+        Landmark position in the world.
+    P_m : array_like, shape (n, n) or (N, n, n), positive definite
+        Covariance of the landmark.
+    m_true : array_like, shape (n,) or (N, n)
+        True values.
+
+    Returns
+    -------
+    float or ndarray, shape () or (N,)
+        Chi-square with ``n`` degrees of freedom when the estimate is consistent.
+
+    """
+    from landmark_ros.core.gaussian import mahalanobis_sq
+    return mahalanobis_sq(np.asarray(m_true), m, P_m)

@@ -1,0 +1,42 @@
+from glob import glob
+
+from setuptools import find_packages
+from setuptools import setup
+
+package_name = 'landmark_ros'
+
+setup(
+    name=package_name,
+    version='0.1.0',
+    packages=find_packages(exclude=['test']),
+    data_files=[
+        ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
+        ('share/' + package_name, ['package.xml']),
+        ('share/' + package_name + '/config', glob('config/*.yaml')),
+    ],
+    # Only plain-PyPI runtime deps here. The ROS 2 packages (rclpy, *_msgs,
+    # std_srvs) are declared in package.xml and come from apt/rosdep on a ROS
+    # machine or from requirements-ros.txt in the dev venv; listing them here
+    # would pull a second rclpy into an apt-installed Jazzy.
+    install_requires=['setuptools', 'numpy'],
+    extras_require={
+        'plot': ['matplotlib'],
+    },
+    zip_safe=True,
+    python_requires='>=3.10',
+    maintainer='landmark_ros maintainers',
+    maintainer_email='maintainers@example.com',
+    description=(
+        'Landmark-based perception for multi-robot teams: range-bearing observations '
+        'to world-frame landmarks with covariance, multi-robot fusion.'
+    ),
+    license='Apache-2.0',
+    tests_require=['pytest'],
+    entry_points={
+        'console_scripts': [
+            # One 'name = module:function' per node; keep EXPECTED_EXECUTABLES in
+            # test/test_colcon_install.py in sync. Example:
+            # 'landmark_observer = landmark_ros.observer_node:main',
+        ],
+    },
+)
