@@ -35,8 +35,8 @@ setup(
     entry_points={
         'console_scripts': [
             # One 'name = module:function' per node; keep EXPECTED_EXECUTABLES in
-            # test/test_colcon_install.py in sync. Example:
-            # 'landmark_observer = landmark_ros.observer_node:main',
+            # test/test_colcon_install.py in sync.
+            'landmark_observer = landmark_ros.observer_node:main',
         ],
     },
 )

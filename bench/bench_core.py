@@ -29,9 +29,9 @@ import platform
 import sys
 import time
 
+from landmark_ros.core import landmarks
 import numpy as np
 
-from landmark_ros.core import landmarks
 
 TARGET_OBS_PER_S = 5e6
 """Vectorised throughput target [observations/s], per-observation covariances."""

@@ -19,10 +19,10 @@ import argparse
 from pathlib import Path
 import sys
 
-import numpy as np
-
 from landmark_ros.core import gaussian, landmarks, pose2, sensors
 from landmark_ros.core.ellipse import ellipse_points
+import numpy as np
+
 
 MC_SAMPLES = 200_000
 """Monte Carlo samples for the check of exercise 4."""
@@ -377,7 +377,7 @@ def format_report(results):
         _line('z', c4['z']), _line('P_z', c4['P_z']),
         '  The textbook prints a different P_z. Reproduced:',
         _line('P_z (textbook)', c4['P_z_textbook']),
-        '  It expresses m1 in R2\'s frame, q = (-)p2 (+) m1, with P_q from the',
+        "  It expresses m1 in R2's frame, q = (-)p2 (+) m1, with P_q from the",
         '  transform_point Jacobians of the inverted pose and of m1:',
         _line('q', c4['q']), _line('P_q', c4['P_q']),
         '  but evaluates the polar Jacobian (cartesian_to_polar_jacobian) at the',
@@ -404,7 +404,7 @@ def format_report(results):
             _line('P_z (MC) / s' if scaled else 'P_z (MC)', check['P_z']),
             '    largest |MC - P_z|_ij / sqrt(P_z_ii P_z_jj) = '
             f'{check["relative_difference"]:.4f}',
-            '    every entry closer to the correct P_z than to the textbook\'s: '
+            "    every entry closer to the correct P_z than to the textbook's: "
             + ('yes' if check['closer_to_correct'] else 'NO'),
             '    range-bearing correlation: MC {:+.4f}, correct {:+.4f}, textbook {:+.4f}'
             .format(*check['correlation']),

@@ -344,7 +344,7 @@ def chi2_threshold(dof, probability):
         If ``dof`` or ``probability`` is out of range.
 
     """
-    if int(dof) != dof or not 1 <= dof <= 100:
+    if isinstance(dof, bool) or dof not in range(1, 101):
         raise ValueError(f'dof must be an integer from 1 to 100, got {dof!r}')
     if not 0.0 < probability < 1.0:
         raise ValueError(f'probability must lie in (0, 1), got {probability!r}')
@@ -391,11 +391,19 @@ def covariance_status(P, rtol=1e-9):
     scale = np.max(np.abs(safe), axis=(-2, -1))
     tol = rtol * scale
     symmetric = np.max(np.abs(safe - transpose(safe)), axis=(-2, -1)) <= tol
-    psd = np.linalg.eigvalsh(symmetrise(safe))[..., 0] >= -tol
+    psd = _smallest_eigenvalue(symmetrise(safe)) >= -tol
     status = np.where(~finite, COVARIANCE_NONFINITE,
                       np.where(~symmetric, COVARIANCE_ASYMMETRIC,
                                np.where(~psd, COVARIANCE_NOT_PSD, COVARIANCE_OK)))
     return status[()]
+
+
+def _smallest_eigenvalue(P):
+    if P.shape[-1] != 2:
+        return np.linalg.eigvalsh(P)[..., 0]
+    # Closed form for 2x2: several times faster than eigvalsh on small batches.
+    a, b, c = P[..., 0, 0], P[..., 0, 1], P[..., 1, 1]
+    return 0.5 * (a + c) - np.hypot(0.5 * (a - c), b)
 
 
 def validate_covariance(P, name='covariance', rtol=1e-9):

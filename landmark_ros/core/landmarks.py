@@ -68,7 +68,8 @@ def polar_covariance(r, angle, R):
     ndarray, shape (2, 2) or (N, 2, 2) [m^2]
 
     """
-    return symmetric_2x2(*_polar_terms(r, np.cos(angle), np.sin(angle), R))
+    cos, sin = np.cos(angle), np.sin(angle)
+    return symmetric_2x2(*_polar_terms(cos, sin, r * cos, r * sin, R))
 
 
 def lever_arm_covariance(e, P_pose):
@@ -109,8 +110,7 @@ def symmetric_2x2(xx, xy, yy):
     ndarray, shape (2, 2) or (N, 2, 2)
 
     """
-    xx, xy, yy = np.broadcast_arrays(xx, xy, yy)
-    out = np.empty(xx.shape + (2, 2))
+    out = np.empty(np.broadcast_shapes(np.shape(xx), np.shape(xy), np.shape(yy)) + (2, 2))
     out[..., 0, 0] = xx
     out[..., 0, 1] = xy
     out[..., 1, 0] = xy
@@ -119,20 +119,22 @@ def symmetric_2x2(xx, xy, yy):
 
 
 def _lever_arm_terms(ex, ey, P_pose):
+    # J = [[1, 0, -ey], [0, 1, ex]]; few operations, since small batches pay per call.
     xx, xy, yy = P_pose[..., 0, 0], P_pose[..., 0, 1], P_pose[..., 1, 1]
     xt, yt, tt = P_pose[..., 0, 2], P_pose[..., 1, 2], P_pose[..., 2, 2]
-    return (xx - 2.0 * ey * xt + ey * ey * tt,
-            xy + ex * xt - ey * yt - ex * ey * tt,
-            yy + 2.0 * ex * yt + ex * ex * tt)
+    ey_tt = ey * tt
+    return (xx + ey * (ey_tt - 2.0 * xt),
+            xy + ex * (xt - ey_tt) - ey * yt,
+            yy + ex * (ex * tt + 2.0 * yt))
 
 
-def _polar_terms(r, cos, sin, R):
+def _polar_terms(cos, sin, dx, dy, R):
+    # J = [u w] with u = (cos, sin) and w = r (-sin, cos) = (-dy, dx).
     rr, rb, bb = R[..., 0, 0], 0.5 * (R[..., 0, 1] + R[..., 1, 0]), R[..., 1, 1]
-    # Columns of J: u = (cos, sin) and w = r (-sin, cos).
-    wx, wy = -r * sin, r * cos
-    return (rr * cos * cos + 2.0 * rb * cos * wx + bb * wx * wx,
-            rr * cos * sin + rb * (cos * wy + sin * wx) + bb * wx * wy,
-            rr * sin * sin + 2.0 * rb * sin * wy + bb * wy * wy)
+    rr_cos, rr_sin, bb_dx, bb_dy = rr * cos, rr * sin, bb * dx, bb * dy
+    return (cos * (rr_cos - 2.0 * rb * dy) + bb_dy * dy,
+            cos * rr_sin + rb * (cos * dx - sin * dy) - bb_dx * dy,
+            sin * (rr_sin + 2.0 * rb * dx) + bb_dx * dx)
 
 
 def _world_terms(pose, P_pose, z, R, sensor_pose):
@@ -143,9 +145,13 @@ def _world_terms(pose, P_pose, z, R, sensor_pose):
     r = z[..., 0]
     angle = s[..., 2] + z[..., 1]
     cos, sin = np.cos(angle), np.sin(angle)
-    mx, my = s[..., 0] + r * cos, s[..., 1] + r * sin
-    pose_terms = _lever_arm_terms(mx - pose[..., 0], my - pose[..., 1], P_pose)
-    return np.stack([mx, my], axis=-1), pose_terms, _polar_terms(r, cos, sin, R)
+    dx, dy = r * cos, r * sin
+    m = np.stack([s[..., 0] + dx, s[..., 1] + dy], axis=-1)
+    if sensor_pose is None:
+        pose_terms = _lever_arm_terms(dx, dy, P_pose)
+    else:
+        pose_terms = _lever_arm_terms(m[..., 0] - pose[..., 0], m[..., 1] - pose[..., 1], P_pose)
+    return m, pose_terms, _polar_terms(cos, sin, dx, dy, R)
 
 
 def _checked(pose, P_pose, z, R, sensor_pose):
@@ -234,21 +240,20 @@ def landmark_to_world(pose, P_pose, z, R, sensor_pose=None):
 
     """
     args = _checked(pose, P_pose, z, R, sensor_pose)
-    single_ndims = (1, 2, 1, 2, 1)
-    shape = np.broadcast_shapes(*(a.shape[:a.ndim - d] for a, d in
-                                  zip(args, single_ndims) if a is not None))
-    m = np.empty(shape + (2,))
-    P_m = np.empty(shape + (2, 2))
-    count = shape[0] if shape else 1
+    if z.ndim == 1 or len(z) <= _BLOCK:
+        m, (pxx, pxy, pyy), (sxx, sxy, syy) = _world_terms(*args)
+        return m, symmetric_2x2(pxx + sxx, pxy + sxy, pyy + syy)
+    count = len(z)
+    batched = [a is not None and a.ndim == d + 1 for a, d in zip(args, (1, 2, 1, 2, 1))]
+    m = np.empty((count, 2))
+    P_m = np.empty((count, 2, 2))
     for start in range(0, count, _BLOCK):
-        rows = slice(start, start + _BLOCK) if shape else ...
-        block = [a if a is None or a.ndim == d else a[rows]
-                 for a, d in zip(args, single_ndims)]
+        rows = slice(start, start + _BLOCK)
+        block = [a[rows] if batch else a for a, batch in zip(args, batched)]
         m[rows], (pxx, pxy, pyy), (sxx, sxy, syy) = _world_terms(*block)
-        P_block = P_m[rows]
-        P_block[..., 0, 0] = pxx + sxx
-        P_block[..., 0, 1] = P_block[..., 1, 0] = pxy + sxy
-        P_block[..., 1, 1] = pyy + syy
+        P_m[rows, 0, 0] = pxx + sxx
+        P_m[rows, 0, 1] = P_m[rows, 1, 0] = pxy + sxy
+        P_m[rows, 1, 1] = pyy + syy
     return m, P_m
 
 

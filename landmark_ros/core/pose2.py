@@ -11,11 +11,13 @@ m : ``pose (+) p``, the same point in the frame ``pose`` is given in.
 
 """
 
+import math
+
 from landmark_ros.core._arrays import as_vectors, batch_shape, matrix
 import numpy as np
 
 
-TWO_PI = 2.0 * np.pi
+TWO_PI = 2.0 * math.pi
 
 
 def wrap_angle(angle):
@@ -32,6 +34,11 @@ def wrap_angle(angle):
     float or ndarray [rad], same shape
 
     """
+    if isinstance(angle, (float, int)):
+        # Plain floats stay plain floats, and are much faster than numpy scalars.
+        wrapped = math.fmod(angle + math.pi, TWO_PI)
+        wrapped = (wrapped + TWO_PI if wrapped < 0.0 else wrapped) - math.pi
+        return wrapped - TWO_PI if wrapped >= math.pi else wrapped
     wrapped = np.mod(np.asarray(angle, dtype=np.float64) + np.pi, TWO_PI) - np.pi
     # mod() can round a tiny negative input up to exactly 2 pi.
     return np.where(wrapped >= np.pi, wrapped - TWO_PI, wrapped)[()]

@@ -40,8 +40,9 @@ def check_range(r, name='range'):
         Naming the first offending index and value.
 
     """
-    bad = np.flatnonzero(np.asarray(r) < MIN_RANGE)
-    if bad.size:
+    too_short = np.asarray(r) < MIN_RANGE
+    if too_short.any():
+        bad = np.flatnonzero(too_short)
         value = np.asarray(r).reshape(-1)[bad[0]]
         raise ValueError(
             f'{name} must be at least {MIN_RANGE} m (the bearing and its Jacobian are '

@@ -1,0 +1,179 @@
+"""
+Read and write ``sensor_msgs/PointCloud2`` rows as numpy columns.
+
+``sensor_msgs_py`` is not available everywhere, and a generic point reader is slower
+than one ``np.frombuffer`` with a structured dtype, which is what this does. Fields
+are found by name; offsets, ``point_step``, ``row_step`` and endianness come from the
+message.
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+from sensor_msgs.msg import PointCloud2, PointField
+
+
+NUMPY_TYPES = {
+    PointField.INT8: np.int8,
+    PointField.UINT8: np.uint8,
+    PointField.INT16: np.int16,
+    PointField.UINT16: np.uint16,
+    PointField.INT32: np.int32,
+    PointField.UINT32: np.uint32,
+    PointField.FLOAT32: np.float32,
+    PointField.FLOAT64: np.float64,
+}
+REAL_TYPES = (PointField.FLOAT32, PointField.FLOAT64)
+INTEGER_TYPES = (PointField.INT8, PointField.UINT8, PointField.INT16, PointField.UINT16,
+                 PointField.INT32, PointField.UINT32)
+DATATYPES = {np.dtype(t): code for code, t in NUMPY_TYPES.items()}
+
+
+class CloudError(ValueError):
+    """A PointCloud2 that cannot be read; ``reason`` names the problem for counters."""
+
+    def __init__(self, reason, detail):
+        super().__init__(f'{reason}: {detail}')
+        self.reason = reason
+
+
+@dataclass(frozen=True)
+class FieldSpec:
+    """A field a reader wants: its name, accepted datatypes and whether it is required."""
+
+    name: str
+    datatypes: tuple
+    required: bool = True
+
+
+def read_columns(msg, specs):
+    """
+    Return the requested fields of every point as float64 or int64 columns.
+
+    Parameters
+    ----------
+    msg : sensor_msgs.msg.PointCloud2
+        The message to read.
+    specs : sequence of FieldSpec
+        The fields wanted.
+
+    Returns
+    -------
+    dict
+        ``name -> ndarray, shape (width * height,)``: float64 for real fields, int64
+        for integer fields. Optional fields that are absent are left out.
+
+    Raises
+    ------
+    CloudError
+        ``missing_field``, ``unsupported_field_type`` or ``data_length_mismatch``.
+
+    """
+    by_name = {field.name: field for field in msg.fields}
+    names, formats, offsets = [], [], []
+    for spec in specs:
+        field = by_name.get(spec.name)
+        if field is None:
+            if spec.required:
+                raise CloudError('missing_field', f"no field '{spec.name}'")
+            continue
+        if field.datatype not in spec.datatypes or field.count != 1:
+            raise CloudError(
+                'unsupported_field_type',
+                f"field '{spec.name}' has datatype {field.datatype} x {field.count}")
+        dtype = np.dtype(NUMPY_TYPES[field.datatype])
+        if field.offset + dtype.itemsize > msg.point_step:
+            raise CloudError(
+                'data_length_mismatch',
+                f"field '{spec.name}' at offset {field.offset} overruns point_step "
+                f'{msg.point_step}')
+        names.append(spec.name)
+        formats.append(dtype.newbyteorder('>' if msg.is_bigendian else '<'))
+        offsets.append(field.offset)
+    count = msg.width * msg.height
+    if count and msg.row_step < msg.width * msg.point_step:
+        raise CloudError('data_length_mismatch',
+                         f'row_step {msg.row_step} < width {msg.width} x point_step '
+                         f'{msg.point_step}')
+    if len(msg.data) != msg.row_step * msg.height:
+        raise CloudError('data_length_mismatch',
+                         f'{len(msg.data)} bytes of data for height {msg.height} x row_step '
+                         f'{msg.row_step}')
+    if count == 0:
+        return {name: np.empty(0, _column_type(fmt)) for name, fmt in zip(names, formats)}
+    dtype = np.dtype({'names': names, 'formats': formats, 'offsets': offsets,
+                      'itemsize': msg.point_step})
+    if msg.height == 1:
+        rows = np.frombuffer(msg.data, dtype, count=msg.width)
+    else:
+        data = np.frombuffer(msg.data, np.uint8).reshape(msg.height, msg.row_step)
+        rows = data[:, :msg.width * msg.point_step].copy().view(dtype).reshape(-1)
+    return {name: rows[name].astype(_column_type(rows.dtype[name])) for name in names}
+
+
+def _column_type(dtype):
+    return np.float64 if dtype.kind == 'f' else np.int64
+
+
+class CloudWriter:
+    """
+    Write rows with a fixed little-endian schema into PointCloud2 messages.
+
+    Fields are laid out in the given order, each aligned to its own size, so the
+    whole row is one packed numpy record.
+
+    Parameters
+    ----------
+    schema : sequence of (str, numpy dtype)
+        Field names and types, in order.
+
+    """
+
+    def __init__(self, schema):
+        self.names = [name for name, _ in schema]
+        offset, formats, offsets = 0, [], []
+        for _, dtype in schema:
+            dtype = np.dtype(dtype).newbyteorder('<')
+            offset = -(-offset // dtype.itemsize) * dtype.itemsize
+            formats.append(dtype)
+            offsets.append(offset)
+            offset += dtype.itemsize
+        step = -(-offset // 8) * 8
+        self.dtype = np.dtype({'names': self.names, 'formats': formats,
+                               'offsets': offsets, 'itemsize': step})
+        self.fields = [
+            PointField(name=name, offset=off, datatype=DATATYPES[np.dtype(fmt).newbyteorder('=')],
+                       count=1)
+            for name, fmt, off in zip(self.names, formats, offsets)]
+
+    def rows(self, count):
+        """Return a zeroed record array of ``count`` rows to fill column by column."""
+        return np.zeros(count, self.dtype)
+
+    def message(self, header, rows):
+        """
+        Return a PointCloud2 holding ``rows`` (from ``rows()``) as one unordered row.
+
+        Parameters
+        ----------
+        header : std_msgs.msg.Header
+            Stamp and frame of the message.
+        rows : ndarray, structured with this writer's dtype
+            The rows to send.
+
+        Returns
+        -------
+        sensor_msgs.msg.PointCloud2
+
+        """
+        msg = PointCloud2()
+        msg.header = header
+        msg.height = 1
+        msg.width = len(rows)
+        msg.fields = self.fields
+        msg.is_bigendian = False
+        msg.point_step = self.dtype.itemsize
+        msg.row_step = self.dtype.itemsize * len(rows)
+        msg.is_dense = True
+        msg.data = rows.tobytes()
+        return msg

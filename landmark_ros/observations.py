@@ -1,0 +1,140 @@
+"""Observation rows to world-frame landmarks: noise, row checks, core call (ROS-free)."""
+
+from collections import Counter
+
+from landmark_ros.core.gaussian import COVARIANCE_PROBLEMS, covariance_status
+from landmark_ros.core.landmarks import landmark_to_world
+from landmark_ros.core.sensors import MIN_RANGE
+import numpy as np
+
+
+MAX_ID = 2 ** 32 - 1
+
+
+NOISE_FIELDS = ('range_variance', 'bearing_variance', 'range_bearing_covariance')
+
+
+def observation_noise(columns, range_variance, bearing_variance):
+    """
+    Return the noise covariance ``R`` of range-bearing observations.
+
+    Rows take ``range_variance``, ``bearing_variance`` and ``range_bearing_covariance``
+    from their columns when present and not NaN, else the defaults (no correlation).
+
+    Parameters
+    ----------
+    columns : dict of ndarray, shape (N,)
+        Fields of the rows by name; 'range' is required.
+    range_variance : float [m^2]
+        Default range variance.
+    bearing_variance : float [rad^2]
+        Default bearing variance.
+
+    Returns
+    -------
+    R : ndarray, shape (2, 2) or (N, 2, 2)
+        One matrix shared by all rows when the cloud has no noise fields.
+
+    """
+    if not any(name in columns for name in NOISE_FIELDS):
+        return np.array([[range_variance, 0.0], [0.0, bearing_variance]])
+    count = len(columns['range'])
+
+    def column(name, default):
+        values = columns.get(name)
+        if values is None:
+            return np.full(count, default)
+        return np.where(np.isnan(values), default, values)
+
+    R = np.empty((count, 2, 2))
+    R[:, 0, 0] = column('range_variance', range_variance)
+    R[:, 1, 1] = column('bearing_variance', bearing_variance)
+    R[:, 0, 1] = R[:, 1, 0] = column('range_bearing_covariance', 0.0)
+    return R
+
+
+def row_problems(ids, z, R):
+    """
+    Find the rows that cannot be used, and why.
+
+    Parameters
+    ----------
+    ids : ndarray of int, shape (N,)
+        Landmark IDs.
+    z : ndarray, shape (N, 2)
+        Range [m] and bearing [rad].
+    R : ndarray, shape (2, 2) or (N, 2, 2)
+        Noise covariance, shared (already valid) or per row.
+
+    Returns
+    -------
+    valid : ndarray of bool, shape (N,)
+    reasons : collections.Counter
+        Rejected rows per reason (each row counted once, under its first problem).
+
+    """
+    r = z[:, 0]
+    valid = np.isfinite(r + z[:, 1]) & (r >= MIN_RANGE) & (ids >= 0) & (ids <= MAX_ID)
+    status = None
+    if R.ndim == 3:
+        status = np.atleast_1d(covariance_status(R))
+        valid &= status == 0
+    if valid.all():
+        return valid, Counter()
+    checks = [
+        ('observation_nonfinite', ~np.all(np.isfinite(z), axis=1)),
+        ('range_not_positive', ~(r >= MIN_RANGE)),
+        ('invalid_id', (ids < 0) | (ids > MAX_ID)),
+    ]
+    if status is not None:
+        checks.append(('negative_variance', (R[:, 0, 0] < 0.0) | (R[:, 1, 1] < 0.0)))
+        checks += [(f'noise_{name}', status == code)
+                   for code, name in COVARIANCE_PROBLEMS.items()]
+    valid = np.ones(len(ids), dtype=bool)
+    reasons = Counter()
+    for name, bad in checks:
+        new = bad & valid
+        if new.any():
+            reasons[name] = int(new.sum())
+            valid &= ~new
+    return valid, reasons
+
+
+def landmarks_from_rows(ids, z, R, pose, P_pose, sensor_pose=None):
+    """
+    Turn the valid observation rows into world-frame landmarks.
+
+    Parameters
+    ----------
+    ids : ndarray of int, shape (N,)
+        Landmark IDs.
+    z : ndarray, shape (N, 2)
+        Range-bearing observation (range [m], bearing [rad]).
+    R : ndarray, shape (2, 2) or (N, 2, 2)
+        Covariance of the observation noise.
+    pose : ndarray, shape (3,)
+        Robot pose in the world.
+    P_pose : ndarray, shape (3, 3)
+        Covariance of the pose.
+    sensor_pose : ndarray, shape (3,), optional
+        Sensor pose in the robot frame; ``None`` means the robot origin.
+
+    Returns
+    -------
+    ids : ndarray of int, shape (K,)
+    m : ndarray, shape (K, 2)
+    P_m : ndarray, shape (K, 2, 2)
+    reasons : collections.Counter
+        Rows rejected, by reason; ``K`` plus their total is ``N``.
+
+    """
+    valid, reasons = row_problems(ids, z, R)
+    if reasons:
+        ids, z = ids[valid], z[valid]
+        R = R[valid] if R.ndim == 3 else R
+    m, P_m = landmark_to_world(pose, P_pose, z, R, sensor_pose)
+    finite = np.isfinite(m.sum(axis=1) + P_m.sum(axis=(1, 2)))
+    if not finite.all():
+        reasons['result_nonfinite'] += int((~finite).sum())
+        ids, m, P_m = ids[finite], m[finite], P_m[finite]
+    return ids, m, P_m, reasons

@@ -1,0 +1,282 @@
+"""
+landmark_observer: robot pose and range-bearing observations in, landmarks out.
+
+Subscribes ``pose`` (geometry_msgs/PoseWithCovarianceStamped) and ``observations``
+(sensor_msgs/PointCloud2 with ``id``, ``range``, ``bearing`` and optional noise
+fields); publishes ``landmarks`` (PointCloud2: ``id``, ``x``, ``y``, ``z``,
+``cov_xx``, ``cov_xy``, ``cov_yy``), ``landmark_markers`` and ``/diagnostics``.
+Every observation is matched to the pose at its stamp and placed in the world frame
+with ``landmark_ros.core.landmarks.landmark_to_world``.
+"""
+
+from collections import deque
+from dataclasses import dataclass
+import sys
+
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from geometry_msgs.msg import PoseWithCovarianceStamped
+from landmark_ros import pose_buffer
+from landmark_ros.cloud import CloudError, read_columns
+from landmark_ros.config import ObserverConfig
+from landmark_ros.conversions import InputError, pose_from_msg, stamp_ns
+from landmark_ros.diagnostics import Counters, status_values
+from landmark_ros.markers import landmark_markers
+from landmark_ros.observations import landmarks_from_rows, observation_noise
+from landmark_ros.ros_params import declare_config, keep_in_sync
+from landmark_ros.schemas import landmark_message, OBSERVATION_FIELDS
+import numpy as np
+import rclpy
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos import qos_profile_sensor_data
+from rclpy.qos_overriding_options import QoSOverridingOptions
+from sensor_msgs.msg import PointCloud2
+from std_msgs.msg import Header
+from visualization_msgs.msg import MarkerArray
+
+THROUGHPUT_COUNTERS = frozenset(
+    {'poses_in', 'observation_messages_in', 'observations_in', 'landmarks_out'})
+"""Counters that are not problems; every other counter names a rejection reason."""
+
+
+def input_qos(depth):
+    """Return the sensor-data QoS profile with the given depth."""
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth,
+                      reliability=qos_profile_sensor_data.reliability,
+                      durability=qos_profile_sensor_data.durability)
+
+
+def output_qos(depth):
+    """Return a reliable, volatile QoS profile with the given depth."""
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth,
+                      reliability=ReliabilityPolicy.RELIABLE)
+
+
+@dataclass
+class _Pending:
+    header: Header
+    stamp_ns: int
+    arrived_ns: int
+    columns: dict
+
+
+class LandmarkObserver(Node):
+    """Turn one robot's range-bearing observations into world-frame landmarks."""
+
+    def __init__(self, **kwargs):
+        super().__init__('landmark_observer', **kwargs)
+        self.config = declare_config(self, ObserverConfig)
+        keep_in_sync(self, lambda: self.config, self._apply_config)
+        self.counters = Counters(self.get_logger().warning, self.config.log_throttle_s)
+        self.poses = pose_buffer.PoseBuffer(self.config.pose_buffer_s * 1e9,
+                                            self.config.max_pose_gap_s * 1e9)
+        self.pending = deque()
+        self._latest_markers = {}
+        self._reported = {}
+        self._apply_config(self.config)
+
+        overrides = QoSOverridingOptions.with_default_policies()
+        self.create_subscription(PoseWithCovarianceStamped, 'pose', self.on_pose,
+                                 input_qos(self.config.input_depth),
+                                 qos_overriding_options=overrides)
+        self.create_subscription(PointCloud2, 'observations', self.on_observations,
+                                 input_qos(self.config.input_depth),
+                                 qos_overriding_options=overrides)
+        self.landmark_pub = self.create_publisher(
+            PointCloud2, 'landmarks', output_qos(self.config.output_depth),
+            qos_overriding_options=overrides)
+        self.marker_pub = self.create_publisher(
+            MarkerArray, 'landmark_markers', output_qos(self.config.output_depth))
+        self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        self.create_timer(self.config.diagnostics_period_s, self.publish_diagnostics)
+        self._expiry_timer = None
+        self._marker_timer = None
+        self._reset_timers()
+
+    # Parameters ---------------------------------------------------------------
+
+    def _apply_config(self, config):
+        old, self.config = self.config, config
+        self.poses.max_gap_ns = int(config.max_pose_gap_s * 1e9)
+        self.counters.throttle_s = config.log_throttle_s
+        pose = np.array(config.sensor_pose)
+        self._sensor_pose = pose if pose.any() else None
+        if (old.max_wait_s, old.marker_rate_hz) != (config.max_wait_s, config.marker_rate_hz):
+            self._reset_timers()
+
+    def _reset_timers(self):
+        if not hasattr(self, 'diagnostics_pub'):
+            return
+        for timer in (self._expiry_timer, self._marker_timer):
+            if timer is not None:
+                self.destroy_timer(timer)
+        period = min(max(self.config.max_wait_s / 2.0, 0.01), 0.5)
+        self._expiry_timer = self.create_timer(period, self.drain)
+        self._marker_timer = None
+        if self.config.marker_rate_hz > 0.0:
+            self._marker_timer = self.create_timer(1.0 / self.config.marker_rate_hz,
+                                                   self.publish_markers)
+
+    # Inputs -------------------------------------------------------------------
+
+    def on_pose(self, msg):
+        """Check a pose and add it to the buffer; process observations it unblocks."""
+        try:
+            pose, P_pose = pose_from_msg(msg, self.config.world_frame)
+        except InputError as error:
+            self.counters.add(error.reason, 1, error.detail)
+            return
+        stamp = stamp_ns(msg.header.stamp)
+        newest = self.poses.newest_ns
+        if newest is not None and stamp <= newest:
+            if newest - stamp <= self.config.time_jump_s * 1e9:
+                self.counters.add('pose_out_of_order', 1,
+                                  f'pose stamp {stamp * 1e-9:.3f} s is not newer than '
+                                  f'{newest * 1e-9:.3f} s: dropped')
+                return
+            dropped = sum(len(item.columns['range']) for item in self.pending)
+            self.counters.add('time_jump_back', 1,
+                              f'pose stamp jumped back from {newest * 1e-9:.3f} s to '
+                              f'{stamp * 1e-9:.3f} s: pose history cleared, {dropped} '
+                              f'waiting observations dropped')
+            self.counters.add('dropped_on_time_jump', dropped)
+            self.poses.clear()
+            self.pending.clear()
+        self.poses.add(stamp, pose, P_pose)
+        self.counters.add('poses_in')
+        self.drain()
+
+    def on_observations(self, msg):
+        """Read an observation cloud and process it now or when its pose arrives."""
+        self.counters.add('observation_messages_in')
+        try:
+            columns = read_columns(msg, OBSERVATION_FIELDS)
+        except CloudError as error:
+            self.counters.add(error.reason, 1, f'observation message dropped: {error}')
+            return
+        if self.config.sensor_frame and msg.header.frame_id != self.config.sensor_frame:
+            self.counters.add('observation_wrong_frame', 1,
+                              f"observations in frame '{msg.header.frame_id}', expected "
+                              f"'{self.config.sensor_frame}': message dropped")
+            return
+        self.counters.add('observations_in', len(columns['range']))
+        item = _Pending(msg.header, stamp_ns(msg.header.stamp), None, columns)
+        if not self.pending:
+            found = self.poses.lookup(item.stamp_ns, final=self.config.max_wait_s == 0.0)
+            if found.status == pose_buffer.FOUND:
+                self.process(item, found.pose, found.P_pose)
+                return
+        if len(self.pending) >= self.config.max_pending:
+            oldest = self.pending.popleft()
+            self.counters.add('backlog_dropped', len(oldest.columns['range']),
+                              f'more than {self.config.max_pending} observation messages '
+                              'waiting for a pose: dropped the oldest')
+        item.arrived_ns = self.get_clock().now().nanoseconds
+        self.pending.append(item)
+        self.drain()
+
+    def drain(self):
+        """Process waiting observations, in order, as far as their poses are known."""
+        now = None
+        while self.pending:
+            item = self.pending[0]
+            found = self.poses.lookup(item.stamp_ns)
+            if found.status == pose_buffer.WAIT:
+                if now is None:
+                    now = self.get_clock().now().nanoseconds
+                if now - item.arrived_ns < self.config.max_wait_s * 1e9:
+                    return
+                found = self.poses.lookup(item.stamp_ns, final=True)
+            self.pending.popleft()
+            rows = len(item.columns['range'])
+            if found.status == pose_buffer.FOUND:
+                self.process(item, found.pose, found.P_pose)
+            elif found.status == pose_buffer.TOO_OLD:
+                self.counters.add('observation_too_old', rows,
+                                  f'observation stamp {item.stamp_ns * 1e-9:.3f} s is older '
+                                  'than the pose history: dropped')
+            else:
+                self.counters.add('no_pose_in_time', rows,
+                                  f'no pose for observation stamp {item.stamp_ns * 1e-9:.3f} s '
+                                  f'within max_wait_s = {self.config.max_wait_s}: dropped')
+
+    # Processing ---------------------------------------------------------------
+
+    def process(self, item, pose, P_pose):
+        """Place the rows of one observation message in the world and publish them."""
+        columns = item.columns
+        z = np.stack([columns['range'], columns['bearing']], axis=1)
+        R = observation_noise(columns, self.config.range_stddev ** 2,
+                              self.config.bearing_stddev ** 2)
+        ids, m, P_m, reasons = landmarks_from_rows(columns['id'], z, R, pose, P_pose,
+                                                   self._sensor_pose)
+        for reason, count in reasons.items():
+            self.counters.add(reason, count, f'{count} of {len(z)} rows rejected in the '
+                              f'observation at {item.stamp_ns * 1e-9:.3f} s')
+        header = item.header  # the received message's own header, reused
+        header.frame_id = self.config.world_frame
+        self.landmark_pub.publish(landmark_message(header, ids, m, P_m))
+        self.counters.add('landmarks_out', len(ids))
+        if self._marker_timer is not None and self.marker_pub.get_subscription_count():
+            for i, landmark_id in enumerate(ids.tolist()):
+                self._latest_markers[landmark_id] = (header, m[i], P_m[i])
+
+    # Outputs ------------------------------------------------------------------
+
+    def publish_markers(self):
+        """Publish an ellipse and a label for each landmark observed since last time."""
+        if not self._latest_markers:
+            return
+        latest, self._latest_markers = self._latest_markers, {}
+        ids = list(latest)
+        header = max((entry[0] for entry in latest.values()),
+                     key=lambda h: stamp_ns(h.stamp))
+        self.marker_pub.publish(landmark_markers(
+            header, ids, np.array([latest[i][1] for i in ids]),
+            np.array([latest[i][2] for i in ids]), self.config.marker_sigma,
+            self.config.marker_lifetime_s))
+
+    def publish_diagnostics(self):
+        """Publish the counters and a status level on /diagnostics."""
+        counts = dict(self.counters.counts)
+        problems = {key: value - self._reported.get(key, 0) for key, value in counts.items()
+                    if key not in THROUGHPUT_COUNTERS and value > self._reported.get(key, 0)}
+        self._reported = counts
+        level, message = DiagnosticStatus.OK, 'ok'
+        if problems:
+            level = DiagnosticStatus.WARN
+            message = 'rejected: ' + ', '.join(f'{k} {v}' for k, v in sorted(problems.items()))
+        elif not len(self.poses):
+            level, message = DiagnosticStatus.WARN, 'no pose received yet'
+        extra = {'pose_buffer_size': len(self.poses), 'pending_messages': len(self.pending)}
+        status = DiagnosticStatus(
+            level=level, name=self.get_fully_qualified_name(), message=message,
+            hardware_id=self.get_namespace(),
+            values=[KeyValue(key=k, value=v) for k, v in status_values(counts, extra)])
+        array = DiagnosticArray(status=[status])
+        array.header.stamp = self.get_clock().now().to_msg()
+        self.diagnostics_pub.publish(array)
+
+
+def main(args=None):
+    """Run the node until shutdown."""
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = LandmarkObserver()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except ValueError as error:
+        print(f'landmark_observer: invalid parameters: {error}', file=sys.stderr)
+        return 2
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
