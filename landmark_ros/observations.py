@@ -132,8 +132,9 @@ def landmarks_from_rows(ids, z, R, pose, P_pose, sensor_pose=None):
     if reasons:
         ids, z = ids[valid], z[valid]
         R = R[valid] if R.ndim == 3 else R
-    m, P_m = landmark_to_world(pose, P_pose, z, R, sensor_pose)
-    finite = np.isfinite(m.sum(axis=1) + P_m.sum(axis=(1, 2)))
+    with np.errstate(over='ignore', invalid='ignore'):  # huge ranges: caught below
+        m, P_m = landmark_to_world(pose, P_pose, z, R, sensor_pose)
+        finite = np.isfinite(m.sum(axis=1) + P_m.sum(axis=(1, 2)))
     if not finite.all():
         reasons['result_nonfinite'] += int((~finite).sum())
         ids, m, P_m = ids[finite], m[finite], P_m[finite]

@@ -26,6 +26,7 @@ from landmark_ros.ros_params import declare_config, keep_in_sync
 from landmark_ros.schemas import landmark_message, OBSERVATION_FIELDS
 import numpy as np
 import rclpy
+from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -69,6 +70,7 @@ class LandmarkObserver(Node):
         self.config = declare_config(self, ObserverConfig)
         keep_in_sync(self, lambda: self.config, self._apply_config)
         self.counters = Counters(self.get_logger().warning, self.config.log_throttle_s)
+        self.counters.counts.update(dict.fromkeys(THROUGHPUT_COUNTERS, 0))
         self.poses = pose_buffer.PoseBuffer(self.config.pose_buffer_s * 1e9,
                                             self.config.max_pose_gap_s * 1e9)
         self.pending = deque()
@@ -268,7 +270,7 @@ def main(args=None):
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
-    except ValueError as error:
+    except (ValueError, ParameterException) as error:
         print(f'landmark_observer: invalid parameters: {error}', file=sys.stderr)
         return 2
     finally:

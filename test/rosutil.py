@@ -24,10 +24,11 @@ def next_domain_id():
 class RosEnv:
     """A private context, domain and executor; shut everything down in ``close``."""
 
-    def __init__(self, domain_id=None):
+    def __init__(self, domain_id=None, args=None):
         self.domain_id = next_domain_id() if domain_id is None else domain_id
         self.context = Context()
-        rclpy.init(context=self.context, domain_id=self.domain_id)
+        # args: command line of the context, e.g. ['--ros-args', '--params-file', f].
+        rclpy.init(args=args, context=self.context, domain_id=self.domain_id)
         self.executor = SingleThreadedExecutor(context=self.context)
         self.nodes = []
 

@@ -113,3 +113,62 @@ def matrix(rows, batch_shape):
 def batch_shape(*arrays):
     """Return the broadcast leading shape of vectors: ``()`` or ``(N,)``."""
     return np.broadcast_shapes(*(a.shape[:-1] for a in arrays))
+
+
+def det(P):
+    """Return determinants of square matrices, in closed form for 2x2."""
+    if P.shape[-1] == 2:
+        return P[..., 0, 0] * P[..., 1, 1] - P[..., 0, 1] * P[..., 1, 0]
+    return np.linalg.det(P)
+
+
+def solve(A, B):
+    """
+    Solve ``A X = B`` for matrices, in closed form (Cramer's rule) for 2x2.
+
+    Parameters
+    ----------
+    A : ndarray, shape (n, n) or (N, n, n)
+        Invertible matrices.
+    B : ndarray, shape (n, k) or (N, n, k)
+        Right-hand sides.
+
+    Returns
+    -------
+    ndarray, shape (n, k) or (N, n, k)
+
+    """
+    if A.shape[-1] != 2:
+        return np.linalg.solve(A, B)
+    d = det(A)[..., None]
+    a, b, c, e = A[..., 0, 0, None], A[..., 0, 1, None], A[..., 1, 0, None], A[..., 1, 1, None]
+    x0 = (e * B[..., 0, :] - b * B[..., 1, :]) / d
+    x1 = (a * B[..., 1, :] - c * B[..., 0, :]) / d
+    return np.stack([x0, x1], axis=-2)
+
+
+def symmetric_2x2(xx, xy, yy):
+    """
+    Build symmetric 2x2 matrices from their three distinct entries.
+
+    Parameters
+    ----------
+    xx, xy, yy : float or ndarray, shape () or (N,)
+        Entries (0, 0), (0, 1) = (1, 0) and (1, 1).
+
+    Returns
+    -------
+    ndarray, shape (2, 2) or (N, 2, 2)
+
+    """
+    out = np.empty(np.broadcast_shapes(np.shape(xx), np.shape(xy), np.shape(yy)) + (2, 2))
+    out[..., 0, 0] = xx
+    out[..., 0, 1] = xy
+    out[..., 1, 0] = xy
+    out[..., 1, 1] = yy
+    return out
+
+
+def entries_2x2(P):
+    """Return ``(xx, xy, yy)`` of 2x2 matrices, the off-diagonal averaged."""
+    return P[..., 0, 0], 0.5 * (P[..., 0, 1] + P[..., 1, 0]), P[..., 1, 1]

@@ -12,7 +12,8 @@ d2 : squared Mahalanobis distance, shape () or (N,).
 
 import math
 
-from landmark_ros.core._arrays import as_matrices, as_vectors, symmetrise, transpose
+from landmark_ros.core._arrays import (as_matrices, as_vectors, det, entries_2x2, solve,
+                                      symmetric_2x2, symmetrise, transpose)
 import numpy as np
 
 
@@ -37,7 +38,8 @@ def _pair(m1, P1, m2, P2):
 
 def _solve_vec(A, b):
     """Solve ``A x = b`` for vectors ``b`` of shape (n,) or (N, n)."""
-    return np.linalg.solve(A, b[..., None])[..., 0]
+    A, b = np.broadcast_arrays(A, b[..., None])
+    return solve(A, b)[..., 0]
 
 
 def fuse(m1, P1, m2, P2):
@@ -71,9 +73,11 @@ def fuse(m1, P1, m2, P2):
 
     """
     m1, P1, m2, P2 = _pair(m1, P1, m2, P2)
+    if m1.shape[-1] == 2:
+        return _fuse_2x2(m1, entries_2x2(P1), m2, entries_2x2(P2))
     S = P1 + P2
     # P1 S^-1 P2 equals P1 - P1 S^-1 P1 and treats both inputs alike.
-    P = symmetrise(P1 @ np.linalg.solve(S, P2))
+    P = symmetrise(P1 @ solve(S, np.broadcast_to(P2, S.shape)))
     m = (P2 @ _solve_vec(S, m1)[..., None] + P1 @ _solve_vec(S, m2)[..., None])[..., 0]
     return m, P
 
@@ -93,7 +97,7 @@ def information(P):
 
     """
     eye = np.broadcast_to(np.eye(P.shape[-1]), P.shape)
-    return symmetrise(np.linalg.solve(P, eye))
+    return symmetrise(solve(P, eye))
 
 
 def fuse_many(ms, Ps):
@@ -152,19 +156,21 @@ def covariance_intersection_omega(P1, P2):
     """
     P1 = np.asarray(P1, dtype=np.float64)
     P2 = np.asarray(P2, dtype=np.float64)
-    A, B = information(P1), information(P2)
-    A, B = np.broadcast_arrays(A, B)
-    if A.shape[-1] == 2:
-        return _omega_2x2(A, B)
+    if P1.shape[-1] == 2:
+        return _omega_2x2(entries_2x2(P1), entries_2x2(P2))
+    A, B = np.broadcast_arrays(information(P1), information(P2))
     return _omega_golden(A, B)
 
 
-def _omega_2x2(A, B):
+def _omega_2x2(P1, P2):
+    # With A = P1^-1 and B = P2^-1 (closed-form inverses), D = A - B:
     # det(B + w D) = det B + w t + w^2 det D, maximised over [0, 1].
-    D = A - B
-    t = (B[..., 0, 0] * D[..., 1, 1] + B[..., 1, 1] * D[..., 0, 0]
-         - B[..., 0, 1] * D[..., 1, 0] - B[..., 1, 0] * D[..., 0, 1])
-    det_D = D[..., 0, 0] * D[..., 1, 1] - D[..., 0, 1] * D[..., 1, 0]
+    (a1, b1, c1), (a2, b2, c2) = P1, P2
+    det1, det2 = a1 * c1 - b1 * b1, a2 * c2 - b2 * b2
+    dxx, dxy, dyy = c1 / det1 - c2 / det2, b2 / det2 - b1 / det1, a1 / det1 - a2 / det2
+    bxx, bxy, byy = c2 / det2, -b2 / det2, a2 / det2
+    t = bxx * dyy + byy * dxx - 2.0 * bxy * dxy
+    det_D = dxx * dyy - dxy * dxy
     with np.errstate(divide='ignore', invalid='ignore'):
         stationary = np.clip(np.where(det_D < 0.0, -t / (2.0 * det_D), 0.0), 0.0, 1.0)
     candidates = np.stack([np.zeros_like(t), np.ones_like(t), stationary], axis=-1)
@@ -239,6 +245,175 @@ def covariance_intersection(m1, P1, m2, P2, omega=None):
     m = np.where(first, m1, np.where(second, m2, m))
     P = np.where(first[..., None], P1, np.where(second[..., None], P2, P))
     return m, P
+
+
+def split_covariance_intersection_omega(P1_ind, P1_dep, P2_ind, P2_dep, grid=16):
+    """
+    Return the split-CI weight ``omega`` in (0, 1) that (nearly) minimises ``det(P)``.
+
+    ``det(P^-1) = det(A + B) / (det A det B)`` with ``A = P1_dep / omega + P1_ind`` and
+    ``B = P2_dep / (1 - omega) + P2_ind``; multiplied out it stays finite for singular
+    dependent parts. It is maximised on a grid of ``grid - 1`` interior points, then
+    on a finer grid around the best one: omega within ``1 / (2 grid^2)`` of the
+    optimum. Any omega in (0, 1) gives a consistent estimate; this one is tight.
+
+    Parameters
+    ----------
+    P1_ind, P1_dep : array_like, shape (n, n) or (N, n, n)
+        Independent and dependent parts of the first covariance.
+    P2_ind, P2_dep : array_like, shape (n, n) or (N, n, n)
+        Independent and dependent parts of the second covariance.
+    grid : int
+        Points per grid level.
+
+    Returns
+    -------
+    omega : float or ndarray, shape () or (N,)
+
+    """
+    parts = [np.asarray(P, dtype=np.float64) for P in (P1_ind, P1_dep, P2_ind, P2_dep)]
+    shape = np.broadcast_shapes(*(P.shape[:-2] for P in parts))
+    if parts[0].shape[-1] == 2:
+        (a1i, b1i, c1i), (a1d, b1d, c1d), (a2i, b2i, c2i), (a2d, b2d, c2d) = (
+            (e[..., None] for e in entries_2x2(P)) for P in parts)
+
+        def objective(u):
+            v = 1.0 - u
+            uv = u * v
+            with np.errstate(divide='ignore', invalid='ignore'):
+                value = _det_2x2(v * a1d + u * a2d + uv * (a1i + a2i),
+                                 v * b1d + u * b2d + uv * (b1i + b2i),
+                                 v * c1d + u * c2d + uv * (c1i + c2i)) / (
+                    _det_2x2(a1d + u * a1i, b1d + u * b1i, c1d + u * c1i)
+                    * _det_2x2(a2d + v * a2i, b2d + v * b2i, c2d + v * c2i))
+            return np.where(np.isfinite(value), value, -np.inf)
+    else:
+        P1i, P1d, P2i, P2d = (P[..., None, :, :] for P in parts)
+
+        def objective(u):
+            u4, v4 = u[..., None, None], 1.0 - u[..., None, None]
+            with np.errstate(divide='ignore', invalid='ignore'):
+                value = det(v4 * P1d + u4 * P2d + u4 * v4 * (P1i + P2i)) / (
+                    det(P1d + u4 * P1i) * det(P2d + v4 * P2i))
+            return np.where(np.isfinite(value), value, -np.inf)
+
+    steps = np.arange(1, grid) / grid
+    coarse = np.broadcast_to(steps, shape + steps.shape)
+    best = np.take_along_axis(coarse, np.argmax(objective(coarse), axis=-1)[..., None], -1)
+    fine = best + (2.0 * steps - 1.0) / grid
+    fine = np.clip(fine, 0.5 / grid ** 2, 1.0 - 0.5 / grid ** 2)
+    best = np.take_along_axis(fine, np.argmax(objective(fine), axis=-1)[..., None], -1)
+    return best[..., 0][()]
+
+
+def split_covariance_intersection(m1, P1_ind, P1_dep, m2, P2_ind, P2_dep, omega=None):
+    """
+    Fuse two estimates whose errors have independent and correlated parts (split CI).
+
+    Each covariance is the sum of an independent part (uncorrelated with anything
+    else) and a dependent part (correlated in an unknown way). The dependent parts
+    are bounded as covariance intersection does (``P1_dep / omega``,
+    ``P2_dep / (1 - omega)``), the independent parts are fused as information.
+
+    Parameters
+    ----------
+    m1 : array_like, shape (n,) or (N, n)
+        Mean of the first estimate.
+    P1_ind, P1_dep : array_like, shape (n, n) or (N, n, n)
+        Independent and dependent parts of its covariance.
+    m2 : array_like, shape (n,) or (N, n)
+        Mean of the second estimate.
+    P2_ind, P2_dep : array_like, shape (n, n) or (N, n, n)
+        Independent and dependent parts of its covariance.
+    omega : float or array_like, shape () or (N,), optional
+        Weight in (0, 1); by default ``split_covariance_intersection_omega``.
+
+    Returns
+    -------
+    m : ndarray, shape (n,) or (N, n)
+    P_ind : ndarray, shape (n, n) or (N, n, n)
+        Independent part of the fused covariance.
+    P_dep : ndarray, shape (n, n) or (N, n, n)
+        Dependent part; the fused covariance is ``P_ind + P_dep``.
+
+    Raises
+    ------
+    ValueError
+        If ``omega`` is not strictly between 0 and 1.
+
+    """
+    n = np.shape(m1)[-1]
+    m1, m2 = as_vectors(m1, n, 'm1'), as_vectors(m2, n, 'm2')
+    P1i, P1d = as_matrices(P1_ind, n, 'P1_ind'), as_matrices(P1_dep, n, 'P1_dep')
+    P2i, P2d = as_matrices(P2_ind, n, 'P2_ind'), as_matrices(P2_dep, n, 'P2_dep')
+    if omega is None:
+        omega = split_covariance_intersection_omega(P1i, P1d, P2i, P2d)
+    omega = np.asarray(omega, dtype=np.float64)
+    if not np.all((omega > 0.0) & (omega < 1.0)):
+        raise ValueError(f'omega must lie strictly between 0 and 1, got {omega}')
+    if n == 2:
+        return _split_ci_2x2(m1, entries_2x2(P1i), entries_2x2(P1d), m2, entries_2x2(P2i),
+                             entries_2x2(P2d), omega)
+    w = omega[..., None, None]
+    A = P1d / w + P1i
+    B = P2d / (1.0 - w) + P2i
+    S = A + B
+    # Covariance form: P = A S^-1 B, gains W1 = B S^-1 on m1 and W2 = A S^-1 on m2.
+    W1 = transpose(solve(S, transpose(np.broadcast_to(B, S.shape))))
+    W2 = transpose(solve(S, transpose(np.broadcast_to(A, S.shape))))
+    m = (W1 @ m1[..., None] + W2 @ m2[..., None])[..., 0]
+    P = symmetrise(W2 @ B)
+    P_ind = symmetrise(W1 @ P1i @ transpose(W1) + W2 @ P2i @ transpose(W2))
+    return m, P_ind, P - P_ind
+
+
+def _det_2x2(xx, xy, yy):
+    return xx * yy - xy * xy
+
+
+def _fuse_2x2(m1, P1, m2, P2):
+    """Return ``fuse`` for 2x2 covariances given as ``(xx, xy, yy)`` entries."""
+    (a1, b1, c1), (a2, b2, c2) = P1, P2
+    sa, sb, sc = a1 + a2, b1 + b2, c1 + c2
+    inv_det = 1.0 / (sa * sc - sb * sb)
+    # K = P1 S^-1; the fused mean is m1 + K (m2 - m1), the covariance K P2.
+    k00, k01 = (a1 * sc - b1 * sb) * inv_det, (b1 * sa - a1 * sb) * inv_det
+    k10, k11 = (b1 * sc - c1 * sb) * inv_det, (c1 * sa - b1 * sb) * inv_det
+    d0, d1 = m2[..., 0] - m1[..., 0], m2[..., 1] - m1[..., 1]
+    m = np.stack([m1[..., 0] + k00 * d0 + k01 * d1, m1[..., 1] + k10 * d0 + k11 * d1], axis=-1)
+    xy = 0.5 * (k00 * b2 + k01 * c2 + k10 * a2 + k11 * b2)
+    return m, symmetric_2x2(k00 * a2 + k01 * b2, xy, k10 * b2 + k11 * c2)
+
+
+def _split_ci_2x2(m1, P1i, P1d, m2, P2i, P2d, omega):
+    """Return ``split_covariance_intersection`` for 2x2 parts given as entries."""
+    u, v = omega, 1.0 - omega
+    A = tuple(d / u + i for d, i in zip(P1d, P1i))
+    B = tuple(d / v + i for d, i in zip(P2d, P2i))
+    sa, sb, sc = A[0] + B[0], A[1] + B[1], A[2] + B[2]
+    inv_det = 1.0 / (sa * sc - sb * sb)
+    # W1 = B S^-1 (gain on m1), W2 = A S^-1 = I - W1 (gain on m2).
+    w00, w01 = (B[0] * sc - B[1] * sb) * inv_det, (B[1] * sa - B[0] * sb) * inv_det
+    w10, w11 = (B[1] * sc - B[2] * sb) * inv_det, (B[2] * sa - B[1] * sb) * inv_det
+    m = np.stack([w00 * m1[..., 0] + w01 * m1[..., 1] + (1.0 - w00) * m2[..., 0]
+                  - w01 * m2[..., 1],
+                  w10 * m1[..., 0] + w11 * m1[..., 1] - w10 * m2[..., 0]
+                  + (1.0 - w11) * m2[..., 1]], axis=-1)
+    # P = W1 A; P_ind = W1 P1i W1^T + W2 P2i W2^T.
+    P = (w00 * A[0] + w01 * A[1], 0.5 * (w00 * A[1] + w01 * A[2] + w10 * A[0] + w11 * A[1]),
+         w10 * A[1] + w11 * A[2])
+    P_ind = tuple(x + y for x, y in zip(_congruence(w00, w01, w10, w11, P1i),
+                                        _congruence(1.0 - w00, -w01, -w10, 1.0 - w11, P2i)))
+    return (m, symmetric_2x2(*P_ind),
+            symmetric_2x2(*(total - ind for total, ind in zip(P, P_ind))))
+
+
+def _congruence(k00, k01, k10, k11, P):
+    """Return the entries of ``K P K^T`` for ``K = [[k00, k01], [k10, k11]]``."""
+    a, b, c = P
+    r00, r01 = k00 * a + k01 * b, k00 * b + k01 * c
+    r10, r11 = k10 * a + k11 * b, k10 * b + k11 * c
+    return r00 * k00 + r01 * k01, r00 * k10 + r01 * k11, r10 * k10 + r11 * k11
 
 
 def mahalanobis_sq(x, mean, P):

@@ -15,7 +15,7 @@ m : landmark in the world, shape (2,) or (N, 2); P_m its covariance.
 """
 
 from landmark_ros.core import pose2, sensors
-from landmark_ros.core._arrays import as_matrices, as_vectors, sandwich
+from landmark_ros.core._arrays import as_matrices, as_vectors, sandwich, symmetric_2x2
 import numpy as np
 
 
@@ -94,28 +94,6 @@ def lever_arm_covariance(e, P_pose):
 
     """
     return symmetric_2x2(*_lever_arm_terms(e[..., 0], e[..., 1], P_pose))
-
-
-def symmetric_2x2(xx, xy, yy):
-    """
-    Build symmetric 2x2 matrices from their three distinct entries.
-
-    Parameters
-    ----------
-    xx, xy, yy : float or ndarray, shape () or (N,)
-        Entries (0, 0), (0, 1) = (1, 0) and (1, 1).
-
-    Returns
-    -------
-    ndarray, shape (2, 2) or (N, 2, 2)
-
-    """
-    out = np.empty(np.broadcast_shapes(np.shape(xx), np.shape(xy), np.shape(yy)) + (2, 2))
-    out[..., 0, 0] = xx
-    out[..., 0, 1] = xy
-    out[..., 1, 0] = xy
-    out[..., 1, 1] = yy
-    return out
 
 
 def _lever_arm_terms(ex, ey, P_pose):
@@ -240,6 +218,7 @@ def landmark_to_world(pose, P_pose, z, R, sensor_pose=None):
 
     """
     args = _checked(pose, P_pose, z, R, sensor_pose)
+    z = args[2]
     if z.ndim == 1 or len(z) <= _BLOCK:
         m, (pxx, pxy, pyy), (sxx, sxy, syy) = _world_terms(*args)
         return m, symmetric_2x2(pxx + sxx, pxy + sxy, pyy + syy)
