@@ -117,6 +117,12 @@ class ObserverConfig(ConfigBase):
     bearing_stddev: float = param(
         0.02, 'Bearing noise standard deviation [rad] for rows without bearing_variance.',
         low=0.0, high=math.pi)
+    range_bias_stddev: float = param(
+        0.0, 'Standard deviation of a range bias shared by all observations [m]; it is '
+        'added to the covariance and to its dependent part.', low=0.0, high=1000.0)
+    bearing_bias_stddev: float = param(
+        0.0, 'Standard deviation of a bearing bias shared by all observations [rad].',
+        low=0.0, high=math.pi)
     pose_buffer_s: float = param(
         10.0, 'How much pose history to keep for matching observation stamps [s].',
         read_only=True, low=0.01, high=3600.0)

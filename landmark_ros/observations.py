@@ -3,7 +3,7 @@
 from collections import Counter
 
 from landmark_ros.core.gaussian import COVARIANCE_PROBLEMS, covariance_status
-from landmark_ros.core.landmarks import landmark_to_world
+from landmark_ros.core.landmarks import landmark_to_world_dependent
 from landmark_ros.core.sensors import MIN_RANGE
 import numpy as np
 
@@ -100,7 +100,7 @@ def row_problems(ids, z, R):
     return valid, reasons
 
 
-def landmarks_from_rows(ids, z, R, pose, P_pose, sensor_pose=None):
+def landmarks_from_rows(ids, z, R, pose, P_pose, sensor_pose=None, R_bias=None):
     """
     Turn the valid observation rows into world-frame landmarks.
 
@@ -118,12 +118,17 @@ def landmarks_from_rows(ids, z, R, pose, P_pose, sensor_pose=None):
         Covariance of the pose.
     sensor_pose : ndarray, shape (3,), optional
         Sensor pose in the robot frame; ``None`` means the robot origin.
+    R_bias : ndarray, shape (2, 2), optional
+        Covariance of the sensor bias, shared by all observations.
 
     Returns
     -------
     ids : ndarray of int, shape (K,)
     m : ndarray, shape (K, 2)
     P_m : ndarray, shape (K, 2, 2)
+        Total covariance.
+    P_dep : ndarray, shape (K, 2, 2)
+        Its dependent part (pose and bias terms).
     reasons : collections.Counter
         Rows rejected, by reason; ``K`` plus their total is ``N``.
 
@@ -133,9 +138,9 @@ def landmarks_from_rows(ids, z, R, pose, P_pose, sensor_pose=None):
         ids, z = ids[valid], z[valid]
         R = R[valid] if R.ndim == 3 else R
     with np.errstate(over='ignore', invalid='ignore'):  # huge ranges: caught below
-        m, P_m = landmark_to_world(pose, P_pose, z, R, sensor_pose)
-        finite = np.isfinite(m.sum(axis=1) + P_m.sum(axis=(1, 2)))
+        m, P_m, P_dep = landmark_to_world_dependent(pose, P_pose, z, R, R_bias, sensor_pose)
+        finite = np.isfinite(m.sum(axis=1) + P_m.sum(axis=(1, 2)) + P_dep.sum(axis=(1, 2)))
     if not finite.all():
         reasons['result_nonfinite'] += int((~finite).sum())
-        ids, m, P_m = ids[finite], m[finite], P_m[finite]
-    return ids, m, P_m, reasons
+        ids, m, P_m, P_dep = ids[finite], m[finite], P_m[finite], P_dep[finite]
+    return ids, m, P_m, P_dep, reasons

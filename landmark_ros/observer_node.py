@@ -4,7 +4,8 @@ landmark_observer: robot pose and range-bearing observations in, landmarks out.
 Subscribes ``pose`` (geometry_msgs/PoseWithCovarianceStamped) and ``observations``
 (sensor_msgs/PointCloud2 with ``id``, ``range``, ``bearing`` and optional noise
 fields); publishes ``landmarks`` (PointCloud2: ``id``, ``x``, ``y``, ``z``,
-``cov_xx``, ``cov_xy``, ``cov_yy``), ``landmark_markers`` and ``/diagnostics``.
+``cov_xx``, ``cov_xy``, ``cov_yy`` and the dependent part ``cov_dep_*``),
+``landmark_markers`` and ``/diagnostics``.
 Every observation is matched to the pose at its stamp and placed in the world frame
 with ``landmark_ros.core.landmarks.landmark_to_world``.
 """
@@ -104,6 +105,9 @@ class LandmarkObserver(Node):
         self.counters.throttle_s = config.log_throttle_s
         pose = np.array(config.sensor_pose)
         self._sensor_pose = pose if pose.any() else None
+        self._R_bias = None
+        if config.range_bias_stddev or config.bearing_bias_stddev:
+            self._R_bias = np.diag([config.range_bias_stddev ** 2, config.bearing_bias_stddev ** 2])
         if (old.max_wait_s, old.marker_rate_hz) != (config.max_wait_s, config.marker_rate_hz):
             self._reset_timers()
 
@@ -211,14 +215,14 @@ class LandmarkObserver(Node):
         z = np.stack([columns['range'], columns['bearing']], axis=1)
         R = observation_noise(columns, self.config.range_stddev ** 2,
                               self.config.bearing_stddev ** 2)
-        ids, m, P_m, reasons = landmarks_from_rows(columns['id'], z, R, pose, P_pose,
-                                                   self._sensor_pose)
+        ids, m, P_m, P_dep, reasons = landmarks_from_rows(
+            columns['id'], z, R, pose, P_pose, self._sensor_pose, self._R_bias)
         for reason, count in reasons.items():
             self.counters.add(reason, count, f'{count} of {len(z)} rows rejected in the '
                               f'observation at {item.stamp_ns * 1e-9:.3f} s')
         header = item.header  # the received message's own header, reused
         header.frame_id = self.config.world_frame
-        self.landmark_pub.publish(landmark_message(header, ids, m, P_m))
+        self.landmark_pub.publish(landmark_message(header, ids, m, P_m, P_dep))
         self.counters.add('landmarks_out', len(ids))
         if self._marker_timer is not None and self.marker_pub.get_subscription_count():
             for i, landmark_id in enumerate(ids.tolist()):

@@ -6,8 +6,16 @@ The PointCloud2 schemas of the package's topics, with writers and readers.
 ``bearing_variance``, ``range_bearing_covariance``.
 
 ``landmarks`` (observer out, fuser in): ``id`` UINT32, ``x``, ``y``, ``z``,
-``cov_xx``, ``cov_xy``, ``cov_yy`` FLOAT64, little-endian, in this order.
+``cov_xx``, ``cov_xy``, ``cov_yy``, ``cov_dep_xx``, ``cov_dep_xy``, ``cov_dep_yy``
+FLOAT64, little-endian, in this order. ``cov_*`` is the total covariance, ``cov_dep_*``
+its dependent part (pose and bias: correlated between observations); readers
+accept clouds without ``cov_dep_*`` (dependent part zero).
+
+``fused_landmarks`` (fuser out): the landmark fields then ``observations`` UINT32.
 """
+
+from typing import NamedTuple
+
 
 from landmark_ros.cloud import CloudWriter, FieldSpec, INTEGER_TYPES, read_columns
 from landmark_ros.cloud import REAL_TYPES
@@ -24,10 +32,14 @@ OBSERVATION_FIELDS = (
 LANDMARK_SCHEMA = (
     ('id', np.uint32), ('x', np.float64), ('y', np.float64), ('z', np.float64),
     ('cov_xx', np.float64), ('cov_xy', np.float64), ('cov_yy', np.float64),
+    ('cov_dep_xx', np.float64), ('cov_dep_xy', np.float64), ('cov_dep_yy', np.float64),
 )
+FUSED_SCHEMA = LANDMARK_SCHEMA + (('observations', np.uint32),)
+DEPENDENT_FIELDS = ('cov_dep_xx', 'cov_dep_xy', 'cov_dep_yy')
 LANDMARK_FIELDS = tuple(
-    FieldSpec(name, INTEGER_TYPES if name == 'id' else REAL_TYPES)
-    for name, _ in LANDMARK_SCHEMA)
+    FieldSpec(name, INTEGER_TYPES if name in ('id', 'observations') else REAL_TYPES,
+              required=name not in DEPENDENT_FIELDS + ('observations',))
+    for name, _ in FUSED_SCHEMA)
 
 _OBSERVATION_WRITER = CloudWriter((('id', np.uint32), ('range', np.float64),
                                    ('bearing', np.float64)))
@@ -36,6 +48,22 @@ _OBSERVATION_NOISE_WRITER = CloudWriter((
     ('range_variance', np.float64), ('bearing_variance', np.float64),
     ('range_bearing_covariance', np.float64)))
 LANDMARK_WRITER = CloudWriter(LANDMARK_SCHEMA)
+FUSED_WRITER = CloudWriter(FUSED_SCHEMA)
+
+
+class Landmarks(NamedTuple):
+    """The rows of a ``landmarks`` or ``fused_landmarks`` cloud."""
+
+    ids: np.ndarray
+    """Landmark IDs, int64, shape (N,)."""
+    m: np.ndarray
+    """Positions [m], shape (N, 2)."""
+    P: np.ndarray
+    """Total covariances [m^2], shape (N, 2, 2)."""
+    P_dep: np.ndarray
+    """Dependent parts, shape (N, 2, 2); zero when the cloud has none."""
+    observations: np.ndarray
+    """Observations fused per landmark, int64, shape (N,); one when absent."""
 
 
 def observation_message(header, ids, z, R=None):
@@ -70,9 +98,9 @@ def observation_message(header, ids, z, R=None):
     return writer.message(header, rows)
 
 
-def landmark_message(header, ids, m, P_m):
+def landmark_message(header, ids, m, P_m, P_dep=None, observations=None):
     """
-    Return a ``landmarks`` cloud.
+    Return a ``landmarks`` cloud, or a ``fused_landmarks`` one with ``observations``.
 
     Parameters
     ----------
@@ -83,7 +111,11 @@ def landmark_message(header, ids, m, P_m):
     m : array_like, shape (N, 2)
         Positions [m].
     P_m : array_like, shape (N, 2, 2)
-        Covariances [m^2].
+        Total covariances [m^2].
+    P_dep : array_like, shape (N, 2, 2), optional
+        Their dependent parts; zero when not given.
+    observations : array_like of int, shape (N,), optional
+        Observations fused per landmark; given, the cloud has the fused schema.
 
     Returns
     -------
@@ -92,16 +124,23 @@ def landmark_message(header, ids, m, P_m):
     """
     m = np.asarray(m, dtype=np.float64).reshape(-1, 2)
     P_m = np.asarray(P_m, dtype=np.float64).reshape(-1, 2, 2)
-    rows = LANDMARK_WRITER.rows(len(m))
+    writer = LANDMARK_WRITER if observations is None else FUSED_WRITER
+    rows = writer.rows(len(m))
     rows['id'] = np.asarray(ids).reshape(-1)
     rows['x'], rows['y'] = m[:, 0], m[:, 1]
     rows['cov_xx'], rows['cov_xy'], rows['cov_yy'] = P_m[:, 0, 0], P_m[:, 0, 1], P_m[:, 1, 1]
-    return LANDMARK_WRITER.message(header, rows)
+    if P_dep is not None:
+        P_dep = np.asarray(P_dep, dtype=np.float64).reshape(-1, 2, 2)
+        rows['cov_dep_xx'], rows['cov_dep_xy'] = P_dep[:, 0, 0], P_dep[:, 0, 1]
+        rows['cov_dep_yy'] = P_dep[:, 1, 1]
+    if observations is not None:
+        rows['observations'] = np.asarray(observations).reshape(-1)
+    return writer.message(header, rows)
 
 
 def read_landmarks(msg):
     """
-    Return the rows of a ``landmarks`` cloud.
+    Return the rows of a ``landmarks`` or ``fused_landmarks`` cloud.
 
     Parameters
     ----------
@@ -110,9 +149,7 @@ def read_landmarks(msg):
 
     Returns
     -------
-    ids : ndarray of int64, shape (N,)
-    m : ndarray, shape (N, 2)
-    P_m : ndarray, shape (N, 2, 2)
+    Landmarks
 
     Raises
     ------
@@ -121,7 +158,16 @@ def read_landmarks(msg):
 
     """
     columns = read_columns(msg, LANDMARK_FIELDS)
-    P_m = np.empty((len(columns['x']), 2, 2))
-    P_m[:, 0, 0], P_m[:, 1, 1] = columns['cov_xx'], columns['cov_yy']
-    P_m[:, 0, 1] = P_m[:, 1, 0] = columns['cov_xy']
-    return columns['id'], np.stack([columns['x'], columns['y']], axis=1), P_m
+    count = len(columns['x'])
+
+    def matrices(xx, xy, yy):
+        P = np.zeros((count, 2, 2))
+        if xx in columns:
+            P[:, 0, 0], P[:, 1, 1] = columns[xx], columns[yy]
+            P[:, 0, 1] = P[:, 1, 0] = columns[xy]
+        return P
+
+    return Landmarks(columns['id'], np.stack([columns['x'], columns['y']], axis=1),
+                     matrices('cov_xx', 'cov_xy', 'cov_yy'),
+                     matrices(*DEPENDENT_FIELDS),
+                     columns.get('observations', np.ones(count, np.int64)))

@@ -45,7 +45,8 @@ M_TEXTBOOK = np.array([2.44943102, 5.72815634])
 PM_CASE1 = np.array([[0.58879177, -0.13171532], [-0.13171532, 0.30120823]])
 PM_CASE2 = np.array([[0.94677477, -0.23978943], [-0.23978943, 0.94322523]])
 
-LANDMARK_NAMES = ['id', 'x', 'y', 'z', 'cov_xx', 'cov_xy', 'cov_yy']
+LANDMARK_NAMES = ['id', 'x', 'y', 'z', 'cov_xx', 'cov_xy', 'cov_yy',
+                  'cov_dep_xx', 'cov_dep_xy', 'cov_dep_yy']
 THROUGHPUT = {'poses_in', 'observation_messages_in', 'observations_in', 'landmarks_out'}
 POINT_FIELD_TYPES = {
     np.dtype(np.int8): PointField.INT8, np.dtype(np.uint8): PointField.UINT8,
@@ -98,7 +99,7 @@ def assert_landmarks(actual, expected, atol=1e-9):
 
 def decode(msg):
     """Read a landmarks cloud and check that everything in it is finite."""
-    ids, m, P_m = read_landmarks(msg)
+    ids, m, P_m = read_landmarks(msg)[:3]
     assert np.all(np.isfinite(m)) and np.all(np.isfinite(P_m)), 'non-finite landmark published'
     return ids, m, P_m
 
@@ -309,17 +310,17 @@ def test_textbook_case(env, case, P_pose, P_expected, noise):
     assert msg.header.frame_id == 'map'
     # Layout: UINT32 id then six little-endian FLOAT64, in order, non-overlapping.
     assert [f.name for f in msg.fields] == LANDMARK_NAMES
-    assert [f.datatype for f in msg.fields] == [PointField.UINT32] + [PointField.FLOAT64] * 6
+    assert [f.datatype for f in msg.fields] == [PointField.UINT32] + [PointField.FLOAT64] * 9
     assert all(f.count == 1 for f in msg.fields)
     assert msg.is_bigendian is False
-    sizes = [4] + [8] * 6
+    sizes = [4] + [8] * 9
     offsets = [f.offset for f in msg.fields]
-    assert all(offsets[i] + sizes[i] <= offsets[i + 1] for i in range(6))
+    assert all(offsets[i] + sizes[i] <= offsets[i + 1] for i in range(9))
     assert offsets[-1] + 8 <= msg.point_step
     assert (msg.height, msg.width) == (1, 1)
     assert msg.row_step == msg.point_step and len(msg.data) == msg.row_step
     raw = np.frombuffer(bytes(msg.data), np.dtype({
-        'names': LANDMARK_NAMES, 'formats': ['<u4'] + ['<f8'] * 6, 'offsets': offsets,
+        'names': LANDMARK_NAMES, 'formats': ['<u4'] + ['<f8'] * 9, 'offsets': offsets,
         'itemsize': msg.point_step}))
     assert raw['id'][0] == 7 and raw['z'][0] == 0.0
     np.testing.assert_allclose([raw['x'][0], raw['y'][0]], M_TEXTBOOK, rtol=0, atol=1e-8)

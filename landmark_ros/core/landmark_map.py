@@ -68,6 +68,20 @@ class _Observation:
     stamp: float
 
 
+@dataclass(frozen=True)
+class _Batch:
+    z: np.ndarray
+    R: np.ndarray
+    R_dep: np.ndarray
+    names: list
+    codes: np.ndarray
+    stamps: np.ndarray
+
+    def observation(self, i):
+        return _Observation(self.z[i], self.R[i], self.R_dep[i], self.names[self.codes[i]],
+                            float(self.stamps[i]))
+
+
 class LandmarkMap:
     """
     Fuse world-frame landmark observations of several robots by landmark ID.
@@ -192,10 +206,10 @@ class LandmarkMap:
             Their covariances, positive definite.
         R_dep : array_like, shape (N, 2, 2), optional
             Dependent part of ``R`` (zero when absent).
-        source : str
-            Who made the observations (for counters and the saved map).
-        stamp : float
-            Time of the observations [s].
+        source : str or sequence of str, length N
+            Who made each observation (for counters and the saved map).
+        stamp : float or array_like, shape (N,)
+            Time of each observation [s].
 
         Returns
         -------
@@ -207,30 +221,35 @@ class LandmarkMap:
         R = np.asarray(R, dtype=np.float64).reshape(-1, 2, 2)
         R_dep = np.zeros_like(R) if R_dep is None else np.asarray(
             R_dep, dtype=np.float64).reshape(-1, 2, 2)
+        count = len(ids)
+        if isinstance(source, str):
+            names, codes = [source], np.zeros(count, np.int64)
+        else:
+            names, codes = np.unique(np.asarray(source, dtype=str), return_inverse=True)
+            names = names.tolist()
+        stamps = np.broadcast_to(np.asarray(stamp, dtype=np.float64), (count,))
         result = UpdateResult()
-        if not len(ids):
+        if not count:
             return result
         rows = self._rows_of(ids)
-        self._seen(source)
+        batch = _Batch(z, R, R_dep, names, codes.reshape(-1), stamps)
         known = self.confirmed[rows]
         # Rows of already confirmed landmarks: in rounds of distinct landmarks, which
         # keeps each landmark's own order while fusing the rows of a round together.
         if known.any():
             index = np.flatnonzero(known)
-            for batch in _rounds(rows[index]):
-                self._update_confirmed(rows[index[batch]], z[index[batch]], R[index[batch]],
-                                       R_dep[index[batch]], source, stamp, result)
-        for i in np.flatnonzero(~known):
-            row = rows[i]
-            if self.confirmed[row]:  # confirmed earlier in this batch
-                self._update_confirmed(rows[i:i + 1], z[i:i + 1], R[i:i + 1],
-                                       R_dep[i:i + 1], source, stamp, result)
+            for positions in _rounds(rows[index]):
+                self._update_confirmed(rows[index[positions]], batch, index[positions],
+                                       result)
+        for i in np.flatnonzero(~known).tolist():
+            if self.confirmed[rows[i]]:  # confirmed earlier in this batch
+                self._update_confirmed(rows[i:i + 1], batch, np.array([i]), result)
             else:
-                self._add_tentative(row, _Observation(z[i], R[i], R_dep[i], source, stamp),
-                                    result)
+                self._add_tentative(rows[i], batch.observation(i), result)
         return result
 
-    def _update_confirmed(self, rows, z, R, R_dep, source, stamp, result):
+    def _update_confirmed(self, rows, batch, positions, result):
+        z, R, R_dep = batch.z[positions], batch.R[positions], batch.R_dep[positions]
         m, P_ind, P_dep = self.mean[rows], self.cov_ind[rows], self.cov_dep[rows]
         d = z - m
         S = P_ind + P_dep + R
@@ -244,20 +263,24 @@ class LandmarkMap:
                 m[ok], P_ind[ok], P_dep[ok], z[ok], R[ok] - R_dep[ok], R_dep[ok])
             self.observations[good] += 1
             self.consecutive[good] = 0
-            self.last_stamp[good] = stamp
-            self._seen(source)[good] = True
+            self.last_stamp[good] = batch.stamps[positions[ok]]
+            codes = batch.codes[positions[ok]]
+            for code, count in enumerate(np.bincount(codes, minlength=len(batch.names))):
+                if count:
+                    self._seen(batch.names[code])[good[codes == code]] = True
+                    result.accepted[batch.names[code]] += int(count)
             if self._buffers:
                 for row in self._buffers.keys() & set(good.tolist()):
                     del self._buffers[row]
-            result.accepted[source] += int(ok.sum())
         for i in np.flatnonzero(~ok).tolist():
             row = rows[i]
+            observation = batch.observation(positions[i])
             self.rejections[row] += 1
             self.consecutive[row] += 1
-            result.rejected[source] += 1
+            result.rejected[observation.source] += 1
             recent = self._buffers.setdefault(
                 row, deque(maxlen=self.max_consecutive_rejections))
-            recent.append(_Observation(z[i], R[i], R_dep[i], source, stamp))
+            recent.append(observation)
             if self.consecutive[row] >= self.max_consecutive_rejections:
                 self._reinitialise(row, result)
 

@@ -182,6 +182,56 @@ def landmark_to_world_parts(pose, P_pose, z, R, sensor_pose=None):
     return m, symmetric_2x2(*pose_terms), symmetric_2x2(*sensor_terms)
 
 
+def landmark_to_world_dependent(pose, P_pose, z, R, R_bias=None, sensor_pose=None):
+    """
+    Place observed landmarks in the world with their covariance and its dependent part.
+
+    The dependent part is what errors shared between observations contribute: the
+    pose term (every observation from that pose shares it) and a sensor bias term
+    ``J_m_z R_bias J_m_z^T`` (a bias shared by all observations of the sensor). The
+    total adds the independent noise term ``J_m_z R J_m_z^T``.
+
+    Parameters
+    ----------
+    pose : array_like, shape (3,) or (N, 3)
+        Robot pose (x, y, theta).
+    P_pose : array_like, shape (3, 3) or (N, 3, 3)
+        Covariance of the pose.
+    z : array_like, shape (2,) or (N, 2)
+        Range-bearing observation (range [m], bearing [rad]).
+    R : array_like, shape (2, 2) or (N, 2, 2)
+        Covariance of the independent observation noise.
+    R_bias : array_like, shape (2, 2) or (N, 2, 2), optional
+        Covariance of the sensor bias; ``None`` for none.
+    sensor_pose : array_like, shape (3,) or (N, 3), optional
+        Sensor pose in the robot frame; ``None`` means the robot origin.
+
+    Returns
+    -------
+    m : ndarray, shape (2,) or (N, 2)
+    P_m : ndarray, shape (2, 2) or (N, 2, 2)
+        Total covariance: pose, bias and noise terms.
+    P_m_dep : ndarray, shape (2, 2) or (N, 2, 2)
+        Pose and bias terms.
+
+    Raises
+    ------
+    ValueError
+        If a range is below ``sensors.MIN_RANGE`` or a shape is wrong.
+
+    """
+    pose, P_pose, z, R, sensor_pose = _checked(pose, P_pose, z, R, sensor_pose)
+    m, dep, noise = _world_terms(pose, P_pose, z, R, sensor_pose)
+    if R_bias is not None:
+        R_bias = as_matrices(R_bias, 2, 'R_bias')
+        s_theta = pose[..., 2] if sensor_pose is None else pose[..., 2] + sensor_pose[..., 2]
+        angle = s_theta + z[..., 1]
+        cos, sin = np.cos(angle), np.sin(angle)
+        bias = _polar_terms(cos, sin, z[..., 0] * cos, z[..., 0] * sin, R_bias)
+        dep = tuple(d + b for d, b in zip(dep, bias))
+    return (m, symmetric_2x2(*(d + n for d, n in zip(dep, noise))), symmetric_2x2(*dep))
+
+
 _BLOCK = 16384
 """Rows per block in ``landmark_to_world``: keeps the temporaries in the CPU cache."""
 
