@@ -107,7 +107,8 @@ class LandmarkObserver(Node):
         self._sensor_pose = pose if pose.any() else None
         self._R_bias = None
         if config.range_bias_stddev or config.bearing_bias_stddev:
-            self._R_bias = np.diag([config.range_bias_stddev ** 2, config.bearing_bias_stddev ** 2])
+            self._R_bias = np.diag([config.range_bias_stddev ** 2,
+                                    config.bearing_bias_stddev ** 2])
         if (old.max_wait_s, old.marker_rate_hz) != (config.max_wait_s, config.marker_rate_hz):
             self._reset_timers()
 

@@ -4,10 +4,10 @@ from pathlib import Path
 import subprocess
 import sys
 
+from landmark_ros import exercises
 import numpy as np
 import pytest
 
-from landmark_ros import exercises
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 ATOL = 1e-8

@@ -13,7 +13,7 @@ d2 : squared Mahalanobis distance, shape () or (N,).
 import math
 
 from landmark_ros.core._arrays import (as_matrices, as_vectors, det, entries_2x2, solve,
-                                      symmetric_2x2, symmetrise, transpose)
+                                       symmetric_2x2, symmetrise, transpose)
 import numpy as np
 
 
