@@ -31,12 +31,12 @@ setup(
         'to world-frame landmarks with covariance, multi-robot fusion.'
     ),
     license='Apache-2.0',
-    tests_require=['pytest'],
     entry_points={
         'console_scripts': [
             # One 'name = module:function' per node; keep EXPECTED_EXECUTABLES in
             # test/test_colcon_install.py in sync.
             'landmark_observer = landmark_ros.observer_node:main',
+            'landmark_fuser = landmark_ros.fuser_node:main',
         ],
     },
 )

@@ -88,12 +88,12 @@ def _coerce(spec, value):
             raise ValueError(f'{spec.name} must be a string, got {value!r}')
         return value
     items = tuple(value)
-    if len(default) and len(items) != len(default):
-        raise ValueError(f'{spec.name} must have {len(default)} entries, got {len(items)}')
     if default and isinstance(default[0], str):
         if not all(isinstance(item, str) for item in items):
             raise ValueError(f'{spec.name} must be a list of strings, got {value!r}')
         return items
+    if len(items) != len(default):
+        raise ValueError(f'{spec.name} must have {len(default)} entries, got {len(items)}')
     if not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
                for v in items):
         raise ValueError(f'{spec.name} must hold finite numbers, got {value!r}')
@@ -163,3 +163,66 @@ class ObserverConfig(ConfigBase):
         """Check relations between fields."""
         if self.max_pose_gap_s > self.pose_buffer_s:
             raise ValueError('max_pose_gap_s must not exceed pose_buffer_s')
+
+
+@dataclass(frozen=True)
+class FuserConfig(ConfigBase):
+    """Parameters of ``landmark_fuser``."""
+
+    world_frame: str = param(
+        'map', 'Frame the landmark clouds must be in; the fused map uses it too.',
+        read_only=True)
+    input_topics: tuple = param(
+        ('landmarks',), 'Landmark topics to fuse, one per robot (each one source).',
+        read_only=True)
+    fusion: str = param(
+        'split_covariance_intersection',
+        'independent, covariance_intersection or split_covariance_intersection.',
+        read_only=True)
+    gate_probability: float = param(
+        0.999, 'Probability of the chi-square gate on observations of known landmarks.',
+        read_only=True, low=0.5, high=0.999999)
+    min_observations: int = param(
+        2, 'Mutually consistent observations needed before a landmark is published.',
+        read_only=True, low=1, high=1000)
+    max_consecutive_rejections: int = param(
+        5, 'Rejections in a row after which a landmark is rebuilt from them.',
+        read_only=True, low=1, high=1000)
+    update_period_s: float = param(
+        0.02, 'Queued observations are fused in one batch at this period [s].',
+        read_only=True, low=0.001, high=10.0)
+    publish_rate_hz: float = param(
+        5.0, 'Most fused maps per second, published only when the map changed.',
+        read_only=True, low=0.01, high=1000.0)
+    max_queue_messages: int = param(
+        100, 'Messages one source may have waiting; the oldest is dropped beyond.',
+        read_only=True, low=1, high=100000)
+    input_depth: int = param(
+        100, 'Queue depth of the input subscriptions (reliable QoS).',
+        read_only=True, low=1, high=10000)
+    source_timeout_s: float = param(
+        5.0, 'A source silent this long is reported stale in the diagnostics [s].',
+        low=0.1, high=86400.0)
+    map_file: str = param(
+        '', "JSON file the map is loaded from at start and saved to; '' disables.",
+        read_only=True)
+    autosave_period_s: float = param(
+        30.0, 'Period of saving the map when it changed; 0 saves only on request and at '
+        'shutdown [s].', read_only=True, low=0.0, high=86400.0)
+    marker_sigma: float = param(
+        2.0, 'Size of the marker ellipses in standard deviations.', low=0.1, high=10.0)
+    diagnostics_period_s: float = param(
+        1.0, 'Period of the /diagnostics status [s].', read_only=True, low=0.05, high=60.0)
+    log_throttle_s: float = param(
+        5.0, 'Shortest interval between two log lines about the same problem [s].',
+        low=0.0, high=3600.0)
+
+    def check(self):
+        """Check relations between fields."""
+        from landmark_ros.core.landmark_map import FUSION_METHODS
+        if self.fusion not in FUSION_METHODS:
+            raise ValueError(f'fusion must be one of {FUSION_METHODS}, got {self.fusion!r}')
+        if not self.input_topics or not all(self.input_topics):
+            raise ValueError('input_topics must list at least one topic name')
+        if len(set(self.input_topics)) != len(self.input_topics):
+            raise ValueError('input_topics must not repeat a topic')

@@ -2,7 +2,8 @@
 
 from collections import Counter
 
-from landmark_ros.core.gaussian import COVARIANCE_PROBLEMS, covariance_status
+from landmark_ros.core.gaussian import (COVARIANCE_ASYMMETRIC, COVARIANCE_NOT_PSD,
+                                        COVARIANCE_PROBLEMS, covariance_status)
 from landmark_ros.core.landmarks import landmark_to_world_dependent
 from landmark_ros.core.sensors import MIN_RANGE
 import numpy as np
@@ -12,6 +13,34 @@ MAX_ID = 2 ** 32 - 1
 
 
 NOISE_FIELDS = ('range_variance', 'bearing_variance', 'range_bearing_covariance')
+
+
+def first_problems(count, checks):
+    """
+    Combine row checks: each bad row is counted once, under its first problem.
+
+    Parameters
+    ----------
+    count : int
+        Number of rows.
+    checks : list of (str, ndarray of bool, shape (N,))
+        Reason names and where they apply, in order of precedence.
+
+    Returns
+    -------
+    valid : ndarray of bool, shape (N,)
+    reasons : collections.Counter
+        Rows per reason.
+
+    """
+    valid = np.ones(count, dtype=bool)
+    reasons = Counter()
+    for name, bad in checks:
+        new = bad & valid
+        if new.any():
+            reasons[name] = int(new.sum())
+            valid &= ~new
+    return valid, reasons
 
 
 def observation_noise(columns, range_variance, bearing_variance):
@@ -90,14 +119,7 @@ def row_problems(ids, z, R):
         checks.append(('negative_variance', (R[:, 0, 0] < 0.0) | (R[:, 1, 1] < 0.0)))
         checks += [(f'noise_{name}', status == code)
                    for code, name in COVARIANCE_PROBLEMS.items()]
-    valid = np.ones(len(ids), dtype=bool)
-    reasons = Counter()
-    for name, bad in checks:
-        new = bad & valid
-        if new.any():
-            reasons[name] = int(new.sum())
-            valid &= ~new
-    return valid, reasons
+    return first_problems(len(ids), checks)
 
 
 def landmarks_from_rows(ids, z, R, pose, P_pose, sensor_pose=None, R_bias=None):
@@ -144,3 +166,45 @@ def landmarks_from_rows(ids, z, R, pose, P_pose, sensor_pose=None, R_bias=None):
         reasons['result_nonfinite'] += int((~finite).sum())
         ids, m, P_m, P_dep = ids[finite], m[finite], P_m[finite], P_dep[finite]
     return ids, m, P_m, P_dep, reasons
+
+
+def landmark_row_problems(ids, m, P, P_dep):
+    """
+    Find the landmark rows (fuser input) that cannot be fused, and why.
+
+    Parameters
+    ----------
+    ids : ndarray of int, shape (N,)
+        Landmark IDs.
+    m : ndarray, shape (N, 2)
+        Positions [m].
+    P : ndarray, shape (N, 2, 2)
+        Total covariances; fusion needs them positive definite.
+    P_dep : ndarray, shape (N, 2, 2)
+        Dependent parts; positive semi-definite and not larger than ``P``.
+
+    Returns
+    -------
+    valid : ndarray of bool, shape (N,)
+    reasons : collections.Counter
+        Rejected rows per reason (each row counted once, under its first problem).
+
+    """
+    finite = np.isfinite(m.sum(axis=1) + P.sum(axis=(1, 2)) + P_dep.sum(axis=(1, 2)))
+    with np.errstate(invalid='ignore'):
+        total = np.atleast_1d(covariance_status(np.where(finite[:, None, None], P, 0.0)))
+        scale = np.maximum(np.abs(P).max(axis=(1, 2)), 1e-300)
+        det = P[:, 0, 0] * P[:, 1, 1] - P[:, 0, 1] * P[:, 1, 0]
+        definite = (P[:, 0, 0] > 0.0) & (det > 1e-12 * scale * scale)
+        dependent = (np.atleast_1d(covariance_status(np.where(finite[:, None, None], P_dep, 0.0)))
+                     == 0) & (np.atleast_1d(covariance_status(
+                         np.where(finite[:, None, None], P - P_dep, 0.0))) == 0)
+    checks = [
+        ('landmark_nonfinite', ~finite),
+        ('invalid_id', (ids < 0) | (ids > MAX_ID)),
+        ('covariance_asymmetric', total == COVARIANCE_ASYMMETRIC),
+        ('covariance_not_psd', total == COVARIANCE_NOT_PSD),
+        ('covariance_singular', ~definite),
+        ('dependent_part_invalid', ~dependent),
+    ]
+    return first_problems(len(ids), checks)

@@ -1,0 +1,133 @@
+"""
+Save and load the fused map as versioned, human-readable JSON, atomically (ROS-free).
+
+A save writes a temporary file in the same directory, flushes and fsyncs it, then
+renames it over the map file (and fsyncs the directory), so a crash at any moment
+leaves either the previous map or the new one, never a torn file.
+"""
+
+import datetime
+import json
+import os
+import tempfile
+
+FORMAT = 'landmark_ros/map'
+VERSION = 1
+
+
+class MapFileError(ValueError):
+    """A map file that cannot be used: unreadable, corrupt, or of another version."""
+
+
+def save(path, records, world_frame, fusion):
+    """
+    Write the map to ``path`` atomically.
+
+    Parameters
+    ----------
+    path : str
+        Map file; its directory must exist.
+    records : list of dict
+        Landmarks, as ``LandmarkMap.to_records`` returns them.
+    world_frame : str
+        Frame of the landmark positions.
+    fusion : str
+        Fusion method that made the map.
+
+    """
+    document = {
+        'format': FORMAT,
+        'version': VERSION,
+        'saved_at': datetime.datetime.now(datetime.timezone.utc).isoformat(),
+        'world_frame': world_frame,
+        'fusion': fusion,
+        'landmarks': records,
+    }
+    directory = os.path.dirname(os.path.abspath(path))
+    handle, temporary = tempfile.mkstemp(prefix='.' + os.path.basename(path) + '.',
+                                         suffix='.tmp', dir=directory)
+    try:
+        with os.fdopen(handle, 'w') as stream:
+            json.dump(document, stream, indent=1)
+            stream.write('\n')
+            stream.flush()
+            os.fsync(stream.fileno())
+        os.replace(temporary, path)
+    except BaseException:
+        if os.path.exists(temporary):
+            os.unlink(temporary)
+        raise
+    descriptor = os.open(directory, os.O_RDONLY)
+    try:
+        os.fsync(descriptor)
+    finally:
+        os.close(descriptor)
+
+
+def load(path, world_frame):
+    """
+    Read a map file written by ``save``.
+
+    Parameters
+    ----------
+    path : str
+        Map file.
+    world_frame : str
+        The frame the caller works in; the file must use the same.
+
+    Returns
+    -------
+    document : dict
+        With ``landmarks`` (the records), ``fusion``, ``saved_at``.
+
+    Raises
+    ------
+    MapFileError
+        If the file is not valid JSON, not a landmark_ros map, of another version,
+        or in another frame.
+    FileNotFoundError
+        If there is no file.
+
+    """
+    with open(path) as stream:
+        text = stream.read()
+    try:
+        document = json.loads(text)
+    except json.JSONDecodeError as error:
+        raise MapFileError(f'not valid JSON: {error}') from error
+    if not isinstance(document, dict) or document.get('format') != FORMAT:
+        raise MapFileError(f'not a {FORMAT} file')
+    if document.get('version') != VERSION:
+        raise MapFileError(f"version {document.get('version')!r}, expected {VERSION}")
+    if document.get('world_frame') != world_frame:
+        raise MapFileError(
+            f"map in frame {document.get('world_frame')!r}, expected {world_frame!r}")
+    if not isinstance(document.get('landmarks'), list):
+        raise MapFileError('no landmark list')
+    return document
+
+
+def move_aside(path, now=None):
+    """
+    Rename an unusable map file out of the way and return its new name.
+
+    Parameters
+    ----------
+    path : str
+        Map file.
+    now : datetime.datetime, optional
+        Time for the new name; the current UTC time by default.
+
+    Returns
+    -------
+    str
+        ``<path>.bad-<YYYYmmddTHHMMSSZ>`` (with a counter if that exists).
+
+    """
+    now = now or datetime.datetime.now(datetime.timezone.utc)
+    base = f"{path}.bad-{now.strftime('%Y%m%dT%H%M%SZ')}"
+    target, counter = base, 1
+    while os.path.exists(target):
+        target, counter = f'{base}-{counter}', counter + 1
+    os.replace(path, target)
+    return target
