@@ -172,3 +172,15 @@ def symmetric_2x2(xx, xy, yy):
 def entries_2x2(P):
     """Return ``(xx, xy, yy)`` of 2x2 matrices, the off-diagonal averaged."""
     return P[..., 0, 0], 0.5 * (P[..., 0, 1] + P[..., 1, 0]), P[..., 1, 1]
+
+
+def common_batch_shape(vectors=(), matrices=()):
+    """Return the broadcast batch shape, ``()`` or ``(N,)``, of vectors and matrices."""
+    return np.broadcast_shapes(*(v.shape[:-1] for v in vectors if v is not None),
+                               *(M.shape[:-2] for M in matrices if M is not None))
+
+
+def to_batch(shape, array, item_ndim):
+    """Broadcast an output to the batch shape ``shape`` (a copy only when it grows)."""
+    target = tuple(shape) + array.shape[array.ndim - item_ndim:]
+    return array if array.shape == target else np.broadcast_to(array, target).copy()

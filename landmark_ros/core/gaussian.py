@@ -12,8 +12,9 @@ d2 : squared Mahalanobis distance, shape () or (N,).
 
 import math
 
-from landmark_ros.core._arrays import (as_matrices, as_vectors, det, entries_2x2, solve,
-                                       symmetric_2x2, symmetrise, transpose)
+from landmark_ros.core._arrays import (as_matrices, as_vectors, common_batch_shape, det,
+                                       entries_2x2, solve, symmetric_2x2, symmetrise,
+                                       to_batch, transpose)
 import numpy as np
 
 
@@ -73,13 +74,15 @@ def fuse(m1, P1, m2, P2):
 
     """
     m1, P1, m2, P2 = _pair(m1, P1, m2, P2)
+    shape = common_batch_shape([m1, m2], [P1, P2])
     if m1.shape[-1] == 2:
-        return _fuse_2x2(m1, entries_2x2(P1), m2, entries_2x2(P2))
+        m, P = _fuse_2x2(m1, entries_2x2(P1), m2, entries_2x2(P2))
+        return to_batch(shape, m, 1), to_batch(shape, P, 2)
     S = P1 + P2
     # P1 S^-1 P2 equals P1 - P1 S^-1 P1 and treats both inputs alike.
     P = symmetrise(P1 @ solve(S, np.broadcast_to(P2, S.shape)))
     m = (P2 @ _solve_vec(S, m1)[..., None] + P1 @ _solve_vec(S, m2)[..., None])[..., 0]
-    return m, P
+    return to_batch(shape, m, 1), to_batch(shape, P, 2)
 
 
 def information(P):
@@ -244,7 +247,8 @@ def covariance_intersection(m1, P1, m2, P2, omega=None):
     second = (omega <= 0.0)[..., None]
     m = np.where(first, m1, np.where(second, m2, m))
     P = np.where(first[..., None], P1, np.where(second[..., None], P2, P))
-    return m, P
+    shape = np.broadcast_shapes(common_batch_shape([m1, m2], [P1, P2]), omega.shape)
+    return to_batch(shape, m, 1), to_batch(shape, P, 2)
 
 
 def split_covariance_intersection_omega(P1_ind, P1_dep, P2_ind, P2_dep, grid=16):
@@ -351,9 +355,12 @@ def split_covariance_intersection(m1, P1_ind, P1_dep, m2, P2_ind, P2_dep, omega=
     omega = np.asarray(omega, dtype=np.float64)
     if not np.all((omega > 0.0) & (omega < 1.0)):
         raise ValueError(f'omega must lie strictly between 0 and 1, got {omega}')
+    shape = np.broadcast_shapes(common_batch_shape([m1, m2], [P1i, P1d, P2i, P2d]),
+                                omega.shape)
     if n == 2:
-        return _split_ci_2x2(m1, entries_2x2(P1i), entries_2x2(P1d), m2, entries_2x2(P2i),
-                             entries_2x2(P2d), omega)
+        m, P_ind, P_dep = _split_ci_2x2(m1, entries_2x2(P1i), entries_2x2(P1d), m2,
+                                        entries_2x2(P2i), entries_2x2(P2d), omega)
+        return to_batch(shape, m, 1), to_batch(shape, P_ind, 2), to_batch(shape, P_dep, 2)
     w = omega[..., None, None]
     A = P1d / w + P1i
     B = P2d / (1.0 - w) + P2i
@@ -364,7 +371,7 @@ def split_covariance_intersection(m1, P1_ind, P1_dep, m2, P2_ind, P2_dep, omega=
     m = (W1 @ m1[..., None] + W2 @ m2[..., None])[..., 0]
     P = symmetrise(W2 @ B)
     P_ind = symmetrise(W1 @ P1i @ transpose(W1) + W2 @ P2i @ transpose(W2))
-    return m, P_ind, P - P_ind
+    return to_batch(shape, m, 1), to_batch(shape, P_ind, 2), to_batch(shape, P - P_ind, 2)
 
 
 def _det_2x2(xx, xy, yy):
@@ -375,7 +382,10 @@ def _fuse_2x2(m1, P1, m2, P2):
     """Return ``fuse`` for 2x2 covariances given as ``(xx, xy, yy)`` entries."""
     (a1, b1, c1), (a2, b2, c2) = P1, P2
     sa, sb, sc = a1 + a2, b1 + b2, c1 + c2
-    inv_det = 1.0 / (sa * sc - sb * sb)
+    det_S = sa * sc - sb * sb
+    if not np.all(det_S != 0.0):
+        raise np.linalg.LinAlgError('P1 + P2 is singular')
+    inv_det = 1.0 / det_S
     # K = P1 S^-1; the fused mean is m1 + K (m2 - m1), the covariance K P2.
     k00, k01 = (a1 * sc - b1 * sb) * inv_det, (b1 * sa - a1 * sb) * inv_det
     k10, k11 = (b1 * sc - c1 * sb) * inv_det, (c1 * sa - b1 * sb) * inv_det

@@ -15,7 +15,8 @@ m : landmark in the world, shape (2,) or (N, 2); P_m its covariance.
 """
 
 from landmark_ros.core import pose2, sensors
-from landmark_ros.core._arrays import as_matrices, as_vectors, sandwich, symmetric_2x2
+from landmark_ros.core._arrays import (as_matrices, as_vectors, common_batch_shape, sandwich,
+                                       symmetric_2x2, to_batch)
 import numpy as np
 
 
@@ -41,10 +42,12 @@ def sensor_in_world(pose, P_pose, sensor_pose=None):
     """
     pose = as_vectors(pose, 3, 'pose')
     P_pose = as_matrices(P_pose, 3, 'P_pose')
-    if sensor_pose is None:
-        return pose, P_pose
-    J_s_pose, _ = pose2.compose_jacobians(pose, sensor_pose)
-    return pose2.compose(pose, sensor_pose), sandwich(J_s_pose, P_pose)
+    if sensor_pose is not None:
+        sensor_pose = as_vectors(sensor_pose, 3, 'sensor_pose')
+        J_s_pose, _ = pose2.compose_jacobians(pose, sensor_pose)
+        pose, P_pose = pose2.compose(pose, sensor_pose), sandwich(J_s_pose, P_pose)
+    shape = common_batch_shape([pose, sensor_pose], [P_pose])
+    return to_batch(shape, pose, 1), to_batch(shape, P_pose, 2)
 
 
 def polar_covariance(r, angle, R):
@@ -132,6 +135,10 @@ def _world_terms(pose, P_pose, z, R, sensor_pose):
     return m, pose_terms, _polar_terms(cos, sin, dx, dy, R)
 
 
+def _shape(pose, P_pose, z, R, sensor_pose, R_bias=None):
+    return common_batch_shape([pose, z, sensor_pose], [P_pose, R, R_bias])
+
+
 def _checked(pose, P_pose, z, R, sensor_pose):
     pose = as_vectors(pose, 3, 'pose')
     P_pose = as_matrices(P_pose, 3, 'P_pose')
@@ -178,8 +185,11 @@ def landmark_to_world_parts(pose, P_pose, z, R, sensor_pose=None):
         If a range is below ``sensors.MIN_RANGE`` or a shape is wrong.
 
     """
-    m, pose_terms, sensor_terms = _world_terms(*_checked(pose, P_pose, z, R, sensor_pose))
-    return m, symmetric_2x2(*pose_terms), symmetric_2x2(*sensor_terms)
+    args = _checked(pose, P_pose, z, R, sensor_pose)
+    m, pose_terms, sensor_terms = _world_terms(*args)
+    shape = _shape(*args)
+    return (to_batch(shape, m, 1), to_batch(shape, symmetric_2x2(*pose_terms), 2),
+            to_batch(shape, symmetric_2x2(*sensor_terms), 2))
 
 
 def landmark_to_world_dependent(pose, P_pose, z, R, R_bias=None, sensor_pose=None):
@@ -229,7 +239,10 @@ def landmark_to_world_dependent(pose, P_pose, z, R, R_bias=None, sensor_pose=Non
         cos, sin = np.cos(angle), np.sin(angle)
         bias = _polar_terms(cos, sin, z[..., 0] * cos, z[..., 0] * sin, R_bias)
         dep = tuple(d + b for d, b in zip(dep, bias))
-    return (m, symmetric_2x2(*(d + n for d, n in zip(dep, noise))), symmetric_2x2(*dep))
+    shape = _shape(pose, P_pose, z, R, sensor_pose, R_bias)
+    total = symmetric_2x2(*(d + n for d, n in zip(dep, noise)))
+    return (to_batch(shape, m, 1), to_batch(shape, total, 2),
+            to_batch(shape, symmetric_2x2(*dep), 2))
 
 
 _BLOCK = 16384
@@ -268,12 +281,14 @@ def landmark_to_world(pose, P_pose, z, R, sensor_pose=None):
 
     """
     args = _checked(pose, P_pose, z, R, sensor_pose)
-    z = args[2]
-    if z.ndim == 1 or len(z) <= _BLOCK:
+    shape = _shape(*args)
+    if not shape or shape[0] <= _BLOCK:
         m, (pxx, pxy, pyy), (sxx, sxy, syy) = _world_terms(*args)
-        return m, symmetric_2x2(pxx + sxx, pxy + sxy, pyy + syy)
-    count = len(z)
-    batched = [a is not None and a.ndim == d + 1 for a, d in zip(args, (1, 2, 1, 2, 1))]
+        return (to_batch(shape, m, 1),
+                to_batch(shape, symmetric_2x2(pxx + sxx, pxy + sxy, pyy + syy), 2))
+    count = shape[0]
+    batched = [a is not None and a.ndim == d + 1 and len(a) > 1
+               for a, d in zip(args, (1, 2, 1, 2, 1))]
     m = np.empty((count, 2))
     P_m = np.empty((count, 2, 2))
     for start in range(0, count, _BLOCK):
@@ -316,17 +331,21 @@ def relative_pose(p1, P1, p2, P2, method='between'):
         If ``method`` is unknown or a shape is wrong.
 
     """
-    P1 = as_matrices(P1, 3, 'P1')
-    P2 = as_matrices(P2, 3, 'P2')
+    p1, p2 = as_vectors(p1, 3, 'p1'), as_vectors(p2, 3, 'p2')
+    P1, P2 = as_matrices(P1, 3, 'P1'), as_matrices(P2, 3, 'P2')
     if method == 'between':
         J_12_1, J_12_2 = pose2.between_jacobians(p1, p2)
-        return pose2.between(p1, p2), sandwich(J_12_1, P1) + sandwich(J_12_2, P2)
-    if method == 'composition':
+        p12, P12 = pose2.between(p1, p2), sandwich(J_12_1, P1) + sandwich(J_12_2, P2)
+    elif method == 'composition':
         p1_inv = pose2.inverse(p1)
         P1_inv = sandwich(pose2.inverse_jacobian(p1), P1)
         J_12_inv, J_12_2 = pose2.compose_jacobians(p1_inv, p2)
-        return pose2.compose(p1_inv, p2), sandwich(J_12_inv, P1_inv) + sandwich(J_12_2, P2)
-    raise ValueError(f"method must be 'between' or 'composition', got {method!r}")
+        p12 = pose2.compose(p1_inv, p2)
+        P12 = sandwich(J_12_inv, P1_inv) + sandwich(J_12_2, P2)
+    else:
+        raise ValueError(f"method must be 'between' or 'composition', got {method!r}")
+    shape = common_batch_shape([p1, p2], [P1, P2])
+    return to_batch(shape, p12, 1), to_batch(shape, P12, 2)
 
 
 def predict_observation(pose, P_pose, m, P_m, sensor_pose=None):
@@ -362,9 +381,11 @@ def predict_observation(pose, P_pose, m, P_m, sensor_pose=None):
 
     """
     s, P_s = sensor_in_world(pose, P_pose, sensor_pose)
-    P_m = as_matrices(P_m, 2, 'P_m')
+    m, P_m = as_vectors(m, 2, 'm'), as_matrices(P_m, 2, 'P_m')
     J_z_s, J_z_m = sensors.observe_jacobians(s, m)
-    return sensors.observe(s, m), sandwich(J_z_s, P_s) + sandwich(J_z_m, P_m)
+    shape = common_batch_shape([s, m], [P_s, P_m])
+    return (to_batch(shape, sensors.observe(s, m), 1),
+            to_batch(shape, sandwich(J_z_s, P_s) + sandwich(J_z_m, P_m), 2))
 
 
 def nees(m, P_m, m_true):

@@ -1,0 +1,85 @@
+"""Shared test helpers: a numerical Jacobian, a seeded RNG and random inputs."""
+
+import zlib
+
+from landmark_ros.core.pose2 import wrap_angle
+import numpy as np
+import pytest
+
+
+def numerical_jacobian(f, x, angle_rows=(), eps=1e-6):
+    """
+    Return the central-difference Jacobian of ``f`` at ``x``, shape (n_out, n_in).
+
+    ``f`` maps a 1-D array to a 1-D array. The rows of ``f(x + h) - f(x - h)``
+    listed in ``angle_rows`` are wrapped to [-pi, pi) before dividing by ``2 h``,
+    so angle outputs that jump across +-pi differentiate correctly.
+    """
+    x = np.asarray(x, dtype=np.float64)
+    if x.ndim != 1:
+        raise ValueError(f'x must be 1-D, got shape {x.shape}')
+    columns = []
+    for j in range(x.size):
+        h = np.zeros_like(x)
+        h[j] = eps
+        diff = np.atleast_1d(np.asarray(f(x + h), dtype=np.float64)
+                             - np.asarray(f(x - h), dtype=np.float64))
+        rows = list(angle_rows)
+        diff[rows] = wrap_angle(diff[rows])
+        columns.append(diff / (2.0 * eps))
+    return np.stack(columns, axis=-1)
+
+
+@pytest.fixture
+def rng(request):
+    """Return a numpy Generator seeded from the test id: reproducible, distinct per test."""
+    return np.random.default_rng(zlib.crc32(request.node.nodeid.encode()))
+
+
+def random_poses(rng, n=None, scale=10.0):
+    """Return poses with x, y in [-scale, scale) and theta in [-pi, pi)."""
+    shape = () if n is None else (n,)
+    xy = rng.uniform(-scale, scale, shape + (2,))
+    theta = rng.uniform(-np.pi, np.pi, shape + (1,))
+    return np.concatenate([xy, theta], axis=-1)
+
+
+def random_points(rng, n=None, scale=10.0):
+    """Return points with coordinates in [-scale, scale)."""
+    return rng.uniform(-scale, scale, (() if n is None else (n,)) + (2,))
+
+
+def random_observations(rng, n=None, r_min=0.5, r_max=20.0):
+    """Return range-bearing observations, range in [r_min, r_max), bearing in [-pi, pi)."""
+    shape = () if n is None else (n,)
+    return np.stack([rng.uniform(r_min, r_max, shape), rng.uniform(-np.pi, np.pi, shape)],
+                    axis=-1)
+
+
+def random_spd(rng, dim, n=None, scale=1.0, eps=1e-3):
+    """Return symmetric positive definite matrices ``A A^T + eps I`` (correlated)."""
+    shape = () if n is None else (n,)
+    A = scale * rng.standard_normal(shape + (dim, dim))
+    return A @ np.swapaxes(A, -1, -2) + eps * np.eye(dim)
+
+
+def assert_psd(M, atol=1e-12):
+    """Assert that every symmetric matrix in ``M`` has eigenvalues >= -atol."""
+    M = np.asarray(M)
+    np.testing.assert_allclose(M, np.swapaxes(M, -1, -2), rtol=0, atol=atol)
+    smallest = np.linalg.eigvalsh(0.5 * (M + np.swapaxes(M, -1, -2)))[..., 0]
+    assert np.all(smallest >= -atol), f'smallest eigenvalue {np.min(smallest)!r} < -{atol}'
+
+
+def assert_jacobians(value_fn, jacobian_fn, args, angle_rows=(), atol=1e-6):
+    """Assert that each Jacobian ``jacobian_fn(*args)`` returns matches the numerical one."""
+    analytic = jacobian_fn(*args)
+    analytic = analytic if isinstance(analytic, tuple) else (analytic,)
+    assert len(analytic) == len(args)
+    for i, J in enumerate(analytic):
+        def f(x, i=i):
+            return value_fn(*args[:i], x, *args[i + 1:])
+        assert J.dtype == np.float64
+        np.testing.assert_allclose(
+            J, numerical_jacobian(f, args[i], angle_rows), rtol=0, atol=atol,
+            err_msg=f'{jacobian_fn.__name__}: Jacobian {i} at {args}')
