@@ -46,6 +46,10 @@ class FieldSpec:
     required: bool = True
 
 
+_DTYPES = {}
+"""Structured dtypes by cloud layout: a stream of clouds reuses one layout."""
+
+
 def read_columns(msg, specs):
     """
     Return the requested fields of every point as float64 or int64 columns.
@@ -69,6 +73,34 @@ def read_columns(msg, specs):
         ``missing_field``, ``unsupported_field_type`` or ``data_length_mismatch``.
 
     """
+    layout = (tuple((f.name, f.offset, f.datatype, f.count) for f in msg.fields),
+              msg.point_step, msg.is_bigendian, specs)
+    dtype = _DTYPES.get(layout)
+    if dtype is None:
+        dtype = _DTYPES[layout] = _layout_dtype(msg, specs)
+        if len(_DTYPES) > 64:
+            _DTYPES.pop(next(iter(_DTYPES)))
+    count = msg.width * msg.height
+    if count and msg.row_step < msg.width * msg.point_step:
+        raise CloudError('data_length_mismatch',
+                         f'row_step {msg.row_step} < width {msg.width} x point_step '
+                         f'{msg.point_step}')
+    if len(msg.data) != msg.row_step * msg.height:
+        raise CloudError('data_length_mismatch',
+                         f'{len(msg.data)} bytes of data for height {msg.height} x row_step '
+                         f'{msg.row_step}')
+    if count == 0:
+        return {name: np.empty(0, _column_type(dtype[name])) for name in dtype.names}
+    if msg.height == 1:
+        rows = np.frombuffer(msg.data, dtype, count=msg.width)
+    else:
+        data = np.frombuffer(msg.data, np.uint8).reshape(msg.height, msg.row_step)
+        rows = data[:, :msg.width * msg.point_step].copy().view(dtype).reshape(-1)
+    return {name: rows[name].astype(_column_type(rows.dtype[name])) for name in dtype.names}
+
+
+def _layout_dtype(msg, specs):
+    """Return the structured dtype of the wanted fields, or raise CloudError."""
     by_name = {field.name: field for field in msg.fields}
     names, formats, offsets = [], [], []
     for spec in specs:
@@ -90,25 +122,8 @@ def read_columns(msg, specs):
         names.append(spec.name)
         formats.append(dtype.newbyteorder('>' if msg.is_bigendian else '<'))
         offsets.append(field.offset)
-    count = msg.width * msg.height
-    if count and msg.row_step < msg.width * msg.point_step:
-        raise CloudError('data_length_mismatch',
-                         f'row_step {msg.row_step} < width {msg.width} x point_step '
-                         f'{msg.point_step}')
-    if len(msg.data) != msg.row_step * msg.height:
-        raise CloudError('data_length_mismatch',
-                         f'{len(msg.data)} bytes of data for height {msg.height} x row_step '
-                         f'{msg.row_step}')
-    if count == 0:
-        return {name: np.empty(0, _column_type(fmt)) for name, fmt in zip(names, formats)}
-    dtype = np.dtype({'names': names, 'formats': formats, 'offsets': offsets,
-                      'itemsize': msg.point_step})
-    if msg.height == 1:
-        rows = np.frombuffer(msg.data, dtype, count=msg.width)
-    else:
-        data = np.frombuffer(msg.data, np.uint8).reshape(msg.height, msg.row_step)
-        rows = data[:, :msg.width * msg.point_step].copy().view(dtype).reshape(-1)
-    return {name: rows[name].astype(_column_type(rows.dtype[name])) for name in names}
+    return np.dtype({'names': names, 'formats': formats, 'offsets': offsets,
+                     'itemsize': msg.point_step})
 
 
 def _column_type(dtype):
@@ -150,7 +165,7 @@ class CloudWriter:
         """Return a zeroed record array of ``count`` rows to fill column by column."""
         return np.zeros(count, self.dtype)
 
-    def message(self, header, rows):
+    def message(self, header, rows, out=None):
         """
         Return a PointCloud2 holding ``rows`` (from ``rows()``) as one unordered row.
 
@@ -160,13 +175,16 @@ class CloudWriter:
             Stamp and frame of the message.
         rows : ndarray, structured with this writer's dtype
             The rows to send.
+        out : sensor_msgs.msg.PointCloud2, optional
+            A message to fill instead of a new one (a publisher may reuse one: it
+            serialises the message when it publishes).
 
         Returns
         -------
         sensor_msgs.msg.PointCloud2
 
         """
-        msg = PointCloud2()
+        msg = PointCloud2() if out is None else out
         msg.header = header
         msg.height = 1
         msg.width = len(rows)

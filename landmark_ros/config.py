@@ -135,6 +135,10 @@ class ObserverConfig(ConfigBase):
     max_pending: int = param(
         100, 'Observation messages that may wait for a pose; the oldest is dropped beyond.',
         read_only=True, low=1, high=100000)
+    max_batch_messages: int = param(
+        16, 'Observation messages already waiting in the subscription queue that one '
+        'callback takes and processes together (1 takes one at a time).',
+        low=1, high=1000)
     time_jump_s: float = param(
         1.0, 'A pose this much older than the newest is a jump back in time (bag loop, '
         'sim reset) and clears the pose history; a smaller step back is dropped [s].',

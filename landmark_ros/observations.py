@@ -134,9 +134,9 @@ def landmarks_from_rows(ids, z, R, pose, P_pose, sensor_pose=None, R_bias=None):
         Range-bearing observation (range [m], bearing [rad]).
     R : ndarray, shape (2, 2) or (N, 2, 2)
         Covariance of the observation noise.
-    pose : ndarray, shape (3,)
-        Robot pose in the world.
-    P_pose : ndarray, shape (3, 3)
+    pose : ndarray, shape (3,) or (N, 3)
+        Robot pose in the world, one for all rows or one per row.
+    P_pose : ndarray, shape (3, 3) or (N, 3, 3)
         Covariance of the pose.
     sensor_pose : ndarray, shape (3,), optional
         Sensor pose in the robot frame; ``None`` means the robot origin.
@@ -145,7 +145,8 @@ def landmarks_from_rows(ids, z, R, pose, P_pose, sensor_pose=None, R_bias=None):
 
     Returns
     -------
-    ids : ndarray of int, shape (K,)
+    kept : ndarray of bool, shape (N,)
+        The rows the results are for (``K`` of them).
     m : ndarray, shape (K, 2)
     P_m : ndarray, shape (K, 2, 2)
         Total covariance.
@@ -155,17 +156,20 @@ def landmarks_from_rows(ids, z, R, pose, P_pose, sensor_pose=None, R_bias=None):
         Rows rejected, by reason; ``K`` plus their total is ``N``.
 
     """
-    valid, reasons = row_problems(ids, z, R)
+    kept, reasons = row_problems(ids, z, R)
     if reasons:
-        ids, z = ids[valid], z[valid]
-        R = R[valid] if R.ndim == 3 else R
+        z = z[kept]
+        R = R[kept] if R.ndim == 3 else R
+        pose = pose[kept] if pose.ndim == 2 else pose
+        P_pose = P_pose[kept] if P_pose.ndim == 3 else P_pose
     with np.errstate(over='ignore', invalid='ignore'):  # huge ranges: caught below
         m, P_m, P_dep = landmark_to_world_dependent(pose, P_pose, z, R, R_bias, sensor_pose)
         finite = np.isfinite(m.sum(axis=1) + P_m.sum(axis=(1, 2)) + P_dep.sum(axis=(1, 2)))
     if not finite.all():
         reasons['result_nonfinite'] += int((~finite).sum())
-        ids, m, P_m, P_dep = ids[finite], m[finite], P_m[finite], P_dep[finite]
-    return ids, m, P_m, P_dep, reasons
+        kept[np.flatnonzero(kept)[~finite]] = False
+        m, P_m, P_dep = m[finite], P_m[finite], P_dep[finite]
+    return kept, m, P_m, P_dep, reasons
 
 
 def landmark_row_problems(ids, m, P, P_dep):

@@ -28,6 +28,7 @@ from landmark_ros.schemas import landmark_message, OBSERVATION_FIELDS
 import numpy as np
 import rclpy
 from rclpy.exceptions import ParameterException
+from rclpy.event_handler import PublisherEventCallbacks
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -55,6 +56,11 @@ def output_qos(depth):
                       reliability=ReliabilityPolicy.RELIABLE)
 
 
+def _observations(columns):
+    """Return the ``(range, bearing)`` rows of decoded observation columns."""
+    return np.stack([columns['range'], columns['bearing']], axis=1)
+
+
 @dataclass
 class _Pending:
     header: Header
@@ -75,6 +81,7 @@ class LandmarkObserver(Node):
         self.poses = pose_buffer.PoseBuffer(self.config.pose_buffer_s * 1e9,
                                             self.config.max_pose_gap_s * 1e9)
         self.pending = deque()
+        self._landmark_msg = PointCloud2()  # refilled for every publish
         self._latest_markers = {}
         self._reported = {}
         self._apply_config(self.config)
@@ -83,18 +90,22 @@ class LandmarkObserver(Node):
         self.create_subscription(PoseWithCovarianceStamped, 'pose', self.on_pose,
                                  input_qos(self.config.input_depth),
                                  qos_overriding_options=overrides)
-        self.create_subscription(PointCloud2, 'observations', self.on_observations,
-                                 input_qos(self.config.input_depth),
-                                 qos_overriding_options=overrides)
+        self._observation_sub = self.create_subscription(
+            PointCloud2, 'observations', self.on_observations,
+            input_qos(self.config.input_depth), qos_overriding_options=overrides)
         self.landmark_pub = self.create_publisher(
             PointCloud2, 'landmarks', output_qos(self.config.output_depth),
             qos_overriding_options=overrides)
+        # No QoS event handlers on the auxiliary outputs: each is a waitable that
+        # every message pays for in the executor.
+        quiet = PublisherEventCallbacks(use_default_callbacks=False)
         self.marker_pub = self.create_publisher(
-            MarkerArray, 'landmark_markers', output_qos(self.config.output_depth))
-        self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
-        self.create_timer(self.config.diagnostics_period_s, self.publish_diagnostics)
-        self._expiry_timer = None
-        self._marker_timer = None
+            MarkerArray, 'landmark_markers', output_qos(self.config.output_depth),
+            event_callbacks=quiet)
+        self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10,
+                                                     event_callbacks=quiet)
+        self._tick_timer = None
+        self._last_run = {}
         self._reset_timers()
 
     # Parameters ---------------------------------------------------------------
@@ -113,17 +124,34 @@ class LandmarkObserver(Node):
             self._reset_timers()
 
     def _reset_timers(self):
-        if not hasattr(self, 'diagnostics_pub'):
+        # One timer for all housekeeping: every timer in a node costs every message
+        # some executor time, so the node keeps a single one.
+        if not hasattr(self, '_tick_timer'):
             return
-        for timer in (self._expiry_timer, self._marker_timer):
-            if timer is not None:
-                self.destroy_timer(timer)
-        period = min(max(self.config.max_wait_s / 2.0, 0.01), 0.5)
-        self._expiry_timer = self.create_timer(period, self.drain)
-        self._marker_timer = None
+        if self._tick_timer is not None:
+            self.destroy_timer(self._tick_timer)
+        periods = [self.config.diagnostics_period_s, max(self.config.max_wait_s / 2.0, 0.01)]
         if self.config.marker_rate_hz > 0.0:
-            self._marker_timer = self.create_timer(1.0 / self.config.marker_rate_hz,
-                                                   self.publish_markers)
+            periods.append(1.0 / self.config.marker_rate_hz)
+        self._tick_timer = self.create_timer(min(periods), self.tick)
+
+    def _due(self, task, period_s, now):
+        last = self._last_run.get(task)
+        if last is not None and 0 <= now - last < period_s * 1e9:
+            return False
+        self._last_run[task] = now
+        return True
+
+    def tick(self):
+        """Expire waiting observations; publish markers and diagnostics when due."""
+        now = self.get_clock().now().nanoseconds
+        if self.pending:
+            self.drain()
+        if self.config.marker_rate_hz > 0.0 and self._due(
+                'markers', 1.0 / self.config.marker_rate_hz, now):
+            self.publish_markers()
+        if self._due('diagnostics', self.config.diagnostics_period_s, now):
+            self.publish_diagnostics()
 
     # Inputs -------------------------------------------------------------------
 
@@ -155,37 +183,64 @@ class LandmarkObserver(Node):
         self.drain()
 
     def on_observations(self, msg):
-        """Read an observation cloud and process it now or when its pose arrives."""
+        """Read observation clouds; process each now or when its pose arrives."""
+        ready = []
+        for cloud in [msg] + self._take_waiting():
+            item = self._read(cloud)
+            if item is None:
+                continue
+            if not self.pending:
+                found = self.poses.lookup(item.stamp_ns, final=self.config.max_wait_s == 0.0)
+                if found.status == pose_buffer.FOUND:
+                    ready.append((item, found.pose, found.P_pose))
+                    continue
+            if len(self.pending) >= self.config.max_pending:
+                oldest = self.pending.popleft()
+                self.counters.add('backlog_dropped', len(oldest.columns['range']),
+                                  f'more than {self.config.max_pending} observation messages '
+                                  'waiting for a pose: dropped the oldest')
+            item.arrived_ns = self.get_clock().now().nanoseconds
+            self.pending.append(item)
+        if ready:
+            self.process(ready)
+        if self.pending:
+            self.drain()
+
+    def _take_waiting(self):
+        """Take the clouds already waiting in the subscription queue (up to a batch)."""
+        taken = []
+        if self.config.max_batch_messages > 1:
+            # What the executor would do one callback at a time; rclpy's own
+            # wait_for_message takes messages the same way.
+            handle = self._observation_sub.handle
+            with handle:
+                while len(taken) < self.config.max_batch_messages - 1:
+                    message_and_info = handle.take_message(PointCloud2, False)
+                    if message_and_info is None:
+                        break
+                    taken.append(message_and_info[0])
+        return taken
+
+    def _read(self, msg):
+        """Decode and check one observation cloud; None (and counted) if unusable."""
         self.counters.add('observation_messages_in')
         try:
             columns = read_columns(msg, OBSERVATION_FIELDS)
         except CloudError as error:
             self.counters.add(error.reason, 1, f'observation message dropped: {error}')
-            return
+            return None
         if self.config.sensor_frame and msg.header.frame_id != self.config.sensor_frame:
             self.counters.add('observation_wrong_frame', 1,
                               f"observations in frame '{msg.header.frame_id}', expected "
                               f"'{self.config.sensor_frame}': message dropped")
-            return
+            return None
         self.counters.add('observations_in', len(columns['range']))
-        item = _Pending(msg.header, stamp_ns(msg.header.stamp), None, columns)
-        if not self.pending:
-            found = self.poses.lookup(item.stamp_ns, final=self.config.max_wait_s == 0.0)
-            if found.status == pose_buffer.FOUND:
-                self.process(item, found.pose, found.P_pose)
-                return
-        if len(self.pending) >= self.config.max_pending:
-            oldest = self.pending.popleft()
-            self.counters.add('backlog_dropped', len(oldest.columns['range']),
-                              f'more than {self.config.max_pending} observation messages '
-                              'waiting for a pose: dropped the oldest')
-        item.arrived_ns = self.get_clock().now().nanoseconds
-        self.pending.append(item)
-        self.drain()
+        return _Pending(msg.header, stamp_ns(msg.header.stamp), None, columns)
 
     def drain(self):
         """Process waiting observations, in order, as far as their poses are known."""
         now = None
+        ready = []
         while self.pending:
             item = self.pending[0]
             found = self.poses.lookup(item.stamp_ns)
@@ -193,12 +248,12 @@ class LandmarkObserver(Node):
                 if now is None:
                     now = self.get_clock().now().nanoseconds
                 if now - item.arrived_ns < self.config.max_wait_s * 1e9:
-                    return
+                    break
                 found = self.poses.lookup(item.stamp_ns, final=True)
             self.pending.popleft()
             rows = len(item.columns['range'])
             if found.status == pose_buffer.FOUND:
-                self.process(item, found.pose, found.P_pose)
+                ready.append((item, found.pose, found.P_pose))
             elif found.status == pose_buffer.TOO_OLD:
                 self.counters.add('observation_too_old', rows,
                                   f'observation stamp {item.stamp_ns * 1e-9:.3f} s is older '
@@ -207,27 +262,61 @@ class LandmarkObserver(Node):
                 self.counters.add('no_pose_in_time', rows,
                                   f'no pose for observation stamp {item.stamp_ns * 1e-9:.3f} s '
                                   f'within max_wait_s = {self.config.max_wait_s}: dropped')
+        if ready:
+            self.process(ready)
 
     # Processing ---------------------------------------------------------------
 
-    def process(self, item, pose, P_pose):
-        """Place the rows of one observation message in the world and publish them."""
-        columns = item.columns
-        z = np.stack([columns['range'], columns['bearing']], axis=1)
-        R = observation_noise(columns, self.config.range_stddev ** 2,
-                              self.config.bearing_stddev ** 2)
-        ids, m, P_m, P_dep, reasons = landmarks_from_rows(
-            columns['id'], z, R, pose, P_pose, self._sensor_pose, self._R_bias)
+    def process(self, ready):
+        """
+        Place the rows of observation messages in the world; publish one cloud each.
+
+        Parameters
+        ----------
+        ready : list of (_Pending, ndarray, ndarray)
+            Each message with its robot pose (3,) and pose covariance (3, 3); all are
+            computed in one call of the core.
+
+        """
+        counts = [len(item.columns['range']) for item, _, _ in ready]
+        columns = [item.columns for item, _, _ in ready]
+        noise = [observation_noise(c, self.config.range_stddev ** 2,
+                                   self.config.bearing_stddev ** 2) for c in columns]
+        if len(ready) == 1:
+            ids, z, R = columns[0]['id'], _observations(columns[0]), noise[0]
+            pose, P_pose = ready[0][1], ready[0][2]
+        else:
+            ids = np.concatenate([c['id'] for c in columns])
+            z = np.concatenate([_observations(c) for c in columns])
+            R = noise[0] if all(r.ndim == 2 for r in noise) else np.concatenate(
+                [np.broadcast_to(r, (n, 2, 2)) for r, n in zip(noise, counts)])
+            pose = np.repeat([p for _, p, _ in ready], counts, axis=0)
+            P_pose = np.repeat([P for _, _, P in ready], counts, axis=0)
+        kept, m, P_m, P_dep, reasons = landmarks_from_rows(
+            ids, z, R, pose, P_pose, self._sensor_pose, self._R_bias)
         for reason, count in reasons.items():
-            self.counters.add(reason, count, f'{count} of {len(z)} rows rejected in the '
-                              f'observation at {item.stamp_ns * 1e-9:.3f} s')
-        header = item.header  # the received message's own header, reused
-        header.frame_id = self.config.world_frame
-        self.landmark_pub.publish(landmark_message(header, ids, m, P_m, P_dep))
+            self.counters.add(reason, count, f'{count} of {len(z)} rows rejected in '
+                              f'{len(ready)} observation message(s) at '
+                              f'{ready[0][0].stamp_ns * 1e-9:.3f} s')
+        ids = ids[kept]
+        if len(ready) == 1:
+            ends = [len(ids)]
+        else:
+            ends = np.cumsum(np.bincount(np.repeat(np.arange(len(ready)), counts)[kept],
+                                         minlength=len(ready))).tolist()
+        markers = self.config.marker_rate_hz > 0.0 and self.marker_pub.get_subscription_count()
+        start = 0
+        for (item, _, _), end in zip(ready, ends):
+            header = item.header  # the received message's own header, reused
+            header.frame_id = self.config.world_frame
+            self.landmark_pub.publish(landmark_message(
+                header, ids[start:end], m[start:end], P_m[start:end], P_dep[start:end],
+                out=self._landmark_msg))
+            if markers:
+                for i in range(start, end):
+                    self._latest_markers[int(ids[i])] = (header, m[i], P_m[i])
+            start = end
         self.counters.add('landmarks_out', len(ids))
-        if self._marker_timer is not None and self.marker_pub.get_subscription_count():
-            for i, landmark_id in enumerate(ids.tolist()):
-                self._latest_markers[landmark_id] = (header, m[i], P_m[i])
 
     # Outputs ------------------------------------------------------------------
 

@@ -98,7 +98,7 @@ def observation_message(header, ids, z, R=None):
     return writer.message(header, rows)
 
 
-def landmark_message(header, ids, m, P_m, P_dep=None, observations=None):
+def landmark_message(header, ids, m, P_m, P_dep=None, observations=None, out=None):
     """
     Return a ``landmarks`` cloud, or a ``fused_landmarks`` one with ``observations``.
 
@@ -116,6 +116,8 @@ def landmark_message(header, ids, m, P_m, P_dep=None, observations=None):
         Their dependent parts; zero when not given.
     observations : array_like of int, shape (N,), optional
         Observations fused per landmark; given, the cloud has the fused schema.
+    out : sensor_msgs.msg.PointCloud2, optional
+        A message to fill instead of a new one.
 
     Returns
     -------
@@ -135,7 +137,7 @@ def landmark_message(header, ids, m, P_m, P_dep=None, observations=None):
         rows['cov_dep_yy'] = P_dep[:, 1, 1]
     if observations is not None:
         rows['observations'] = np.asarray(observations).reshape(-1)
-    return writer.message(header, rows)
+    return writer.message(header, rows, out)
 
 
 def read_landmarks(msg):

@@ -161,7 +161,7 @@ def symmetric_2x2(xx, xy, yy):
     ndarray, shape (2, 2) or (N, 2, 2)
 
     """
-    out = np.empty(np.broadcast_shapes(np.shape(xx), np.shape(xy), np.shape(yy)) + (2, 2))
+    out = np.empty(np.broadcast(xx, xy, yy).shape + (2, 2))
     out[..., 0, 0] = xx
     out[..., 0, 1] = xy
     out[..., 1, 0] = xy
@@ -176,8 +176,12 @@ def entries_2x2(P):
 
 def common_batch_shape(vectors=(), matrices=()):
     """Return the broadcast batch shape, ``()`` or ``(N,)``, of vectors and matrices."""
-    return np.broadcast_shapes(*(v.shape[:-1] for v in vectors if v is not None),
-                               *(M.shape[:-2] for M in matrices if M is not None))
+    shapes = {v.shape[:-1] for v in vectors if v is not None}
+    shapes.update(M.shape[:-2] for M in matrices if M is not None)
+    shapes.discard(())
+    if len(shapes) <= 1:
+        return shapes.pop() if shapes else ()
+    return np.broadcast_shapes(*shapes)
 
 
 def to_batch(shape, array, item_ndim):

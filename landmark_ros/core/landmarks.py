@@ -118,7 +118,7 @@ def _polar_terms(cos, sin, dx, dy, R):
             sin * (rr_sin + 2.0 * rb * dx) + bb_dx * dx)
 
 
-def _world_terms(pose, P_pose, z, R, sensor_pose):
+def _world_terms(pose, P_pose, z, R, sensor_pose, R_extra=None):
     # landmark_from_observation and the sandwiches of its Jacobians (composed with the
     # mounting) in closed form, sharing cos and sin: the observer's hot path. The tests
     # check it against the generic Jacobians.
@@ -132,6 +132,9 @@ def _world_terms(pose, P_pose, z, R, sensor_pose):
         pose_terms = _lever_arm_terms(dx, dy, P_pose)
     else:
         pose_terms = _lever_arm_terms(m[..., 0] - pose[..., 0], m[..., 1] - pose[..., 1], P_pose)
+    if R_extra is not None:
+        return (m, pose_terms, _polar_terms(cos, sin, dx, dy, R),
+                _polar_terms(cos, sin, dx, dy, R_extra))
     return m, pose_terms, _polar_terms(cos, sin, dx, dy, R)
 
 
@@ -231,16 +234,18 @@ def landmark_to_world_dependent(pose, P_pose, z, R, R_bias=None, sensor_pose=Non
 
     """
     pose, P_pose, z, R, sensor_pose = _checked(pose, P_pose, z, R, sensor_pose)
-    m, dep, noise = _world_terms(pose, P_pose, z, R, sensor_pose)
     if R_bias is not None:
+        # The bias and the noise enter the same way: fold the bias into the noise for
+        # the total, and evaluate it alone for the dependent part (same cos and sin).
         R_bias = as_matrices(R_bias, 2, 'R_bias')
-        s_theta = pose[..., 2] if sensor_pose is None else pose[..., 2] + sensor_pose[..., 2]
-        angle = s_theta + z[..., 1]
-        cos, sin = np.cos(angle), np.sin(angle)
-        bias = _polar_terms(cos, sin, z[..., 0] * cos, z[..., 0] * sin, R_bias)
+        m, dep, total_sensor, bias = _world_terms(pose, P_pose, z, R + R_bias, sensor_pose,
+                                                  R_bias)
+        total = symmetric_2x2(*(d + n for d, n in zip(dep, total_sensor)))
         dep = tuple(d + b for d, b in zip(dep, bias))
+    else:
+        m, dep, noise = _world_terms(pose, P_pose, z, R, sensor_pose)
+        total = symmetric_2x2(*(d + n for d, n in zip(dep, noise)))
     shape = _shape(pose, P_pose, z, R, sensor_pose, R_bias)
-    total = symmetric_2x2(*(d + n for d, n in zip(dep, noise)))
     return (to_batch(shape, m, 1), to_batch(shape, total, 2),
             to_batch(shape, symmetric_2x2(*dep), 2))
 
