@@ -27,8 +27,8 @@ from landmark_ros.ros_params import declare_config, keep_in_sync
 from landmark_ros.schemas import landmark_message, OBSERVATION_FIELDS
 import numpy as np
 import rclpy
-from rclpy.exceptions import ParameterException
 from rclpy.event_handler import PublisherEventCallbacks
+from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -37,6 +37,7 @@ from rclpy.qos_overriding_options import QoSOverridingOptions
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header
 from visualization_msgs.msg import MarkerArray
+
 
 THROUGHPUT_COUNTERS = frozenset(
     {'poses_in', 'observation_messages_in', 'observations_in', 'landmarks_out'})
