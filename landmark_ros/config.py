@@ -114,6 +114,9 @@ class ObserverConfig(ConfigBase):
     range_stddev: float = param(
         0.1, 'Range noise standard deviation [m] for rows without range_variance.',
         low=0.0, high=1000.0)
+    range_stddev_per_m: float = param(
+        0.0, 'Range noise growing with the range: standard deviation per metre of range '
+        '[m/m], added in quadrature to range_stddev.', low=0.0, high=10.0)
     bearing_stddev: float = param(
         0.02, 'Bearing noise standard deviation [rad] for rows without bearing_variance.',
         low=0.0, high=math.pi)

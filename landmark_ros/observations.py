@@ -43,40 +43,49 @@ def first_problems(count, checks):
     return valid, reasons
 
 
-def observation_noise(columns, range_variance, bearing_variance):
+def observation_noise(columns, range_variance, bearing_variance, range_variance_per_m2=0.0):
     """
     Return the noise covariance ``R`` of range-bearing observations.
 
     Rows take ``range_variance``, ``bearing_variance`` and ``range_bearing_covariance``
     from their columns when present and not NaN, else the defaults (no correlation).
+    The default range variance is ``range_variance + range_variance_per_m2 * range^2``:
+    a constant part and one proportional to the range.
 
     Parameters
     ----------
     columns : dict of ndarray, shape (N,)
         Fields of the rows by name; 'range' is required.
     range_variance : float [m^2]
-        Default range variance.
+        Default range variance, constant part.
     bearing_variance : float [rad^2]
         Default bearing variance.
+    range_variance_per_m2 : float
+        Default range variance per squared metre of range [m^2 / m^2].
 
     Returns
     -------
     R : ndarray, shape (2, 2) or (N, 2, 2)
-        One matrix shared by all rows when the cloud has no noise fields.
+        One matrix shared by all rows when the cloud has no noise fields and the
+        range variance does not depend on the range.
 
     """
-    if not any(name in columns for name in NOISE_FIELDS):
+    per_row = any(name in columns for name in NOISE_FIELDS)
+    if not per_row and not range_variance_per_m2:
         return np.array([[range_variance, 0.0], [0.0, bearing_variance]])
     count = len(columns['range'])
+    default_rr = range_variance
+    if range_variance_per_m2:
+        default_rr = range_variance + range_variance_per_m2 * columns['range'] ** 2
 
     def column(name, default):
         values = columns.get(name)
         if values is None:
-            return np.full(count, default)
+            return np.broadcast_to(default, (count,))
         return np.where(np.isnan(values), default, values)
 
     R = np.empty((count, 2, 2))
-    R[:, 0, 0] = column('range_variance', range_variance)
+    R[:, 0, 0] = column('range_variance', default_rr)
     R[:, 1, 1] = column('bearing_variance', bearing_variance)
     R[:, 0, 1] = R[:, 1, 0] = column('range_bearing_covariance', 0.0)
     return R

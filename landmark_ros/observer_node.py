@@ -282,7 +282,8 @@ class LandmarkObserver(Node):
         counts = [len(item.columns['range']) for item, _, _ in ready]
         columns = [item.columns for item, _, _ in ready]
         noise = [observation_noise(c, self.config.range_stddev ** 2,
-                                   self.config.bearing_stddev ** 2) for c in columns]
+                                   self.config.bearing_stddev ** 2,
+                                   self.config.range_stddev_per_m ** 2) for c in columns]
         if len(ready) == 1:
             ids, z, R = columns[0]['id'], _observations(columns[0]), noise[0]
             pose, P_pose = ready[0][1], ready[0][2]
