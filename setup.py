@@ -37,6 +37,8 @@ setup(
             # test/test_colcon_install.py in sync.
             'landmark_observer = landmark_ros.observer_node:main',
             'landmark_fuser = landmark_ros.fuser_node:main',
+            'landmark_sim = landmark_ros.sim_node:main',
+            'landmark_mrclam = landmark_ros.mrclam:main',
         ],
     },
 )

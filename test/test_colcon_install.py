@@ -14,7 +14,9 @@ import pytest
 # test below fails if the two lists differ.
 EXPECTED_EXECUTABLES = [
     'landmark_fuser',
+    'landmark_mrclam',
     'landmark_observer',
+    'landmark_sim',
 ]
 
 PACKAGE = 'landmark_ros'
