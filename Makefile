@@ -23,7 +23,8 @@ help:
 	@echo '  venv   create/update .venv (ROS Jazzy wheels, dev tools, package editable)'
 	@echo '  test   run the whole test suite (extra pytest args: PYTEST_ARGS="...")'
 	@echo '  lint   run only the flake8 / pep257 linter tests'
-	@echo '  bench  run every bench/*.py one after another'
+	@echo '  bench  run every bench/bench_*.py, then one summary (also bench/results.md)'
+	@echo '  demo   simulated 3-robot run: sim, observers, fuser; table + demo.png (DEMO_ARGS="...")'
 	@echo '  clean  remove .venv, build artefacts and __pycache__'
 	@echo 'ROS_AUTOMATIC_DISCOVERY_RANGE=$(ROS_AUTOMATIC_DISCOVERY_RANGE) is exported to all targets.'
 
@@ -44,13 +45,30 @@ test: venv
 lint: venv
 	$(PYTEST) test -m linter $(PYTEST_ARGS)
 
+# Runs every bench/bench_*.py in turn (each log in bench/results/, git-ignored), then
+# one summary table of their RESULT lines, also written to bench/results.md. A
+# benchmark that crashes does not stop the others; the target fails at the end.
 bench: venv
-	@shopt -s nullglob; files=(bench/*.py); \
-	if [ $${#files[@]} -eq 0 ]; then echo 'bench: no bench/*.py yet, nothing to run'; exit 0; fi; \
+	@shopt -s nullglob; files=(bench/bench_*.py); \
+	if [ $${#files[@]} -eq 0 ]; then echo 'bench: no bench/bench_*.py yet, nothing to run'; exit 0; fi; \
+	mkdir -p bench/results; rm -f bench/results/*.log; status=0; logs=(); \
 	for f in "$${files[@]}"; do \
+		log="bench/results/$$(basename "$$f" .py).log"; logs+=("$$log"); \
 		echo "== $$f"; \
-		$(VPY) "$$f" || exit $$?; \
-	done
+		PYTHONUNBUFFERED=1 $(VPY) "$$f" 2>&1 | tee "$$log"; rc=$${PIPESTATUS[0]}; \
+		if [ $$rc -ne 0 ]; then echo "bench: $$f exited with status $$rc"; status=$$rc; fi; \
+	done; \
+	echo; $(VPY) bench/summary.py --markdown bench/results.md "$${logs[@]}" || status=$$?; \
+	exit $$status
+
+# Simulator, one observer per robot and the fuser as separate processes in a private
+# ROS domain on the loopback interface; prints the per-landmark table, RMSE and NEES,
+# writes demo.png (logs in log/demo/). Options: DEMO_ARGS="--seed 3 --fusion ...",
+# see python -m landmark_ros.demo --help.
+.PHONY: demo
+DEMO_ARGS ?=
+demo: venv
+	$(VPY) -m landmark_ros.demo $(DEMO_ARGS)
 
 clean:
 	rm -rf $(VENV) build install log .pytest_cache .hypothesis *.egg-info

@@ -32,10 +32,14 @@ Where a node's time goes, per message: each node process wraps its observation
 callback and its output publish and reads the CPU time of its executor thread
 (``time.thread_time``) around them, so the report splits the CPU cost of a message
 into callback (the node's code), publish (to the driver's reliable subscription)
-and executor (the rest: wait-set upkeep, take, deserialization). CPU times do not
-count the time the thread waits for a core, so they hold when other processes load
-the machine; the CPU-time ratio relay/observer is what the msg/s ratio would be on
-otherwise idle cores.
+and executor (the rest: wait-set upkeep, take, deserialization). The observer takes
+the messages already waiting in its queue in one callback (up to
+``max_batch_messages``) and publishes one output per input, so these are divided by
+the messages handled (its ``observation_messages_in`` counter; the relay's
+callbacks), not by the callbacks; the messages per callback are printed. CPU times
+do not count the time the thread waits for a core, so they hold when other
+processes load the machine; the CPU-time ratio relay/observer is what the msg/s
+ratio would be on otherwise idle cores.
 
 Poses: before the runs, 101 poses at stamps 100.00 s to 101.00 s every 10 ms are
 published in one burst on the observer's ``pose`` topic, reliable with depth 1000
@@ -215,16 +219,23 @@ class _Probe:
     Count the observation callbacks of a node and take CPU times of its main thread.
 
     ``thread_s`` is the thread's CPU time at the end of the last callback, so that
-    its differences over whole callbacks give the CPU cost of a message, executor
-    included, whatever else runs on the machine; ``callback_s`` and ``publish_s`` are
-    the thread's CPU time inside the callback and inside its output publish.
+    its differences over whole callbacks give the CPU cost of the messages they
+    handled, executor included, whatever else runs on the machine; ``callback_s``
+    and ``publish_s`` are the thread's CPU time inside the callback and inside its
+    output publishes. One observer callback may handle several messages (those
+    already waiting in its queue), so ``messages`` counts the messages handled (the
+    node's ``messages()``: the observer's ``observation_messages_in`` counter, the
+    relay's callbacks) and ``publishes`` the outputs; per-message figures divide by
+    ``messages``, not by ``callbacks``.
     """
 
-    def __init__(self, subscription, publisher):
+    def __init__(self, subscription, publisher, messages):
         self.callbacks = 0
+        self.publishes = 0
         self.callback_s = 0.0
         self.publish_s = 0.0
         self.thread_s = time.thread_time()
+        self.messages = messages
         callback, publish = subscription.callback, publisher.publish
 
         def timed_callback(msg):
@@ -242,13 +253,15 @@ class _Probe:
                 publish(msg)
             finally:
                 self.publish_s += time.thread_time() - start
+                self.publishes += 1
 
         subscription.callback = timed_callback
         publisher.publish = timed_publish
 
     def snapshot(self):
         """Return the counts and times so far."""
-        return {'callbacks': self.callbacks, 'callback_s': self.callback_s,
+        return {'callbacks': self.callbacks, 'messages': self.messages(),
+                'publishes': self.publishes, 'callback_s': self.callback_s,
                 'publish_s': self.publish_s, 'thread_s': self.thread_s}
 
 
@@ -257,6 +270,18 @@ def _subscription(node, topic_suffix):
         if subscription.topic_name.endswith(topic_suffix):
             return subscription
     raise RuntimeError(f'{node.get_name()} has no subscription on *{topic_suffix}')
+
+
+def peak_rss_kb():
+    """Return this process's peak RSS (``VmHWM``) [kB], or None."""
+    try:
+        with open('/proc/self/status', encoding='ascii') as status:
+            for line in status:
+                if line.startswith('VmHWM:'):
+                    return int(line.split()[1])
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
 
 
 def serve(kind, domain_id, input_depth, conn):
@@ -278,11 +303,17 @@ def serve(kind, domain_id, input_depth, conn):
                                     parameter_overrides=observer_overrides(namespace,
                                                                            input_depth))
             publisher = node.landmark_pub
+
+            def messages():
+                return node.counters.counts['observation_messages_in']
         else:
             node = Relay(input_depth, ObserverConfig().output_depth, context=context,
                          namespace=namespace)
             publisher = node.publisher
-        probe = _Probe(_subscription(node, '/observations'), publisher)
+
+            def messages():
+                return node.count
+        probe = _Probe(_subscription(node, '/observations'), publisher, messages)
         executor = SingleThreadedExecutor(context=context)
         executor.add_node(node)
 
@@ -310,6 +341,7 @@ def serve(kind, domain_id, input_depth, conn):
             stats['pending_messages'] = len(node.pending)
         else:
             stats = {'messages': node.count}
+        stats['peak_rss_kb'] = peak_rss_kb()
         conn.send(('done', stats))
     except Exception:  # reported to the driver, which prints it
         conn.send(('error', traceback.format_exc()))
@@ -491,8 +523,9 @@ def run_window(target, payloads, rows, server, window, warmup_s, measure_s):
     dict
         ``msg_per_s``; ``node_cpu`` and ``driver_cpu`` (all threads, fractions of one
         core); from the node's main thread: ``thread_share`` (its CPU time over wall
-        time), ``cpu_us`` (its CPU time per message), ``callback_us`` (CPU time in the
-        observation callback, publish included) and ``publish_us``; ``lost`` (messages
+        time), ``cpu_us`` (its CPU time per message handled), ``callback_us`` (CPU time
+        in the observation callback, publish included) and ``publish_us``, per message;
+        ``messages_per_callback``, ``publishes_per_message``; ``lost`` (messages
         written off); ``outputs_ok`` (the last output has ``rows`` rows).
 
     """
@@ -540,7 +573,10 @@ def run_window(target, payloads, rows, server, window, warmup_s, measure_s):
         state['in_flight'] -= count
     lost += max(state['in_flight'], 0)
     wall = end[0] - mark[0]
+    # Per message, not per callback: an observer callback handles every message
+    # already waiting (up to max_batch_messages).
     callbacks = max(end_probe['callbacks'] - probe['callbacks'], 1)
+    messages = max(end_probe['messages'] - probe['messages'], 1)
     thread_s = end_probe['thread_s'] - probe['thread_s']
     outputs_ok = False
     if last is not None:
@@ -550,9 +586,11 @@ def run_window(target, payloads, rows, server, window, warmup_s, measure_s):
         'node_cpu': (end[2] - mark[2]) / wall,
         'driver_cpu': (end[3] - mark[3]) / wall,
         'thread_share': thread_s / wall,
-        'cpu_us': thread_s / callbacks * 1e6,
-        'callback_us': (end_probe['callback_s'] - probe['callback_s']) / callbacks * 1e6,
-        'publish_us': (end_probe['publish_s'] - probe['publish_s']) / callbacks * 1e6,
+        'cpu_us': thread_s / messages * 1e6,
+        'callback_us': (end_probe['callback_s'] - probe['callback_s']) / messages * 1e6,
+        'publish_us': (end_probe['publish_s'] - probe['publish_s']) / messages * 1e6,
+        'messages_per_callback': messages / callbacks,
+        'publishes_per_message': (end_probe['publishes'] - probe['publishes']) / messages,
         'lost': lost,
         'outputs_ok': outputs_ok,
     }
@@ -935,10 +973,12 @@ def main(argv=None):
                      f'{ratio[rows]:5.2f} | {observer[rows] * rows:14.0f} | {cpu}')
     lines += [
         '',
-        "per message, CPU time of the node's executor thread [us] (robust to other load): "
-        'total; callback = observation callback, publish included; executor = total - '
-        'callback (wait set, take, deserialize); share = thread CPU / wall time',
-        'rows/msg | node     | wall/msg | CPU/msg | callback | publish | executor | share',
+        "per message handled, CPU time of the node's executor thread [us] (robust to other "
+        'load): total; callback = observation callback, publish included; executor = '
+        'total - callback (wait set, take, deserialize); share = thread CPU / wall time; '
+        'msg/cb = messages handled per callback',
+        'rows/msg | node     | wall/msg | CPU/msg | callback | publish | executor | share | '
+        'msg/cb',
     ]
     cpu_ratio = {}
     for rows in ROWS:
@@ -948,7 +988,8 @@ def main(argv=None):
             lines.append(f'{rows:8d} | {kind:8s} | {1e6 / rate:8.0f} | {cpu:7.0f} | '
                          f'{callback:8.0f} | {_median(runs[kind, rows], "publish_us"):7.0f} | '
                          f'{cpu - callback:8.0f} | '
-                         f'{_median(runs[kind, rows], "thread_share") * 100:3.0f} %')
+                         f'{_median(runs[kind, rows], "thread_share") * 100:3.0f} % | '
+                         f'{_median(runs[kind, rows], "messages_per_callback"):6.2f}')
         cpu_ratio[rows] = (_median(runs['relay', rows], 'cpu_us')
                            / _median(runs['observer', rows], 'cpu_us'))
     lines.append('CPU-time ratio relay/observer per message (what the msg/s ratio would be '
@@ -959,15 +1000,22 @@ def main(argv=None):
             f'{r["msg_per_s"]:.0f}/{o["msg_per_s"]:.0f}'
             for r, o in zip(runs['relay', rows], runs['observer', rows]))
         for rows in ROWS))
+    publishes_ok = all(abs(run['publishes_per_message'] - 1.0) < 0.02
+                       for key in runs for run in runs[key])
     lines.append(f'lost messages {lost}; outputs have the rows sent: '
-                 f'{_verdict(outputs_ok)}')
+                 f'{_verdict(outputs_ok)}; one publish per message handled: '
+                 f'{_verdict(publishes_ok)}')
     obs_stats = info.get('observer_stats') or {}
     problems = {k: v for k, v in obs_stats.items()
                 if k not in observer_module.THROUGHPUT_COUNTERS
-                and k not in ('pose_buffer_size', 'pending_messages') and v}
+                and k not in ('pose_buffer_size', 'pending_messages', 'peak_rss_kb') and v}
     lines.append(f'observer counters: {obs_stats.get("observation_messages_in")} messages '
                  f'in, {obs_stats.get("landmarks_out")} landmarks out, rejections '
                  f'{problems or "none"}')
+    peak_mb = {kind: ((info.get(f'{kind}_stats') or {}).get('peak_rss_kb') or 0) / 1024
+               for kind in KINDS}
+    lines.append('peak memory (VmHWM of the node processes): ' + ', '.join(
+        f'{kind} {peak_mb[kind]:.0f} MB' for kind in KINDS))
     lines += [
         '',
         'observer own processing, on_observations called directly (no executor, '
@@ -1012,7 +1060,12 @@ def main(argv=None):
                   f' ratio_{rows}={ratio[rows]:.4g}' for rows in ROWS)
         + f' observer_obs_per_s_{big}={observer[big] * big:.6g}'
         + ''.join(f' cpu_ratio_{rows}={cpu_ratio[rows]:.4g}' for rows in ROWS)
+        + f' relay_cpu_us_{big}={_median(runs["relay", big], "cpu_us"):.4g}'
+        f' observer_cpu_us_{big}={_median(runs["observer", big], "cpu_us"):.4g}'
+        f' observer_msg_per_callback_{big}='
+        f'{_median(runs["observer", big], "messages_per_callback"):.3g}'
         + ''.join(f' own_us_{rows}={own_us[rows]:.4g}' for rows in ROWS)
+        + ''.join(f' peak_rss_{kind}_mb={peak_mb[kind]:.4g}' for kind in KINDS)
         + f' window={args.window} rounds={rounds} lost={lost}'
         f' cpus={host["cpu_count"]} pass={int(all(targets.values()))}',
     ]

@@ -73,6 +73,7 @@ def read_columns(msg, specs):
         ``missing_field``, ``unsupported_field_type`` or ``data_length_mismatch``.
 
     """
+    specs = tuple(specs)
     layout = (tuple((f.name, f.offset, f.datatype, f.count) for f in msg.fields),
               msg.point_step, msg.is_bigendian, specs)
     dtype = _DTYPES.get(layout)

@@ -87,6 +87,8 @@ def _coerce(spec, value):
         if not isinstance(value, str):
             raise ValueError(f'{spec.name} must be a string, got {value!r}')
         return value
+    if isinstance(value, str):
+        raise ValueError(f'{spec.name} must be a list, got the string {value!r}')
     items = tuple(value)
     if default and isinstance(default[0], str):
         if not all(isinstance(item, str) for item in items):

@@ -18,7 +18,7 @@ import numpy as np
 class LandmarkResult:
     """One fused landmark against its true position."""
 
-    id: int
+    id: int  # noqa: A003, the landmark ID as in the messages
     m: np.ndarray
     P: np.ndarray
     error_m: float

@@ -36,6 +36,9 @@ from std_msgs.msg import Header
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
+NOT_PROBLEMS = frozenset({'landmarks_confirmed', 'saves'})
+"""Fuser counters that do not make its status a warning (a re-initialisation does)."""
+
 LATCHED = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
                      reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -75,6 +78,9 @@ class LandmarkFuser(Node):
             subscription = self.create_subscription(
                 PointCloud2, topic, lambda msg, topic=topic: self.on_landmarks(msg, topic), qos)
             self.sources[topic] = _Source(subscription.topic_name)
+        resolved = [source.topic for source in self.sources.values()]
+        if len(set(resolved)) != len(resolved):
+            raise ValueError(f'input_topics name one topic twice once resolved: {resolved}')
         self.map_pub = self.create_publisher(PointCloud2, 'fused_landmarks', LATCHED)
         self.marker_pub = self.create_publisher(MarkerArray, 'fused_markers', LATCHED)
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
@@ -201,8 +207,7 @@ class LandmarkFuser(Node):
                         for k, v in status_values(source.counts, extra)]))
         counts = dict(self.counters.counts)
         problems = sorted(key for key, value in counts.items()
-                          if key not in ('landmarks_confirmed',)
-                          and value > self._reported.get(key, 0))
+                          if key not in NOT_PROBLEMS and value > self._reported.get(key, 0))
         self._reported = counts
         message = f'{len(self.map)} landmarks'
         if stale:
@@ -269,6 +274,8 @@ class LandmarkFuser(Node):
         path = self.config.map_file
         if not path:
             return
+        for stale in map_file.remove_stale_temporaries(path):
+            self.get_logger().info(f'removed {stale}, left by an interrupted save')
         try:
             document = map_file.load(path, self.config.world_frame)
             self.map.load_records(document['landmarks'])

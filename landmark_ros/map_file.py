@@ -64,6 +64,35 @@ def save(path, records, world_frame, fusion):
         os.close(descriptor)
 
 
+def remove_stale_temporaries(path):
+    """
+    Delete the temporary files interrupted saves of ``path`` left behind.
+
+    Call it only while no other process saves the same map.
+
+    Parameters
+    ----------
+    path : str
+        Map file.
+
+    Returns
+    -------
+    list of str
+        The files removed.
+
+    """
+    directory = os.path.dirname(os.path.abspath(path))
+    prefix = '.' + os.path.basename(path) + '.'
+    removed = []
+    if not os.path.isdir(directory):
+        return removed
+    for name in os.listdir(directory):
+        if name.startswith(prefix) and name.endswith('.tmp'):
+            os.unlink(os.path.join(directory, name))
+            removed.append(os.path.join(directory, name))
+    return removed
+
+
 def load(path, world_frame):
     """
     Read a map file written by ``save``.

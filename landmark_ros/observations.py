@@ -204,11 +204,12 @@ def landmark_row_problems(ids, m, P, P_dep):
 
     """
     finite = np.isfinite(m.sum(axis=1) + P.sum(axis=(1, 2)) + P_dep.sum(axis=(1, 2)))
-    with np.errstate(invalid='ignore'):
+    with np.errstate(invalid='ignore', over='ignore'):
         total = np.atleast_1d(covariance_status(np.where(finite[:, None, None], P, 0.0)))
-        scale = np.maximum(np.abs(P).max(axis=(1, 2)), 1e-300)
-        det = P[:, 0, 0] * P[:, 1, 1] - P[:, 0, 1] * P[:, 1, 0]
-        definite = (P[:, 0, 0] > 0.0) & (det > 1e-12 * scale * scale)
+        # Scaled to unit size, so that huge and tiny covariances compare alike.
+        unit = P / np.maximum(np.abs(P).max(axis=(1, 2)), 1e-300)[:, None, None]
+        det = unit[:, 0, 0] * unit[:, 1, 1] - unit[:, 0, 1] * unit[:, 1, 0]
+        definite = (unit[:, 0, 0] > 0.0) & (det > 1e-12)
         dependent = (np.atleast_1d(covariance_status(np.where(finite[:, None, None], P_dep, 0.0)))
                      == 0) & (np.atleast_1d(covariance_status(
                          np.where(finite[:, None, None], P - P_dep, 0.0))) == 0)

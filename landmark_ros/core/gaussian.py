@@ -251,15 +251,17 @@ def covariance_intersection(m1, P1, m2, P2, omega=None):
     return to_batch(shape, m, 1), to_batch(shape, P, 2)
 
 
-def split_covariance_intersection_omega(P1_ind, P1_dep, P2_ind, P2_dep, grid=16):
+def split_covariance_intersection_omega(P1_ind, P1_dep, P2_ind, P2_dep, grid=16, levels=4):
     """
     Return the split-CI weight ``omega`` in (0, 1) that (nearly) minimises ``det(P)``.
 
     ``det(P^-1) = det(A + B) / (det A det B)`` with ``A = P1_dep / omega + P1_ind`` and
     ``B = P2_dep / (1 - omega) + P2_ind``; multiplied out it stays finite for singular
-    dependent parts. It is maximised on a grid of ``grid - 1`` interior points, then
-    on a finer grid around the best one: omega within ``1 / (2 grid^2)`` of the
-    optimum. Any omega in (0, 1) gives a consistent estimate; this one is tight.
+    dependent parts. It is maximised on a grid of ``grid - 1`` interior points and
+    both ends, then ``levels`` times on a grid of the same size over the two cells
+    around the best point: omega within ``(2 / grid)^levels / grid`` of the optimum
+    (1.5e-5 by default). Any omega in (0, 1) gives a consistent estimate; this one is
+    tight.
 
     Parameters
     ----------
@@ -269,6 +271,8 @@ def split_covariance_intersection_omega(P1_ind, P1_dep, P2_ind, P2_dep, grid=16)
         Independent and dependent parts of the second covariance.
     grid : int
         Points per grid level.
+    levels : int
+        Refinements after the first grid.
 
     Returns
     -------
@@ -301,12 +305,22 @@ def split_covariance_intersection_omega(P1_ind, P1_dep, P2_ind, P2_dep, grid=16)
                     det(P1d + u4 * P1i) * det(P2d + v4 * P2i))
             return np.where(np.isfinite(value), value, -np.inf)
 
+    def best_of(candidates):
+        values = objective(candidates)
+        index = np.argmax(values, axis=-1)[..., None]
+        return (np.take_along_axis(candidates, index, -1),
+                np.take_along_axis(values, index, -1))
+
+    edge = 1e-9
     steps = np.arange(1, grid) / grid
-    coarse = np.broadcast_to(steps, shape + steps.shape)
-    best = np.take_along_axis(coarse, np.argmax(objective(coarse), axis=-1)[..., None], -1)
-    fine = best + (2.0 * steps - 1.0) / grid
-    fine = np.clip(fine, 0.5 / grid ** 2, 1.0 - 0.5 / grid ** 2)
-    best = np.take_along_axis(fine, np.argmax(objective(fine), axis=-1)[..., None], -1)
+    best, _ = best_of(np.broadcast_to(np.concatenate([[edge], steps, [1.0 - edge]]),
+                                      shape + (grid + 1,)))
+    # Zoom in: each level a grid of the same size over the two cells around the best.
+    half_width = 1.0 / grid
+    offsets = np.linspace(-1.0, 1.0, grid + 1)
+    for _ in range(levels):
+        best, _ = best_of(np.clip(best + half_width * offsets, edge, 1.0 - edge))
+        half_width *= 2.0 / grid
     return best[..., 0][()]
 
 

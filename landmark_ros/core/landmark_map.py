@@ -17,7 +17,13 @@ independent
 covariance_intersection
     Consistent whatever the correlations; the whole covariance counts as dependent.
 split_covariance_intersection
-    Independent parts fused as information, dependent parts bounded as CI does.
+    Within a source (one robot), the dependent parts (its pose error, its sensor
+    bias) are one shared error: the source's estimate is the information-weighted
+    mean of its observations, whose independent parts (noise) average down while
+    the dependent part, their weighted mean, does not. Across sources the
+    correlation is unknown: the source estimates are fused by split covariance
+    intersection (independent parts as information, dependent parts bounded as
+    CI does), in the order the sources first saw the landmark.
 
 An observation of a known landmark is gated by its squared Mahalanobis distance
 to the estimate (innovation covariance ``P + R``). A new ID becomes a landmark
@@ -31,7 +37,7 @@ from collections import Counter, deque
 from dataclasses import dataclass, field
 
 from landmark_ros.core.gaussian import (chi2_threshold, covariance_intersection, fuse,
-                                        split_covariance_intersection)
+                                        information, split_covariance_intersection)
 import numpy as np
 
 _TABLE_LIMIT = 1 << 20
@@ -132,6 +138,7 @@ class LandmarkMap:
         self.last_stamp = np.empty(0)
         self._seen_by = {}
         self._buffers = {}
+        self._parts = _SourceParts() if self.fusion == 'split_covariance_intersection' else None
 
     def __len__(self):
         """Return the number of confirmed landmarks."""
@@ -166,11 +173,12 @@ class LandmarkMap:
             order = np.argsort(self.ids[:self._count], kind='stable')
             self._sorted_ids = self.ids[:self._count][order]
             self._sorted_rows = order
-            if 0 <= new.min() and new.max() < _TABLE_LIMIT:
-                size = max(len(self._table), int(new.max()) + 1)
+            small = (new >= 0) & (new < _TABLE_LIMIT)
+            if small.any():
+                size = max(len(self._table), int(new[small].max()) + 1)
                 table = np.full(size, -1, np.int64)
                 table[:len(self._table)] = self._table
-                table[new] = rows
+                table[new[small]] = rows[small]
                 self._table = table
         return self._lookup(ids)
 
@@ -259,8 +267,14 @@ class LandmarkMap:
         ok = d2 <= self.threshold
         if ok.any():
             good = rows[ok]
-            self.mean[good], self.cov_ind[good], self.cov_dep[good] = self._fuse(
-                m[ok], P_ind[ok], P_dep[ok], z[ok], R[ok] - R_dep[ok], R_dep[ok])
+            if self._parts is None:
+                self.mean[good], self.cov_ind[good], self.cov_dep[good] = self._fuse(
+                    m[ok], P_ind[ok], P_dep[ok], z[ok], R[ok] - R_dep[ok], R_dep[ok])
+            else:
+                names = [batch.names[c] for c in batch.codes[positions[ok]].tolist()]
+                self._parts.add(good, names, z[ok], R[ok] - R_dep[ok], R_dep[ok])
+                self.mean[good], self.cov_ind[good], self.cov_dep[good] = (
+                    self._parts.combine(good))
             self.observations[good] += 1
             self.consecutive[good] = 0
             self.last_stamp[good] = batch.stamps[positions[ok]]
@@ -333,6 +347,13 @@ class LandmarkMap:
             P_ind, P_dep = P_ind + P_dep, np.zeros_like(P_dep)
         elif self.fusion == 'covariance_intersection':
             P_ind, P_dep = np.zeros_like(P_ind), P_ind + P_dep
+        else:
+            self._parts.clear(row)
+            self._parts.add(np.full(len(cluster), row), [obs.source for obs in cluster],
+                            np.array([obs.z for obs in cluster]),
+                            np.array([obs.R - obs.R_dep for obs in cluster]),
+                            np.array([obs.R_dep for obs in cluster]))
+            m, P_ind, P_dep = self._parts.combine(np.array([row]))
         self.mean[row], self.cov_ind[row], self.cov_dep[row] = m[0], P_ind[0], P_dep[0]
         self.confirmed[row] = True
         self.observations[row] = len(cluster)
@@ -388,6 +409,8 @@ class LandmarkMap:
                 'first_stamp': float(self.first_stamp[row]),
                 'last_stamp': float(self.last_stamp[row]),
             })
+            if self._parts is not None:
+                records[-1]['per_source'] = self._parts.records(row)
         return records
 
     def load_records(self, records):
@@ -426,9 +449,110 @@ class LandmarkMap:
                 self.last_stamp[row] = float(record['last_stamp'])
                 for source in record['sources']:
                     self._seen(str(source))[row] = True
+                if self._parts is not None:
+                    self._parts.load(row, record.get('per_source')
+                                     or _one_source(mean, P - P_dep, P_dep))
         except (KeyError, TypeError, ValueError) as error:
             self.reset()
             raise ValueError(f'malformed landmark record: {error}') from error
+
+
+class _SourceParts:
+    """
+    Per (landmark, source) information sums for split covariance intersection.
+
+    A source's estimate of a landmark is ``m_s = Y^-1 y`` with ``Y = sum R_ind_i^-1``
+    and ``y = sum R_ind_i^-1 z_i`` (independent parts as information), covariance
+    ``Y^-1 + D`` where ``D = sym(Y^-1 sum R_ind_i^-1 R_dep_i)``: the information-weighted
+    mean of the dependent parts, a shared error that averaging does not reduce.
+    """
+
+    def __init__(self):
+        self.index = {}
+        self.sources = []
+        self.row_pairs = {}
+        self.Y = np.zeros((0, 2, 2))
+        self.y = np.zeros((0, 2))
+        self.Q = np.zeros((0, 2, 2))
+
+    def _pair(self, row, source):
+        pair = self.index.get((row, source))
+        if pair is None:
+            pair = self.index[(row, source)] = len(self.sources)
+            self.sources.append(source)
+            self.row_pairs.setdefault(row, []).append(pair)
+            if pair >= len(self.Y):
+                size = max(64, 2 * len(self.Y))
+                self.Y = np.concatenate([self.Y, np.zeros((size - len(self.Y), 2, 2))])
+                self.y = np.concatenate([self.y, np.zeros((size - len(self.y), 2))])
+                self.Q = np.concatenate([self.Q, np.zeros((size - len(self.Q), 2, 2))])
+        return pair
+
+    def add(self, rows, sources, z, R_ind, R_dep):
+        """Add observations (rows of the map, source names) to their sums."""
+        pairs = np.array([self._pair(row, source)
+                          for row, source in zip(rows.tolist(), sources)], dtype=np.int64)
+        # A positive definite independent part is needed for weights; a tiny floor
+        # keeps an all-dependent observation from dividing by zero.
+        scale = 1e-12 * np.maximum(R_ind[:, 0, 0] + R_ind[:, 1, 1], 1e-300)
+        a, b, c = R_ind[:, 0, 0] + scale, R_ind[:, 0, 1], R_ind[:, 1, 1] + scale
+        det = a * c - b * b
+        Y = np.empty_like(R_ind)
+        Y[:, 0, 0], Y[:, 1, 1] = c / det, a / det
+        Y[:, 0, 1] = Y[:, 1, 0] = -b / det
+        np.add.at(self.Y, pairs, Y)
+        np.add.at(self.y, pairs, (Y @ z[:, :, None])[:, :, 0])
+        np.add.at(self.Q, pairs, Y @ R_dep)
+
+    def clear(self, row):
+        """Forget the sums of one landmark."""
+        for pair in self.row_pairs.get(row, ()):
+            self.Y[pair], self.y[pair], self.Q[pair] = 0.0, 0.0, 0.0
+
+    def estimate(self, pairs):
+        """Return the source estimates ``(m, P_ind, P_dep)`` of some pairs."""
+        P_ind = information(self.Y[pairs])
+        m = (P_ind @ self.y[pairs][:, :, None])[:, :, 0]
+        P_dep = P_ind @ self.Q[pairs]
+        return m, P_ind, 0.5 * (P_dep + np.swapaxes(P_dep, 1, 2))
+
+    def combine(self, rows):
+        """Fuse the source estimates of each landmark by split CI, in source order."""
+        lists = [[p for p in self.row_pairs[row] if self.Y[p, 0, 0] > 0.0]
+                 for row in rows.tolist()]
+        width = max(len(pairs) for pairs in lists)
+        table = np.full((len(rows), width), -1, np.int64)
+        for i, pairs in enumerate(lists):
+            table[i, :len(pairs)] = pairs
+        m, P_ind, P_dep = self.estimate(table[:, 0])
+        for j in range(1, width):
+            has = table[:, j] >= 0
+            if has.any():
+                m[has], P_ind[has], P_dep[has] = split_covariance_intersection(
+                    m[has], P_ind[has], P_dep[has], *self.estimate(table[has, j]))
+        return m, P_ind, P_dep
+
+    def records(self, row):
+        """Return the sums of one landmark as plain data."""
+        return [{'source': self.sources[p], 'information': self.Y[p].tolist(),
+                 'information_mean': self.y[p].tolist(), 'dependent_sum': self.Q[p].tolist()}
+                for p in self.row_pairs.get(row, ())]
+
+    def load(self, row, records):
+        """Restore the sums of one landmark from ``records``."""
+        for record in records:
+            pair = self._pair(row, str(record['source']))
+            self.Y[pair] = np.array(record['information'], dtype=np.float64).reshape(2, 2)
+            self.y[pair] = np.array(record['information_mean'], dtype=np.float64).reshape(2)
+            self.Q[pair] = np.array(record['dependent_sum'], dtype=np.float64).reshape(2, 2)
+
+
+def _one_source(mean, P_ind, P_dep):
+    """Return the per-source record of an estimate held as a single source."""
+    Y = np.linalg.inv(P_ind)
+    return [{'source': 'loaded', 'information': Y.tolist(),
+             'information_mean': (Y @ mean).tolist(),
+             'dependent_sum': (Y @ P_dep).tolist()}]
 
 
 def _rounds(rows):

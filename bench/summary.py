@@ -1,0 +1,275 @@
+"""
+Summarise benchmark outputs in one table, on stdout and as markdown.
+
+Every benchmark prints a last, machine-readable line::
+
+    RESULT <name> key=value key=value ...
+
+This reads those lines from the given logs (or stdin), whatever benchmark printed
+them, and prints one table: core throughput and its ratio to the chapter-style loop,
+fusion throughput, node message rates next to the relay, replay speed-up over real
+time (any key naming a speed-up or a real-time factor, from any benchmark), peak
+memory, and the targets; keys of benchmarks it does not know are listed generically
+(throughputs, rates, ratios, speed-ups, memory). The machine (CPU model, cores,
+Python and numpy versions) heads the table. ``--markdown PATH`` also writes the table
+as markdown (``make bench`` writes ``bench/results.md``; its first line says it is
+generated).
+
+Usage: ``python bench/summary.py [--markdown PATH] [LOG ...]``.
+"""
+
+import argparse
+import datetime
+import os
+import platform
+import re
+import subprocess
+import sys
+
+RESULT_LINE = re.compile(r'^RESULT\s+(\S+)((?:\s+\S+=\S*)*)\s*$')
+SPEED_UP_KEY = re.compile(r'speed_?up|real_?time|rtf', re.IGNORECASE)
+MEMORY_KEY = re.compile(r'(?:peak_rss|maxrss)_(.+)_mb$')
+GENERIC_KEY = re.compile(r'obs_per_s|msg_per_s|per_s$|ratio|speed|real_?time|_mb$|lag',
+                         re.IGNORECASE)
+FUSIONS = (('independent', 'independent'), ('ci', 'covariance intersection'),
+           ('split_ci', 'split covariance intersection'))
+KNOWN = ('bench_core', 'bench_fuser', 'bench_observer')
+
+
+def parse(lines):
+    """
+    Return the RESULT lines' figures.
+
+    Parameters
+    ----------
+    lines : iterable of str
+        Benchmark output.
+
+    Returns
+    -------
+    dict
+        ``name -> {key: value}``, values as float where they parse, else str; a later
+        line of the same name replaces an earlier one.
+
+    """
+    results = {}
+    for line in lines:
+        match = RESULT_LINE.match(line.strip())
+        if not match:
+            continue
+        values = {}
+        for item in match.group(2).split():
+            key, _, value = item.partition('=')
+            try:
+                values[key] = float(value)
+            except ValueError:
+                values[key] = value
+        results[match.group(1)] = values
+    return results
+
+
+def machine():
+    """Return the machine: CPU model, cores, Python and numpy versions, load, commit."""
+    cpu = platform.processor() or platform.machine()
+    try:
+        with open('/proc/cpuinfo', encoding='utf-8') as cpuinfo:
+            for line in cpuinfo:
+                if line.startswith('model name'):
+                    cpu = line.split(':', 1)[1].strip()
+                    break
+    except OSError:
+        pass
+    try:
+        import numpy
+        numpy_version = numpy.__version__
+    except ImportError:
+        numpy_version = '?'
+    commit = '?'
+    try:
+        here = os.path.dirname(os.path.abspath(__file__))
+        commit = subprocess.run(['git', 'rev-parse', '--short', 'HEAD'], cwd=here,
+                                capture_output=True, text=True, check=True,
+                                timeout=10).stdout.strip()
+        dirty = subprocess.run(['git', 'status', '--porcelain', '--untracked-files=no'],
+                               cwd=here, capture_output=True, text=True, check=True,
+                               timeout=10).stdout.strip()
+        commit += ' + uncommitted changes' if dirty else ''
+    except (OSError, subprocess.SubprocessError):
+        pass
+    return {'cpu': cpu, 'cores': os.cpu_count(), 'python': platform.python_version(),
+            'numpy': numpy_version, 'platform': f'{platform.system()} {platform.machine()}',
+            'load': os.getloadavg()[0] if hasattr(os, 'getloadavg') else float('nan'),
+            'commit': commit}
+
+
+def si(value, unit=''):
+    """Format a number with a k/M/G prefix and three significant digits."""
+    if not isinstance(value, float):
+        return f'{value} {unit}'.strip()
+    for factor, prefix in ((1e9, 'G'), (1e6, 'M'), (1e3, 'k')):
+        if abs(value) >= factor:
+            return f'{value / factor:.3g} {prefix} {unit}'.strip()
+    return f'{value:.3g} {unit}'.strip()
+
+
+def _num(value, digits=3):
+    return f'{value:.{digits}g}' if isinstance(value, float) else str(value)
+
+
+def rows_for(results):
+    """
+    Return the table rows.
+
+    Returns
+    -------
+    list of (section, what, figure, context, source)
+
+    """
+    rows = []
+    core = results.get('bench_core', {})
+    if 'vectorised_obs_per_s' in core:
+        rows.append(('core', 'landmark_to_world, per-observation covariances',
+                     si(core['vectorised_obs_per_s'], 'obs/s'),
+                     f'{_num(core.get("ratio"))}x the chapter-style loop '
+                     f'({si(core.get("loop_obs_per_s"), "obs/s")})', 'bench_core'))
+    if 'shared_vectorised_obs_per_s' in core:
+        rows.append(('core', 'landmark_to_world, shared covariances',
+                     si(core['shared_vectorised_obs_per_s'], 'obs/s'),
+                     f'{_num(core.get("shared_ratio"))}x the chapter-style loop '
+                     f'({si(core.get("shared_loop_obs_per_s"), "obs/s")})', 'bench_core'))
+    fuser = results.get('bench_fuser', {})
+    for short, name in FUSIONS:
+        key = f'core_{short}_best_obs_per_s'
+        if key in fuser:
+            batch = fuser.get(f'core_{short}_best_batch')
+            rows.append(('fusion', f'LandmarkMap.update, {name} (best batch: '
+                         f'{_num(batch, 6)} rows)', si(fuser[key], 'obs/s'),
+                         f'{_num(fuser.get(f"loop_ratio_{short}"))}x the textbook loop '
+                         f'({si(fuser.get(f"loop_{short}_obs_per_s"), "obs/s")})',
+                         'bench_fuser'))
+    if 'core_independent_cpu_obs_per_s' in fuser:
+        rows.append(('fusion', 'LandmarkMap.update, independent, by CPU time (best batch)',
+                     si(fuser['core_independent_cpu_obs_per_s'], 'obs/s'),
+                     'rows / thread CPU time: what other load does not inflate',
+                     'bench_fuser'))
+    observer = results.get('bench_observer', {})
+    for rows_per_msg in (1, 10, 100):
+        key = f'observer_msg_per_s_{rows_per_msg}'
+        if key in observer:
+            rows.append(('node', f'landmark_observer, {rows_per_msg} rows/msg',
+                         si(observer[key], 'msg/s'),
+                         f'{_num(observer.get(f"ratio_{rows_per_msg}"))} x relay '
+                         f'({si(observer.get(f"relay_msg_per_s_{rows_per_msg}"), "msg/s")}); '
+                         f'CPU-time ratio relay/observer '
+                         f'{_num(observer.get(f"cpu_ratio_{rows_per_msg}"))}', 'bench_observer'))
+    for short, name in FUSIONS:
+        key = f'fuser_{short}_msg_per_s_100'
+        if key in fuser:
+            rows.append(('node', f'landmark_fuser, {name}, 100 rows/msg',
+                         si(fuser[key], 'msg/s'),
+                         f'{_num(fuser.get(f"ratio_{short}_100"))} x relay '
+                         f'({si(fuser.get("relay_msg_per_s_100"), "msg/s")}); CPU-time ratio '
+                         f'relay/fuser {_num(fuser.get(f"cpu_ratio_{short}"))}', 'bench_fuser'))
+        if f'lag_{short}_ms' in fuser:
+            rows.append(('node', f'landmark_fuser, {name}: fusion lag',
+                         f'{_num(fuser[f"lag_{short}_ms"])} ms',
+                         'last input -> map updated (in the node); end to end to '
+                         f'fused_landmarks {_num(fuser.get(f"e2e_lag_{short}_ms"))} ms',
+                         'bench_fuser'))
+    for name, values in results.items():
+        for key, value in values.items():
+            if SPEED_UP_KEY.search(key):
+                rows.append(('replay', f'{name}: {key}', f'{_num(value)}x'
+                             if isinstance(value, float) else str(value),
+                             'speed-up over real time', name))
+    for name, values in results.items():
+        for key, value in values.items():
+            match = MEMORY_KEY.search(key)
+            if match and isinstance(value, float):
+                rows.append(('memory', f'peak RSS, {match.group(1).replace("_", " ")}',
+                             f'{value:.0f} MB', 'maxrss' if key.startswith('maxrss') else
+                             'VmHWM of the process', name))
+    for name, values in results.items():
+        if name in KNOWN:
+            continue
+        for key, value in values.items():
+            if GENERIC_KEY.search(key) and not SPEED_UP_KEY.search(key) \
+                    and not MEMORY_KEY.search(key):
+                rows.append(('other', f'{name}: {key}', _num(value), '', name))
+    for name, values in results.items():
+        if 'pass' in values:
+            rows.append(('targets', name, 'all met' if values['pass'] == 1.0 else
+                         'not all met', 'PASS/FAIL per target in its log', name))
+    return rows
+
+
+def render(results, host, missing, markdown):
+    """Return the summary as text (``markdown`` False) or markdown."""
+    header = ('section', 'what', 'figure', 'context', 'from')
+    rows = rows_for(results)
+    when = datetime.datetime.now().strftime('%Y-%m-%d %H:%M')
+    machine_line = (f'{host["cpu"]}, {host["cores"]} cores, {host["platform"]}, Python '
+                    f'{host["python"]}, numpy {host["numpy"]}; commit {host["commit"]}; '
+                    f'{when}; load average {host["load"]:.1f} when summarised')
+    notes = [f'no RESULT line from {name}: see its log' for name in missing]
+    if not results:
+        notes.append('no RESULT lines found')
+    if markdown:
+        lines = [
+            "_Generated by `make bench` (`bench/summary.py`) from the benchmarks' RESULT "
+            'lines; do not edit by hand, re-run `make bench`._',
+            '',
+            '# Benchmark results',
+            '',
+            f'Machine: {machine_line}.',
+            '',
+            '| ' + ' | '.join(header) + ' |',
+            '|' + '|'.join('---' for _ in header) + '|',
+        ]
+        lines += ['| ' + ' | '.join(cell.replace('|', '\\|') for cell in row) + ' |'
+                  for row in rows]
+        lines += [''] + [f'- {note}' for note in notes]
+        return '\n'.join(lines).rstrip() + '\n'
+    widths = [max(len(str(row[i])) for row in [header] + rows) for i in range(len(header))]
+    widths[3] = min(widths[3], 80)
+    lines = ['=' * 30 + ' benchmark summary ' + '=' * 30, f'machine: {machine_line}']
+    lines.append('  '.join(h.ljust(w) for h, w in zip(header, widths)).rstrip())
+    lines.append('  '.join('-' * w for w in widths))
+    for row in rows:
+        lines.append('  '.join(str(c).ljust(w) for c, w in zip(row, widths)).rstrip())
+    lines += notes
+    return '\n'.join(lines) + '\n'
+
+
+def main(argv=None):
+    """Read the logs, print the summary, write the markdown; return the exit status."""
+    parser = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
+    parser.add_argument('logs', nargs='*', help='benchmark logs (default: stdin)')
+    parser.add_argument('--markdown', metavar='PATH',
+                        help='also write the summary as markdown to PATH')
+    args = parser.parse_args(argv)
+    results, missing = {}, []
+    if args.logs:
+        for path in args.logs:
+            try:
+                with open(path, encoding='utf-8', errors='replace') as stream:
+                    found = parse(stream)
+            except OSError as error:
+                print(f'summary: cannot read {path}: {error}', file=sys.stderr)
+                found = {}
+            if not found:
+                missing.append(os.path.splitext(os.path.basename(path))[0])
+            results.update(found)
+    else:
+        results = parse(sys.stdin)
+    host = machine()
+    sys.stdout.write(render(results, host, missing, markdown=False))
+    if args.markdown:
+        with open(args.markdown, 'w', encoding='utf-8') as stream:
+            stream.write(render(results, host, missing, markdown=True))
+        print(f'summary written to {args.markdown}')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
