@@ -25,6 +25,7 @@ from landmark_ros.markers import delete_all, landmark_markers
 from landmark_ros.observations import landmark_row_problems
 from landmark_ros.ros_params import declare_config, keep_in_sync
 from landmark_ros.schemas import landmark_message, read_landmarks
+from landmark_ros.subscriptions import take_waiting
 import numpy as np
 import rclpy
 from rclpy.exceptions import ParameterException
@@ -48,6 +49,7 @@ LATCHED = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
 @dataclass
 class _Source:
     topic: str
+    subscription: object = None
     queue: deque = field(default_factory=deque)
     counts: Counter = field(default_factory=Counter)
     last_message_ns: int = None
@@ -77,7 +79,7 @@ class LandmarkFuser(Node):
         for topic in self.config.input_topics:
             subscription = self.create_subscription(
                 PointCloud2, topic, lambda msg, topic=topic: self.on_landmarks(msg, topic), qos)
-            self.sources[topic] = _Source(subscription.topic_name)
+            self.sources[topic] = _Source(subscription.topic_name, subscription)
         resolved = [source.topic for source in self.sources.values()]
         if len(set(resolved)) != len(resolved):
             raise ValueError(f'input_topics name one topic twice once resolved: {resolved}')
@@ -104,9 +106,14 @@ class LandmarkFuser(Node):
     # Input ---------------------------------------------------------------------
 
     def on_landmarks(self, msg, topic):
-        """Check a landmark cloud and queue its valid rows for the next batch."""
+        """Check landmark clouds (this one and those waiting) and queue their valid rows."""
         source = self.sources[topic]
         source.last_message_ns = self.get_clock().now().nanoseconds
+        for cloud in [msg] + take_waiting(source.subscription, PointCloud2,
+                                          self.config.max_batch_messages - 1):
+            self._queue(source, cloud)
+
+    def _queue(self, source, msg):
         source.counts['messages_in'] += 1
         try:
             rows = read_landmarks(msg)
@@ -129,8 +136,10 @@ class LandmarkFuser(Node):
             self._count(source, 'queue_overflow', len(dropped[1]),
                         f'more than {self.config.max_queue_messages} messages waiting: '
                         'dropped the oldest')
-        source.queue.append((next(self._sequence), rows.ids[valid], rows.m[valid],
-                             rows.P[valid], rows.P_dep[valid], stamp_ns(msg.header.stamp) * 1e-9))
+        if not valid.all():
+            rows = type(rows)(*(column[valid] for column in rows))
+        source.queue.append((next(self._sequence), rows.ids, rows.m, rows.P, rows.P_dep,
+                             stamp_ns(msg.header.stamp) * 1e-9))
 
     def fuse_queued(self):
         """Fuse every queued row, in arrival order, in one batch."""

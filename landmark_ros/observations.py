@@ -204,15 +204,18 @@ def landmark_row_problems(ids, m, P, P_dep):
 
     """
     finite = np.isfinite(m.sum(axis=1) + P.sum(axis=(1, 2)) + P_dep.sum(axis=(1, 2)))
-    with np.errstate(invalid='ignore', over='ignore'):
-        total = np.atleast_1d(covariance_status(np.where(finite[:, None, None], P, 0.0)))
+    with np.errstate(invalid='ignore', over='ignore', divide='ignore'):
         # Scaled to unit size, so that huge and tiny covariances compare alike.
-        unit = P / np.maximum(np.abs(P).max(axis=(1, 2)), 1e-300)[:, None, None]
-        det = unit[:, 0, 0] * unit[:, 1, 1] - unit[:, 0, 1] * unit[:, 1, 0]
-        definite = (unit[:, 0, 0] > 0.0) & (det > 1e-12)
-        dependent = (np.atleast_1d(covariance_status(np.where(finite[:, None, None], P_dep, 0.0)))
-                     == 0) & (np.atleast_1d(covariance_status(
-                         np.where(finite[:, None, None], P - P_dep, 0.0))) == 0)
+        scale = np.abs(P).max(axis=(1, 2))
+        unit, dep = P / scale[:, None, None], P_dep / scale[:, None, None]
+        a, b, c = unit[:, 0, 0], unit[:, 0, 1], unit[:, 1, 1]
+        definite = (a > 0.0) & (a * c - b * b > 1e-12) & (np.abs(b - unit[:, 1, 0]) <= 1e-9)
+        rest = unit - dep
+        dependent = _psd_2x2(dep) & _psd_2x2(rest)
+        valid = finite & definite & dependent & (ids >= 0) & (ids <= MAX_ID)
+        if valid.all():
+            return valid, Counter()
+        total = np.atleast_1d(covariance_status(np.where(finite[:, None, None], P, 0.0)))
     checks = [
         ('landmark_nonfinite', ~finite),
         ('invalid_id', (ids < 0) | (ids > MAX_ID)),
@@ -222,3 +225,10 @@ def landmark_row_problems(ids, m, P, P_dep):
         ('dependent_part_invalid', ~dependent),
     ]
     return first_problems(len(ids), checks)
+
+
+def _psd_2x2(P, tol=1e-9):
+    """Return where unit-scaled symmetric 2x2 matrices are positive semi-definite."""
+    a, b, c = P[:, 0, 0], 0.5 * (P[:, 0, 1] + P[:, 1, 0]), P[:, 1, 1]
+    return (a >= -tol) & (c >= -tol) & (a * c - b * b >= -tol) & (
+        np.abs(P[:, 0, 1] - P[:, 1, 0]) <= tol)

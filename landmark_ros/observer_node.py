@@ -25,6 +25,7 @@ from landmark_ros.markers import landmark_markers
 from landmark_ros.observations import landmarks_from_rows, observation_noise
 from landmark_ros.ros_params import declare_config, keep_in_sync
 from landmark_ros.schemas import landmark_message, OBSERVATION_FIELDS
+from landmark_ros.subscriptions import take_waiting
 import numpy as np
 import rclpy
 from rclpy.event_handler import PublisherEventCallbacks
@@ -186,7 +187,8 @@ class LandmarkObserver(Node):
     def on_observations(self, msg):
         """Read observation clouds; process each now or when its pose arrives."""
         ready = []
-        for cloud in [msg] + self._take_waiting():
+        for cloud in [msg] + take_waiting(self._observation_sub, PointCloud2,
+                                          self.config.max_batch_messages - 1):
             item = self._read(cloud)
             if item is None:
                 continue
@@ -206,21 +208,6 @@ class LandmarkObserver(Node):
             self.process(ready)
         if self.pending:
             self.drain()
-
-    def _take_waiting(self):
-        """Take the clouds already waiting in the subscription queue (up to a batch)."""
-        taken = []
-        if self.config.max_batch_messages > 1:
-            # What the executor would do one callback at a time; rclpy's own
-            # wait_for_message takes messages the same way.
-            handle = self._observation_sub.handle
-            with handle:
-                while len(taken) < self.config.max_batch_messages - 1:
-                    message_and_info = handle.take_message(PointCloud2, False)
-                    if message_and_info is None:
-                        break
-                    taken.append(message_and_info[0])
-        return taken
 
     def _read(self, msg):
         """Decode and check one observation cloud; None (and counted) if unusable."""

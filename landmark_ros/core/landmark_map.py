@@ -470,22 +470,33 @@ class _SourceParts:
     def __init__(self):
         self.index = {}
         self.sources = []
-        self.row_pairs = {}
-        self.Y = np.zeros((0, 2, 2))
-        self.y = np.zeros((0, 2))
-        self.Q = np.zeros((0, 2, 2))
+        self.table = np.full((64, 4), -1, np.int64)
+        self.Y = np.zeros((64, 2, 2))
+        self.y = np.zeros((64, 2))
+        self.Q = np.zeros((64, 2, 2))
 
     def _pair(self, row, source):
         pair = self.index.get((row, source))
-        if pair is None:
-            pair = self.index[(row, source)] = len(self.sources)
-            self.sources.append(source)
-            self.row_pairs.setdefault(row, []).append(pair)
-            if pair >= len(self.Y):
-                size = max(64, 2 * len(self.Y))
-                self.Y = np.concatenate([self.Y, np.zeros((size - len(self.Y), 2, 2))])
-                self.y = np.concatenate([self.y, np.zeros((size - len(self.y), 2))])
-                self.Q = np.concatenate([self.Q, np.zeros((size - len(self.Q), 2, 2))])
+        if pair is not None:
+            return pair
+        pair = self.index[(row, source)] = len(self.sources)
+        self.sources.append(source)
+        if pair >= len(self.Y):
+            grow = len(self.Y)
+            self.Y = np.concatenate([self.Y, np.zeros((grow, 2, 2))])
+            self.y = np.concatenate([self.y, np.zeros((grow, 2))])
+            self.Q = np.concatenate([self.Q, np.zeros((grow, 2, 2))])
+        if row >= len(self.table):
+            self.table = np.concatenate(
+                [self.table, np.full((max(row + 1, 2 * len(self.table)) - len(self.table),
+                                      self.table.shape[1]), -1, np.int64)])
+        free = np.flatnonzero(self.table[row] < 0)
+        if not len(free):
+            self.table = np.concatenate(
+                [self.table, np.full((len(self.table), self.table.shape[1]), -1, np.int64)],
+                axis=1)
+            free = np.flatnonzero(self.table[row] < 0)
+        self.table[row, free[0]] = pair
         return pair
 
     def add(self, rows, sources, z, R_ind, R_dep):
@@ -505,9 +516,11 @@ class _SourceParts:
         np.add.at(self.Q, pairs, Y @ R_dep)
 
     def clear(self, row):
-        """Forget the sums of one landmark."""
-        for pair in self.row_pairs.get(row, ()):
-            self.Y[pair], self.y[pair], self.Q[pair] = 0.0, 0.0, 0.0
+        """Forget the sources of one landmark."""
+        if row < len(self.table):
+            for pair in self.table[row][self.table[row] >= 0].tolist():
+                del self.index[(row, self.sources[pair])]
+            self.table[row] = -1
 
     def estimate(self, pairs):
         """Return the source estimates ``(m, P_ind, P_dep)`` of some pairs."""
@@ -518,25 +531,22 @@ class _SourceParts:
 
     def combine(self, rows):
         """Fuse the source estimates of each landmark by split CI, in source order."""
-        lists = [[p for p in self.row_pairs[row] if self.Y[p, 0, 0] > 0.0]
-                 for row in rows.tolist()]
-        width = max(len(pairs) for pairs in lists)
-        table = np.full((len(rows), width), -1, np.int64)
-        for i, pairs in enumerate(lists):
-            table[i, :len(pairs)] = pairs
+        table = self.table[rows]
         m, P_ind, P_dep = self.estimate(table[:, 0])
-        for j in range(1, width):
+        for j in range(1, table.shape[1]):
             has = table[:, j] >= 0
-            if has.any():
-                m[has], P_ind[has], P_dep[has] = split_covariance_intersection(
-                    m[has], P_ind[has], P_dep[has], *self.estimate(table[has, j]))
+            if not has.any():
+                break
+            m[has], P_ind[has], P_dep[has] = split_covariance_intersection(
+                m[has], P_ind[has], P_dep[has], *self.estimate(table[has, j]))
         return m, P_ind, P_dep
 
     def records(self, row):
         """Return the sums of one landmark as plain data."""
+        pairs = self.table[row][self.table[row] >= 0].tolist() if row < len(self.table) else []
         return [{'source': self.sources[p], 'information': self.Y[p].tolist(),
                  'information_mean': self.y[p].tolist(), 'dependent_sum': self.Q[p].tolist()}
-                for p in self.row_pairs.get(row, ())]
+                for p in pairs]
 
     def load(self, row, records):
         """Restore the sums of one landmark from ``records``."""
