@@ -19,8 +19,8 @@ import argparse
 from pathlib import Path
 import sys
 
+from landmark_ros import plotting
 from landmark_ros.core import gaussian, landmarks, pose2, sensors
-from landmark_ros.core.ellipse import ellipse_points
 import numpy as np
 
 
@@ -35,14 +35,6 @@ MC_SMALL_SCALE = 0.01
 
 EXIT_NO_MATPLOTLIB = 2
 """Exit status of ``main`` when ``--plot`` is asked for without matplotlib."""
-
-
-class PlotUnavailableError(RuntimeError):
-    """
-    Raised by ``plot`` when matplotlib cannot be imported.
-
-    matplotlib is the optional extra ``landmark_ros[plot]``.
-    """
 
 
 def inputs():
@@ -421,24 +413,6 @@ def format_report(results):
     return '\n'.join(out) + '\n'
 
 
-def _closed(points):
-    """
-    Append the first point so that a polyline closes.
-
-    Parameters
-    ----------
-    points : ndarray, shape (n, 2)
-        Points of a contour.
-
-    Returns
-    -------
-    ndarray, shape (n + 1, 2)
-        The same points, the first repeated at the end.
-
-    """
-    return np.vstack([points, points[:1]])
-
-
 def plot(results, path):
     """
     Draw the chapter-style figure of the exercises into an image file.
@@ -456,33 +430,16 @@ def plot(results, path):
 
     Raises
     ------
-    PlotUnavailableError
+    landmark_ros.plotting.PlotUnavailableError
         If matplotlib is not installed.
 
     """
-    try:
-        from matplotlib.backends.backend_agg import FigureCanvasAgg
-        from matplotlib.figure import Figure
-        from matplotlib.patches import Polygon
-    except ImportError as exc:
-        raise PlotUnavailableError(
-            'plotting needs matplotlib, the optional extra landmark_ros[plot]: '
-            'pip install "landmark_ros[plot]" (or pip install matplotlib)') from exc
-
     data, c2, c4, c5 = (results[k] for k in ('inputs', 'case2', 'case4', 'case5'))
-    fig = Figure(figsize=(8.0, 7.0))
-    FigureCanvasAgg(fig)
-    ax = fig.add_subplot()
-    triangle = np.array([[0.6, 0.0], [-0.3, 0.3], [-0.3, -0.3]])
-
+    fig, ax = plotting.new_figure()
     robots = (('R1', data['p1'], data['P1'], 'tab:blue'),
               ('R2', data['p2'], data['P2'], 'tab:orange'))
     for name, pose, P, colour in robots:
-        ax.add_patch(Polygon(pose2.transform_point(pose, triangle), closed=True,
-                             facecolor=colour, edgecolor='black', label=f'robot {name}'))
-        ring = _closed(ellipse_points(pose[:2], P[:2, :2], num_points=72))
-        ax.plot(ring[:, 0], ring[:, 1], color=colour, linestyle='--',
-                label=f'{name} pose, 1-sigma (x, y)')
+        plotting.draw_robot(ax, pose, P, colour=colour, label=f'robot {name}, 1-sigma (x, y)')
 
     rays = ((data['p1'], c2['m1'], 'tab:blue', '-', 'observation z1 (R1 to m1)'),
             (data['p2'], c5['m2'], 'tab:orange', '-', 'observation z2 (R2 to m2)'),
@@ -496,21 +453,13 @@ def plot(results, path):
                  (c5['m2'], c5['P_m2'], 'tab:purple', 's', 'm2 from R2'),
                  (c5['m_fused'], c5['P_fused'], 'tab:red', '*', 'fused m1, m2'))
     for m, P, colour, marker, label in estimates:
-        ring = _closed(ellipse_points(m, P, num_points=72))
-        ax.plot(ring[:, 0], ring[:, 1], color=colour, linewidth=1.5)
+        plotting.draw_ellipse(ax, m, P, color=colour, linewidth=1.5)
         ax.plot(m[0], m[1], linestyle='none', marker=marker, markersize=9, color=colour,
                 label=f'{label}, 1-sigma')
 
     z = c4['z']
-    ax.set_title('Landmark seen by two uncertain robots, fused\n'
-                 f'(R2 predicts m1 at range {z[0]:.2f} m, bearing {z[1]:.2f} rad)')
-    ax.set_xlabel('x [m]')
-    ax.set_ylabel('y [m]')
-    ax.set_aspect('equal', adjustable='datalim')
-    ax.grid(True, alpha=0.4)
-    ax.legend(loc='best', fontsize='small')
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    plotting.finish(fig, ax, path, 'Landmark seen by two uncertain robots, fused\n'
+                    f'(R2 predicts m1 at range {z[0]:.2f} m, bearing {z[1]:.2f} rad)')
 
 
 def main(argv=None):
@@ -545,7 +494,7 @@ def main(argv=None):
     if args.plot is not None:
         try:
             plot(results, args.plot)
-        except PlotUnavailableError as exc:
+        except plotting.PlotUnavailableError as exc:
             print(f'error: {exc}', file=sys.stderr)
             return EXIT_NO_MATPLOTLIB
         print(f'Figure written to {args.plot}')
