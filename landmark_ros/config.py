@@ -238,3 +238,38 @@ class FuserConfig(ConfigBase):
             raise ValueError('input_topics must list at least one topic name')
         if len(set(self.input_topics)) != len(self.input_topics):
             raise ValueError('input_topics must not repeat a topic')
+
+
+def markdown_table(config_class):
+    """
+    Return the parameters of a config class as a Markdown table (for the README).
+
+    Parameters
+    ----------
+    config_class : type
+        A ConfigBase dataclass.
+
+    Returns
+    -------
+    str
+
+    """
+    lines = ['| parameter | default | range | description |', '| --- | --- | --- | --- |']
+    for spec in fields(config_class):
+        meta = spec.metadata
+        default = field_default(spec)
+        if isinstance(default, tuple):
+            default = '[' + ', '.join(repr(v) if isinstance(v, str) else f'{v:g}'
+                                      for v in default) + ']'
+        elif isinstance(default, str):
+            default = repr(default)
+        span = '' if meta['low'] is None else f"{meta['low']:g} to {meta['high']:g}"
+        note = ' Read-only.' if meta['read_only'] else ''
+        lines.append(f"| `{spec.name}` | `{default}` | {span} | {meta['description']}{note} |")
+    return '\n'.join(lines)
+
+
+if __name__ == '__main__':
+    import sys
+    for name in sys.argv[1:] or ['ObserverConfig', 'FuserConfig']:
+        print(f'### {name}\n\n{markdown_table(globals()[name])}\n')
