@@ -54,7 +54,16 @@ def reference_fuse(fusion, m, P_ind, P_dep, z, R_ind, R_dep):
 
 
 def reference_sequence(fusion, zs, Rs, R_deps):
-    """Fuse observations in order, from the first; return mean, total and dependent."""
+    """
+    Fuse observations in order, from the first; return mean, total and dependent.
+
+    With one source per observation, split CI folds the sources from the smallest
+    covariance (determinant) up, whatever their order.
+    """
+    zs, Rs, R_deps = np.asarray(zs), np.asarray(Rs), np.asarray(R_deps)
+    if fusion == 'split_covariance_intersection':
+        order = np.argsort([np.linalg.det(R) for R in Rs], kind='stable')
+        zs, Rs, R_deps = zs[order], Rs[order], R_deps[order]
     m, P_ind, P_dep = zs[0], Rs[0] - R_deps[0], R_deps[0]
     for z, R, R_dep in zip(zs[1:], Rs[1:], R_deps[1:]):
         m, P_ind, P_dep = reference_fuse(fusion, m, P_ind, P_dep, z, R - R_dep, R_dep)

@@ -23,7 +23,7 @@ split_covariance_intersection
     the dependent part, their weighted mean, does not. Across sources the
     correlation is unknown: the source estimates are fused by split covariance
     intersection (independent parts as information, dependent parts bounded as
-    CI does), in the order the sources first saw the landmark.
+    CI does), the tightest first.
 
 An observation of a known landmark is gated by its squared Mahalanobis distance
 to the estimate (innovation covariance ``P + R``). A new ID becomes a landmark
@@ -530,16 +530,32 @@ class _SourceParts:
         return m, P_ind, 0.5 * (P_dep + np.swapaxes(P_dep, 1, 2))
 
     def combine(self, rows):
-        """Fuse the source estimates of each landmark by split CI, in source order."""
+        """
+        Fuse the source estimates of each landmark by split CI, the tightest first.
+
+        Split CI is not associative: folding the sources from the smallest covariance
+        (determinant) up makes the result independent of the order they arrived in.
+        """
         table = self.table[rows]
-        m, P_ind, P_dep = self.estimate(table[:, 0])
-        for j in range(1, table.shape[1]):
-            has = table[:, j] >= 0
-            if not has.any():
-                break
-            m[has], P_ind[has], P_dep[has] = split_covariance_intersection(
-                m[has], P_ind[has], P_dep[has], *self.estimate(table[has, j]))
-        return m, P_ind, P_dep
+        table = table[:, :int((table >= 0).sum(axis=1).max())]
+        count, width = table.shape
+        m, P_ind, P_dep = self.estimate(np.maximum(table, 0).reshape(-1))
+        m, P_ind, P_dep = (a.reshape((count, width) + a.shape[1:]) for a in (m, P_ind, P_dep))
+        P = P_ind + P_dep
+        size = np.where(table >= 0, P[..., 0, 0] * P[..., 1, 1] - P[..., 0, 1] ** 2, np.inf)
+        order = np.argsort(size, axis=1, kind='stable')
+        valid = np.take_along_axis(table >= 0, order, 1)
+        m = np.take_along_axis(m, order[..., None], 1)
+        P_ind = np.take_along_axis(P_ind, order[..., None, None], 1)
+        P_dep = np.take_along_axis(P_dep, order[..., None, None], 1)
+        fused = m[:, 0], P_ind[:, 0], P_dep[:, 0]
+        for j in range(1, width):
+            has = valid[:, j]
+            parts = split_covariance_intersection(*(f[has] for f in fused),
+                                                  m[has, j], P_ind[has, j], P_dep[has, j])
+            for f, part in zip(fused, parts):
+                f[has] = part
+        return fused
 
     def records(self, row):
         """Return the sums of one landmark as plain data."""
