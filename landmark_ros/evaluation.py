@@ -64,13 +64,13 @@ def chi2_quantile(dof, probability):
     """
     if dof <= 100:
         return chi2_threshold(dof, probability)
-    z = math.sqrt(2.0) * _erfinv(2.0 * probability - 1.0)
+    z = math.sqrt(2.0) * erfinv(2.0 * probability - 1.0)
     a = 2.0 / (9.0 * dof)
     return dof * (1.0 - a + z * math.sqrt(a)) ** 3
 
 
-def _erfinv(y):
-    # Newton on erf, good to machine precision for |y| < 1 - 1e-12.
+def erfinv(y):
+    """Return the inverse error function (Newton on ``math.erf``; |y| < 1 - 1e-12)."""
     x = 0.0
     for _ in range(100):
         step = (math.erf(x) - y) / (2.0 / math.sqrt(math.pi) * math.exp(-x * x))

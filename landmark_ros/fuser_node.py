@@ -14,28 +14,27 @@ from dataclasses import dataclass, field
 import itertools
 import sys
 
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from landmark_ros import map_file
+from landmark_ros import node_common
 from landmark_ros.cloud import CloudError
 from landmark_ros.config import FuserConfig
 from landmark_ros.conversions import stamp_ns
 from landmark_ros.core.landmark_map import LandmarkMap
-from landmark_ros.diagnostics import Counters, status_values
+from landmark_ros.diagnostics import Counters
 from landmark_ros.markers import delete_all, landmark_markers
 from landmark_ros.observations import landmark_row_problems
 from landmark_ros.ros_params import declare_config, keep_in_sync
 from landmark_ros.schemas import landmark_message, read_landmarks
 from landmark_ros.subscriptions import take_waiting
 import numpy as np
-import rclpy
-from rclpy.exceptions import ParameterException
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
+
 
 NOT_PROBLEMS = frozenset({'landmarks_confirmed', 'saves'})
 """Fuser counters that do not make its status a warning (a re-initialisation does)."""
@@ -208,12 +207,10 @@ class LandmarkFuser(Node):
                 stale.append(source.topic)
             extra = {'age_s': 'never' if age is None else f'{age:.3f}',
                      'stale': str(is_stale).lower(), 'queued_messages': len(source.queue)}
-            statuses.append(DiagnosticStatus(
-                level=DiagnosticStatus.WARN if is_stale else DiagnosticStatus.OK,
-                name=f'{name}: {source.topic}', hardware_id=source.topic,
-                message='stale' if is_stale else 'ok',
-                values=[KeyValue(key=k, value=v)
-                        for k, v in status_values(source.counts, extra)]))
+            statuses.append(node_common.status(
+                DiagnosticStatus.WARN if is_stale else DiagnosticStatus.OK,
+                f'{name}: {source.topic}', 'stale' if is_stale else 'ok', source.topic,
+                source.counts, extra))
         counts = dict(self.counters.counts)
         problems = sorted(key for key, value in counts.items()
                           if key not in NOT_PROBLEMS and value > self._reported.get(key, 0))
@@ -225,13 +222,10 @@ class LandmarkFuser(Node):
             message += f"; rejected: {', '.join(problems)}"
         extra = {'landmarks': len(self.map), 'fusion': self.config.fusion,
                  'map_file': self.config.map_file or '(none)'}
-        statuses.insert(0, DiagnosticStatus(
-            level=DiagnosticStatus.WARN if (stale or problems) else DiagnosticStatus.OK,
-            name=name, hardware_id=self.get_namespace(), message=message,
-            values=[KeyValue(key=k, value=v) for k, v in status_values(counts, extra)]))
-        array = DiagnosticArray(status=statuses)
-        array.header.stamp = self.get_clock().now().to_msg()
-        self.diagnostics_pub.publish(array)
+        statuses.insert(0, node_common.status(
+            DiagnosticStatus.WARN if (stale or problems) else DiagnosticStatus.OK,
+            name, message, self.get_namespace(), counts, extra))
+        node_common.publish_statuses(self, self.diagnostics_pub, statuses)
 
     # Services and persistence ----------------------------------------------------
 
@@ -317,21 +311,7 @@ class LandmarkFuser(Node):
 
 def main(args=None):
     """Run the node until shutdown; the map is saved on the way out."""
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = LandmarkFuser()
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except (ValueError, ParameterException) as error:
-        print(f'landmark_fuser: invalid parameters: {error}', file=sys.stderr)
-        return 2
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return node_common.run(LandmarkFuser, 'landmark_fuser', args)
 
 
 if __name__ == '__main__':

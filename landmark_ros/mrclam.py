@@ -570,18 +570,8 @@ def central_sigma(values, mass=CENTRAL_MASS):
     values = np.asarray(values, dtype=np.float64)
     if not len(values):
         return float('nan')
-    z = math.sqrt(2.0) * _erfinv(mass)
+    z = math.sqrt(2.0) * evaluation.erfinv(mass)
     return float(np.quantile(np.abs(values - np.median(values)), mass) / z)
-
-
-def _erfinv(y):
-    x = 0.0
-    for _ in range(100):
-        step = (math.erf(x) - y) / (2.0 / math.sqrt(math.pi) * math.exp(-x * x))
-        x -= step
-        if abs(step) < 1e-15:
-            break
-    return x
 
 
 def _fit_range_model(r, sigma, counts):

@@ -14,23 +14,20 @@ from collections import deque
 from dataclasses import dataclass
 import sys
 
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseWithCovarianceStamped
-from landmark_ros import pose_buffer
+from landmark_ros import node_common, pose_buffer
 from landmark_ros.cloud import CloudError, read_columns
 from landmark_ros.config import ObserverConfig
 from landmark_ros.conversions import InputError, pose_from_msg, stamp_ns
-from landmark_ros.diagnostics import Counters, status_values
+from landmark_ros.diagnostics import Counters
 from landmark_ros.markers import landmark_markers
 from landmark_ros.observations import landmarks_from_rows, observation_noise
 from landmark_ros.ros_params import declare_config, keep_in_sync
 from landmark_ros.schemas import landmark_message, OBSERVATION_FIELDS
 from landmark_ros.subscriptions import take_waiting
 import numpy as np
-import rclpy
 from rclpy.event_handler import PublisherEventCallbacks
-from rclpy.exceptions import ParameterException
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.qos import qos_profile_sensor_data
@@ -335,32 +332,14 @@ class LandmarkObserver(Node):
         elif not len(self.poses):
             level, message = DiagnosticStatus.WARN, 'no pose received yet'
         extra = {'pose_buffer_size': len(self.poses), 'pending_messages': len(self.pending)}
-        status = DiagnosticStatus(
-            level=level, name=self.get_fully_qualified_name(), message=message,
-            hardware_id=self.get_namespace(),
-            values=[KeyValue(key=k, value=v) for k, v in status_values(counts, extra)])
-        array = DiagnosticArray(status=[status])
-        array.header.stamp = self.get_clock().now().to_msg()
-        self.diagnostics_pub.publish(array)
+        node_common.publish_statuses(self, self.diagnostics_pub, [node_common.status(
+            level, self.get_fully_qualified_name(), message, self.get_namespace(), counts,
+            extra)])
 
 
 def main(args=None):
     """Run the node until shutdown."""
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = LandmarkObserver()
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except (ValueError, ParameterException) as error:
-        print(f'landmark_observer: invalid parameters: {error}', file=sys.stderr)
-        return 2
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return node_common.run(LandmarkObserver, 'landmark_observer', args)
 
 
 if __name__ == '__main__':

@@ -20,21 +20,19 @@ published as soon as the simulated time reaches it, so observers can interpolate
 
 import sys
 
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
-from landmark_ros.diagnostics import status_values
+from landmark_ros import node_common
 from landmark_ros.ros_params import declare_config
 from landmark_ros.schemas import landmark_message, observation_message
 from landmark_ros.sim import SimConfig, Simulation
 import numpy as np
-import rclpy
-from rclpy.exceptions import ParameterException
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.time import Time
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header
+
 
 STREAM_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
                         reliability=ReliabilityPolicy.RELIABLE)
@@ -229,32 +227,14 @@ class LandmarkSim(Node):
             'landmarks': len(self.sim.world.ids),
             'landmarks_seen': int((self.counts > 0).sum()),
         }
-        status = DiagnosticStatus(
-            level=level, name=self.get_fully_qualified_name(), message=message,
-            hardware_id='simulation',
-            values=[KeyValue(key=k, value=v) for k, v in status_values(counts, extra)])
-        array = DiagnosticArray(status=[status])
-        array.header.stamp = self.get_clock().now().to_msg()
-        self.diagnostics_pub.publish(array)
+        node_common.publish_statuses(self, self.diagnostics_pub, [node_common.status(
+            level, self.get_fully_qualified_name(), message, 'simulation', counts, extra)])
 
 
 def main(args=None):
     """Run the simulator until shutdown."""
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = LandmarkSim()
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except (ValueError, ParameterException, OSError) as error:
-        print(f'landmark_sim: invalid parameters or world file: {error}', file=sys.stderr)
-        return 2
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return node_common.run(LandmarkSim, 'landmark_sim', args, (OSError,),
+                           'invalid parameters or world file')
 
 
 if __name__ == '__main__':

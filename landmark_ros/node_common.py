@@ -1,0 +1,83 @@
+"""What every node of the package shares: its console entry point and diagnostics."""
+
+import sys
+
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from landmark_ros.diagnostics import status_values
+import rclpy
+from rclpy.exceptions import ParameterException
+from rclpy.executors import ExternalShutdownException
+
+
+def status(level, name, message, hardware_id, counts, extra=None):
+    """
+    Return a DiagnosticStatus with the counters (and extra values) as key-values.
+
+    Parameters
+    ----------
+    level : bytes
+        ``DiagnosticStatus.OK``, ``WARN``, ...
+    name : str
+        Status name (the node's fully qualified name, or more).
+    message : str
+        One line of summary.
+    hardware_id : str
+        What the status is about.
+    counts : dict
+        Counters.
+    extra : dict, optional
+        More values, shown first.
+
+    """
+    return DiagnosticStatus(level=level, name=name, message=message, hardware_id=hardware_id,
+                            values=[KeyValue(key=k, value=v)
+                                    for k, v in status_values(counts, extra)])
+
+
+def publish_statuses(node, publisher, statuses):
+    """Publish statuses as one DiagnosticArray stamped with the node's clock."""
+    array = DiagnosticArray(status=list(statuses))
+    array.header.stamp = node.get_clock().now().to_msg()
+    publisher.publish(array)
+
+
+def run(node_class, name, args=None, startup_errors=(), what='invalid parameters'):
+    """
+    Run one node until shutdown, as every console script of the package does.
+
+    Parameters
+    ----------
+    node_class : type
+        The Node subclass; constructed without arguments.
+    name : str
+        For the error message.
+    args : list of str, optional
+        Command-line arguments for ``rclpy.init``.
+    startup_errors : tuple of exception types
+        Besides invalid parameters, errors at construction that end the process with
+        a message and exit code 2 instead of a traceback.
+    what : str
+        What the message says went wrong.
+
+    Returns
+    -------
+    int
+        0 after a normal shutdown (Ctrl-C, SIGTERM, external shutdown), 2 if the
+        node could not start.
+
+    """
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = node_class()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except (ValueError, ParameterException, *startup_errors) as error:
+        print(f'{name}: {what}: {error}', file=sys.stderr)
+        return 2
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
