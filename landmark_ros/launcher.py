@@ -182,7 +182,10 @@ def remove_unused_shm(paths):
     return removed
 
 
-def _die_with_parent():  # runs in the child between fork and exec
+def _prepare_child():  # runs in the child between fork and exec
+    # A launcher started in the background of a script inherits an ignored SIGINT,
+    # which exec would pass on: the children must stop on the SIGINT they are sent.
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
     if _PRCTL is not None:
         _PRCTL(_PR_SET_PDEATHSIG, signal.SIGINT)
 
@@ -322,7 +325,7 @@ class Launcher:
                 # Own process group: a Ctrl-C in the terminal reaches only the
                 # launcher, which stops the processes in order.
                 start_new_session=True,
-                preexec_fn=_die_with_parent if _PRCTL is not None else None)
+                preexec_fn=_prepare_child)
         process = ManagedProcess(name, command, str(log_path), popen)
         self.processes[name] = process
         return process

@@ -1,5 +1,6 @@
 """What every node of the package shares: its console entry point and diagnostics."""
 
+import signal
 import sys
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
@@ -66,6 +67,10 @@ def run(node_class, name, args=None, startup_errors=(), what='invalid parameters
         node could not start.
 
     """
+    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        # Started in the background of a script: SIGINT (what launchers send to stop
+        # a node) would otherwise be ignored.
+        signal.signal(signal.SIGINT, signal.default_int_handler)
     rclpy.init(args=args)
     node = None
     try:
