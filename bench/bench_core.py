@@ -29,6 +29,7 @@ import platform
 import sys
 import time
 
+import _common
 from landmark_ros.core import landmarks
 import numpy as np
 
@@ -250,15 +251,7 @@ def machine():
         ``python`` and ``numpy`` versions.
 
     """
-    cpu = platform.processor() or platform.machine()
-    try:
-        with open('/proc/cpuinfo', encoding='utf-8') as cpuinfo:
-            for line in cpuinfo:
-                if line.startswith('model name'):
-                    cpu = line.split(':', 1)[1].strip()
-                    break
-    except OSError:
-        pass
+    cpu = _common.cpu_model()
     usable = len(os.sched_getaffinity(0)) if hasattr(os, 'sched_getaffinity') else None
     return {
         'cpu': cpu,
@@ -326,10 +319,6 @@ def run_case(pose, P_pose, z, R, loop_n, repeats, loop_repeats):
     }
 
 
-def _verdict(ok):
-    return 'PASS' if ok else 'FAIL'
-
-
 def report_case(title, case, n, loop_n, repeats, loop_repeats, targets):
     """
     Return the report lines of one case.
@@ -359,9 +348,9 @@ def report_case(title, case, n, loop_n, repeats, loop_repeats, targets):
     """
     vec, loop = case['vectorised_obs_per_s'], case['loop_obs_per_s']
     vec_target = (f'   target >= {TARGET_OBS_PER_S:.3g} obs/s: '
-                  f'{_verdict(vec >= TARGET_OBS_PER_S)}') if targets else ''
+                  f'{_common.verdict(vec >= TARGET_OBS_PER_S)}') if targets else ''
     ratio_target = (f'   target >= {TARGET_RATIO:g}x: '
-                    f'{_verdict(case["ratio"] >= TARGET_RATIO)}') if targets else ''
+                    f'{_common.verdict(case["ratio"] >= TARGET_RATIO)}') if targets else ''
     return [
         title,
         f'  vectorised  N = {n:>7}, best of {repeats:>2}: {case["vectorised_s"] * 1e3:9.3f} ms'
@@ -370,7 +359,7 @@ def report_case(title, case, n, loop_n, repeats, loop_repeats, targets):
         f'{case["loop_s"] * 1e3:9.3f} ms  {loop:12.4g} obs/s  ({1e6 / loop:7.2f} us/obs)',
         f'  ratio       {case["ratio"]:.1f}x{ratio_target}',
         f'  agreement on the {loop_n} loop rows: max |diff| m {case["max_abs_diff_m"]:.2e}, '
-        f'P_m {case["max_abs_diff_P"]:.2e}: {_verdict(case["agree"])}',
+        f'P_m {case["max_abs_diff_P"]:.2e}: {_common.verdict(case["agree"])}',
     ]
 
 
@@ -431,7 +420,7 @@ def main(argv=None):
         *report_case('shared covariances (node case): P_pose (3, 3), R (2, 2)',
                      shared, args.n, loop_n, args.repeats, args.loop_repeats, False),
         '',
-        f'targets: {", ".join(f"{k} {_verdict(v)}" for k, v in targets.items())}; '
+        f'targets: {", ".join(f"{k} {_common.verdict(v)}" for k, v in targets.items())}; '
         f'run time {seconds:.1f} s',
         'RESULT bench_core'
         f' n={args.n} loop_n={loop_n}'

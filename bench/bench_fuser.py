@@ -80,7 +80,6 @@ import gc
 import math
 import multiprocessing
 import os
-import platform
 import pstats
 import resource
 import statistics
@@ -92,6 +91,7 @@ import traceback
 # processes import this module too).
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 
+import _common  # noqa: E402
 from landmark_ros.config import FuserConfig  # noqa: E402
 from landmark_ros.core import gaussian  # noqa: E402
 from landmark_ros.core.landmark_map import FUSION_METHODS, LandmarkMap  # noqa: E402
@@ -102,14 +102,11 @@ import numpy as np  # noqa: E402
 import rclpy  # noqa: E402
 from rclpy.context import Context  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
-from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy  # noqa: E402
 from rclpy.logging import LoggingSeverity  # noqa: E402
-from rclpy.node import Node  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
 from rclpy.serialization import deserialize_message, serialize_message  # noqa: E402
 from sensor_msgs.msg import PointCloud2  # noqa: E402
-from std_msgs.msg import Header  # noqa: E402
 
 LANDMARKS = 1000
 """Confirmed landmarks in the map."""
@@ -372,17 +369,6 @@ def loop_case(base, pool, loop_n, repeats):
     return {'obs_per_s': loop_n / best, 'max_abs_diff': diff}
 
 
-def _where(key):
-    filename, line, function = key
-    if filename == '~':
-        return function
-    for marker in ('/site-packages/', '/work/main/'):
-        if marker in filename:
-            filename = filename.split(marker, 1)[1]
-            break
-    return f'{filename}:{line}({function})'
-
-
 def profile_calls(function, calls, top):
     """
     Profile ``function(i)`` for ``i`` in ``range(calls)``.
@@ -403,7 +389,7 @@ def profile_calls(function, calls, top):
     stats = pstats.Stats(profiler).stats
     entries = sorted(stats.items(), key=lambda item: item[1][2], reverse=True)
     total = sum(tt for _, _, tt, _, _ in stats.values()) / calls * 1e3
-    return ([(_where(key), tt / calls * 1e3, ct / calls * 1e3, nc / calls)
+    return ([(_common.profile_where(key), tt / calls * 1e3, ct / calls * 1e3, nc / calls)
              for key, (_, nc, tt, ct, _) in entries[:top]], total)
 
 
@@ -448,24 +434,6 @@ def core_fusion(args, truth, maps):
 MESSAGES, CALLBACK_S, PUBLISH_S, THREAD_S, FUSE_CALLS, FUSE_S, ROWS_FUSED, MAP_PUB_S, \
     OTHER_S, LAG_SUM, LAG_MAX, LAG_OLDEST_SUM, LAG_OLDEST_MAX, STOP = range(14)
 FIELDS = 14
-
-
-class Relay(Node):
-    """Republish every landmark cloud unchanged: the executor-only baseline."""
-
-    def __init__(self, input_depth, **kwargs):
-        super().__init__('bench_relay', **kwargs)
-        self.count = 0
-        self.publisher = self.create_publisher(PointCloud2, 'relayed', QoSProfile(
-            history=HistoryPolicy.KEEP_LAST, depth=RELAY_OUTPUT_DEPTH,
-            reliability=ReliabilityPolicy.RELIABLE))
-        self.subscription = self.create_subscription(PointCloud2, 'landmarks',
-                                                     self.on_landmarks, input_qos(input_depth))
-
-    def on_landmarks(self, msg):
-        """Publish the message as it came."""
-        self.count += 1
-        self.publisher.publish(msg)
 
 
 def input_qos(depth):
@@ -583,15 +551,7 @@ def peak_rss_kb():
     Linux keeps ``ru_maxrss`` across ``exec``, so in a spawned process it is at least
     the parent's RSS when it was spawned; ``VmHWM`` is the process's own peak.
     """
-    hwm = None
-    try:
-        with open('/proc/self/status', encoding='ascii') as status:
-            for line in status:
-                if line.startswith('VmHWM:'):
-                    hwm = int(line.split()[1])
-    except (OSError, ValueError, IndexError):
-        pass
-    return hwm, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return _common.vm_hwm_kb(), resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
 
 
 def serve(kind, domain_id, input_depth, records, shared, conn):
@@ -609,7 +569,9 @@ def serve(kind, domain_id, input_depth, records, shared, conn):
     try:
         namespace = NAMESPACES[kind]
         if kind == 'relay':
-            node = Relay(input_depth, context=context, namespace=namespace)
+            node = _common.relay('landmarks', input_qos(input_depth), 'relayed', QoSProfile(
+                history=HistoryPolicy.KEEP_LAST, depth=RELAY_OUTPUT_DEPTH,
+                reliability=ReliabilityPolicy.RELIABLE), context=context, namespace=namespace)
             instrument_relay(node, shared)
         else:
             node = LandmarkFuser(context=context, namespace=namespace,
@@ -635,79 +597,32 @@ def serve(kind, domain_id, input_depth, records, shared, conn):
     except Exception:  # reported to the driver, which prints it
         conn.send(('error', traceback.format_exc()))
     finally:
-        if executor is not None:
-            executor.shutdown()
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown(context=context)
-        conn.close()
+        _common.shutdown(executor, node, context, conn)
 
 
-class Server:
+class Server(_common.Server):
     """A node under test in a spawned process, with its pipe and shared counters."""
 
     def __init__(self, mp_context, kind, domain_id, input_depth, records):
-        self.kind = kind
         self.shared = mp_context.RawArray('d', FIELDS)
-        self.conn, child = mp_context.Pipe(duplex=False)
-        self.process = mp_context.Process(
-            target=serve, name=f'bench_{kind}',
-            args=(kind, domain_id, input_depth, records, self.shared, child))
-        self.process.start()
-        child.close()
-        self.pid = None
-        self.stats = None
-
-    def wait_ready(self, timeout):
-        """Wait for the node to spin; raise RuntimeError if it does not."""
-        if not self.conn.poll(timeout):
-            raise RuntimeError(f'{self.kind} node not ready after {timeout} s')
-        tag, value = self.conn.recv()
-        if tag != 'ready':
-            raise RuntimeError(f'{self.kind} node failed:\n{value}')
-        self.pid = value
+        super().__init__(mp_context, kind, serve,
+                         (kind, domain_id, input_depth, records, self.shared), duplex=False)
 
     def snapshot(self):
         """Return a copy of the shared counters."""
         return list(self.shared)
 
-    def stop(self, timeout=10.0):
-        """Stop the node, keep its final statistics and join the process."""
+    def request_stop(self):
+        """Set the stop flag in the shared counters."""
         self.shared[STOP] = 1.0
-        try:
-            if self.conn.poll(timeout):
-                tag, value = self.conn.recv()
-                if tag == 'done':
-                    self.stats = value
-                else:
-                    print(f'{self.kind} node error:\n{value}', file=sys.stderr)
-        except (EOFError, OSError):
-            pass
-        self.process.join(timeout)
-        if self.process.is_alive():
-            self.process.terminate()
-            self.process.join(timeout)
-        self.conn.close()
-
-
-def process_cpu_s(pid):
-    """Return user + system CPU seconds of a process (all its threads), or NaN."""
-    try:
-        with open(f'/proc/{pid}/stat', encoding='ascii') as stat:
-            fields = stat.read().rsplit(')', 1)[1].split()
-        return (int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK')
-    except (OSError, IndexError, ValueError):
-        return float('nan')
+        return True
 
 
 # --- The driver: no executor, an rcl wait set and serialized messages. -------------
 
 def header(stamp_s):
     """Return a Header in the world frame at ``stamp_s`` seconds."""
-    sec = int(math.floor(stamp_s))
-    result = Header(frame_id=WORLD_FRAME)
-    result.stamp.sec, result.stamp.nanosec = sec, int(round((stamp_s - sec) * 1e9))
-    return result
+    return _common.header(stamp_s, WORLD_FRAME)
 
 
 def landmark_payloads(truth, count, seed):
@@ -730,46 +645,19 @@ def probe_payload(landmark_id):
                                               0.5 * P))
 
 
-class Target:
-    """The driver's publisher and raw output subscription for one node under test."""
-
-    def __init__(self, node, kind, input_depth, window):
-        namespace = NAMESPACES[kind]
-        self.kind = kind
-        self.publisher = node.create_publisher(PointCloud2, f'/{namespace}/landmarks',
-                                               input_qos(input_depth))
-        if kind == 'relay':
-            qos = input_qos(max(RELAY_OUTPUT_DEPTH, 2 * window))
-            topic = f'/{namespace}/relayed'
-        else:
-            qos, topic = LATCHED, f'/{namespace}/fused_landmarks'
-        self.subscription = node.create_subscription(PointCloud2, topic, lambda _: None,
-                                                     qos, raw=True)
-        self.wait_set = _rclpy.WaitSet(1, 0, 0, 0, 0, 0, node.context.handle)
-
-    def wait(self, timeout_s):
-        """Wait for outputs; return how many were taken and the last one (bytes)."""
-        self.wait_set.clear_entities()
-        self.wait_set.add_subscription(self.subscription.handle)
-        self.wait_set.wait(int(timeout_s * 1e9))
-        count, last = 0, None
-        with self.subscription.handle:
-            while True:
-                taken = self.subscription.handle.take_message(PointCloud2, True)
-                if taken is None:
-                    return count, last
-                count, last = count + 1, taken[0]
-
-
-def wait_for_match(pairs, timeout):
-    """Wait until every (publisher, subscription) pair has found its peer."""
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if all(pub.get_subscription_count() > 0 and sub.get_publisher_count() > 0
-               for pub, sub in pairs):
-            return True
-        time.sleep(0.02)
-    return False
+def make_target(node, kind, input_depth, window):
+    """Return the driver's publisher and raw output subscription for one node under test."""
+    namespace = NAMESPACES[kind]
+    publisher = node.create_publisher(PointCloud2, f'/{namespace}/landmarks',
+                                      input_qos(input_depth))
+    if kind == 'relay':
+        qos = input_qos(max(RELAY_OUTPUT_DEPTH, 2 * window))
+        topic = f'/{namespace}/relayed'
+    else:
+        qos, topic = LATCHED, f'/{namespace}/fused_landmarks'
+    subscription = node.create_subscription(PointCloud2, topic, lambda _: None, qos,
+                                            raw=True)
+    return _common.Target(node, kind, publisher, subscription)
 
 
 def has_landmark(raw, landmark_id):
@@ -815,7 +703,7 @@ def run_window(target, server, payloads, window, warmup_s, measure_s, probe_id):
         now = time.perf_counter()
         if mark is None and now >= measure_at:
             shared[LAG_MAX] = shared[LAG_OLDEST_MAX] = 0.0
-            mark = (now, server.snapshot(), process_cpu_s(server.pid), time.process_time(),
+            mark = (now, server.snapshot(), _common.process_cpu_s(server.pid), time.process_time(),
                     outputs)
             polls = idle = 0
         if now >= end_at:
@@ -832,7 +720,7 @@ def run_window(target, server, payloads, window, warmup_s, measure_s, probe_id):
             state['sent'] = done
             last_progress = now
         refill()
-    end = (time.perf_counter(), server.snapshot(), process_cpu_s(server.pid),
+    end = (time.perf_counter(), server.snapshot(), _common.process_cpu_s(server.pid),
            time.process_time(), outputs)
     e2e = float('nan')
     if probe_id is not None:
@@ -921,9 +809,10 @@ def node_rates(args, servers, domain_id, truth, deadline_s):
     try:
         payloads = landmark_payloads(truth, POOL_MESSAGES, args.seed + 2)
         node = rclpy.create_node('bench_fuser_driver', context=context)
-        targets = {kind: Target(node, kind, args.input_depth, args.window) for kind in KINDS}
-        if not wait_for_match([(t.publisher, t.subscription) for t in targets.values()],
-                              20.0):
+        targets = {kind: make_target(node, kind, args.input_depth, args.window)
+                   for kind in KINDS}
+        pairs = [(t.publisher, t.subscription) for t in targets.values()]
+        if not _common.wait_for_match(pairs, 20.0):
             raise RuntimeError('driver and nodes did not match within 20 s')
         probe_id = PROBE_ID0
         for rep in range(args.reps):
@@ -1004,33 +893,8 @@ def own_processing(args, domain_id, records, truth):
 
 # --- Report. ------------------------------------------------------------------------
 
-def machine():
-    """Describe the machine: CPU model, CPU count, platform, Python, numpy, rmw."""
-    cpu = platform.processor() or platform.machine()
-    try:
-        with open('/proc/cpuinfo', encoding='utf-8') as cpuinfo:
-            for line in cpuinfo:
-                if line.startswith('model name'):
-                    cpu = line.split(':', 1)[1].strip()
-                    break
-    except OSError:
-        pass
-    try:
-        from rclpy.utilities import get_rmw_implementation_identifier
-        rmw = get_rmw_implementation_identifier()
-    except (ImportError, RuntimeError):
-        rmw = os.environ.get('RMW_IMPLEMENTATION', '?')
-    return {'cpu': cpu, 'cpu_count': os.cpu_count(), 'python': platform.python_version(),
-            'numpy': np.__version__, 'rmw': rmw}
-
-
-def _verdict(ok):
-    return 'PASS' if ok else 'FAIL'
-
-
 def _median(runs, key):
-    values = [run[key] for run in runs if not math.isnan(run[key])]
-    return statistics.median(values) if values else float('nan')
+    return _common.median_of(runs, key, skip_nan=True)
 
 
 def _spread(values, fmt):
@@ -1096,7 +960,7 @@ def main(argv=None):
     # 201-214: clear of the tests' range (1-200) and of bench_observer's (215-232).
     domain_id = args.domain if args.domain is not None else 201 + os.getpid() % 13
     started = time.perf_counter()
-    host = machine()
+    host = _common.machine()
     load_start = os.getloadavg()[0]
 
     truth = make_world(args.seed)
@@ -1144,9 +1008,7 @@ def main(argv=None):
     lines = [
         f'bench_fuser: LandmarkMap.update and landmark_fuser, {LANDMARKS} confirmed '
         f'landmarks, seed {args.seed}',
-        f'machine: {host["cpu"]}; {host["cpu_count"]} CPUs; Python {host["python"]}; '
-        f'numpy {host["numpy"]}; {host["rmw"]}; domain {domain_id}; load average '
-        f'{load_start:.1f} at start, {load_end:.1f} at end',
+        _common.machine_line(host, domain_id, load_start, load_end),
         '',
         'core fusion: LandmarkMap.update on batches of random IDs into the warmed map, '
         'obs/s best / median / worst of the calls (per-row sources and stamps, as the '
@@ -1185,7 +1047,7 @@ def main(argv=None):
     lines += [
         f'core target: independent >= {TARGET_OBS_PER_S:.3g} obs/s at its best batch size '
         f'({best_batch["independent"]} rows, {best_rate["independent"]:.4g} obs/s): '
-        f'{_verdict(targets["core_independent"])} (by CPU time: {cpu_best:.4g} obs/s at '
+        f'{_common.verdict(targets["core_independent"])} (by CPU time: {cpu_best:.4g} obs/s at '
         f'{cpu_batch} rows)',
         '',
         f'node: messages handled per second at {ROWS_PER_MESSAGE} rows/message, counted '
@@ -1275,11 +1137,11 @@ def main(argv=None):
     lines += [
         '',
         f'targets: core independent >= {TARGET_OBS_PER_S:.3g} obs/s '
-        f'({best_rate["independent"]:.3g}): {_verdict(targets["core_independent"])}; '
+        f'({best_rate["independent"]:.3g}): {_common.verdict(targets["core_independent"])}; '
         + '; '.join(f'{LABELS[k]} msg/s >= {TARGET_RATIO:.0%} of relay ({ratio[k]:.2f}): '
-                    f'{_verdict(targets[f"node_{SHORT[k]}"])}' for k in fusers)
+                    f'{_common.verdict(targets[f"node_{SHORT[k]}"])}' for k in fusers)
         + f'; loop and update agree ({", ".join(SHORT[m] for m in MUST_MATCH)}): '
-        f'{_verdict(loop_agree)}; run time {seconds:.1f} s (core part {core_s:.1f} s)',
+        f'{_common.verdict(loop_agree)}; run time {seconds:.1f} s (core part {core_s:.1f} s)',
         'RESULT bench_fuser'
         + ''.join(f' core_{SHORT[m]}_obs_per_s_{b}={cells[m, b]["best"]:.6g}'
                   for m in FUSION_METHODS for b in BATCHES)

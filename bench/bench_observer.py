@@ -70,10 +70,8 @@ Run from the repository root in the dev venv (``make bench``):
 
 import argparse
 import cProfile
-import math
 import multiprocessing
 import os
-import platform
 import pstats
 import statistics
 import sys
@@ -85,6 +83,7 @@ import traceback
 # processes import this module too).
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 
+import _common  # noqa: E402
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from geometry_msgs.msg import PoseWithCovarianceStamped  # noqa: E402
 from landmark_ros import observations as observations_module  # noqa: E402
@@ -96,13 +95,10 @@ import numpy as np  # noqa: E402
 import rclpy  # noqa: E402
 from rclpy.context import Context  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
-from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy  # noqa: E402
-from rclpy.node import Node  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
 from rclpy.serialization import deserialize_message, serialize_message  # noqa: E402
 from sensor_msgs.msg import PointCloud2  # noqa: E402
-from std_msgs.msg import Header  # noqa: E402
 
 ROWS = (1, 10, 100)
 """Rows per observation message."""
@@ -133,17 +129,9 @@ STALL_S = 0.25
 
 # --- Messages. ------------------------------------------------------------------
 
-def header(stamp_s, frame_id):
-    """Return a Header at ``stamp_s`` seconds."""
-    sec = int(math.floor(stamp_s))
-    result = Header(frame_id=frame_id)
-    result.stamp.sec, result.stamp.nanosec = sec, int(round((stamp_s - sec) * 1e9))
-    return result
-
-
 def pose_message(stamp_s, pose, P_pose):
     """Return a PoseWithCovarianceStamped for a planar pose and its 3x3 covariance."""
-    msg = PoseWithCovarianceStamped(header=header(stamp_s, WORLD_FRAME))
+    msg = PoseWithCovarianceStamped(header=_common.header(stamp_s, WORLD_FRAME))
     msg.pose.pose.position.x, msg.pose.pose.position.y = float(pose[0]), float(pose[1])
     msg.pose.pose.orientation.z = float(np.sin(pose[2] / 2.0))
     msg.pose.pose.orientation.w = float(np.cos(pose[2] / 2.0))
@@ -180,29 +168,12 @@ def observation_payloads(rows, count=MESSAGES_PER_SIZE, seed=0):
         stamp_s = POSE_T0_S + 0.0037 + (span - 0.01) * i / count
         z = np.column_stack([rng.uniform(0.5, 30.0, rows), rng.uniform(-np.pi, np.pi, rows)])
         ids = rng.integers(0, 1000, rows)
-        msg = observation_message(header(stamp_s, SENSOR_FRAME), ids, z)
+        msg = observation_message(_common.header(stamp_s, SENSOR_FRAME), ids, z)
         result.append(serialize_message(msg))
     return result
 
 
 # --- Nodes under test, each in its own process. -----------------------------------
-
-class Relay(Node):
-    """Republish every observation cloud unchanged: the executor-only baseline."""
-
-    def __init__(self, input_depth, output_depth, **kwargs):
-        super().__init__('bench_relay', **kwargs)
-        self.count = 0
-        self.publisher = self.create_publisher(PointCloud2, 'landmarks',
-                                               output_qos(output_depth))
-        self.create_subscription(PointCloud2, 'observations', self.on_observations,
-                                 input_qos(input_depth))
-
-    def on_observations(self, msg):
-        """Publish the message as it came."""
-        self.count += 1
-        self.publisher.publish(msg)
-
 
 def observer_overrides(namespace, input_depth):
     """Return the observer's parameters: input depth, reliable deep pose input."""
@@ -272,18 +243,6 @@ def _subscription(node, topic_suffix):
     raise RuntimeError(f'{node.get_name()} has no subscription on *{topic_suffix}')
 
 
-def peak_rss_kb():
-    """Return this process's peak RSS (``VmHWM``) [kB], or None."""
-    try:
-        with open('/proc/self/status', encoding='ascii') as status:
-            for line in status:
-                if line.startswith('VmHWM:'):
-                    return int(line.split()[1])
-    except (OSError, ValueError, IndexError):
-        pass
-    return None
-
-
 def serve(kind, domain_id, input_depth, conn):
     """
     Run one node under test until told to stop (process entry point).
@@ -307,8 +266,9 @@ def serve(kind, domain_id, input_depth, conn):
             def messages():
                 return node.counters.counts['observation_messages_in']
         else:
-            node = Relay(input_depth, ObserverConfig().output_depth, context=context,
-                         namespace=namespace)
+            node = _common.relay('observations', input_qos(input_depth), 'landmarks',
+                                 output_qos(ObserverConfig().output_depth),
+                                 context=context, namespace=namespace)
             publisher = node.publisher
 
             def messages():
@@ -341,7 +301,7 @@ def serve(kind, domain_id, input_depth, conn):
             stats['pending_messages'] = len(node.pending)
         else:
             stats = {'messages': node.count}
-        stats['peak_rss_kb'] = peak_rss_kb()
+        stats['peak_rss_kb'] = _common.vm_hwm_kb()
         conn.send(('done', stats))
     except Exception:  # reported to the driver, which prints it
         conn.send(('error', traceback.format_exc()))
@@ -349,35 +309,14 @@ def serve(kind, domain_id, input_depth, conn):
         if listener is not None and listener.is_alive():
             stop.set()
             listener.join(5.0)
-        if executor is not None:
-            executor.shutdown()
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown(context=context)
-        conn.close()
+        _common.shutdown(executor, node, context, conn)
 
 
-class Server:
+class Server(_common.Server):
     """A node under test in a spawned process, with its control pipe."""
 
     def __init__(self, mp_context, kind, domain_id, input_depth):
-        self.kind = kind
-        self.conn, child = mp_context.Pipe()
-        self.process = mp_context.Process(target=serve, name=f'bench_{kind}',
-                                          args=(kind, domain_id, input_depth, child))
-        self.process.start()
-        child.close()
-        self.pid = None
-        self.stats = None
-
-    def wait_ready(self, timeout):
-        """Wait for the node to spin; raise RuntimeError if it does not."""
-        if not self.conn.poll(timeout):
-            raise RuntimeError(f'{self.kind} node not ready after {timeout} s')
-        tag, value = self.conn.recv()
-        if tag != 'ready':
-            raise RuntimeError(f'{self.kind} node failed:\n{value}')
-        self.pid = value
+        super().__init__(mp_context, kind, serve, (kind, domain_id, input_depth))
 
     def snapshot(self, timeout=2.0):
         """Return the node's callback counts and times (see ``_Probe``)."""
@@ -389,90 +328,25 @@ class Server:
             raise RuntimeError(f'{self.kind} node failed:\n{value}')
         return value
 
-    def stop(self, timeout=10.0):
-        """Stop the node, keep its final statistics and join the process."""
-        try:
-            if self.process.is_alive():
-                self.conn.send('stop')
-                if self.conn.poll(timeout):
-                    tag, value = self.conn.recv()
-                    if tag == 'done':
-                        self.stats = value
-                    else:
-                        print(f'{self.kind} node error:\n{value}', file=sys.stderr)
-        except (BrokenPipeError, EOFError, OSError):
-            pass
-        self.process.join(timeout)
-        if self.process.is_alive():
-            self.process.terminate()
-            self.process.join(timeout)
-        self.conn.close()
-
-
-def process_cpu_s(pid):
-    """Return user + system CPU seconds of a process (all its threads), or NaN."""
-    try:
-        with open(f'/proc/{pid}/stat', encoding='ascii') as stat:
-            fields = stat.read().rsplit(')', 1)[1].split()
-        return (int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK')
-    except (OSError, IndexError, ValueError):
-        return float('nan')
+    def request_stop(self):
+        """Send ``'stop'`` if the process runs; return whether it did."""
+        if not self.process.is_alive():
+            return False
+        self.conn.send('stop')
+        return True
 
 
 # --- The driver: no executor, an rcl wait set and serialized messages. -------------
 
-class Target:
-    """The driver's publisher and raw output subscription for one node under test."""
-
-    def __init__(self, node, kind, input_depth, window):
-        namespace = NAMESPACES[kind]
-        self.kind = kind
-        self.publisher = node.create_publisher(PointCloud2, f'/{namespace}/observations',
-                                               input_qos(input_depth))
-        depth = max(ObserverConfig().output_depth, 2 * window)
-        self.subscription = node.create_subscription(
-            PointCloud2, f'/{namespace}/landmarks', lambda _: None, output_qos(depth),
-            raw=True)
-        self.wait_set = _rclpy.WaitSet(1, 0, 0, 0, 0, 0, node.context.handle)
-
-    def wait(self, timeout_s):
-        """Wait for outputs; return how many were taken and the last one (bytes)."""
-        self.wait_set.clear_entities()
-        self.wait_set.add_subscription(self.subscription.handle)
-        self.wait_set.wait(int(timeout_s * 1e9))
-        count, last = 0, None
-        with self.subscription.handle:
-            while True:
-                taken = self.subscription.handle.take_message(PointCloud2, True)
-                if taken is None:
-                    return count, last
-                count, last = count + 1, taken[0]
-
-
-def take_all(node, subscription, msg_type, timeout_s):
-    """Wait up to ``timeout_s`` on one subscription and return its messages."""
-    wait_set = _rclpy.WaitSet(1, 0, 0, 0, 0, 0, node.context.handle)
-    wait_set.clear_entities()
-    wait_set.add_subscription(subscription.handle)
-    wait_set.wait(int(timeout_s * 1e9))
-    messages = []
-    with subscription.handle:
-        while True:
-            taken = subscription.handle.take_message(msg_type, False)
-            if taken is None:
-                return messages
-            messages.append(taken[0])
-
-
-def wait_for_match(pairs, timeout):
-    """Wait until every (publisher, subscription) pair has found its peer."""
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if all(pub.get_subscription_count() > 0 and sub.get_publisher_count() > 0
-               for pub, sub in pairs):
-            return True
-        time.sleep(0.02)
-    return False
+def make_target(node, kind, input_depth, window):
+    """Return the driver's publisher and raw output subscription for one node under test."""
+    namespace = NAMESPACES[kind]
+    publisher = node.create_publisher(PointCloud2, f'/{namespace}/observations',
+                                      input_qos(input_depth))
+    depth = max(ObserverConfig().output_depth, 2 * window)
+    subscription = node.create_subscription(PointCloud2, f'/{namespace}/landmarks',
+                                            lambda _: None, output_qos(depth), raw=True)
+    return _common.Target(node, kind, publisher, subscription)
 
 
 def send_poses(node, timeout):
@@ -492,14 +366,15 @@ def send_poses(node, timeout):
     diagnostics = node.create_subscription(DiagnosticArray, '/diagnostics', lambda _: None,
                                            10)
     try:
-        if not wait_for_match([(publisher, diagnostics)], timeout):
+        if not _common.wait_for_match([(publisher, diagnostics)], timeout):
             return None
         for msg in pose_messages():
             publisher.publish(msg)
         deadline = time.monotonic() + timeout
         size = None
         while time.monotonic() < deadline:
-            for array in take_all(node, diagnostics, DiagnosticArray, 0.1):
+            for array in _common.take(_common.wait_set_for(node), diagnostics, DiagnosticArray,
+                                      False, 0.1):
                 for status in array.status:
                     if OBSERVER_NS not in status.name:
                         continue
@@ -547,7 +422,7 @@ def run_window(target, payloads, rows, server, window, warmup_s, measure_s):
     while True:
         now = time.perf_counter()
         if mark is None and now >= measure_at:
-            mark = (now, received, process_cpu_s(server.pid), time.process_time())
+            mark = (now, received, _common.process_cpu_s(server.pid), time.process_time())
             probe = server.snapshot()
         if now >= end_at:
             break
@@ -564,7 +439,7 @@ def run_window(target, payloads, rows, server, window, warmup_s, measure_s):
             state['in_flight'] = 0
             last_progress = now
             refill()
-    end = (time.perf_counter(), received, process_cpu_s(server.pid), time.process_time())
+    end = (time.perf_counter(), received, _common.process_cpu_s(server.pid), time.process_time())
     end_probe = server.snapshot()
     # Let the messages in flight come back so that the next run starts clean.
     deadline = time.perf_counter() + 1.0
@@ -622,9 +497,10 @@ def throughput(args, domain_id, deadline_s):
         for server in servers.values():
             server.wait_ready(30.0)
         node = rclpy.create_node('bench_observer_driver', context=context)
-        targets = {kind: Target(node, kind, args.input_depth, args.window) for kind in KINDS}
-        if not wait_for_match([(t.publisher, t.subscription) for t in targets.values()],
-                              10.0):
+        targets = {kind: make_target(node, kind, args.input_depth, args.window)
+                   for kind in KINDS}
+        pairs = [(t.publisher, t.subscription) for t in targets.values()]
+        if not _common.wait_for_match(pairs, 10.0):
             raise RuntimeError('driver and nodes did not match within 10 s')
         info['pose_buffer_size'] = send_poses(node, 5.0)
         payloads = {rows: observation_payloads(rows) for rows in ROWS}
@@ -743,17 +619,6 @@ def breakdown(node, messages, calls):
                    for _, _, label, level, timed in patched if timed.calls]
 
 
-def _where(key):
-    filename, line, function = key
-    if filename == '~':
-        return function
-    for marker in ('/site-packages/', '/work/main/'):
-        if marker in filename:
-            filename = filename.split(marker, 1)[1]
-            break
-    return f'{filename}:{line}({function})'
-
-
 def _package(key):
     filename, _, function = key
     if filename == '~':
@@ -789,7 +654,7 @@ def profile(node, messages, calls, top):
     profiler.disable()
     stats = pstats.Stats(profiler).stats
     entries = sorted(stats.items(), key=lambda item: item[1][2], reverse=True)
-    functions = [(_where(key), tt / calls * 1e6, ct / calls * 1e6, nc / calls)
+    functions = [(_common.profile_where(key), tt / calls * 1e6, ct / calls * 1e6, nc / calls)
                  for key, (_, nc, tt, ct, _) in entries[:top]]
     packages = {}
     for key, (_, _, tt, _, _) in stats.items():
@@ -848,32 +713,8 @@ def own_processing(args, domain_id):
 
 # --- Report. ------------------------------------------------------------------------
 
-def machine():
-    """Describe the machine: CPU model, CPU count, platform, Python, numpy, rmw."""
-    cpu = platform.processor() or platform.machine()
-    try:
-        with open('/proc/cpuinfo', encoding='utf-8') as cpuinfo:
-            for line in cpuinfo:
-                if line.startswith('model name'):
-                    cpu = line.split(':', 1)[1].strip()
-                    break
-    except OSError:
-        pass
-    try:
-        from rclpy.utilities import get_rmw_implementation_identifier
-        rmw = get_rmw_implementation_identifier()
-    except (ImportError, RuntimeError):
-        rmw = os.environ.get('RMW_IMPLEMENTATION', '?')
-    return {'cpu': cpu, 'cpu_count': os.cpu_count(), 'python': platform.python_version(),
-            'numpy': np.__version__, 'rmw': rmw}
-
-
-def _verdict(ok):
-    return 'PASS' if ok else 'FAIL'
-
-
 def _median(runs, key):
-    return statistics.median(run[key] for run in runs) if runs else float('nan')
+    return _common.median_of(runs, key)
 
 
 def main(argv=None):
@@ -924,7 +765,7 @@ def main(argv=None):
     # 215-232 are free of the tests' range (1-200) and valid for the DDS port mapping.
     domain_id = args.domain if args.domain is not None else 215 + os.getpid() % 17
     started = time.perf_counter()
-    host = machine()
+    host = _common.machine()
     load_start = os.getloadavg()[0]
 
     runs, info = throughput(args, domain_id, started + args.budget - 15.0)
@@ -954,9 +795,7 @@ def main(argv=None):
         f'bench_observer: landmark_observer vs a bare relay node, closed loop, '
         f'window {args.window}, input depth {args.input_depth}, {rounds} rounds of '
         f'{args.warmup:g} s warm-up + {args.measure:g} s per run (medians)',
-        f'machine: {host["cpu"]}; {host["cpu_count"]} CPUs; Python {host["python"]}; '
-        f'numpy {host["numpy"]}; {host["rmw"]}; domain {domain_id}; load average '
-        f'{load_start:.1f} at start, {load_end:.1f} at end',
+        _common.machine_line(host, domain_id, load_start, load_end),
         f'poses: {POSE_COUNT} sent in a burst, observer reported '
         f'{info.get("pose_buffer_size")} in its buffer',
         '',
@@ -1003,8 +842,8 @@ def main(argv=None):
     publishes_ok = all(abs(run['publishes_per_message'] - 1.0) < 0.02
                        for key in runs for run in runs[key])
     lines.append(f'lost messages {lost}; outputs have the rows sent: '
-                 f'{_verdict(outputs_ok)}; one publish per message handled: '
-                 f'{_verdict(publishes_ok)}')
+                 f'{_common.verdict(outputs_ok)}; one publish per message handled: '
+                 f'{_common.verdict(publishes_ok)}')
     obs_stats = info.get('observer_stats') or {}
     problems = {k: v for k, v in obs_stats.items()
                 if k not in observer_module.THROUGHPUT_COUNTERS
@@ -1050,10 +889,10 @@ def main(argv=None):
     lines += [
         '',
         f'targets: observer msg/s at {big} rows >= {TARGET_RATIO:.0%} of relay '
-        f'({ratio[big]:.2f}): {_verdict(targets["ratio_100"])}; own processing at {big} '
+        f'({ratio[big]:.2f}): {_common.verdict(targets["ratio_100"])}; own processing at {big} '
         f'rows < {TARGET_OWN_US:g} us ({own_us[big]:.1f} us): '
-        f'{_verdict(targets["own_us_100"])}; in-process counts '
-        f'{_verdict(counts_ok)}; run time {seconds:.1f} s',
+        f'{_common.verdict(targets["own_us_100"])}; in-process counts '
+        f'{_common.verdict(counts_ok)}; run time {seconds:.1f} s',
         'RESULT bench_observer'
         + ''.join(f' relay_msg_per_s_{rows}={relay[rows]:.6g}'
                   f' observer_msg_per_s_{rows}={observer[rows]:.6g}'

@@ -26,6 +26,8 @@ import re
 import subprocess
 import sys
 
+import _common
+
 RESULT_LINE = re.compile(r'^RESULT\s+(\S+)((?:\s+\S+=\S*)*)\s*$')
 SPEED_UP_KEY = re.compile(r'speed_?up|real_?time|rtf', re.IGNORECASE)
 MEMORY_KEY = re.compile(r'(?:peak_rss|maxrss)_(.+)_mb$')
@@ -70,15 +72,7 @@ def parse(lines):
 
 def machine():
     """Return the machine: CPU model, cores, Python and numpy versions, load, commit."""
-    cpu = platform.processor() or platform.machine()
-    try:
-        with open('/proc/cpuinfo', encoding='utf-8') as cpuinfo:
-            for line in cpuinfo:
-                if line.startswith('model name'):
-                    cpu = line.split(':', 1)[1].strip()
-                    break
-    except OSError:
-        pass
+    cpu = _common.cpu_model()
     try:
         import numpy
         numpy_version = numpy.__version__
