@@ -83,3 +83,30 @@ def assert_jacobians(value_fn, jacobian_fn, args, angle_rows=(), atol=1e-6):
         np.testing.assert_allclose(
             J, numerical_jacobian(f, args[i], angle_rows), rtol=0, atol=atol,
             err_msg=f'{jacobian_fn.__name__}: Jacobian {i} at {args}')
+
+
+@pytest.fixture
+def ros_env():
+    """Return a factory of RosEnv (own context and domain); all are closed in teardown."""
+    from rosutil import RosEnv  # rclpy only for the tests that spin nodes
+    envs = []
+
+    def make(**kwargs):
+        env = RosEnv(**kwargs)
+        envs.append(env)
+        return env
+
+    yield make
+    errors = []
+    for env in envs:
+        try:
+            env.close()
+        except Exception as error:  # noqa: B902 - every env must be closed
+            errors.append(error)
+    assert not errors, f'RosEnv.close failed: {errors}'
+
+
+@pytest.fixture
+def env(ros_env):
+    """Return a fresh RosEnv for this test."""
+    return ros_env()

@@ -29,7 +29,7 @@ DEMO_DEADLINE_S = 150.0
 """Deadline of a whole short demo run (a loaded 2-core machine included)."""
 
 CHILD = r"""
-import os, signal, sys, time
+import os, signal, sys
 mode = sys.argv[1]
 if mode in ('ignore_int', 'ignore_all'):
     signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -42,7 +42,7 @@ if mode == 'exit3':
     sys.exit(3)
 try:
     while True:
-        time.sleep(0.02)
+        signal.pause()
 except KeyboardInterrupt:
     print('stopping on SIGINT', flush=True)
 """

@@ -33,7 +33,7 @@ import numpy as np
 import pytest
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
-from rosutil import Collector, header, pose_message, RosEnv, wait_for_match
+from rosutil import Collector, header, pose_message, wait_for_match
 from sensor_msgs.msg import PointCloud2, PointField
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import Marker, MarkerArray
@@ -139,32 +139,6 @@ def call(env, client, timeout=DEADLINE_S):
 def unique_namespace(env):
     """Return a namespace of its own for a test's nodes (other runs may share the domain)."""
     return f'/fuser_test_{os.getpid()}_{env.domain_id}'
-
-
-@pytest.fixture
-def ros_env():
-    """Return a factory of RosEnv (own context and domain); all are closed in teardown."""
-    envs = []
-
-    def make(**kwargs):
-        env = RosEnv(**kwargs)
-        envs.append(env)
-        return env
-
-    yield make
-    errors = []
-    for env in envs:
-        try:
-            env.close()
-        except Exception as error:  # noqa: B902 - every env must be closed
-            errors.append(error)
-    assert not errors, f'RosEnv.close failed: {errors}'
-
-
-@pytest.fixture
-def env(ros_env):
-    """Return a fresh RosEnv for this test."""
-    return ros_env()
 
 
 class FuserRig:

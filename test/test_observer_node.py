@@ -25,7 +25,7 @@ import numpy as np
 import pytest
 from rclpy.exceptions import InvalidParameterValueException
 from rclpy.parameter import Parameter
-from rosutil import Collector, header, pose_message, RosEnv, wait_for_match
+from rosutil import Collector, header, pose_message, wait_for_match
 from sensor_msgs.msg import PointCloud2, PointField
 from visualization_msgs.msg import Marker, MarkerArray
 import yaml
@@ -171,32 +171,6 @@ def row_R(row, params=(0.25, 0.04)):
 
 
 # Fixtures and the test rig ---------------------------------------------------------------
-
-@pytest.fixture
-def ros_env():
-    """Return a factory of RosEnv (own context and domain); all are closed in teardown."""
-    envs = []
-
-    def make(**kwargs):
-        env = RosEnv(**kwargs)
-        envs.append(env)
-        return env
-
-    yield make
-    errors = []
-    for env in envs:
-        try:
-            env.close()
-        except Exception as error:  # noqa: B902 - every env must be closed
-            errors.append(error)
-    assert not errors, f'RosEnv.close failed: {errors}'
-
-
-@pytest.fixture
-def env(ros_env):
-    """Return a fresh RosEnv for this test."""
-    return ros_env()
-
 
 class Rig:
     """
