@@ -206,15 +206,6 @@ class Server:
 
 # --- The driver: no executor, an rcl wait set and serialized messages. ---------------
 
-def header(stamp_s, frame_id):
-    """Return a Header at ``stamp_s`` seconds."""
-    from std_msgs.msg import Header
-    sec = int(math.floor(stamp_s))
-    result = Header(frame_id=frame_id)
-    result.stamp.sec, result.stamp.nanosec = sec, int(round((stamp_s - sec) * 1e9))
-    return result
-
-
 def wait_for_match(pairs, timeout):
     """Wait until every (publisher, subscription) pair has found its peer."""
     deadline = time.monotonic() + timeout

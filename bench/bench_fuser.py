@@ -97,7 +97,7 @@ from landmark_ros.core import gaussian  # noqa: E402
 from landmark_ros.core.landmark_map import FUSION_METHODS, LandmarkMap  # noqa: E402
 from landmark_ros.core.landmarks import landmark_to_world_dependent  # noqa: E402
 from landmark_ros.fuser_node import LandmarkFuser, LATCHED  # noqa: E402
-from landmark_ros.schemas import landmark_message, read_landmarks  # noqa: E402
+from landmark_ros.schemas import landmark_message, make_header, read_landmarks  # noqa: E402
 import numpy as np  # noqa: E402
 import rclpy  # noqa: E402
 from rclpy.context import Context  # noqa: E402
@@ -622,7 +622,7 @@ class Server(_common.Server):
 
 def header(stamp_s):
     """Return a Header in the world frame at ``stamp_s`` seconds."""
-    return _common.header(stamp_s, WORLD_FRAME)
+    return make_header(stamp_s, WORLD_FRAME)
 
 
 def landmark_payloads(truth, count, seed):

@@ -88,6 +88,7 @@ from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from geometry_msgs.msg import PoseWithCovarianceStamped  # noqa: E402
 from landmark_ros import observations as observations_module  # noqa: E402
 from landmark_ros import observer_node as observer_module  # noqa: E402
+from landmark_ros import schemas  # noqa: E402
 from landmark_ros.config import ObserverConfig  # noqa: E402
 from landmark_ros.observer_node import input_qos, LandmarkObserver, output_qos  # noqa: E402
 from landmark_ros.schemas import observation_message  # noqa: E402
@@ -131,15 +132,7 @@ STALL_S = 0.25
 
 def pose_message(stamp_s, pose, P_pose):
     """Return a PoseWithCovarianceStamped for a planar pose and its 3x3 covariance."""
-    msg = PoseWithCovarianceStamped(header=_common.header(stamp_s, WORLD_FRAME))
-    msg.pose.pose.position.x, msg.pose.pose.position.y = float(pose[0]), float(pose[1])
-    msg.pose.pose.orientation.z = float(np.sin(pose[2] / 2.0))
-    msg.pose.pose.orientation.w = float(np.cos(pose[2] / 2.0))
-    covariance = np.zeros((6, 6))
-    index = [0, 1, 5]
-    covariance[np.ix_(index, index)] = P_pose
-    msg.pose.covariance = covariance.reshape(-1).tolist()
-    return msg
+    return schemas.pose_message(stamp_s, pose, P_pose, WORLD_FRAME)
 
 
 def pose_messages():
@@ -168,7 +161,7 @@ def observation_payloads(rows, count=MESSAGES_PER_SIZE, seed=0):
         stamp_s = POSE_T0_S + 0.0037 + (span - 0.01) * i / count
         z = np.column_stack([rng.uniform(0.5, 30.0, rows), rng.uniform(-np.pi, np.pi, rows)])
         ids = rng.integers(0, 1000, rows)
-        msg = observation_message(_common.header(stamp_s, SENSOR_FRAME), ids, z)
+        msg = observation_message(schemas.make_header(stamp_s, SENSOR_FRAME), ids, z)
         result.append(serialize_message(msg))
     return result
 

@@ -24,6 +24,39 @@ def stamp_ns(stamp):
     return stamp.sec * 1_000_000_000 + stamp.nanosec
 
 
+def _split_seconds(seconds):
+    sec = math.floor(seconds)
+    nanosec = int(round((seconds - sec) * 1e9))
+    if nanosec >= 1_000_000_000:
+        sec, nanosec = sec + 1, nanosec - 1_000_000_000
+    return int(sec), nanosec
+
+
+def set_stamp(stamp, seconds):
+    """Set a ``builtin_interfaces/Time`` to ``seconds``, nanoseconds rounded."""
+    stamp.sec, stamp.nanosec = _split_seconds(seconds)
+
+
+def seconds_to_ns(seconds):
+    """Return ``seconds`` as the integer nanoseconds a stamp set by ``set_stamp`` holds."""
+    sec, nanosec = _split_seconds(seconds)
+    return sec * 1_000_000_000 + nanosec
+
+
+def set_planar_pose(msg_pose, pose):
+    """Set a ``geometry_msgs/Pose`` to a planar pose ``(x, y, yaw)`` (z and roll, pitch 0)."""
+    msg_pose.position.x, msg_pose.position.y = float(pose[0]), float(pose[1])
+    msg_pose.orientation.z = math.sin(0.5 * float(pose[2]))
+    msg_pose.orientation.w = math.cos(0.5 * float(pose[2]))
+
+
+def planar_pose_covariance(P_pose):
+    """Return the row-major 6x6 ROS pose covariance holding a (3, 3) (x, y, yaw) one."""
+    covariance = np.zeros(36)
+    covariance[POSE_COVARIANCE_INDICES] = P_pose
+    return covariance.tolist()
+
+
 def yaw_from_quaternion(x, y, z, w):
     """
     Return the yaw [rad] of a quaternion after normalising it.

@@ -21,6 +21,7 @@ import sys
 
 from landmark_ros import plotting
 from landmark_ros.core import gaussian, landmarks, pose2, sensors
+from landmark_ros.core._arrays import sandwich
 import numpy as np
 
 
@@ -60,27 +61,6 @@ def inputs():
     }
 
 
-def _sandwich(J, P):
-    """
-    Return ``J P J^T`` symmetrised.
-
-    Parameters
-    ----------
-    J : ndarray, shape (m, n)
-        Jacobian.
-    P : ndarray, shape (n, n)
-        Covariance.
-
-    Returns
-    -------
-    ndarray, shape (m, m)
-        The propagated covariance.
-
-    """
-    out = J @ P @ J.T
-    return 0.5 * (out + out.T)
-
-
 def textbook_observation_covariance(p2, P2, m1, P_m1):
     """
     Reproduce the textbook's covariance of the predicted observation of ``m1``.
@@ -113,17 +93,17 @@ def textbook_observation_covariance(p2, P2, m1, P_m1):
 
     """
     p2_inv = pose2.inverse(p2)
-    P2_inv = _sandwich(pose2.inverse_jacobian(p2), P2)
+    P2_inv = sandwich(pose2.inverse_jacobian(p2), P2)
     q = pose2.transform_point(p2_inv, m1)
     J_q_inv, J_q_m = pose2.transform_point_jacobians(p2_inv, m1)
-    P_q = _sandwich(J_q_inv, P2_inv) + _sandwich(J_q_m, P_m1)
+    P_q = sandwich(J_q_inv, P2_inv) + sandwich(J_q_m, P_m1)
     d_world = m1 - p2[:2]
     return {
         'q': q,
         'P_q': P_q,
         'd_world': d_world,
-        'P_z_textbook': _sandwich(sensors.cartesian_to_polar_jacobian(d_world), P_q),
-        'P_z_at_q': _sandwich(sensors.cartesian_to_polar_jacobian(q), P_q),
+        'P_z_textbook': sandwich(sensors.cartesian_to_polar_jacobian(d_world), P_q),
+        'P_z_at_q': sandwich(sensors.cartesian_to_polar_jacobian(q), P_q),
     }
 
 

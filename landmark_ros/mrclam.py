@@ -91,6 +91,7 @@ import time
 
 from landmark_ros import evaluation
 from landmark_ros.config import FuserConfig, ObserverConfig
+from landmark_ros.conversions import seconds_to_ns, stamp_ns
 from landmark_ros.core.landmark_map import FUSION_METHODS, LandmarkMap
 from landmark_ros.core.pose2 import wrap_angle
 from landmark_ros.mrclam_data import load_dataset
@@ -955,35 +956,6 @@ def dependencies(rows, starts, ends):
     return requirements, local
 
 
-def _header(stamp_s, frame_id):
-    from std_msgs.msg import Header
-    sec = math.floor(stamp_s)
-    nanosec = int(round((stamp_s - sec) * 1e9))
-    if nanosec >= 1_000_000_000:
-        sec, nanosec = sec + 1, nanosec - 1_000_000_000
-    header = Header(frame_id=frame_id)
-    header.stamp.sec, header.stamp.nanosec = int(sec), nanosec
-    return header
-
-
-def _stamp_ns(stamp):
-    return stamp.sec * 1_000_000_000 + stamp.nanosec
-
-
-def pose_message(stamp_s, pose, P_pose, frame_id='map'):
-    """Return a PoseWithCovarianceStamped of a planar pose and its (3, 3) covariance."""
-    from geometry_msgs.msg import PoseWithCovarianceStamped
-    msg = PoseWithCovarianceStamped(header=_header(stamp_s, frame_id))
-    msg.pose.pose.position.x, msg.pose.pose.position.y = float(pose[0]), float(pose[1])
-    msg.pose.pose.orientation.z = math.sin(float(pose[2]) / 2.0)
-    msg.pose.pose.orientation.w = math.cos(float(pose[2]) / 2.0)
-    covariance = np.zeros((6, 6))
-    index = [0, 1, 5]
-    covariance[np.ix_(index, index)] = P_pose
-    msg.pose.covariance = covariance.reshape(-1).tolist()
-    return msg
-
-
 class ReplayError(RuntimeError):
     """The replay through the nodes failed (process exit, stall, lost message)."""
 
@@ -1042,7 +1014,7 @@ class Player:
         self.expected_ns = [[] for _ in self.robots]
         for j in range(len(self.starts)):
             self.expected_ns[self.msg_robot[j]].append(
-                _stamp_ns(_header(float(self.msg_times[j]), '').stamp))
+                seconds_to_ns(float(self.msg_times[j])))
         reliable = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000,
                               reliability=ReliabilityPolicy.RELIABLE)
         latched = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
@@ -1097,7 +1069,7 @@ class Player:
     # Callbacks -------------------------------------------------------------------------
 
     def _on_output(self, msg, index):
-        stamp = _stamp_ns(msg.header.stamp)
+        stamp = stamp_ns(msg.header.stamp)
         if self._probe_stamp is not None and stamp < self._data_start_ns:
             self.probes_out[index] += 1
             return
@@ -1111,7 +1083,7 @@ class Player:
         self._last_progress = time.monotonic()
 
     def _on_diagnostics(self, msg):
-        stamp = _stamp_ns(msg.header.stamp)
+        stamp = stamp_ns(msg.header.stamp)
         for status in msg.status:
             self.diagnostics[status.name] = (stamp, {kv.key: kv.value for kv in status.values},
                                              status.message)
@@ -1196,13 +1168,13 @@ class Player:
 
     def send(self, j):
         """Publish cloud ``j``: the robot's pose at its stamp, then the observations."""
-        from landmark_ros.schemas import observation_message
+        from landmark_ros.schemas import make_header, observation_message, pose_message
         r = int(self.msg_robot[j])
         a, b = int(self.starts[j]), int(self.ends[j])
         stamp = float(self.msg_times[j])
         self.pose_pubs[r].publish(pose_message(stamp, self.rows.poses[a], self.config.P_pose))
         self.obs_pubs[r].publish(observation_message(
-            _header(stamp, f'{self.robots[r].name}/camera'), self.rows.ids[a:b],
+            make_header(stamp, f'{self.robots[r].name}/camera'), self.rows.ids[a:b],
             self.rows.z[a:b]))
         self.sent[r] += 1
         self.sent_total += 1
@@ -1266,10 +1238,10 @@ class Player:
     def probe(self, timeout_s=60.0):
         """Send empty clouds until every fuser has one from every robot."""
         t0 = float(self.rows.times[0]) if len(self.rows) else 0.0
-        self._data_start_ns = _stamp_ns(_header(t0 - 1.0, '').stamp)
+        self._data_start_ns = seconds_to_ns(t0 - 1.0)
         self._probe_stamp = t0 - 100.0
         deadline = time.monotonic() + timeout_s
-        from landmark_ros.schemas import observation_message
+        from landmark_ros.schemas import make_header, observation_message, pose_message
 
         def seen():
             for method in self.methods:
@@ -1288,7 +1260,7 @@ class Player:
                 self.pose_pubs[r].publish(pose_message(self._probe_stamp, pose,
                                                        self.config.P_pose))
                 self.obs_pubs[r].publish(observation_message(
-                    _header(self._probe_stamp, f'{robot.name}/camera'), np.zeros(0, np.int64),
+                    make_header(self._probe_stamp, f'{robot.name}/camera'), np.zeros(0, np.int64),
                     np.zeros((0, 2))))
                 self.probes_sent[r] += 1
             try:

@@ -17,9 +17,12 @@ accept clouds without ``cov_dep_*`` (dependent part zero).
 from typing import NamedTuple
 
 
+from geometry_msgs.msg import PoseWithCovarianceStamped
 from landmark_ros.cloud import CloudWriter, FieldSpec, INTEGER_TYPES, read_columns
 from landmark_ros.cloud import REAL_TYPES
+from landmark_ros.conversions import planar_pose_covariance, set_planar_pose, set_stamp
 import numpy as np
+from std_msgs.msg import Header
 
 OBSERVATION_FIELDS = (
     FieldSpec('id', INTEGER_TYPES),
@@ -64,6 +67,39 @@ class Landmarks(NamedTuple):
     """Dependent parts, shape (N, 2, 2); zero when the cloud has none."""
     observations: np.ndarray
     """Observations fused per landmark, int64, shape (N,); one when absent."""
+
+
+def make_header(stamp_s, frame_id):
+    """Return a ``std_msgs/Header`` at ``stamp_s`` seconds in ``frame_id``."""
+    result = Header(frame_id=frame_id)
+    set_stamp(result.stamp, stamp_s)
+    return result
+
+
+def pose_message(stamp_s, pose, P_pose, frame_id='map'):
+    """
+    Return the ``pose`` input of the observer: a PoseWithCovarianceStamped.
+
+    Parameters
+    ----------
+    stamp_s : float
+        Stamp [s].
+    pose : array_like, shape (3,)
+        Planar pose (x [m], y [m], yaw [rad]).
+    P_pose : array_like, shape (3, 3)
+        Its covariance; the other entries of the 6x6 covariance are zero.
+    frame_id : str
+        World frame.
+
+    Returns
+    -------
+    geometry_msgs.msg.PoseWithCovarianceStamped
+
+    """
+    msg = PoseWithCovarianceStamped(header=make_header(stamp_s, frame_id))
+    set_planar_pose(msg.pose.pose, pose)
+    msg.pose.covariance = planar_pose_covariance(P_pose)
+    return msg
 
 
 def observation_message(header, ids, z, R=None):

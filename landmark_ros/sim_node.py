@@ -23,6 +23,7 @@ import sys
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 from landmark_ros import node_common
+from landmark_ros.conversions import planar_pose_covariance, set_planar_pose
 from landmark_ros.ros_params import declare_config
 from landmark_ros.schemas import landmark_message, observation_message
 from landmark_ros.sim import SimConfig, Simulation
@@ -41,18 +42,11 @@ LATCHED = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
                      reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
 """Ground truth: a late subscriber gets the latest."""
-POSE_INDICES = np.array([0, 1, 5])
-"""(x, y, yaw) rows and columns of a 6x6 ROS pose covariance."""
 
 
 def robot_name(index):
     """Return the name (and namespace) of robot ``index`` (0-based): ``robot1``, ..."""
     return f'robot{index + 1}'
-
-
-def _quaternion(msg_pose, yaw):
-    msg_pose.orientation.z = float(np.sin(0.5 * yaw))
-    msg_pose.orientation.w = float(np.cos(0.5 * yaw))
 
 
 class LandmarkSim(Node):
@@ -73,9 +67,7 @@ class LandmarkSim(Node):
         self.truth_pub = self.create_publisher(PointCloud2, 'ground_truth_landmarks', LATCHED)
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
 
-        covariance = np.zeros((6, 6))
-        covariance[np.ix_(POSE_INDICES, POSE_INDICES)] = self.sim.P_pose
-        self._pose_covariance = covariance.reshape(-1).tolist()
+        self._pose_covariance = planar_pose_covariance(self.sim.P_pose)
         self._duration_ns = int(round(config.duration_s * 1e9))
         self._created_ns = self.get_clock().now().nanoseconds
         self._start_ns = None  # node clock at simulated time 0
@@ -170,13 +162,11 @@ class LandmarkSim(Node):
             stamp, true, pose, _ = self.sim.reported_pose(robot, k)
             header = self._header(stamp, self.config.frame)
             msg = PoseWithCovarianceStamped(header=header)
-            msg.pose.pose.position.x, msg.pose.pose.position.y = float(pose[0]), float(pose[1])
-            _quaternion(msg.pose.pose, pose[2])
+            set_planar_pose(msg.pose.pose, pose)
             msg.pose.covariance = self._pose_covariance
             pose_pub.publish(msg)
             true_msg = PoseStamped(header=header)
-            true_msg.pose.position.x, true_msg.pose.position.y = float(true[0]), float(true[1])
-            _quaternion(true_msg.pose, true[2])
+            set_planar_pose(true_msg.pose, true)
             true_pub.publish(true_msg)
         self.messages['poses_out'] += len(self.pose_pubs)
 

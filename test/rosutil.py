@@ -4,12 +4,10 @@ import itertools
 import os
 import time
 
-from geometry_msgs.msg import PoseWithCovarianceStamped
-import numpy as np
+from landmark_ros.schemas import make_header, pose_message  # noqa: F401 (re-exported)
 import rclpy
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
-from std_msgs.msg import Header
 
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 
@@ -65,25 +63,8 @@ class RosEnv:
         rclpy.try_shutdown(context=self.context)
 
 
-def header(stamp_s, frame_id):
-    """Return a Header at ``stamp_s`` seconds."""
-    sec = int(np.floor(stamp_s))
-    result = Header(frame_id=frame_id)
-    result.stamp.sec, result.stamp.nanosec = sec, int(round((stamp_s - sec) * 1e9))
-    return result
-
-
-def pose_message(stamp_s, pose, P_pose, frame_id='map'):
-    """Return a PoseWithCovarianceStamped for a planar pose and its 3x3 covariance."""
-    msg = PoseWithCovarianceStamped(header=header(stamp_s, frame_id))
-    msg.pose.pose.position.x, msg.pose.pose.position.y = float(pose[0]), float(pose[1])
-    msg.pose.pose.orientation.z = float(np.sin(pose[2] / 2.0))
-    msg.pose.pose.orientation.w = float(np.cos(pose[2] / 2.0))
-    covariance = np.zeros((6, 6))
-    index = [0, 1, 5]
-    covariance[np.ix_(index, index)] = P_pose
-    msg.pose.covariance = covariance.reshape(-1).tolist()
-    return msg
+header = make_header
+"""Return a Header at ``stamp_s`` seconds (the package's own builder)."""
 
 
 class Collector:
