@@ -35,10 +35,10 @@ setup(
         'console_scripts': [
             # One 'name = module:function' per node; keep EXPECTED_EXECUTABLES in
             # test/test_colcon_install.py in sync.
-            'landmark_observer = landmark_ros.observer_node:main',
-            'landmark_fuser = landmark_ros.fuser_node:main',
-            'landmark_sim = landmark_ros.sim_node:main',
-            'landmark_mrclam = landmark_ros.mrclam:main',
+            'landmark_observer = landmark_ros.nodes.observer:main',
+            'landmark_fuser = landmark_ros.nodes.fuser:main',
+            'landmark_sim = landmark_ros.nodes.sim:main',
+            'landmark_mrclam = landmark_ros.mrclam.cli:main',
         ],
     },
 )

@@ -92,12 +92,12 @@ import traceback
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 
 import _common  # noqa: E402
-from landmark_ros.config import FuserConfig  # noqa: E402
 from landmark_ros.core import gaussian  # noqa: E402
 from landmark_ros.core.landmark_map import FUSION_METHODS, LandmarkMap  # noqa: E402
 from landmark_ros.core.landmarks import landmark_to_world_dependent  # noqa: E402
-from landmark_ros.fuser_node import LandmarkFuser, LATCHED  # noqa: E402
-from landmark_ros.schemas import landmark_message, make_header, read_landmarks  # noqa: E402
+from landmark_ros.nodes.fuser import LandmarkFuser, LATCHED  # noqa: E402
+from landmark_ros.pipeline.config import FuserConfig  # noqa: E402
+from landmark_ros.ros.schemas import landmark_message, make_header, read_landmarks  # noqa: E402
 import numpy as np  # noqa: E402
 import rclpy  # noqa: E402
 from rclpy.context import Context  # noqa: E402

@@ -86,12 +86,12 @@ os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 import _common  # noqa: E402
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from geometry_msgs.msg import PoseWithCovarianceStamped  # noqa: E402
-from landmark_ros import observations as observations_module  # noqa: E402
-from landmark_ros import observer_node as observer_module  # noqa: E402
-from landmark_ros import schemas  # noqa: E402
-from landmark_ros.config import ObserverConfig  # noqa: E402
-from landmark_ros.observer_node import input_qos, LandmarkObserver, output_qos  # noqa: E402
-from landmark_ros.schemas import observation_message  # noqa: E402
+from landmark_ros.nodes import observer as observer_module  # noqa: E402
+from landmark_ros.nodes.observer import input_qos, LandmarkObserver, output_qos  # noqa: E402
+from landmark_ros.pipeline import rows as observations_module  # noqa: E402
+from landmark_ros.pipeline.config import ObserverConfig  # noqa: E402
+from landmark_ros.ros import schemas  # noqa: E402
+from landmark_ros.ros.schemas import observation_message  # noqa: E402
 import numpy as np  # noqa: E402
 import rclpy  # noqa: E402
 from rclpy.context import Context  # noqa: E402

@@ -4,7 +4,7 @@ import itertools
 import os
 import time
 
-from landmark_ros.schemas import make_header, pose_message  # noqa: F401 (re-exported)
+from landmark_ros.ros.schemas import make_header, pose_message  # noqa: F401 (re-exported)
 import rclpy
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor

@@ -2,7 +2,7 @@
 
 from pathlib import Path
 
-from landmark_ros.config import FuserConfig, markdown_table, ObserverConfig
+from landmark_ros.pipeline.config import FuserConfig, markdown_table, ObserverConfig
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -1,0 +1,1 @@
+"""The process launcher and the simulated team demo (make demo)."""

@@ -1,0 +1,1 @@
+"""Evaluation: metrics, Monte Carlo consistency study, plotting, textbook exercises."""

@@ -1,0 +1,1 @@
+"""Replay of the UTIAS MRCLAM datasets through the pipeline and the nodes."""

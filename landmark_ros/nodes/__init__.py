@@ -1,0 +1,1 @@
+"""Thin rclpy nodes: message -> arrays -> pipeline -> message -> publish."""

@@ -1,0 +1,170 @@
+"""
+landmark_fuser: the landmark observations of several robots in, one fused map out.
+
+Subscribes every topic of ``input_topics`` (landmark clouds, one source each),
+queues their rows and fuses them by landmark ID in batches with
+``landmark_ros.pipeline.fuser.Fuser``. Publishes the confirmed map on
+``fused_landmarks`` (transient local: late subscribers get it), RViz markers on
+``fused_markers`` and ``/diagnostics``; services ``~/reset`` and ``~/save``. With
+``map_file`` set the map is loaded at start and saved atomically.
+"""
+
+import sys
+
+from diagnostic_msgs.msg import DiagnosticArray
+from landmark_ros.pipeline.config import FuserConfig
+from landmark_ros.pipeline.fuser import Fuser
+from landmark_ros.ros import diagnostics, qos, runner
+from landmark_ros.ros.cloud import CloudError
+from landmark_ros.ros.conversions import stamp_ns
+from landmark_ros.ros.markers import delete_all, landmark_markers
+from landmark_ros.ros.params import declare_config, keep_in_sync
+from landmark_ros.ros.qos import LATCHED  # noqa: F401 (the map outputs' QoS, re-exported)
+from landmark_ros.ros.schemas import landmark_message, read_landmarks
+from landmark_ros.ros.subscriptions import take_waiting
+import numpy as np
+from rclpy.node import Node
+from sensor_msgs.msg import PointCloud2
+from std_msgs.msg import Header
+from std_srvs.srv import Trigger
+from visualization_msgs.msg import MarkerArray
+
+
+class LandmarkFuser(Node):
+    """Fuse the landmark observations of a team of robots by landmark ID."""
+
+    def __init__(self, **kwargs):
+        super().__init__('landmark_fuser', **kwargs)
+        config = declare_config(self, FuserConfig)
+        self._subscriptions_by_topic = {}
+        input_qos = qos.reliable_input(config.input_depth)
+        for topic in config.input_topics:
+            self._subscriptions_by_topic[topic] = self.create_subscription(
+                PointCloud2, topic, lambda msg, topic=topic: self.on_landmarks(msg, topic),
+                input_qos)
+        self._source_of = {topic: subscription.topic_name
+                           for topic, subscription in self._subscriptions_by_topic.items()}
+        self.fuser = Fuser(config, list(self._source_of.values()), self.get_logger())
+        keep_in_sync(self, lambda: self.fuser.config, self._apply_config)
+        self._markers_stale = True
+        self.fuser.load()
+        self._markers_stale = self.fuser.map_changed or self._markers_stale
+        self.map_pub = self.create_publisher(PointCloud2, 'fused_landmarks', qos.LATCHED)
+        self.marker_pub = self.create_publisher(MarkerArray, 'fused_markers', qos.LATCHED)
+        self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics',
+                                                     qos.DIAGNOSTICS)
+        self.create_service(Trigger, '~/reset', self.on_reset)
+        self.create_service(Trigger, '~/save', self.on_save)
+        self.create_timer(config.update_period_s, self.fuse_queued)
+        self.create_timer(1.0 / config.publish_rate_hz, self.publish_map)
+        self.create_timer(config.diagnostics_period_s, self.publish_diagnostics)
+        if config.map_file and config.autosave_period_s > 0.0:
+            self.create_timer(config.autosave_period_s, self.autosave)
+
+    @property
+    def config(self):
+        """Return the parameters in force (the fuser's)."""
+        return self.fuser.config
+
+    @property
+    def sources(self):
+        """Return the fuser's sources by ``input_topics`` entry (names: resolved topics)."""
+        return {topic: self.fuser.sources[name] for topic, name in self._source_of.items()}
+
+    def _apply_config(self, config):
+        self.fuser.reconfigure(config)
+        self._markers_stale = True
+
+    # Input ---------------------------------------------------------------------
+
+    def on_landmarks(self, msg, topic):
+        """Decode landmark clouds (this one and those waiting) and queue their rows."""
+        source = self._source_of[topic]
+        now = self.get_clock().now().nanoseconds
+        for cloud in [msg] + take_waiting(self._subscriptions_by_topic[topic], PointCloud2,
+                                          self.config.max_batch_messages - 1):
+            try:
+                rows = read_landmarks(cloud)
+            except CloudError as error:
+                self.fuser.reject(source, 'messages_in')
+                self.fuser.reject(source, error.reason, 1, f'message dropped: {error}')
+                continue
+            self.fuser.add_landmarks(source, stamp_ns(cloud.header.stamp), rows.ids, rows.m,
+                                     rows.P, rows.P_dep, cloud.header.frame_id, now)
+
+    def fuse_queued(self):
+        """Fuse every queued row, in arrival order, in one batch."""
+        result = self.fuser.fuse_queued()
+        if result is not None and result.changed:
+            self._markers_stale = True
+
+    # Output --------------------------------------------------------------------
+
+    def _header(self):
+        return Header(stamp=self.get_clock().now().to_msg(), frame_id=self.config.world_frame)
+
+    def publish_map(self):
+        """Publish the map if it changed, and the markers if someone wants them."""
+        markers = self._markers_stale and self.marker_pub.get_subscription_count()
+        if not (self.fuser.map_changed or markers):
+            return
+        changed = self.fuser.map_changed
+        ids, m, P, P_dep, observations = self.fuser.snapshot()
+        header = self._header()
+        if changed:
+            self.map_pub.publish(landmark_message(header, ids, m, P, P_dep, observations))
+        if self.marker_pub.get_subscription_count():
+            self.marker_pub.publish(landmark_markers(header, ids, m, P, self.config.marker_sigma,
+                                                     rgb=(1.0, 0.5, 0.0)))
+            self._markers_stale = False
+
+    def publish_diagnostics(self):
+        """Publish the fuser's status and one status per source on /diagnostics."""
+        name = self.get_fully_qualified_name()
+        diagnostics.publish(self, self.diagnostics_pub, [
+            diagnostics.to_msg(status, name, self.get_namespace())
+            for status in self.fuser.statuses(self.get_clock().now().nanoseconds)])
+
+    # Services and persistence ----------------------------------------------------
+
+    def on_reset(self, request, response):
+        """Clear the map, the queues and the markers."""
+        count = self.fuser.reset()
+        header = self._header()
+        self.map_pub.publish(landmark_message(header, [], np.empty((0, 2)),
+                                              np.empty((0, 2, 2)), observations=[]))
+        self.marker_pub.publish(delete_all(header))
+        self._markers_stale = False
+        self.get_logger().info(f'map reset: {count} landmarks cleared')
+        response.success, response.message = True, f'cleared {count} landmarks'
+        return response
+
+    def on_save(self, request, response):
+        """Save the map to ``map_file`` now."""
+        if not self.config.map_file:
+            response.success, response.message = False, 'map_file is not set'
+            return response
+        response.success = self.fuser.save()
+        response.message = (f'saved {len(self.fuser.map)} landmarks to {self.config.map_file}'
+                            if response.success else 'save failed: see the log')
+        return response
+
+    def autosave(self):
+        """Save the map if it changed since the last save."""
+        if self.fuser.unsaved:
+            self.fuser.save()
+
+    def destroy_node(self):
+        """Save the map (when a map file is set) before going away."""
+        if self.config.map_file and self.fuser.unsaved:
+            self.fuser.save()
+        return super().destroy_node()
+
+
+def main(args=None):
+    """Run the node until shutdown; the map is saved on the way out."""
+    return runner.run(LandmarkFuser, 'landmark_fuser', args)
+
+
+if __name__ == '__main__':
+    sys.exit(main())

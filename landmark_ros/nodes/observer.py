@@ -1,0 +1,182 @@
+"""
+landmark_observer: robot pose and range-bearing observations in, landmarks out.
+
+Subscribes ``pose`` (geometry_msgs/PoseWithCovarianceStamped) and ``observations``
+(sensor_msgs/PointCloud2 with ``id``, ``range``, ``bearing`` and optional noise
+fields); publishes ``landmarks`` (PointCloud2: ``id``, ``x``, ``y``, ``z``,
+``cov_xx``, ``cov_xy``, ``cov_yy`` and the dependent part ``cov_dep_*``),
+``landmark_markers`` and ``/diagnostics``.
+The node only converts messages: the work is ``landmark_ros.pipeline.observer.Observer``.
+"""
+
+import sys
+
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseWithCovarianceStamped
+from landmark_ros.pipeline.config import ObserverConfig
+from landmark_ros.pipeline.observer import ObservationMessage, Observer
+from landmark_ros.ros import diagnostics, qos, runner
+from landmark_ros.ros.cloud import CloudError, read_columns
+from landmark_ros.ros.conversions import InputError, pose_from_msg, stamp_ns
+from landmark_ros.ros.markers import landmark_markers
+from landmark_ros.ros.params import declare_config, keep_in_sync
+from landmark_ros.ros.schemas import landmark_message, OBSERVATION_FIELDS
+from landmark_ros.ros.subscriptions import take_waiting
+import numpy as np
+from rclpy.event_handler import PublisherEventCallbacks
+from rclpy.node import Node
+from rclpy.qos_overriding_options import QoSOverridingOptions
+from sensor_msgs.msg import PointCloud2
+from visualization_msgs.msg import MarkerArray
+
+
+class LandmarkObserver(Node):
+    """Turn one robot's range-bearing observations into world-frame landmarks."""
+
+    def __init__(self, **kwargs):
+        super().__init__('landmark_observer', **kwargs)
+        config = declare_config(self, ObserverConfig)
+        self.observer = Observer(config, self.get_logger().warning)
+        keep_in_sync(self, lambda: self.observer.config, self._apply_config)
+        self._landmark_msg = PointCloud2()  # refilled for every publish
+        self._latest_markers = {}
+
+        overrides = QoSOverridingOptions.with_default_policies()
+        self.create_subscription(PoseWithCovarianceStamped, 'pose', self.on_pose,
+                                 qos.sensor_input(config.input_depth),
+                                 qos_overriding_options=overrides)
+        self._observation_sub = self.create_subscription(
+            PointCloud2, 'observations', self.on_observations,
+            qos.sensor_input(config.input_depth), qos_overriding_options=overrides)
+        self.landmark_pub = self.create_publisher(
+            PointCloud2, 'landmarks', qos.reliable_output(config.output_depth),
+            qos_overriding_options=overrides)
+        # No QoS event handlers on the auxiliary outputs: each is a waitable that
+        # every message pays for in the executor.
+        quiet = PublisherEventCallbacks(use_default_callbacks=False)
+        self.marker_pub = self.create_publisher(
+            MarkerArray, 'landmark_markers', qos.reliable_output(config.output_depth),
+            event_callbacks=quiet)
+        self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics',
+                                                     qos.DIAGNOSTICS, event_callbacks=quiet)
+        self._tick_timer = None
+        self._last_run = {}
+        self._reset_timers()
+
+    @property
+    def config(self):
+        """Return the parameters in force (the observer's)."""
+        return self.observer.config
+
+    @property
+    def counters(self):
+        """Return the observer's counters."""
+        return self.observer.counters
+
+    def _apply_config(self, config):
+        old = self.observer.config
+        self.observer.reconfigure(config)
+        if (old.max_wait_s, old.marker_rate_hz) != (config.max_wait_s, config.marker_rate_hz):
+            self._reset_timers()
+
+    def _reset_timers(self):
+        # One timer for all housekeeping: every timer in a node costs every message
+        # some executor time, so the node keeps a single one.
+        if self._tick_timer is not None:
+            self.destroy_timer(self._tick_timer)
+        periods = [self.config.diagnostics_period_s, max(self.config.max_wait_s / 2.0, 0.01)]
+        if self.config.marker_rate_hz > 0.0:
+            periods.append(1.0 / self.config.marker_rate_hz)
+        self._tick_timer = self.create_timer(min(periods), self.tick)
+
+    def _due(self, task, period_s, now):
+        last = self._last_run.get(task)
+        if last is not None and 0 <= now - last < period_s * 1e9:
+            return False
+        self._last_run[task] = now
+        return True
+
+    def _now_ns(self):
+        return self.get_clock().now().nanoseconds
+
+    def tick(self):
+        """Expire waiting observations; publish markers and diagnostics when due."""
+        now = self._now_ns()
+        if self.observer.pending:
+            self.publish(self.observer.drain(now))
+        if self.config.marker_rate_hz > 0.0 and self._due(
+                'markers', 1.0 / self.config.marker_rate_hz, now):
+            self.publish_markers()
+        if self._due('diagnostics', self.config.diagnostics_period_s, now):
+            self.publish_diagnostics()
+
+    # Inputs -------------------------------------------------------------------
+
+    def on_pose(self, msg):
+        """Convert a pose message and hand it to the observer; publish what it unblocks."""
+        try:
+            pose, P_pose = pose_from_msg(msg, self.config.world_frame)
+        except InputError as error:
+            self.observer.reject(error.reason, 1, error.detail)
+            return
+        self.publish(self.observer.add_pose(stamp_ns(msg.header.stamp), pose, P_pose,
+                                            self._now_ns()))
+
+    def on_observations(self, msg):
+        """Decode this cloud and those waiting; hand them to the observer; publish."""
+        messages = []
+        for cloud in [msg] + take_waiting(self._observation_sub, PointCloud2,
+                                          self.config.max_batch_messages - 1):
+            try:
+                columns = read_columns(cloud, OBSERVATION_FIELDS)
+            except CloudError as error:
+                self.observer.reject('observation_messages_in')
+                self.observer.reject(error.reason, 1, f'observation message dropped: {error}')
+                continue
+            messages.append(ObservationMessage(stamp_ns(cloud.header.stamp), columns,
+                                               cloud.header.frame_id, cloud.header))
+        self.publish(self.observer.add_observations(messages, self._now_ns()))
+
+    # Outputs ------------------------------------------------------------------
+
+    def publish(self, batches):
+        """Publish one landmark cloud per placed observation message."""
+        if not batches:
+            return
+        markers = self.config.marker_rate_hz > 0.0 and self.marker_pub.get_subscription_count()
+        for batch in batches:
+            header = batch.token  # the received message's own header, reused
+            header.frame_id = self.config.world_frame
+            self.landmark_pub.publish(landmark_message(
+                header, batch.ids, batch.m, batch.P, batch.P_dep, out=self._landmark_msg))
+            if markers:
+                for i, landmark_id in enumerate(batch.ids.tolist()):
+                    self._latest_markers[landmark_id] = (header, batch.m[i], batch.P[i])
+
+    def publish_markers(self):
+        """Publish an ellipse and a label for each landmark observed since last time."""
+        if not self._latest_markers:
+            return
+        latest, self._latest_markers = self._latest_markers, {}
+        ids = list(latest)
+        header = max((entry[0] for entry in latest.values()),
+                     key=lambda h: stamp_ns(h.stamp))
+        self.marker_pub.publish(landmark_markers(
+            header, ids, np.array([latest[i][1] for i in ids]),
+            np.array([latest[i][2] for i in ids]), self.config.marker_sigma,
+            self.config.marker_lifetime_s))
+
+    def publish_diagnostics(self):
+        """Publish the observer's status on /diagnostics."""
+        status = self.observer.status()
+        diagnostics.publish(self, self.diagnostics_pub, [diagnostics.to_msg(
+            status, self.get_fully_qualified_name(), self.get_namespace())])
+
+
+def main(args=None):
+    """Run the node until shutdown."""
+    return runner.run(LandmarkObserver, 'landmark_observer', args)
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""ROS-free pipeline: the observer and fuser logic as objects (numpy, scipy)."""

@@ -1,0 +1,275 @@
+"""
+Node parameters as frozen, self-validating dataclasses (ROS-free).
+
+Each field carries its parameter description, whether it is read-only at run time
+and its valid range; ``landmark_ros.ros.params`` declares them on a node from here,
+so the dataclass is the single list of parameters and their defaults.
+"""
+
+from dataclasses import dataclass, field, fields, MISSING
+import math
+
+
+def param(default, description, read_only=False, low=None, high=None):
+    """
+    Declare a config field with its parameter metadata.
+
+    Parameters
+    ----------
+    default : bool, int, float, str or tuple of float
+        Default value; its type is the type of the parameter.
+    description : str
+        What the parameter does, with its unit.
+    read_only : bool
+        True when a change at run time makes no sense (frames, topics, QoS).
+    low, high : float or int, optional
+        Inclusive valid range of a number.
+
+    """
+    metadata = {'description': description, 'read_only': read_only, 'low': low, 'high': high}
+    if isinstance(default, (tuple, list)):
+        return field(default_factory=lambda: tuple(default), metadata=metadata)
+    return field(default=default, metadata=metadata)
+
+
+class ConfigBase:
+    """Validation and construction shared by the node configs."""
+
+    def __post_init__(self):
+        for spec in fields(self):
+            value = _coerce(spec, getattr(self, spec.name))
+            low, high = spec.metadata['low'], spec.metadata['high']
+            if isinstance(value, (int, float)) and not isinstance(value, bool):
+                if (low is not None and value < low) or (high is not None and value > high):
+                    raise ValueError(f'{spec.name} = {value!r} is outside [{low}, {high}]')
+            object.__setattr__(self, spec.name, value)
+        self.check()
+
+    def check(self):
+        """Check relations between fields; subclasses raise ValueError."""
+
+    @classmethod
+    def from_values(cls, values):
+        """
+        Build from a ``name -> value`` mapping, ignoring names that are not fields.
+
+        Raises
+        ------
+        ValueError
+            If a value has the wrong type or is out of range.
+
+        """
+        names = {spec.name for spec in fields(cls)}
+        return cls(**{key: value for key, value in values.items() if key in names})
+
+
+def field_default(spec):
+    """Return the default value of a dataclass field."""
+    return spec.default if spec.default_factory is MISSING else spec.default_factory()
+
+
+def _coerce(spec, value):
+    default = field_default(spec)
+    kind = type(default)
+    if kind is bool:
+        if not isinstance(value, bool):
+            raise ValueError(f'{spec.name} must be true or false, got {value!r}')
+        return value
+    if kind in (int, float):
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ValueError(f'{spec.name} must be a number, got {value!r}')
+        if kind is int and value != int(value):
+            raise ValueError(f'{spec.name} must be an integer, got {value!r}')
+        if not math.isfinite(value):
+            raise ValueError(f'{spec.name} must be finite, got {value!r}')
+        return kind(value)
+    if kind is str:
+        if not isinstance(value, str):
+            raise ValueError(f'{spec.name} must be a string, got {value!r}')
+        return value
+    if isinstance(value, str):
+        raise ValueError(f'{spec.name} must be a list, got the string {value!r}')
+    items = tuple(value)
+    if default and isinstance(default[0], str):
+        if not all(isinstance(item, str) for item in items):
+            raise ValueError(f'{spec.name} must be a list of strings, got {value!r}')
+        return items
+    if len(items) != len(default):
+        raise ValueError(f'{spec.name} must have {len(default)} entries, got {len(items)}')
+    if not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+               for v in items):
+        raise ValueError(f'{spec.name} must hold finite numbers, got {value!r}')
+    return tuple(float(v) for v in items)
+
+
+@dataclass(frozen=True)
+class ObserverConfig(ConfigBase):
+    """Parameters of ``landmark_observer``."""
+
+    world_frame: str = param(
+        'map', 'Frame of the robot poses in and of the landmarks out.', read_only=True)
+    sensor_frame: str = param(
+        '', "Frame the observation clouds must carry; '' accepts any.", read_only=True)
+    sensor_pose: tuple = param(
+        (0.0, 0.0, 0.0), 'Sensor pose in the robot frame: x [m], y [m], yaw [rad].',
+        read_only=True)
+    range_stddev: float = param(
+        0.1, 'Range noise standard deviation [m] for rows without range_variance.',
+        low=0.0, high=1000.0)
+    range_stddev_per_m: float = param(
+        0.0, 'Range noise growing with the range: standard deviation per metre of range '
+        '[m/m], added in quadrature to range_stddev.', low=0.0, high=10.0)
+    bearing_stddev: float = param(
+        0.02, 'Bearing noise standard deviation [rad] for rows without bearing_variance.',
+        low=0.0, high=math.pi)
+    range_bias_stddev: float = param(
+        0.0, 'Standard deviation of a range bias shared by all observations [m]; it is '
+        'added to the covariance and to its dependent part.', low=0.0, high=1000.0)
+    bearing_bias_stddev: float = param(
+        0.0, 'Standard deviation of a bearing bias shared by all observations [rad].',
+        low=0.0, high=math.pi)
+    pose_buffer_s: float = param(
+        10.0, 'How much pose history to keep for matching observation stamps [s].',
+        read_only=True, low=0.01, high=3600.0)
+    max_pose_gap_s: float = param(
+        0.1, 'A stamp this close outside the pose history takes the nearest pose [s].',
+        low=0.0, high=60.0)
+    max_wait_s: float = param(
+        0.5, 'How long an observation newer than every pose waits for its pose [s].',
+        low=0.0, high=60.0)
+    max_pending: int = param(
+        100, 'Observation messages that may wait for a pose; the oldest is dropped beyond.',
+        read_only=True, low=1, high=100000)
+    max_batch_messages: int = param(
+        16, 'Observation messages already waiting in the subscription queue that one '
+        'callback takes and processes together (1 takes one at a time).',
+        low=1, high=1000)
+    time_jump_s: float = param(
+        1.0, 'A pose this much older than the newest is a jump back in time (bag loop, '
+        'sim reset) and clears the pose history; a smaller step back is dropped [s].',
+        low=0.0, high=3600.0)
+    input_depth: int = param(
+        10, 'Queue depth of the input subscriptions (sensor-data QoS).',
+        read_only=True, low=1, high=10000)
+    output_depth: int = param(
+        10, 'Queue depth of the output publishers (reliable QoS).',
+        read_only=True, low=1, high=10000)
+    marker_sigma: float = param(
+        2.0, 'Size of the marker ellipses in standard deviations.', low=0.1, high=10.0)
+    marker_rate_hz: float = param(
+        5.0, 'Most marker arrays per second (only while someone subscribes); 0 disables.',
+        low=0.0, high=100.0)
+    marker_lifetime_s: float = param(
+        2.0, 'How long RViz shows a landmark marker without a new observation [s].',
+        low=0.0, high=3600.0)
+    diagnostics_period_s: float = param(
+        1.0, 'Period of the /diagnostics status [s].', read_only=True, low=0.05, high=60.0)
+    log_throttle_s: float = param(
+        5.0, 'Shortest interval between two log lines about the same problem [s].',
+        low=0.0, high=3600.0)
+
+    def check(self):
+        """Check relations between fields."""
+        if self.max_pose_gap_s > self.pose_buffer_s:
+            raise ValueError('max_pose_gap_s must not exceed pose_buffer_s')
+
+
+@dataclass(frozen=True)
+class FuserConfig(ConfigBase):
+    """Parameters of ``landmark_fuser``."""
+
+    world_frame: str = param(
+        'map', 'Frame the landmark clouds must be in; the fused map uses it too.',
+        read_only=True)
+    input_topics: tuple = param(
+        ('landmarks',), 'Landmark topics to fuse, one per robot (each one source).',
+        read_only=True)
+    fusion: str = param(
+        'split_covariance_intersection',
+        'independent, covariance_intersection or split_covariance_intersection.',
+        read_only=True)
+    gate_probability: float = param(
+        0.999, 'Probability of the chi-square gate on observations of known landmarks.',
+        read_only=True, low=0.5, high=0.999999)
+    min_observations: int = param(
+        2, 'Mutually consistent observations needed before a landmark is published.',
+        read_only=True, low=1, high=1000)
+    max_consecutive_rejections: int = param(
+        5, 'Rejections in a row after which a landmark is rebuilt from them.',
+        read_only=True, low=1, high=1000)
+    update_period_s: float = param(
+        0.02, 'Queued observations are fused in one batch at this period [s].',
+        read_only=True, low=0.001, high=10.0)
+    publish_rate_hz: float = param(
+        5.0, 'Most fused maps per second, published only when the map changed.',
+        read_only=True, low=0.01, high=1000.0)
+    max_queue_messages: int = param(
+        100, 'Messages one source may have waiting; the oldest is dropped beyond.',
+        read_only=True, low=1, high=100000)
+    max_batch_messages: int = param(
+        16, 'Messages already waiting in a subscription queue that one callback takes '
+        'and checks together (1 takes one at a time).', low=1, high=1000)
+    input_depth: int = param(
+        100, 'Queue depth of the input subscriptions (reliable QoS).',
+        read_only=True, low=1, high=10000)
+    source_timeout_s: float = param(
+        5.0, 'A source silent this long is reported stale in the diagnostics [s].',
+        low=0.1, high=86400.0)
+    map_file: str = param(
+        '', "JSON file the map is loaded from at start and saved to; '' disables.",
+        read_only=True)
+    autosave_period_s: float = param(
+        30.0, 'Period of saving the map when it changed; 0 saves only on request and at '
+        'shutdown [s].', read_only=True, low=0.0, high=86400.0)
+    marker_sigma: float = param(
+        2.0, 'Size of the marker ellipses in standard deviations.', low=0.1, high=10.0)
+    diagnostics_period_s: float = param(
+        1.0, 'Period of the /diagnostics status [s].', read_only=True, low=0.05, high=60.0)
+    log_throttle_s: float = param(
+        5.0, 'Shortest interval between two log lines about the same problem [s].',
+        low=0.0, high=3600.0)
+
+    def check(self):
+        """Check relations between fields."""
+        from landmark_ros.core.landmark_map import FUSION_METHODS
+        if self.fusion not in FUSION_METHODS:
+            raise ValueError(f'fusion must be one of {FUSION_METHODS}, got {self.fusion!r}')
+        if not self.input_topics or not all(self.input_topics):
+            raise ValueError('input_topics must list at least one topic name')
+        if len(set(self.input_topics)) != len(self.input_topics):
+            raise ValueError('input_topics must not repeat a topic')
+
+
+def markdown_table(config_class):
+    """
+    Return the parameters of a config class as a Markdown table (for the README).
+
+    Parameters
+    ----------
+    config_class : type
+        A ConfigBase dataclass.
+
+    Returns
+    -------
+    str
+
+    """
+    lines = ['| parameter | default | range | description |', '| --- | --- | --- | --- |']
+    for spec in fields(config_class):
+        meta = spec.metadata
+        default = field_default(spec)
+        if isinstance(default, tuple):
+            default = '[' + ', '.join(repr(v) if isinstance(v, str) else f'{v:g}'
+                                      for v in default) + ']'
+        elif isinstance(default, str):
+            default = repr(default)
+        span = '' if meta['low'] is None else f"{meta['low']:g} to {meta['high']:g}"
+        note = ' Read-only.' if meta['read_only'] else ''
+        lines.append(f"| `{spec.name}` | `{default}` | {span} | {meta['description']}{note} |")
+    return '\n'.join(lines)
+
+
+if __name__ == '__main__':
+    import sys
+    for name in sys.argv[1:] or ['ObserverConfig', 'FuserConfig']:
+        print(f'### {name}\n\n{markdown_table(globals()[name])}\n')

@@ -1,0 +1,111 @@
+"""Event counters with rate-limited logging, and their diagnostics status (ROS-free)."""
+
+from collections import Counter
+from dataclasses import dataclass, field
+import time
+from typing import Any, Dict
+
+
+class Counters:
+    """
+    Count events by name and log each kind at most once per ``throttle_s``.
+
+    Parameters
+    ----------
+    log : callable
+        ``log(text)``, e.g. a node logger's ``warning``.
+    throttle_s : float
+        Shortest interval between two log lines of the same kind [s].
+    clock : callable, optional
+        Monotonic time in seconds; for tests.
+
+    """
+
+    def __init__(self, log, throttle_s=5.0, clock=time.monotonic):
+        self.counts = Counter()
+        self._log = log
+        self.throttle_s = throttle_s
+        self._clock = clock
+        self._last_log = {}
+        self._unlogged = Counter()
+
+    def add(self, name, count=1, detail=None):
+        """
+        Count ``count`` events of kind ``name``; log ``detail`` if not throttled.
+
+        Parameters
+        ----------
+        name : str
+            Name used in error messages.
+        count : int
+            Number of events.
+        detail : str, optional
+            What happened, for the log line; nothing is logged without it.
+
+        """
+        if count <= 0:
+            return
+        self.counts[name] += count
+        if detail is None:
+            return
+        now = self._clock()
+        last = self._last_log.get(name)
+        if last is not None and now - last < self.throttle_s:
+            self._unlogged[name] += count
+            return
+        self._last_log[name] = now
+        skipped = self._unlogged.pop(name, 0)
+        more = f' ({skipped} more since the last report)' if skipped else ''
+        self._log(f'{name} x{count}: {detail}{more}')
+
+    def __getitem__(self, name):
+        return self.counts[name]
+
+
+def status_values(counters, extra=None):
+    """
+    Return ``(key, value)`` string pairs for a diagnostics status, sorted by key.
+
+    Parameters
+    ----------
+    counters : collections.Counter or dict
+        Event counts by name.
+    extra : dict, optional
+        More values, shown first.
+
+    Returns
+    -------
+    list of (str, str)
+
+    """
+    values = [(key, str(value)) for key, value in (extra or {}).items()]
+    values += [(key, str(counters[key])) for key in sorted(counters)]
+    return values
+
+
+@dataclass(frozen=True)
+class Status:
+    """
+    A diagnostics status, ROS-free: the node turns it into a ``DiagnosticStatus``.
+
+    Attributes
+    ----------
+    level : str
+        ``'ok'``, ``'warn'`` or ``'error'``.
+    message : str
+        One line of summary.
+    counts : dict of str to int
+        The counters.
+    extra : dict
+        More values, shown before the counters.
+    name : str
+        Suffix of the status name ('' for the component itself, else what it is about,
+        such as a source topic).
+
+    """
+
+    level: str
+    message: str
+    counts: Dict[str, int]
+    extra: Dict[str, Any] = field(default_factory=dict)
+    name: str = ''

@@ -1,0 +1,359 @@
+"""
+The team's fuser: landmark batches of several sources in, one fused map out (ROS-free).
+
+The ``landmark_fuser`` node, the MRCLAM replay, the Monte Carlo study and the
+benchmarks all drive this one object. Rows are checked (``rows.landmark_row_problems``)
+and queued per source in bounded queues; ``fuse_queued`` fuses everything queued, in
+arrival order, with one ``LandmarkMap.update`` (a batch gives the map its rows would
+give one by one). Time is integer nanoseconds throughout.
+"""
+
+from collections import Counter, deque
+from dataclasses import dataclass, field
+import itertools
+from typing import Any, Dict, List, Optional, Sequence
+
+from landmark_ros.core.landmark_map import LandmarkMap, UpdateResult
+from landmark_ros.pipeline import map_file
+from landmark_ros.pipeline.config import FuserConfig
+from landmark_ros.pipeline.counters import Counters, Status
+from landmark_ros.pipeline.rows import landmark_row_problems, MAX_ID
+import numpy as np
+from numpy.typing import NDArray
+
+NOT_PROBLEMS = frozenset({'landmarks_confirmed', 'saves'})
+"""Fuser counters that do not make its status a warning (a re-initialisation does)."""
+
+
+class _Quiet:
+    """A logger that drops everything (the default when none is given)."""
+
+    def info(self, text: str) -> None:
+        """Drop an info line."""
+
+    def warning(self, text: str) -> None:
+        """Drop a warning."""
+
+    def error(self, text: str) -> None:
+        """Drop an error."""
+
+
+@dataclass(frozen=True)
+class _Queued:
+    sequence: int
+    ids: NDArray[np.int64]
+    m: NDArray[np.float64]
+    P: NDArray[np.float64]
+    P_dep: NDArray[np.float64]
+    stamp_ns: int
+
+
+@dataclass
+class Source:
+    """One input of the fuser (a robot's landmark topic): its queue and counters."""
+
+    name: str
+    queue: deque = field(default_factory=deque)
+    counts: Counter = field(default_factory=Counter)
+    last_message_ns: Optional[int] = None
+
+
+class Fuser:
+    """
+    Fuse the landmark observations of a team of robots into one map.
+
+    Parameters
+    ----------
+    config : FuserConfig
+        The parameters (fusion method, gate, queues, map file).
+    sources : sequence of str
+        The source names (the nodes use the resolved input topics).
+    logger : object, optional
+        With ``info``, ``warning`` and ``error`` methods taking one string (an rclpy
+        logger or a ``logging.Logger``).
+
+    Raises
+    ------
+    ValueError
+        If two sources have the same name.
+
+    """
+
+    def __init__(self, config: FuserConfig, sources: Sequence[str],
+                 logger: Any = None) -> None:
+        if len(set(sources)) != len(sources):
+            raise ValueError(f'input_topics name one topic twice once resolved: {list(sources)}')
+        self.config = config
+        self.logger = logger or _Quiet()
+        self.counters = Counters(self.logger.warning, config.log_throttle_s)
+        self.map = LandmarkMap(config.fusion, config.gate_probability,
+                               config.min_observations, config.max_consecutive_rejections)
+        self.sources: Dict[str, Source] = {name: Source(name) for name in sources}
+        self._sequence = itertools.count()
+        self._reported: Dict[str, int] = {}
+        self.map_changed = False
+        """Whether the confirmed map changed since the last ``snapshot`` was taken."""
+        self.unsaved = False
+        """Whether the map changed since the last save."""
+
+    def reconfigure(self, config: FuserConfig) -> None:
+        """Apply new parameters (those that may change at run time)."""
+        self.config = config
+        self.counters.throttle_s = config.log_throttle_s
+
+    def reject(self, source: str, reason: str, count: int = 1,
+               detail: Optional[str] = None) -> None:
+        """Count (and log, throttled) input of ``source`` rejected, by reason."""
+        self.sources[source].counts[reason] += count
+        self.counters.add(reason, count, None if detail is None else f'{source}: {detail}')
+
+    # Input ---------------------------------------------------------------------
+
+    def add_landmarks(self, source: str, stamp_ns: int, ids: NDArray[Any],
+                      m: NDArray[np.float64], P: NDArray[np.float64],
+                      P_dep: NDArray[np.float64], frame_id: Optional[str] = None,
+                      now_ns: Optional[int] = None) -> int:
+        """
+        Check the rows of one landmark message and queue the valid ones.
+
+        Parameters
+        ----------
+        source : str
+            One of the sources.
+        stamp_ns : int
+            The message stamp [ns].
+        ids : ndarray of int, shape (N,)
+            Landmark IDs.
+        m : ndarray, shape (N, 2)
+            Positions in ``world_frame`` [m].
+        P : ndarray, shape (N, 2, 2)
+            Total covariances [m^2].
+        P_dep : ndarray, shape (N, 2, 2)
+            Their dependent parts (zeros when the source does not say).
+        frame_id : str, optional
+            The message's frame, checked against ``world_frame``; None skips the check.
+        now_ns : int, optional
+            Arrival time [ns], for the stale-source check.
+
+        Returns
+        -------
+        int
+            The rows queued.
+
+        """
+        state = self.sources[source]
+        if now_ns is not None:
+            state.last_message_ns = now_ns
+        state.counts['messages_in'] += 1
+        if frame_id is not None and frame_id != self.config.world_frame:
+            self.reject(source, 'wrong_frame', 1,
+                        f"landmarks in frame '{frame_id}', expected "
+                        f"'{self.config.world_frame}': message dropped")
+            return 0
+        ids = np.asarray(ids)
+        state.counts['observations_in'] += len(ids)
+        valid, reasons = landmark_row_problems(ids, m, P, P_dep)
+        for reason, count in reasons.items():
+            self.reject(source, reason, count, f'{count} of {len(valid)} rows rejected')
+        if not valid.any():
+            return 0
+        if len(state.queue) >= self.config.max_queue_messages:
+            dropped = state.queue.popleft()
+            self.reject(source, 'queue_overflow', len(dropped.ids),
+                        f'more than {self.config.max_queue_messages} messages waiting: '
+                        'dropped the oldest')
+        if not valid.all():
+            ids, m, P, P_dep = ids[valid], m[valid], P[valid], P_dep[valid]
+        state.queue.append(_Queued(next(self._sequence), ids.astype(np.int64), m, P, P_dep,
+                                   int(stamp_ns)))
+        return int(valid.sum())
+
+    def queued_messages(self) -> int:
+        """Return the number of messages waiting in all queues."""
+        return sum(len(state.queue) for state in self.sources.values())
+
+    def fuse_queued(self) -> Optional[UpdateResult]:
+        """
+        Fuse every queued row, in arrival order, in one batch.
+
+        Returns
+        -------
+        UpdateResult or None
+            What the update did; None when nothing was queued.
+
+        """
+        items = []
+        for state in self.sources.values():
+            items += [(item, state.name) for item in state.queue]
+            state.queue.clear()
+        if not items:
+            return None
+        items.sort(key=lambda entry: entry[0].sequence)
+        lengths = [len(item.ids) for item, _ in items]
+        result = self.map.update(
+            np.concatenate([item.ids for item, _ in items]),
+            np.concatenate([item.m for item, _ in items]),
+            np.concatenate([item.P for item, _ in items]),
+            np.concatenate([item.P_dep for item, _ in items]),
+            np.repeat([name for _, name in items], lengths),
+            np.repeat([item.stamp_ns for item, _ in items], lengths))
+        for name, count in result.accepted.items():
+            self.sources[name].counts['fused'] += count
+        for name, count in result.rejected.items():
+            self.reject(name, 'gated_out', count,
+                        'observations outside the chi-square gate of their landmark')
+        if result.confirmed:
+            self.counters.add('landmarks_confirmed', len(result.confirmed))
+        if result.reinitialised:
+            self.counters.add('landmarks_reinitialised', len(result.reinitialised),
+                              f'landmarks {result.reinitialised} rejected '
+                              f'{self.config.max_consecutive_rejections} times in a row were '
+                              'rebuilt from their recent observations (moved?)')
+        if result.changed:
+            self.map_changed = self.unsaved = True
+        return result
+
+    # Output --------------------------------------------------------------------
+
+    def snapshot(self):
+        """Return the confirmed map (``LandmarkMap.snapshot``); clears ``map_changed``."""
+        self.map_changed = False
+        return self.map.snapshot()
+
+    def reset(self) -> int:
+        """Clear the map and the queues; return how many landmarks were cleared."""
+        count = len(self.map)
+        self.map.reset()
+        for state in self.sources.values():
+            state.queue.clear()
+        self.map_changed = False
+        self.unsaved = True
+        return count
+
+    def statuses(self, now_ns: int) -> List[Status]:
+        """
+        Return the fuser's diagnostics: its own status, then one per source.
+
+        Parameters
+        ----------
+        now_ns : int
+            The caller's clock [ns]; a source silent ``source_timeout_s`` is stale.
+
+        Returns
+        -------
+        list of Status
+            The first has ``name`` '' (the fuser), the others the source name.
+
+        """
+        statuses = []
+        stale = []
+        for state in self.sources.values():
+            age = None if state.last_message_ns is None else (
+                now_ns - state.last_message_ns) * 1e-9
+            is_stale = age is None or age > self.config.source_timeout_s
+            if is_stale:
+                stale.append(state.name)
+            extra = {'age_s': 'never' if age is None else f'{age:.3f}',
+                     'stale': str(is_stale).lower(), 'queued_messages': len(state.queue)}
+            statuses.append(Status('warn' if is_stale else 'ok',
+                                   'stale' if is_stale else 'ok', dict(state.counts), extra,
+                                   state.name))
+        counts = dict(self.counters.counts)
+        problems = sorted(key for key, value in counts.items()
+                          if key not in NOT_PROBLEMS and value > self._reported.get(key, 0))
+        self._reported = counts
+        message = f'{len(self.map)} landmarks'
+        if stale:
+            message += f"; stale: {', '.join(stale)}"
+        if problems:
+            message += f"; rejected: {', '.join(problems)}"
+        extra = {'landmarks': len(self.map), 'fusion': self.config.fusion,
+                 'map_file': self.config.map_file or '(none)'}
+        statuses.insert(0, Status('warn' if (stale or problems) else 'ok', message, counts,
+                                  extra))
+        return statuses
+
+    # Persistence -----------------------------------------------------------------
+
+    def save(self) -> bool:
+        """Write ``map_file`` atomically; return whether it worked."""
+        try:
+            map_file.save(self.config.map_file, self.map.to_records(),
+                          self.config.world_frame, self.config.fusion)
+        except (OSError, ValueError) as error:
+            self.counters.add('save_failed', 1, f'cannot save {self.config.map_file}: {error}')
+            return False
+        self.unsaved = False
+        self.counters.add('saves', 1)
+        return True
+
+    def load(self) -> None:
+        """Load ``map_file`` if set; move an unusable file aside and start empty."""
+        path = self.config.map_file
+        if not path:
+            return
+        for stale in map_file.remove_stale_temporaries(path):
+            self.logger.info(f'removed {stale}, left by an interrupted save')
+        try:
+            document = map_file.load(path, self.config.world_frame)
+            check_records(document['landmarks'])
+            self.map.load_records(document['landmarks'])
+        except FileNotFoundError:
+            self.logger.info(f'no map file {path} yet: starting with an empty map')
+            return
+        except (OSError, ValueError) as error:
+            try:
+                moved = map_file.move_aside(path)
+            except OSError as move_error:
+                moved = f'(could not be moved: {move_error})'
+            self.counters.add('map_file_rejected', 1)
+            self.logger.error(f'map file {path} is unusable ({error}); moved it to {moved} '
+                              'and starting with an empty map')
+            return
+        if document.get('fusion') != self.config.fusion:
+            self.logger.warning(
+                f"map file {path} was made with fusion {document.get('fusion')!r}, this "
+                f'fuser uses {self.config.fusion!r}')
+        self.map_changed = True
+        self.logger.info(f'loaded {len(self.map)} landmarks from {path}')
+
+
+def check_records(records: Sequence[Dict[str, Any]]) -> None:
+    """
+    Check saved landmark records with exactly the checks a live landmark row passes.
+
+    Parameters
+    ----------
+    records : sequence of dict
+        As ``LandmarkMap.to_records`` writes them.
+
+    Raises
+    ------
+    ValueError
+        Naming the first bad record and why: a malformed field, an ID that is not an
+        integer in [0, 2^32 - 1], or a row reason of ``rows.landmark_row_problems``.
+
+    """
+    count = len(records)
+    ids = np.zeros(count, np.int64)
+    m = np.zeros((count, 2))
+    P = np.zeros((count, 2, 2))
+    P_dep = np.zeros((count, 2, 2))
+    for i, record in enumerate(records):
+        try:
+            raw = record['id']
+            if isinstance(raw, bool) or not isinstance(raw, int) or not 0 <= raw <= MAX_ID:
+                raise ValueError(f'id {raw!r} is not an integer in [0, {MAX_ID}]')
+            ids[i] = raw
+            m[i] = np.array(record['mean'], dtype=np.float64).reshape(2)
+            P[i] = np.array(record['covariance'], dtype=np.float64).reshape(2, 2)
+            P_dep[i] = np.array(record['covariance_dependent'], dtype=np.float64).reshape(2, 2)
+        except (KeyError, TypeError, ValueError) as error:
+            raise ValueError(f'landmark record {i}: {error}') from error
+    valid, _ = landmark_row_problems(ids, m, P, P_dep)
+    if not valid.all():
+        bad = int(np.flatnonzero(~valid)[0])
+        one = slice(bad, bad + 1)
+        _, reasons = landmark_row_problems(ids[one], m[one], P[one], P_dep[one])
+        raise ValueError(f'landmark record {bad} (id {int(ids[bad])}): rejected as '
+                         f"{', '.join(sorted(reasons))}")

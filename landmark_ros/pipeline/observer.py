@@ -1,0 +1,403 @@
+"""
+The observer of one robot: poses and observation columns in, world-frame landmarks out.
+
+ROS-free: the ``landmark_observer`` node, the MRCLAM replay, the Monte Carlo study and
+the benchmarks all drive this one object. Time is integer nanoseconds throughout.
+
+Each observation message is matched to the robot pose at its stamp (interpolated
+between the two poses that bracket it, see ``pose_buffer``) and its valid rows are
+placed in the world with ``core.landmarks.landmark_to_world_dependent``: the total
+covariance and its dependent part (pose and sensor-bias terms). An observation newer
+than every pose waits for the next pose, up to ``max_wait_s``, in arrival order.
+"""
+
+from collections import deque
+from dataclasses import dataclass
+from typing import Any, Callable, Dict, List, Optional, Sequence
+
+from landmark_ros.core.gaussian import COVARIANCE_PROBLEMS, covariance_status
+from landmark_ros.pipeline import pose_buffer
+from landmark_ros.pipeline.config import ObserverConfig
+from landmark_ros.pipeline.counters import Counters, Status
+from landmark_ros.pipeline.rows import landmarks_from_rows, observation_noise
+import numpy as np
+from numpy.typing import NDArray
+
+THROUGHPUT_COUNTERS = frozenset(
+    {'poses_in', 'observation_messages_in', 'observations_in', 'landmarks_out'})
+"""Counters that are not problems; every other counter names a rejection reason."""
+
+
+@dataclass
+class ObservationMessage:
+    """
+    The rows of one observation message, decoded.
+
+    Attributes
+    ----------
+    stamp_ns : int
+        Acquisition time [ns].
+    columns : dict of str to ndarray, shape (N,)
+        ``id``, ``range`` [m], ``bearing`` [rad] and the optional noise fields.
+    frame_id : str or None
+        The message's frame, checked against ``sensor_frame``; None skips the check.
+    token : object
+        The caller's handle on the message (the node keeps its header), returned with
+        the landmarks.
+
+    """
+
+    stamp_ns: int
+    columns: Dict[str, NDArray[Any]]
+    frame_id: Optional[str] = None
+    token: Any = None
+    arrived_ns: int = 0
+
+    @property
+    def rows(self) -> int:
+        """Return the number of rows."""
+        return len(self.columns['range'])
+
+
+@dataclass(frozen=True)
+class LandmarkBatch:
+    """
+    World-frame landmarks placed from one observation message.
+
+    Attributes
+    ----------
+    stamp_ns : int
+        The observation stamp [ns].
+    ids : ndarray of int64, shape (K,)
+    m : ndarray, shape (K, 2)
+        Positions in ``world_frame`` [m].
+    P : ndarray, shape (K, 2, 2)
+        Total covariances [m^2].
+    P_dep : ndarray, shape (K, 2, 2)
+        Their dependent parts (pose and bias terms) [m^2].
+    token : object
+        The message's ``token``.
+
+    """
+
+    stamp_ns: int
+    ids: NDArray[np.int64]
+    m: NDArray[np.float64]
+    P: NDArray[np.float64]
+    P_dep: NDArray[np.float64]
+    token: Any = None
+
+
+class Observer:
+    """
+    Turn one robot's poses and range-bearing observations into world-frame landmarks.
+
+    Parameters
+    ----------
+    config : ObserverConfig
+        The parameters (noise model, sensor pose, time policy).
+    log : callable, optional
+        ``log(text)`` for throttled warnings about rejected input.
+
+    Notes
+    -----
+    Every rejection is counted in ``counters`` under a named reason; the valid rows
+    of a message are still used. Source of the maths: the chapter's pose composition
+    and inverse observation model with first-order covariance propagation.
+
+    """
+
+    def __init__(self, config: ObserverConfig,
+                 log: Optional[Callable[[str], None]] = None) -> None:
+        self.config = config
+        self.counters = Counters(log or (lambda text: None), config.log_throttle_s)
+        self.counters.counts.update(dict.fromkeys(THROUGHPUT_COUNTERS, 0))
+        self.poses = pose_buffer.PoseBuffer(config.pose_buffer_s * 1e9,
+                                            config.max_pose_gap_s * 1e9)
+        self.pending: deque = deque()
+        self._superseded_ns: Optional[tuple] = None
+        self._reported: Dict[str, int] = {}
+        self.reconfigure(config)
+
+    def reconfigure(self, config: ObserverConfig) -> None:
+        """Apply new parameters (those that may change at run time)."""
+        self.config = config
+        self.poses.max_gap_ns = int(config.max_pose_gap_s * 1e9)
+        self.counters.throttle_s = config.log_throttle_s
+        pose = np.array(config.sensor_pose, dtype=np.float64)
+        self._sensor_pose = pose if pose.any() else None
+        self._R_bias = None
+        if config.range_bias_stddev or config.bearing_bias_stddev:
+            self._R_bias = np.diag([config.range_bias_stddev ** 2,
+                                    config.bearing_bias_stddev ** 2])
+
+    def reject(self, reason: str, count: int = 1, detail: Optional[str] = None) -> None:
+        """Count (and log, throttled) input rejected before it reached the observer."""
+        self.counters.add(reason, count, detail)
+
+    # Poses ----------------------------------------------------------------------
+
+    def add_pose(self, stamp_ns: int, pose: NDArray[np.float64], P_pose: NDArray[np.float64],
+                 now_ns: int = 0) -> List[LandmarkBatch]:
+        """
+        Add a robot pose; return the landmarks of the observations it unblocks.
+
+        Parameters
+        ----------
+        stamp_ns : int
+            Stamp of the pose [ns]; zero is never a valid stamp.
+        pose : ndarray, shape (3,)
+            (x [m], y [m], theta [rad]) in ``world_frame``.
+        P_pose : ndarray, shape (3, 3)
+            Its covariance.
+        now_ns : int
+            The caller's clock [ns], for the waiting observations.
+
+        Returns
+        -------
+        list of LandmarkBatch
+            One per observation message placed, in arrival order.
+
+        """
+        pose = np.asarray(pose, dtype=np.float64)
+        P_pose = np.asarray(P_pose, dtype=np.float64)
+        if not np.all(np.isfinite(pose)):
+            self.counters.add('pose_nonfinite', 1, f'pose {pose.tolist()}: dropped')
+            return []
+        status = int(covariance_status(P_pose))
+        if status:
+            self.counters.add(f'pose_{COVARIANCE_PROBLEMS[status]}', 1,
+                              f'(x, y, yaw) covariance {P_pose.tolist()}: dropped')
+            return []
+        if stamp_ns <= 0:
+            self.counters.add('pose_stamp_zero', 1, 'pose with a zero stamp: dropped')
+            return []
+        newest = self.poses.newest_ns
+        if newest is not None and stamp_ns <= newest:
+            if stamp_ns == newest:
+                self._repeated_pose(stamp_ns, pose, P_pose)
+                return []
+            if newest - stamp_ns <= self.config.time_jump_s * 1e9:
+                self.counters.add('pose_out_of_order', 1,
+                                  f'pose stamp {stamp_ns * 1e-9:.3f} s is older than '
+                                  f'{newest * 1e-9:.3f} s: dropped')
+                return []
+            dropped = sum(item.rows for item in self.pending)
+            self.counters.add('time_jump_back', 1,
+                              f'pose stamp jumped back from {newest * 1e-9:.3f} s to '
+                              f'{stamp_ns * 1e-9:.3f} s: pose history cleared, {dropped} '
+                              'waiting observations dropped')
+            self.counters.add('dropped_on_time_jump', dropped)
+            self.poses.clear()
+            self.pending.clear()
+            self._superseded_ns = None
+        self.poses.add(stamp_ns, pose, P_pose)
+        self.counters.add('poses_in')
+        return self.drain(now_ns)
+
+    def _repeated_pose(self, stamp_ns: int, pose: NDArray[np.float64],
+                       P_pose: NDArray[np.float64]) -> None:
+        lookup = self.poses.lookup(stamp_ns)
+        same = (lookup.status == pose_buffer.FOUND and np.array_equal(lookup.pose, pose)
+                and np.array_equal(lookup.P_pose, P_pose))
+        if same:
+            self.counters.add('pose_duplicate')
+            return
+        # Same stamp, other content: the driver's clock is frozen. Which pose the robot
+        # had at this stamp is unknown: observations that would use it are rejected.
+        stamps = self.poses.stamps_ns
+        before = stamps[-2] if len(stamps) > 1 else None
+        self._superseded_ns = (before, stamp_ns)
+        self.counters.add('pose_stamp_repeated', 1,
+                          f'pose stamp {stamp_ns * 1e-9:.3f} s repeated with another pose '
+                          '(frozen clock?): dropped; observations that need it are rejected')
+
+    # Observations ------------------------------------------------------------------
+
+    def add_observations(self, messages: Sequence[ObservationMessage],
+                         now_ns: int = 0) -> List[LandmarkBatch]:
+        """
+        Check observation messages; place each now or when its pose arrives.
+
+        Parameters
+        ----------
+        messages : sequence of ObservationMessage
+            In arrival order; all placed with one call of the core when their poses
+            are known.
+        now_ns : int
+            The caller's clock [ns]: when the messages arrived.
+
+        Returns
+        -------
+        list of LandmarkBatch
+            One per message placed (now or unblocked), in arrival order; a message
+            whose rows were all rejected gives an empty batch.
+
+        """
+        ready = []
+        for message in messages:
+            if not self._accept(message):
+                continue
+            message.arrived_ns = now_ns
+            if not self.pending:
+                found = self.poses.lookup(message.stamp_ns,
+                                          final=self.config.max_wait_s == 0.0)
+                if found.status == pose_buffer.FOUND:
+                    ready.append((message, found.pose, found.P_pose))
+                    continue
+            if len(self.pending) >= self.config.max_pending:
+                oldest = self.pending.popleft()
+                self.counters.add('backlog_dropped', oldest.rows,
+                                  f'more than {self.config.max_pending} observation messages '
+                                  'waiting for a pose: dropped the oldest')
+            self.pending.append(message)
+        batches = self.place(ready) if ready else []
+        if self.pending:
+            batches += self.drain(now_ns)
+        return batches
+
+    def _accept(self, message: ObservationMessage) -> bool:
+        """Count a message in; check its frame and stamp."""
+        self.counters.add('observation_messages_in')
+        sensor_frame = self.config.sensor_frame
+        if sensor_frame and message.frame_id is not None and message.frame_id != sensor_frame:
+            self.counters.add('observation_wrong_frame', 1,
+                              f"observations in frame '{message.frame_id}', expected "
+                              f"'{sensor_frame}': message dropped")
+            return False
+        self.counters.add('observations_in', message.rows)
+        if message.stamp_ns <= 0:
+            self.counters.add('observation_stamp_zero', message.rows,
+                              'observation message with a zero stamp: dropped')
+            return False
+        if self._superseded_ns is not None:
+            before, repeated = self._superseded_ns
+            if (before is None or message.stamp_ns > before) and message.stamp_ns <= repeated:
+                self.counters.add('observation_pose_ambiguous', message.rows,
+                                  f'observation stamp {message.stamp_ns * 1e-9:.3f} s needs the '
+                                  f'pose at {repeated * 1e-9:.3f} s, which came twice with '
+                                  'different values: dropped')
+                return False
+        return True
+
+    def drain(self, now_ns: int = 0) -> List[LandmarkBatch]:
+        """
+        Place waiting observations, in order, as far as their poses are known.
+
+        Parameters
+        ----------
+        now_ns : int
+            The caller's clock [ns]; a message waiting ``max_wait_s`` takes what the
+            buffer has (the newest pose within ``max_pose_gap_s``) or is dropped.
+
+        Returns
+        -------
+        list of LandmarkBatch
+
+        """
+        ready = []
+        while self.pending:
+            item = self.pending[0]
+            found = self.poses.lookup(item.stamp_ns)
+            if found.status == pose_buffer.WAIT:
+                if now_ns - item.arrived_ns < self.config.max_wait_s * 1e9:
+                    break
+                found = self.poses.lookup(item.stamp_ns, final=True)
+            self.pending.popleft()
+            if found.status == pose_buffer.FOUND:
+                ready.append((item, found.pose, found.P_pose))
+            elif found.status == pose_buffer.TOO_OLD:
+                self.counters.add('observation_too_old', item.rows,
+                                  f'observation stamp {item.stamp_ns * 1e-9:.3f} s is older '
+                                  'than the pose history: dropped')
+            else:
+                self.counters.add('no_pose_in_time', item.rows,
+                                  f'no pose for observation stamp {item.stamp_ns * 1e-9:.3f} s '
+                                  f'within max_wait_s = {self.config.max_wait_s}: dropped')
+        return self.place(ready) if ready else []
+
+    # Placing -------------------------------------------------------------------------
+
+    def noise(self, columns: Dict[str, NDArray[Any]]) -> NDArray[np.float64]:
+        """Return the noise covariance ``R``, shape (2, 2) or (N, 2, 2), of one message."""
+        return observation_noise(columns, self.config.range_stddev ** 2,
+                                 self.config.bearing_stddev ** 2,
+                                 self.config.range_stddev_per_m ** 2)
+
+    def place(self, ready: Sequence[tuple]) -> List[LandmarkBatch]:
+        """
+        Place the rows of observation messages in the world with one core call.
+
+        Parameters
+        ----------
+        ready : sequence of (ObservationMessage, ndarray (3,), ndarray (3, 3))
+            Each message with its robot pose and pose covariance.
+
+        Returns
+        -------
+        list of LandmarkBatch
+            One per message, in order.
+
+        """
+        counts = [item.rows for item, _, _ in ready]
+        columns = [item.columns for item, _, _ in ready]
+        noise = [self.noise(c) for c in columns]
+        if len(ready) == 1:
+            ids = np.asarray(columns[0]['id'])
+            z = np.stack([columns[0]['range'], columns[0]['bearing']], axis=1)
+            R = noise[0]
+            pose, P_pose = ready[0][1], ready[0][2]
+        else:
+            ids = np.concatenate([c['id'] for c in columns])
+            z = np.concatenate([np.stack([c['range'], c['bearing']], axis=1) for c in columns])
+            R = noise[0] if all(r.ndim == 2 for r in noise) and all(
+                np.array_equal(r, noise[0]) for r in noise) else np.concatenate(
+                [np.broadcast_to(r, (n, 2, 2)) for r, n in zip(noise, counts)])
+            pose = np.repeat([p for _, p, _ in ready], counts, axis=0)
+            P_pose = np.repeat([P for _, _, P in ready], counts, axis=0)
+        kept, m, P_m, P_dep, reasons = landmarks_from_rows(
+            ids, z, R, pose, P_pose, self._sensor_pose, self._R_bias)
+        for reason, count in reasons.items():
+            self.counters.add(reason, count, f'{count} of {len(z)} rows rejected in '
+                              f'{len(ready)} observation message(s) at '
+                              f'{ready[0][0].stamp_ns * 1e-9:.3f} s')
+        ids = np.asarray(ids)[kept].astype(np.int64)
+        if len(ready) == 1:
+            ends = [len(ids)]
+        else:
+            ends = np.cumsum(np.bincount(np.repeat(np.arange(len(ready)), counts)[kept],
+                                         minlength=len(ready))).tolist()
+        batches = []
+        start = 0
+        for (item, _, _), end in zip(ready, ends):
+            batches.append(LandmarkBatch(item.stamp_ns, ids[start:end], m[start:end],
+                                         P_m[start:end], P_dep[start:end], item.token))
+            start = end
+        self.counters.add('landmarks_out', len(ids))
+        return batches
+
+    # Status --------------------------------------------------------------------------
+
+    def status(self) -> Status:
+        """
+        Return the diagnostics status: problems since the last call, and the counters.
+
+        Returns
+        -------
+        Status
+            ``warn`` when rows or messages were rejected since the last status, or no
+            pose arrived yet; ``ok`` otherwise.
+
+        """
+        counts = dict(self.counters.counts)
+        problems = {key: value - self._reported.get(key, 0) for key, value in counts.items()
+                    if key not in THROUGHPUT_COUNTERS and value > self._reported.get(key, 0)}
+        self._reported = counts
+        level, message = 'ok', 'ok'
+        if problems:
+            level = 'warn'
+            message = 'rejected: ' + ', '.join(f'{k} {v}' for k, v in sorted(problems.items()))
+        elif not len(self.poses):
+            level, message = 'warn', 'no pose received yet'
+        extra = {'pose_buffer_size': len(self.poses), 'pending_messages': len(self.pending)}
+        return Status(level, message, counts, extra)

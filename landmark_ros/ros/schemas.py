@@ -1,0 +1,211 @@
+"""
+The PointCloud2 schemas of the package's topics, with writers and readers.
+
+``observations`` (into ``landmark_observer``): ``id`` (any integer type), ``range``
+[m], ``bearing`` [rad] (FLOAT32 or FLOAT64), optional ``range_variance``,
+``bearing_variance``, ``range_bearing_covariance``.
+
+``landmarks`` (observer out, fuser in): ``id`` UINT32, ``x``, ``y``, ``z``,
+``cov_xx``, ``cov_xy``, ``cov_yy``, ``cov_dep_xx``, ``cov_dep_xy``, ``cov_dep_yy``
+FLOAT64, little-endian, in this order. ``cov_*`` is the total covariance, ``cov_dep_*``
+its dependent part (pose and bias: correlated between observations); readers
+accept clouds without ``cov_dep_*`` (dependent part zero).
+
+``fused_landmarks`` (fuser out): the landmark fields then ``observations`` UINT32.
+"""
+
+from typing import NamedTuple
+
+
+from geometry_msgs.msg import PoseWithCovarianceStamped
+from landmark_ros.ros.cloud import CloudWriter, FieldSpec, INTEGER_TYPES, read_columns
+from landmark_ros.ros.cloud import REAL_TYPES
+from landmark_ros.ros.conversions import planar_pose_covariance, set_planar_pose, set_stamp
+import numpy as np
+from std_msgs.msg import Header
+
+OBSERVATION_FIELDS = (
+    FieldSpec('id', INTEGER_TYPES),
+    FieldSpec('range', REAL_TYPES),
+    FieldSpec('bearing', REAL_TYPES),
+    FieldSpec('range_variance', REAL_TYPES, required=False),
+    FieldSpec('bearing_variance', REAL_TYPES, required=False),
+    FieldSpec('range_bearing_covariance', REAL_TYPES, required=False),
+)
+LANDMARK_SCHEMA = (
+    ('id', np.uint32), ('x', np.float64), ('y', np.float64), ('z', np.float64),
+    ('cov_xx', np.float64), ('cov_xy', np.float64), ('cov_yy', np.float64),
+    ('cov_dep_xx', np.float64), ('cov_dep_xy', np.float64), ('cov_dep_yy', np.float64),
+)
+FUSED_SCHEMA = LANDMARK_SCHEMA + (('observations', np.uint32),)
+DEPENDENT_FIELDS = ('cov_dep_xx', 'cov_dep_xy', 'cov_dep_yy')
+LANDMARK_FIELDS = tuple(
+    FieldSpec(name, INTEGER_TYPES if name in ('id', 'observations') else REAL_TYPES,
+              required=name not in DEPENDENT_FIELDS + ('observations',))
+    for name, _ in FUSED_SCHEMA)
+
+_OBSERVATION_WRITER = CloudWriter((('id', np.uint32), ('range', np.float64),
+                                   ('bearing', np.float64)))
+_OBSERVATION_NOISE_WRITER = CloudWriter((
+    ('id', np.uint32), ('range', np.float64), ('bearing', np.float64),
+    ('range_variance', np.float64), ('bearing_variance', np.float64),
+    ('range_bearing_covariance', np.float64)))
+LANDMARK_WRITER = CloudWriter(LANDMARK_SCHEMA)
+FUSED_WRITER = CloudWriter(FUSED_SCHEMA)
+
+
+class Landmarks(NamedTuple):
+    """The rows of a ``landmarks`` or ``fused_landmarks`` cloud."""
+
+    ids: np.ndarray
+    """Landmark IDs, int64, shape (N,)."""
+    m: np.ndarray
+    """Positions [m], shape (N, 2)."""
+    P: np.ndarray
+    """Total covariances [m^2], shape (N, 2, 2)."""
+    P_dep: np.ndarray
+    """Dependent parts, shape (N, 2, 2); zero when the cloud has none."""
+    observations: np.ndarray
+    """Observations fused per landmark, int64, shape (N,); one when absent."""
+
+
+def make_header(stamp_s, frame_id):
+    """Return a ``std_msgs/Header`` at ``stamp_s`` seconds in ``frame_id``."""
+    result = Header(frame_id=frame_id)
+    set_stamp(result.stamp, stamp_s)
+    return result
+
+
+def pose_message(stamp_s, pose, P_pose, frame_id='map'):
+    """
+    Return the ``pose`` input of the observer: a PoseWithCovarianceStamped.
+
+    Parameters
+    ----------
+    stamp_s : float
+        Stamp [s].
+    pose : array_like, shape (3,)
+        Planar pose (x [m], y [m], yaw [rad]).
+    P_pose : array_like, shape (3, 3)
+        Its covariance; the other entries of the 6x6 covariance are zero.
+    frame_id : str
+        World frame.
+
+    Returns
+    -------
+    geometry_msgs.msg.PoseWithCovarianceStamped
+
+    """
+    msg = PoseWithCovarianceStamped(header=make_header(stamp_s, frame_id))
+    set_planar_pose(msg.pose.pose, pose)
+    msg.pose.covariance = planar_pose_covariance(P_pose)
+    return msg
+
+
+def observation_message(header, ids, z, R=None):
+    """
+    Return an ``observations`` cloud.
+
+    Parameters
+    ----------
+    header : std_msgs.msg.Header
+        Acquisition stamp and sensor frame.
+    ids : array_like of int, shape (N,)
+        Landmark IDs.
+    z : array_like, shape (N, 2)
+        Range [m] and bearing [rad] per row.
+    R : array_like, shape (N, 2, 2), optional
+        Per-row noise covariance; without it the observer's parameters apply.
+
+    Returns
+    -------
+    sensor_msgs.msg.PointCloud2
+
+    """
+    z = np.asarray(z, dtype=np.float64).reshape(-1, 2)
+    writer = _OBSERVATION_WRITER if R is None else _OBSERVATION_NOISE_WRITER
+    rows = writer.rows(len(z))
+    rows['id'] = np.asarray(ids).reshape(-1)
+    rows['range'], rows['bearing'] = z[:, 0], z[:, 1]
+    if R is not None:
+        R = np.asarray(R, dtype=np.float64).reshape(-1, 2, 2)
+        rows['range_variance'], rows['bearing_variance'] = R[:, 0, 0], R[:, 1, 1]
+        rows['range_bearing_covariance'] = R[:, 0, 1]
+    return writer.message(header, rows)
+
+
+def landmark_message(header, ids, m, P_m, P_dep=None, observations=None, out=None):
+    """
+    Return a ``landmarks`` cloud, or a ``fused_landmarks`` one with ``observations``.
+
+    Parameters
+    ----------
+    header : std_msgs.msg.Header
+        Stamp and world frame.
+    ids : array_like of int, shape (N,)
+        Landmark IDs.
+    m : array_like, shape (N, 2)
+        Positions [m].
+    P_m : array_like, shape (N, 2, 2)
+        Total covariances [m^2].
+    P_dep : array_like, shape (N, 2, 2), optional
+        Their dependent parts; zero when not given.
+    observations : array_like of int, shape (N,), optional
+        Observations fused per landmark; given, the cloud has the fused schema.
+    out : sensor_msgs.msg.PointCloud2, optional
+        A message to fill instead of a new one.
+
+    Returns
+    -------
+    sensor_msgs.msg.PointCloud2
+
+    """
+    m = np.asarray(m, dtype=np.float64).reshape(-1, 2)
+    P_m = np.asarray(P_m, dtype=np.float64).reshape(-1, 2, 2)
+    writer = LANDMARK_WRITER if observations is None else FUSED_WRITER
+    rows = writer.rows(len(m))
+    rows['id'] = np.asarray(ids).reshape(-1)
+    rows['x'], rows['y'] = m[:, 0], m[:, 1]
+    rows['cov_xx'], rows['cov_xy'], rows['cov_yy'] = P_m[:, 0, 0], P_m[:, 0, 1], P_m[:, 1, 1]
+    if P_dep is not None:
+        P_dep = np.asarray(P_dep, dtype=np.float64).reshape(-1, 2, 2)
+        rows['cov_dep_xx'], rows['cov_dep_xy'] = P_dep[:, 0, 0], P_dep[:, 0, 1]
+        rows['cov_dep_yy'] = P_dep[:, 1, 1]
+    if observations is not None:
+        rows['observations'] = np.asarray(observations).reshape(-1)
+    return writer.message(header, rows, out)
+
+
+def read_landmarks(msg):
+    """
+    Return the rows of a ``landmarks`` or ``fused_landmarks`` cloud.
+
+    Parameters
+    ----------
+    msg : sensor_msgs.msg.PointCloud2
+        The message to read.
+
+    Returns
+    -------
+    Landmarks
+
+    Raises
+    ------
+    landmark_ros.ros.cloud.CloudError
+        If a field is missing, of the wrong type, or the data length is wrong.
+
+    """
+    columns = read_columns(msg, LANDMARK_FIELDS)
+    count = len(columns['x'])
+
+    def matrices(xx, xy, yy):
+        P = np.zeros((count, 2, 2))
+        if xx in columns:
+            P[:, 0, 0], P[:, 1, 1] = columns[xx], columns[yy]
+            P[:, 0, 1] = P[:, 1, 0] = columns[xy]
+        return P
+
+    return Landmarks(columns['id'], np.stack([columns['x'], columns['y']], axis=1),
+                     matrices('cov_xx', 'cov_xy', 'cov_yy'),
+                     matrices(*DEPENDENT_FIELDS),
+                     columns.get('observations', np.ones(count, np.int64)))

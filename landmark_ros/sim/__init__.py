@@ -1,0 +1,1 @@
+"""ROS-free simulator of a team of robots observing landmarks."""

@@ -1,0 +1,596 @@
+"""
+A seeded multi-robot landmark world: paths, poses and range-bearing measurements.
+
+ROS-free (numpy only); ``landmark_ros.nodes.sim`` publishes it. Everything random
+is a pure function of ``(seed, what, robot, index)``: the measurement of a robot at
+observation index ``j`` is the same whatever else was drawn before, so a run is
+reproducible even when a loaded machine makes the node skip or batch steps.
+
+Timing
+------
+Time ``t`` [s] is simulated time since the start. Poses are stamped at
+``k / pose_rate_hz`` and observations at ``j / observation_rate_hz`` plus half a
+pose period, so every observation falls between two pose stamps and a consumer
+interpolates the pose at its stamp.
+
+Noise model
+-----------
+Measurements are the true range and bearing plus a per-robot constant bias (drawn
+once from N(0, bias_stddev^2)) plus white noise N(0, stddev^2). The reported pose is
+the true pose plus an error drawn from the reported covariance ``P_pose``. That
+error is held for one observation period, centred on the observation stamp, so the
+two poses that bracket an observation carry the same error: interpolating them
+gives the true pose at the observation plus exactly one N(0, P_pose) sample,
+independent between observations (when ``observation_rate_hz <= pose_rate_hz / 2``;
+at higher observation rates two observations can share a pose pair).
+"""
+
+from dataclasses import dataclass
+import math
+
+from landmark_ros.core import pose2
+from landmark_ros.core.sensors import MIN_RANGE
+from landmark_ros.pipeline.config import ConfigBase, param
+import numpy as np
+
+MAX_ID = 2 ** 32 - 1
+"""Largest landmark ID the ``landmarks`` schema (UINT32) can carry."""
+
+_WORLD, _PATH, _BIAS, _POSE, _NOISE = range(5)
+"""Stream numbers of the random draws (part of each draw's seed)."""
+
+
+@dataclass(frozen=True)
+class SimConfig(ConfigBase):
+    """Parameters of ``landmark_sim`` (and of ``Simulation``)."""
+
+    robots: int = param(3, 'Number of robots, named robot1, robot2, ...', read_only=True,
+                        low=1, high=100)
+    landmarks: int = param(20, 'Number of random landmarks (ignored with world_file).',
+                           read_only=True, low=1, high=100000)
+    seed: int = param(0, 'Seed of the world, the paths, the biases and the noise.',
+                      read_only=True, low=0, high=2 ** 31 - 1)
+    world_file: str = param(
+        '', "YAML file of landmarks (a list of {id, x, y}); '' generates them.",
+        read_only=True)
+    world_size: float = param(20.0, 'Side of the square world the landmarks and paths '
+                              'are in, centred on the origin [m].', read_only=True,
+                              low=1.0, high=100000.0)
+    robot_speed: float = param(1.0, 'Mean speed of the robots along their paths [m/s].',
+                               read_only=True, low=0.01, high=100.0)
+    min_range: float = param(0.5, 'Landmarks closer than this are not measured [m].',
+                             read_only=True, low=MIN_RANGE, high=1000.0)
+    max_range: float = param(8.0, 'Landmarks farther than this are not measured [m].',
+                             read_only=True, low=0.01, high=100000.0)
+    fov: float = param(2.0, 'Field of view, centred on the heading [rad].',
+                       read_only=True, low=0.0, high=2.0 * math.pi)
+    pose_rate_hz: float = param(20.0, 'Rate of the pose messages [Hz of simulated time].',
+                                read_only=True, low=0.1, high=1000.0)
+    observation_rate_hz: float = param(
+        10.0, 'Rate of the observation messages [Hz of simulated time]; at most half the '
+        'pose rate keeps the pose errors of observations independent.', read_only=True,
+        low=0.1, high=1000.0)
+    range_stddev: float = param(0.1, 'Range noise standard deviation [m].', read_only=True,
+                                low=0.0, high=1000.0)
+    bearing_stddev: float = param(0.02, 'Bearing noise standard deviation [rad].',
+                                  read_only=True, low=0.0, high=math.pi)
+    range_bias_stddev: float = param(
+        0.0, 'Each robot draws a constant range bias once from N(0, this^2) [m].',
+        read_only=True, low=0.0, high=1000.0)
+    bearing_bias_stddev: float = param(
+        0.0, 'Each robot draws a constant bearing bias once from N(0, this^2) [rad].',
+        read_only=True, low=0.0, high=math.pi)
+    pose_xy_stddev: float = param(
+        0.05, 'Standard deviation of the reported position, x and y [m]; the reported '
+        'pose is the true pose plus a sample of this covariance.', read_only=True,
+        low=0.0, high=1000.0)
+    pose_yaw_stddev: float = param(0.01, 'Standard deviation of the reported heading [rad].',
+                                   read_only=True, low=0.0, high=math.pi)
+    duration_s: float = param(0.0, 'Simulated time to run; 0 runs forever [s].',
+                              read_only=True, low=0.0, high=1e9)
+    time_scale: float = param(1.0, 'Simulated seconds per wall-clock second.',
+                              read_only=True, low=0.01, high=100.0)
+    frame: str = param('map', 'World frame of the poses and the ground truth.',
+                       read_only=True)
+    wait_for_subscribers_s: float = param(
+        0.0, 'Before starting the simulated clock, wait up to this long for a subscriber '
+        'on every pose and observations topic [wall s]; 0 starts at once.',
+        read_only=True, low=0.0, high=3600.0)
+    ground_truth_period_s: float = param(
+        1.0, 'Ground truth (with the observation counts so far) is republished at most '
+        'this often, when the counts changed [wall s].', read_only=True,
+        low=0.05, high=3600.0)
+    diagnostics_period_s: float = param(1.0, 'Period of the /diagnostics status [wall s].',
+                                        read_only=True, low=0.05, high=60.0)
+
+    def check(self):
+        """Check relations between fields."""
+        if self.min_range >= self.max_range:
+            raise ValueError('min_range must be below max_range')
+        if not self.frame:
+            raise ValueError('frame must not be empty')
+
+    @property
+    def pose_period_ns(self):
+        """Interval between pose stamps [ns]."""
+        return int(round(1e9 / self.pose_rate_hz))
+
+    @property
+    def observation_period_ns(self):
+        """Interval between observation stamps [ns]."""
+        return int(round(1e9 / self.observation_rate_hz))
+
+    @property
+    def P_pose(self):
+        """Covariance of the reported poses, shape (3, 3)."""
+        return np.diag([self.pose_xy_stddev ** 2, self.pose_xy_stddev ** 2,
+                        self.pose_yaw_stddev ** 2])
+
+    @property
+    def R(self):
+        """Covariance of the measurement noise (range, bearing), shape (2, 2)."""
+        return np.diag([self.range_stddev ** 2, self.bearing_stddev ** 2])
+
+
+def rng(seed, *stream):
+    """
+    Return the random generator of one stream of draws.
+
+    Parameters
+    ----------
+    seed : int
+        Seed of the run.
+    *stream : int
+        What is drawn (``_POSE``, ...), for which robot, at which index.
+
+    Returns
+    -------
+    numpy.random.Generator
+
+    """
+    return np.random.default_rng([int(seed), *[int(s) for s in stream]])
+
+
+# World ------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class World:
+    """The landmarks and the rectangle the robots drive in."""
+
+    ids: np.ndarray
+    """Landmark IDs, int64, shape (L,), sorted."""
+    positions: np.ndarray
+    """Landmark positions [m], shape (L, 2)."""
+    bounds: tuple
+    """``(x_min, y_min, x_max, y_max)`` of the area the paths stay in [m]."""
+
+    def truth(self):
+        """Return ``id -> (x, y)``, as ``evaluation.evaluate`` takes it."""
+        return {int(i): tuple(p) for i, p in zip(self.ids.tolist(), self.positions)}
+
+
+def generate_world(count, size, seed):
+    """
+    Place ``count`` landmarks uniformly in a square, apart from each other.
+
+    Parameters
+    ----------
+    count : int
+        Number of landmarks; their IDs are ``1 .. count``.
+    size : float
+        Side of the square, centred on the origin [m].
+    seed : int
+        Seed of the draw.
+
+    Returns
+    -------
+    World
+
+    """
+    generator = rng(seed, _WORLD)
+    half = 0.5 * size
+    margin = 0.05 * size
+    # Keep landmarks apart (when there is room) so that their ellipses do not overlap.
+    spacing = 0.5 * size / math.sqrt(count)
+    points = []
+    while len(points) < count:
+        candidates = generator.uniform(-half + margin, half - margin, (4 * count, 2))
+        for point in candidates:
+            if len(points) == count:
+                break
+            if not points or np.min(np.hypot(*(np.array(points) - point).T)) >= spacing:
+                points.append(point)
+        spacing *= 0.8
+    return World(np.arange(1, count + 1, dtype=np.int64), np.array(points).reshape(-1, 2),
+                 (-half, -half, half, half))
+
+
+def load_world(path, min_size=1.0):
+    """
+    Read landmarks from a YAML file.
+
+    The file holds a list of ``{id: int, x: float, y: float}``, either at the top
+    level or under a ``landmarks`` key. The robots drive in the bounding box of the
+    landmarks, grown by 10 % and to at least ``min_size`` on each side.
+
+    Parameters
+    ----------
+    path : str
+        YAML file.
+    min_size : float
+        Smallest side of the driving area [m].
+
+    Returns
+    -------
+    World
+
+    Raises
+    ------
+    ValueError
+        If the file is not such a list, an ID repeats or is out of the UINT32
+        range, or a coordinate is not a finite number.
+    OSError
+        If the file cannot be read.
+
+    """
+    import yaml
+    with open(path) as stream:
+        try:
+            document = yaml.safe_load(stream)
+        except yaml.YAMLError as error:
+            raise ValueError(f'{path}: not valid YAML: {error}') from error
+    if isinstance(document, dict):
+        document = document.get('landmarks')
+    if not isinstance(document, list) or not document:
+        raise ValueError(f'{path}: expected a non-empty list of {{id, x, y}}')
+    ids, positions = [], []
+    for index, entry in enumerate(document):
+        if not isinstance(entry, dict) or not {'id', 'x', 'y'} <= set(entry):
+            raise ValueError(f'{path}: entry {index} is not a mapping with id, x and y')
+        landmark_id, x, y = entry['id'], entry['x'], entry['y']
+        if isinstance(landmark_id, bool) or not isinstance(landmark_id, int) \
+                or not 0 <= landmark_id <= MAX_ID:
+            raise ValueError(f'{path}: entry {index}: id must be an integer in '
+                             f'[0, {MAX_ID}], got {landmark_id!r}')
+        if not all(isinstance(v, (int, float)) and not isinstance(v, bool)
+                   and math.isfinite(v) for v in (x, y)):
+            raise ValueError(f'{path}: entry {index}: x and y must be finite numbers')
+        ids.append(landmark_id)
+        positions.append((float(x), float(y)))
+    if len(set(ids)) != len(ids):
+        raise ValueError(f'{path}: landmark IDs repeat')
+    order = np.argsort(ids)
+    ids = np.array(ids, dtype=np.int64)[order]
+    positions = np.array(positions)[order]
+    low, high = positions.min(axis=0), positions.max(axis=0)
+    centre = 0.5 * (low + high)
+    half = np.maximum(0.55 * (high - low), 0.5 * min_size)
+    return World(ids, positions, (*(centre - half), *(centre + half)))
+
+
+# Paths ------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class LoopPath:
+    """
+    A smooth closed path driven at a constant parameter rate.
+
+    ``kind`` ``'ellipse'`` is ``(a cos u, b sin u)``; ``'eight'`` (a Lissajous 1:2
+    figure eight) is ``(a sin u, b sin 2u)``; both rotated by ``rotation`` and moved
+    to ``centre``, with ``u = phase + direction * omega * t``.
+    """
+
+    kind: str
+    centre: tuple
+    """Centre [m]."""
+    axes: tuple
+    """Half extents ``(a, b)`` before the rotation [m]."""
+    rotation: float
+    """[rad]."""
+    phase: float
+    """Parameter at ``t = 0`` [rad]."""
+    direction: int
+    """+1 or -1."""
+    omega: float
+    """Parameter rate [rad/s]."""
+
+    @property
+    def period(self):
+        """Time of one loop [s]."""
+        return 2.0 * math.pi / self.omega
+
+    def _local(self, u):
+        a, b = self.axes
+        if self.kind == 'ellipse':
+            return (a * np.cos(u), b * np.sin(u)), (-a * np.sin(u), b * np.cos(u))
+        return (a * np.sin(u), b * np.sin(2.0 * u)), (a * np.cos(u), 2.0 * b * np.cos(2.0 * u))
+
+    def pose(self, t):
+        """
+        Return the pose at time ``t``; the heading is the direction of travel.
+
+        Parameters
+        ----------
+        t : float or array_like, shape (N,)
+            Time [s].
+
+        Returns
+        -------
+        ndarray, shape (3,) or (N, 3)
+            ``(x [m], y [m], heading [rad])``.
+
+        """
+        t = np.asarray(t, dtype=np.float64)
+        u = self.phase + self.direction * self.omega * t
+        (x, y), (dx, dy) = self._local(u)
+        cos, sin = math.cos(self.rotation), math.sin(self.rotation)
+        dx, dy = self.direction * dx, self.direction * dy
+        return np.stack([self.centre[0] + cos * x - sin * y,
+                         self.centre[1] + sin * x + cos * y,
+                         pose2.wrap_angle(np.arctan2(sin * dx + cos * dy,
+                                                     cos * dx - sin * dy))], axis=-1)
+
+    def length(self, samples=4096):
+        """Return the length of one loop [m]."""
+        u = np.linspace(0.0, 2.0 * math.pi, samples + 1)
+        (x, y), _ = self._local(u)
+        return float(np.sum(np.hypot(np.diff(x), np.diff(y))))
+
+
+def make_paths(robots, bounds, speed, seed):
+    """
+    Return one loop per robot inside ``bounds``, with distinct shapes and phases.
+
+    Robots alternate between ellipses and figure eights and between the two
+    directions of travel; sizes, rotations, centres and phases are drawn per robot.
+
+    Parameters
+    ----------
+    robots : int
+        Number of robots.
+    bounds : tuple of float
+        ``(x_min, y_min, x_max, y_max)`` [m].
+    speed : float
+        Mean speed along the path [m/s].
+    seed : int
+        Seed of the draws.
+
+    Returns
+    -------
+    list of LoopPath
+
+    """
+    x_min, y_min, x_max, y_max = bounds
+    width, height = x_max - x_min, y_max - y_min
+    paths = []
+    for i in range(robots):
+        generator = rng(seed, _PATH, i)
+        kind = ('ellipse', 'eight', 'ellipse')[i % 3]
+        direction = 1 if i % 2 == 0 else -1
+        scale = min(width, height)
+        axes = (generator.uniform(0.25, 0.38) * scale, generator.uniform(0.15, 0.3) * scale)
+        if kind == 'eight':
+            axes = (axes[0], 0.5 * axes[1] + 0.05 * scale)
+        rotation = generator.uniform(0.0, math.pi)
+        phase = generator.uniform(0.0, 2.0 * math.pi)
+        probe = LoopPath(kind, (0.0, 0.0), axes, rotation, 0.0, 1, 1.0)
+        outline = probe.pose(np.linspace(0.0, 2.0 * math.pi, 721))[:, :2]
+        # Move the centre at random as far as the outline stays 5 % inside the bounds.
+        margin = 0.05 * scale
+        low = np.array([x_min, y_min]) + margin - outline.min(axis=0)
+        high = np.array([x_max, y_max]) - margin - outline.max(axis=0)
+        centre = np.where(low <= high, generator.uniform(np.minimum(low, high),
+                                                         np.maximum(low, high)),
+                          0.5 * (low + high))
+        omega = 2.0 * math.pi * speed / probe.length()
+        paths.append(LoopPath(kind, (float(centre[0]), float(centre[1])),
+                              (float(axes[0]), float(axes[1])), float(rotation),
+                              float(phase), direction, float(omega)))
+    return paths
+
+
+# Measurements -----------------------------------------------------------------------
+
+def visible(pose, positions, min_range, max_range, fov):
+    """
+    Return which landmarks a sensor at ``pose`` measures.
+
+    Parameters
+    ----------
+    pose : array_like, shape (3,)
+        Sensor pose ``(x [m], y [m], heading [rad])``.
+    positions : array_like, shape (L, 2)
+        Landmark positions [m].
+    min_range, max_range : float
+        Range limits [m], inclusive.
+    fov : float
+        Field of view centred on the heading [rad]; ``2 pi`` sees all around.
+
+    Returns
+    -------
+    mask : ndarray of bool, shape (L,)
+    z : ndarray, shape (L, 2)
+        True ``(range [m], bearing [rad])`` of every landmark.
+
+    """
+    pose = np.asarray(pose, dtype=np.float64)
+    d = np.asarray(positions, dtype=np.float64).reshape(-1, 2) - pose[:2]
+    r = np.hypot(d[:, 0], d[:, 1])
+    bearing = pose2.wrap_angle(np.arctan2(d[:, 1], d[:, 0]) - pose[2])
+    mask = (r >= max(min_range, MIN_RANGE)) & (r <= max_range) & (
+        np.abs(bearing) <= 0.5 * fov)
+    return mask, np.stack([r, np.atleast_1d(bearing)], axis=-1)
+
+
+@dataclass(frozen=True)
+class Measurement:
+    """The observations of one robot at one observation stamp."""
+
+    stamp_ns: int
+    """Simulated time [ns]."""
+    true_pose: np.ndarray
+    """Shape (3,)."""
+    ids: np.ndarray
+    """Landmark IDs, int64, shape (N,)."""
+    z: np.ndarray
+    """Measured ``(range [m], bearing [rad])``, shape (N, 2)."""
+    z_true: np.ndarray
+    """Noise- and bias-free values, shape (N, 2)."""
+
+
+class Simulation:
+    """
+    The world, the paths and every robot's poses and measurements.
+
+    Parameters
+    ----------
+    config : SimConfig
+        Parameters.
+    world : World, optional
+        Landmarks; by default loaded from ``config.world_file`` or generated.
+
+    """
+
+    def __init__(self, config, world=None):
+        self.config = config
+        if world is None:
+            world = (load_world(config.world_file, config.world_size) if config.world_file
+                     else generate_world(config.landmarks, config.world_size, config.seed))
+        self.world = world
+        self.paths = make_paths(config.robots, world.bounds, config.robot_speed, config.seed)
+        self.bias = np.array([
+            rng(config.seed, _BIAS, i).standard_normal(2)
+            * (config.range_bias_stddev, config.bearing_bias_stddev)
+            for i in range(config.robots)]).reshape(-1, 2)
+        """Per-robot ``(range [m], bearing [rad])`` bias, shape (robots, 2)."""
+        self.P_pose = config.P_pose
+        self._L_pose = np.sqrt(np.diag(self.P_pose))  # diagonal: its Cholesky factor
+        self.pose_period_ns = config.pose_period_ns
+        self.observation_period_ns = config.observation_period_ns
+        self.observation_offset_ns = self.pose_period_ns // 2
+
+    @property
+    def robots(self):
+        """Return the number of robots."""
+        return self.config.robots
+
+    # Time ---------------------------------------------------------------------------
+
+    def pose_stamp_ns(self, k):
+        """Return the simulated time of pose ``k`` [ns]."""
+        return int(k) * self.pose_period_ns
+
+    def observation_stamp_ns(self, j):
+        """Return the simulated time of observation ``j`` [ns], between two pose stamps."""
+        return int(j) * self.observation_period_ns + self.observation_offset_ns
+
+    def poses_until(self, t_ns):
+        """Return how many pose stamps are at or before ``t_ns``."""
+        return 0 if t_ns < 0 else int(t_ns // self.pose_period_ns) + 1
+
+    def observations_until(self, t_ns):
+        """Return how many observation stamps are at or before ``t_ns``."""
+        t_ns -= self.observation_offset_ns
+        return 0 if t_ns < 0 else int(t_ns // self.observation_period_ns) + 1
+
+    def _segment(self, t_ns):
+        # The observation period centred on each observation stamp.
+        half = self.observation_period_ns // 2
+        return (int(t_ns) - self.observation_offset_ns + half) // self.observation_period_ns
+
+    # Poses ----------------------------------------------------------------------------
+
+    def true_pose(self, robot, t):
+        """
+        Return the true pose of a robot.
+
+        Parameters
+        ----------
+        robot : int
+            Index, 0-based (``robot1`` is 0).
+        t : float or array_like, shape (N,)
+            Simulated time [s].
+
+        Returns
+        -------
+        ndarray, shape (3,) or (N, 3)
+
+        """
+        return self.paths[robot].pose(t)
+
+    def pose_error(self, robot, t_ns):
+        """
+        Return the error of the reported pose at ``t_ns``, drawn from ``P_pose``.
+
+        Constant over the observation period centred on each observation stamp (see
+        the module notes), shape (3,).
+        """
+        sample = rng(self.config.seed, _POSE, robot, self._segment(t_ns)).standard_normal(3)
+        return self._L_pose * sample
+
+    def reported_pose(self, robot, k):
+        """
+        Return the reported pose ``k`` of a robot and its covariance.
+
+        Parameters
+        ----------
+        robot : int
+            Index, 0-based.
+        k : int
+            Pose index; its stamp is ``pose_stamp_ns(k)``.
+
+        Returns
+        -------
+        stamp_ns : int
+        true_pose : ndarray, shape (3,)
+        pose : ndarray, shape (3,)
+            ``true_pose`` plus a sample of ``P_pose`` (heading wrapped).
+        P_pose : ndarray, shape (3, 3)
+
+        """
+        stamp = self.pose_stamp_ns(k)
+        true = self.true_pose(robot, stamp * 1e-9)
+        pose = true + self.pose_error(robot, stamp)
+        pose[2] = pose2.wrap_angle(float(pose[2]))
+        return stamp, true, pose, self.P_pose.copy()
+
+    # Measurements ---------------------------------------------------------------------
+
+    def measure(self, robot, j):
+        """
+        Return the measurements of a robot at observation ``j``.
+
+        Landmarks within ``[min_range, max_range]`` and the field of view of the true
+        pose are measured: true range and bearing plus the robot's bias plus white
+        noise (bearing wrapped to ``[-pi, pi)``), in ID order.
+
+        Parameters
+        ----------
+        robot : int
+            Index, 0-based.
+        j : int
+            Observation index; its stamp is ``observation_stamp_ns(j)``.
+
+        Returns
+        -------
+        Measurement
+
+        """
+        config = self.config
+        stamp = self.observation_stamp_ns(j)
+        true = self.true_pose(robot, stamp * 1e-9)
+        mask, z_all = visible(true, self.world.positions, config.min_range,
+                              config.max_range, config.fov)
+        z_true = z_all[mask]
+        noise = rng(config.seed, _NOISE, robot, j).standard_normal((len(z_true), 2))
+        z = z_true + self.bias[robot] + noise * (config.range_stddev, config.bearing_stddev)
+        z[:, 1] = pose2.wrap_angle(z[:, 1])
+        # A bias or noise draw can push a close landmark's range below the minimum.
+        z[:, 0] = np.maximum(z[:, 0], MIN_RANGE)
+        return Measurement(stamp, true, self.world.ids[mask], z, z_true)
+
+    def visible_ids(self, robot, t):
+        """Return the IDs a robot measures at time ``t`` [s] (without noise)."""
+        mask, _ = visible(self.true_pose(robot, t), self.world.positions,
+                          self.config.min_range, self.config.max_range, self.config.fov)
+        return self.world.ids[mask]
