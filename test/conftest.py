@@ -1,5 +1,6 @@
 """Shared test helpers: a numerical Jacobian, a seeded RNG and random inputs."""
 
+import warnings
 import zlib
 
 from landmark_ros.core.pose2 import wrap_angle
@@ -110,3 +111,11 @@ def ros_env():
 def env(ros_env):
     """Return a fresh RosEnv for this test."""
     return ros_env()
+
+
+@pytest.fixture
+def no_warnings():
+    """Turn every warning into an error for the duration of a test."""
+    with warnings.catch_warnings():
+        warnings.simplefilter('error')
+        yield
