@@ -14,7 +14,7 @@ import sys
 from diagnostic_msgs.msg import DiagnosticArray
 from landmark_ros.pipeline.config import FuserConfig
 from landmark_ros.pipeline.fuser import Fuser
-from landmark_ros.ros import diagnostics, qos, runner
+from landmark_ros.ros import diagnostics, guard, qos, runner
 from landmark_ros.ros.cloud import CloudError
 from landmark_ros.ros.conversions import stamp_ns
 from landmark_ros.ros.markers import delete_all, landmark_markers
@@ -30,6 +30,17 @@ from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
 
+class _LateCounters:
+    """The fuser's counters, looked up when a guarded callback fails."""
+
+    def __init__(self, node):
+        self._node = node
+
+    def add(self, name, count=1, detail=None):
+        """Count into the fuser's counters."""
+        self._node.fuser.counters.add(name, count, detail)
+
+
 class LandmarkFuser(Node):
     """Fuse the landmark observations of a team of robots by landmark ID."""
 
@@ -40,8 +51,8 @@ class LandmarkFuser(Node):
         input_qos = qos.reliable_input(config.input_depth)
         for topic in config.input_topics:
             self._subscriptions_by_topic[topic] = self.create_subscription(
-                PointCloud2, topic, lambda msg, topic=topic: self.on_landmarks(msg, topic),
-                input_qos)
+                PointCloud2, topic, self._guard(lambda msg, topic=topic: self.on_landmarks(
+                    msg, topic), 'landmarks callback'), input_qos)
         self._source_of = {topic: subscription.topic_name
                            for topic, subscription in self._subscriptions_by_topic.items()}
         self.fuser = Fuser(config, list(self._source_of.values()), self.get_logger())
@@ -53,13 +64,18 @@ class LandmarkFuser(Node):
         self.marker_pub = self.create_publisher(MarkerArray, 'fused_markers', qos.LATCHED)
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics',
                                                      qos.DIAGNOSTICS)
-        self.create_service(Trigger, '~/reset', self.on_reset)
-        self.create_service(Trigger, '~/save', self.on_save)
-        self.create_timer(config.update_period_s, self.fuse_queued)
-        self.create_timer(1.0 / config.publish_rate_hz, self.publish_map)
-        self.create_timer(config.diagnostics_period_s, self.publish_diagnostics)
+        self.create_service(Trigger, '~/reset', self._guard(self.on_reset))
+        self.create_service(Trigger, '~/save', self._guard(self.on_save))
+        self.create_timer(config.update_period_s, self._guard(self.fuse_queued))
+        self.create_timer(1.0 / config.publish_rate_hz, self._guard(self.publish_map))
+        self.create_timer(config.diagnostics_period_s, self._guard(self.publish_diagnostics))
         if config.map_file and config.autosave_period_s > 0.0:
-            self.create_timer(config.autosave_period_s, self.autosave)
+            self.create_timer(config.autosave_period_s, self._guard(self.autosave))
+
+    def _guard(self, callback, what=None):
+        # Callbacks created before the fuser exists count into it once it does.
+        counters = _LateCounters(self)
+        return guard.guarded(self, counters, callback, what or callback.__name__)
 
     @property
     def config(self):

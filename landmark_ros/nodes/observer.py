@@ -15,7 +15,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from landmark_ros.pipeline.config import ObserverConfig
 from landmark_ros.pipeline.observer import ObservationMessage, Observer
-from landmark_ros.ros import diagnostics, qos, runner
+from landmark_ros.ros import diagnostics, guard, qos, runner
 from landmark_ros.ros.cloud import CloudError, read_columns
 from landmark_ros.ros.conversions import InputError, pose_from_msg, stamp_ns
 from landmark_ros.ros.markers import landmark_markers
@@ -42,11 +42,11 @@ class LandmarkObserver(Node):
         self._latest_markers = {}
 
         overrides = QoSOverridingOptions.with_default_policies()
-        self.create_subscription(PoseWithCovarianceStamped, 'pose', self.on_pose,
+        self.create_subscription(PoseWithCovarianceStamped, 'pose', self._guard(self.on_pose),
                                  qos.sensor_input(config.input_depth),
                                  qos_overriding_options=overrides)
         self._observation_sub = self.create_subscription(
-            PointCloud2, 'observations', self.on_observations,
+            PointCloud2, 'observations', self._guard(self.on_observations),
             qos.sensor_input(config.input_depth), qos_overriding_options=overrides)
         self.landmark_pub = self.create_publisher(
             PointCloud2, 'landmarks', qos.reliable_output(config.output_depth),
@@ -62,6 +62,9 @@ class LandmarkObserver(Node):
         self._tick_timer = None
         self._last_run = {}
         self._reset_timers()
+
+    def _guard(self, callback):
+        return guard.guarded(self, self.observer.counters, callback, callback.__name__)
 
     @property
     def config(self):
@@ -87,7 +90,7 @@ class LandmarkObserver(Node):
         periods = [self.config.diagnostics_period_s, max(self.config.max_wait_s / 2.0, 0.01)]
         if self.config.marker_rate_hz > 0.0:
             periods.append(1.0 / self.config.marker_rate_hz)
-        self._tick_timer = self.create_timer(min(periods), self.tick)
+        self._tick_timer = self.create_timer(min(periods), self._guard(self.tick))
 
     def _due(self, task, period_s, now):
         last = self._last_run.get(task)

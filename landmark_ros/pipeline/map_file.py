@@ -48,7 +48,7 @@ def save(path, records, world_frame, fusion):
                                          suffix='.tmp', dir=directory)
     try:
         with os.fdopen(handle, 'w') as stream:
-            json.dump(document, stream, indent=1)
+            json.dump(document, stream, indent=1, allow_nan=False)  # never a NaN or inf
             stream.write('\n')
             stream.flush()
             os.fsync(stream.fileno())

@@ -45,10 +45,22 @@ def run(node_class, name, args=None, startup_errors=(), what='invalid parameters
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except (ValueError, ParameterException, *startup_errors) as error:
+        if node is not None and not rclpy.ok():
+            return 0  # a stop signal during a callback: a clean stop all the same
         print(f'{name}: {what}: {error}', file=sys.stderr)
         return 2
+    except Exception:  # noqa: B902 - see below
+        # rclpy raises from inside the executor when a stop signal invalidates the
+        # context in the middle of a take or a publish: that is a clean stop too.
+        if node is not None and not rclpy.ok():
+            return 0
+        raise
     finally:
         if node is not None:
-            node.destroy_node()
+            try:
+                node.destroy_node()
+            except Exception:  # noqa: B902 - a node half torn down by the stop signal
+                if rclpy.ok():
+                    raise
         rclpy.try_shutdown()
     return 0

@@ -18,7 +18,8 @@ from typing import NamedTuple
 
 
 from geometry_msgs.msg import PoseWithCovarianceStamped
-from landmark_ros.ros.cloud import CloudWriter, FieldSpec, INTEGER_TYPES, read_columns
+from landmark_ros.ros.cloud import CloudError, CloudWriter, FieldSpec, INTEGER_TYPES
+from landmark_ros.ros.cloud import read_columns
 from landmark_ros.ros.cloud import REAL_TYPES
 from landmark_ros.ros.conversions import planar_pose_covariance, set_planar_pose, set_stamp
 import numpy as np
@@ -192,11 +193,19 @@ def read_landmarks(msg):
     Raises
     ------
     landmark_ros.ros.cloud.CloudError
-        If a field is missing, of the wrong type, or the data length is wrong.
+        If a field is missing, of the wrong type, or the data length is wrong
+        (``missing_field``, ``unsupported_field_type``, ``data_length_mismatch``), or
+        only part of the ``cov_dep_*`` group is present (``partial_field_group``).
 
     """
     columns = read_columns(msg, LANDMARK_FIELDS)
     count = len(columns['x'])
+    present = [name for name in DEPENDENT_FIELDS if name in columns]
+    if present and len(present) != len(DEPENDENT_FIELDS):
+        missing = [name for name in DEPENDENT_FIELDS if name not in columns]
+        raise CloudError('partial_field_group',
+                         f'{present} without {missing}: the dependent covariance needs all '
+                         'three fields or none')
 
     def matrices(xx, xy, yy):
         P = np.zeros((count, 2, 2))

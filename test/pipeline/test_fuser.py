@@ -1,0 +1,176 @@
+"""Tests of pipeline.fuser.Fuser, without ROS: queues, checks, fusion, status, map file."""
+
+import json
+import logging
+
+from landmark_ros.core.landmark_map import LandmarkMap
+from landmark_ros.pipeline import map_file
+from landmark_ros.pipeline.config import FuserConfig
+from landmark_ros.pipeline.fuser import check_records, Fuser
+import numpy as np
+import pytest
+
+S = 1_000_000_000
+C = np.diag([0.04, 0.09])
+SOURCES = ['/robot1/landmarks', '/robot2/landmarks']
+
+
+def rows(n, rng, spread=0.05, ids=None):
+    """Return n landmark rows around (i, 2 i) for ids i."""
+    ids = np.arange(n) if ids is None else np.asarray(ids)
+    m = np.column_stack([ids * 1.0, ids * 2.0]) + rng.normal(0.0, spread, (len(ids), 2))
+    P = np.broadcast_to(C, (len(ids), 2, 2)).copy()
+    return ids, m, P, 0.25 * P
+
+
+def problems(fuser):
+    """Return the non-zero problem counters of the fuser."""
+    return {k: v for k, v in fuser.counters.counts.items()
+            if v and k not in ('landmarks_confirmed', 'saves')}
+
+
+@pytest.mark.parametrize('fusion', ['independent', 'covariance_intersection',
+                                    'split_covariance_intersection'])
+def test_queued_messages_fuse_as_the_map_would(fusion, rng):
+    fuser = Fuser(FuserConfig(fusion=fusion), SOURCES)
+    reference = LandmarkMap(fusion)
+    for k in range(6):
+        source = SOURCES[k % 2]
+        ids, m, P, P_dep = rows(5, rng)
+        assert fuser.add_landmarks(source, (k + 1) * S, ids, m, P, P_dep) == 5
+        reference.update(ids, m, P, P_dep, source, (k + 1) * S)
+    result = fuser.fuse_queued()
+    assert result.changed and fuser.map_changed and fuser.unsaved
+    for a, b in zip(fuser.snapshot(), reference.snapshot(), strict=True):
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-12)
+    assert not fuser.map_changed
+    assert fuser.sources[SOURCES[0]].counts['fused'] == 15
+    assert fuser.fuse_queued() is None
+
+
+def test_bad_rows_are_counted_per_source_and_good_rows_kept(rng):
+    fuser = Fuser(FuserConfig(), SOURCES)
+    ids, m, P, P_dep = rows(4, rng)
+    m[1, 0] = np.nan
+    P[2] = -P[2]
+    ids[3] = -1
+    assert fuser.add_landmarks(SOURCES[0], S, ids, m, P, P_dep) == 1
+    assert fuser.sources[SOURCES[0]].counts['landmark_nonfinite'] == 1
+    assert problems(fuser) == {'landmark_nonfinite': 1, 'covariance_not_psd': 1,
+                               'invalid_id': 1}
+
+
+def test_wrong_frame_and_queue_overflow(rng):
+    fuser = Fuser(FuserConfig(max_queue_messages=2), SOURCES)
+    assert fuser.add_landmarks(SOURCES[0], S, *rows(3, rng), frame_id='odom') == 0
+    for k in range(3):
+        fuser.add_landmarks(SOURCES[1], S + k, *rows(3, rng), frame_id='map')
+    assert fuser.queued_messages() == 2
+    assert problems(fuser) == {'wrong_frame': 1, 'queue_overflow': 3}
+
+
+def test_statuses_name_stale_sources_and_new_problems(rng):
+    fuser = Fuser(FuserConfig(source_timeout_s=1.0), SOURCES)
+    fuser.add_landmarks(SOURCES[0], S, *rows(2, rng), now_ns=10 * S)
+    first, one, two = fuser.statuses(10 * S + S // 2)
+    assert (one.name, one.level, two.name, two.level) == (SOURCES[0], 'ok', SOURCES[1], 'warn')
+    assert first.level == 'warn' and f'stale: {SOURCES[1]}' in first.message
+    fuser.add_landmarks(SOURCES[1], S, *rows(2, rng), now_ns=10 * S)
+    first, _, _ = fuser.statuses(10 * S + S // 2)
+    assert first.level == 'ok' and first.extra['fusion'] == 'split_covariance_intersection'
+
+
+def test_reset_clears_map_and_queues(rng):
+    fuser = Fuser(FuserConfig(), SOURCES)
+    fuser.add_landmarks(SOURCES[0], S, *rows(3, rng))
+    fuser.add_landmarks(SOURCES[0], S, *rows(3, rng))
+    fuser.fuse_queued()
+    fuser.add_landmarks(SOURCES[1], S, *rows(3, rng))
+    assert fuser.reset() == 3 and len(fuser.map) == 0 and fuser.queued_messages() == 0
+
+
+def test_save_and_load_round_trip(tmp_path, rng):
+    path = str(tmp_path / 'map.json')
+    fuser = Fuser(FuserConfig(map_file=path), SOURCES)
+    for _ in range(3):
+        fuser.add_landmarks(SOURCES[0], S, *rows(4, rng))
+    fuser.fuse_queued()
+    assert fuser.save() and not fuser.unsaved
+    again = Fuser(FuserConfig(map_file=path), SOURCES)
+    again.load()
+    for a, b in zip(again.snapshot(), fuser.snapshot(), strict=True):
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-12)
+
+
+def saved_map(tmp_path, rng):
+    """Return the path and JSON document of a saved map with three landmarks."""
+    path = str(tmp_path / 'map.json')
+    fuser = Fuser(FuserConfig(map_file=path), SOURCES)
+    for _ in range(2):
+        fuser.add_landmarks(SOURCES[0], S, *rows(3, rng))
+    fuser.fuse_queued()
+    assert fuser.save()
+    with open(path) as stream:
+        return path, json.load(stream)
+
+
+@pytest.mark.parametrize('field, value, reason', [
+    ('id', 2 ** 32 + 7, 'is not an integer in'),
+    ('id', -1, 'is not an integer in'),
+    ('id', 1.5, 'is not an integer in'),
+    ('id', True, 'is not an integer in'),
+    ('covariance', [[-1.0, 0.0], [0.0, -1.0]], 'covariance_not_psd'),
+    ('mean', [0.0, 'x'], 'could not convert'),
+    ('covariance_dependent', [[1.0, 0.0], [0.0, 1.0]], 'dependent_part_invalid'),
+    ('mean', [1.0], 'cannot reshape'),
+])
+def test_bad_record_moves_the_file_aside_and_names_the_record(
+        tmp_path, rng, caplog, field, value, reason):
+    path, document = saved_map(tmp_path, rng)
+    document['landmarks'][1][field] = value
+    with open(path, 'w') as stream:
+        json.dump(document, stream)
+    logger = logging.getLogger('fuser-test')
+    fuser = Fuser(FuserConfig(map_file=path), SOURCES, logger)
+    with caplog.at_level(logging.ERROR, 'fuser-test'):
+        fuser.load()
+    assert len(fuser.map) == 0 and fuser.counters['map_file_rejected'] == 1
+    assert 'landmark record 1' in caplog.text and reason in caplog.text
+    assert len(list(tmp_path.glob('map.json.bad-*'))) == 1
+    assert not (tmp_path / 'map.json').exists()
+
+
+def test_check_records_takes_exactly_the_live_row_checks(tmp_path, rng):
+    _, document = saved_map(tmp_path, rng)
+    check_records(document['landmarks'])                  # a file the fuser wrote passes
+    document['landmarks'][2]['mean'] = [0.0, float('nan')]
+    with pytest.raises(ValueError, match='record 2 .*landmark_nonfinite'):
+        check_records(document['landmarks'])
+
+
+def test_save_never_writes_a_non_finite_number(tmp_path, rng):
+    path = tmp_path / 'map.json'
+    fuser = Fuser(FuserConfig(map_file=str(path)), SOURCES)
+    fuser.add_landmarks(SOURCES[0], S, *rows(3, rng))
+    fuser.add_landmarks(SOURCES[0], S, *rows(3, rng))
+    fuser.fuse_queued()
+    assert fuser.save()
+    before = path.read_text()
+    fuser.map.mean[0, 0] = np.nan                         # whatever poisoned it
+    assert not fuser.save()
+    assert fuser.counters['save_failed'] == 1 and path.read_text() == before
+    assert not list(tmp_path.glob('.map.json.*.tmp'))
+
+
+def test_a_corrupt_file_is_moved_aside(tmp_path):
+    path = tmp_path / 'map.json'
+    path.write_text('{"format": "landmark_ros/map", ')
+    fuser = Fuser(FuserConfig(map_file=str(path)), SOURCES)
+    fuser.load()
+    assert fuser.counters['map_file_rejected'] == 1 and not path.exists()
+    assert map_file.VERSION == 1
+
+
+def test_duplicate_sources_are_refused():
+    with pytest.raises(ValueError, match='twice'):
+        Fuser(FuserConfig(), ['/a', '/a'])
