@@ -199,8 +199,9 @@ def main(argv=None):
     lines.append('memory, split_covariance_intersection map, 5 sources, fresh interpreter:')
     for landmarks, figures in mem.items():
         growth = (figures['hwm_kb'] - figures['baseline_kb']) / 1024
-        lines.append(f'  {figures["landmarks"]:7d} landmarks: peak RSS {figures["hwm_kb"] / 1024:.0f}'
-                     f' MB (VmHWM; getrusage maxrss {figures["maxrss_kb"] / 1024:.0f} MB), '
+        lines.append(f'  {figures["landmarks"]:7d} landmarks: peak RSS '
+                     f'{figures["hwm_kb"] / 1024:.0f} MB (VmHWM; getrusage maxrss '
+                     f'{figures["maxrss_kb"] / 1024:.0f} MB), '
                      f'{growth:.0f} MB over the interpreter with numpy and the package')
         result[f'peak_rss_split_ci_{landmarks}_landmarks_mb'] = figures['hwm_kb'] / 1024
         result[f'maxrss_split_ci_{landmarks}_landmarks_mb'] = figures['maxrss_kb'] / 1024
