@@ -115,16 +115,129 @@ def batch_shape(*arrays):
     return np.broadcast_shapes(*(a.shape[:-1] for a in arrays))
 
 
+def power_of_4_scale(*diagonals):
+    """
+    Return per-matrix scales ``s = 4^k`` near the largest of some diagonal entries.
+
+    Dividing a matrix by ``s`` is exact in floating point (a power of two) and brings
+    its entries near 1, so closed-form 2x2 determinants and inverses neither overflow
+    nor underflow; ``sqrt(s) = 2^k`` is exact too (for scaling vectors).
+
+    Parameters
+    ----------
+    *diagonals : ndarray, shape () or (N,)
+        Diagonal entries (variances) of the matrices that share a scale.
+
+    Returns
+    -------
+    ndarray, shape () or (N,)
+        ``4^k`` with ``max |d| / 4 < 4^k <= 4 max |d|``; 1 where every entry is zero or
+        not finite.
+
+    """
+    largest = np.abs(diagonals[0])
+    for d in diagonals[1:]:
+        largest = np.maximum(largest, np.abs(d))
+    largest = np.where((largest > 0.0) & np.isfinite(largest), largest, 1.0)
+    exponent = np.frexp(largest)[1]
+    return np.ldexp(1.0, exponent - (exponent & 1))
+
+
+def det_2x2(a, b, c, s=None):
+    """
+    Return ``a c - b^2``, the determinant of symmetric 2x2 matrices, computed scaled.
+
+    Parameters
+    ----------
+    a, b, c : ndarray, shape () or (N,)
+        Entries (0, 0), (0, 1) = (1, 0) and (1, 1).
+    s : ndarray, shape () or (N,), optional
+        Scale from ``power_of_4_scale``; by default that of ``a`` and ``c``.
+
+    Returns
+    -------
+    ndarray, shape () or (N,)
+        Exact to rounding when ``a c`` and ``b^2`` are representable; scaling keeps
+        the products inside the float range, so only a determinant that is itself
+        beyond the range (about 1e-308 to 1e308) under- or overflows.
+
+    """
+    s = power_of_4_scale(a, c) if s is None else s
+    a, b, c = a / s, b / s, c / s
+    return (a * c - b * b) * s * s
+
+
+def inverse_2x2(a, b, c, s=None):
+    """
+    Return the entries of the inverse of symmetric 2x2 matrices, computed scaled.
+
+    Parameters
+    ----------
+    a, b, c : ndarray, shape () or (N,)
+        Entries (0, 0), (0, 1) = (1, 0) and (1, 1) of positive definite matrices.
+    s : ndarray, shape () or (N,), optional
+        Scale from ``power_of_4_scale``; by default that of ``a`` and ``c``.
+
+    Returns
+    -------
+    tuple of ndarray, shape () or (N,)
+        ``(a, b, c)`` of the inverse; infinite or NaN where the matrix is singular.
+
+    """
+    s = power_of_4_scale(a, c) if s is None else s
+    a, b, c = a / s, b / s, c / s
+    with np.errstate(divide='ignore', invalid='ignore'):
+        inv_det = 1.0 / ((a * c - b * b) * s)
+    return c * inv_det, -b * inv_det, a * inv_det
+
+
+def mahalanobis_sq_2x2(dx, dy, a, b, c, s=None):
+    """
+    Return ``d^T P^-1 d`` for 2-vectors ``d`` and symmetric 2x2 ``P``, computed scaled.
+
+    Parameters
+    ----------
+    dx, dy : ndarray, shape () or (N,)
+        Components of ``d``.
+    a, b, c : ndarray, shape () or (N,)
+        Entries (0, 0), (0, 1) = (1, 0) and (1, 1) of positive definite ``P``.
+    s : ndarray, shape () or (N,), optional
+        Scale from ``power_of_4_scale``; by default that of ``a`` and ``c``.
+
+    Returns
+    -------
+    ndarray, shape () or (N,)
+        Non-negative; ``inf`` (or NaN for ``d = 0``) where ``P`` is singular.
+
+    """
+    s = power_of_4_scale(a, c) if s is None else s
+    root = np.sqrt(s)
+    a, b, c, dx, dy = a / s, b / s, c / s, dx / root, dy / root
+    with np.errstate(divide='ignore', invalid='ignore'):
+        return (c * dx * dx - 2.0 * b * dx * dy + a * dy * dy) / (a * c - b * b)
+
+
+def matrix_scale(P):
+    """Return ``power_of_4_scale`` of the diagonals of square matrices, shape () or (N,)."""
+    return power_of_4_scale(*(P[..., i, i] for i in range(P.shape[-1])))
+
+
 def det(P):
-    """Return determinants of square matrices, in closed form for 2x2."""
-    if P.shape[-1] == 2:
-        return P[..., 0, 0] * P[..., 1, 1] - P[..., 0, 1] * P[..., 1, 0]
-    return np.linalg.det(P)
+    """Return determinants of square matrices: closed form for 2x2, scaled (``det_2x2``)."""
+    if P.shape[-1] != 2:
+        return np.linalg.det(P)
+    s = matrix_scale(P)
+    return ((P[..., 0, 0] / s) * (P[..., 1, 1] / s) - (P[..., 0, 1] / s) * (P[..., 1, 0] / s)
+            ) * s * s
 
 
 def solve(A, B):
     """
-    Solve ``A X = B`` for matrices, in closed form (Cramer's rule) for 2x2.
+    Solve ``A X = B`` for matrices; closed form (Cramer's rule) for 2x2, scaled.
+
+    ``A`` is divided by a power of 4 near its largest diagonal entry first (exact), so
+    the closed form neither overflows nor underflows for any representable ``A``
+    whose scaled determinant is not zero.
 
     Parameters
     ----------
@@ -138,9 +251,11 @@ def solve(A, B):
     ndarray, shape (n, k) or (N, n, k)
 
     """
+    s = matrix_scale(A)[..., None, None]
+    A = A / s
     if A.shape[-1] != 2:
-        return np.linalg.solve(A, B)
-    d = det(A)[..., None]
+        return np.linalg.solve(A, B) / s
+    d = (A[..., 0, 0] * A[..., 1, 1] - A[..., 0, 1] * A[..., 1, 0])[..., None] * s[..., 0]
     a, b, c, e = A[..., 0, 0, None], A[..., 0, 1, None], A[..., 1, 0, None], A[..., 1, 1, None]
     x0 = (e * B[..., 0, :] - b * B[..., 1, :]) / d
     x1 = (a * B[..., 1, :] - c * B[..., 0, :]) / d

@@ -44,10 +44,6 @@ import numpy as np
 _TABLE_LIMIT = 1 << 20
 """IDs below this are looked up in a dense table, others by binary search."""
 
-OMEGA_SEARCH = {'grid': 8, 'levels': 3}
-"""Split-CI weight search in the map: omega within 1e-3 of the optimum (det P within
-about 1e-6 of its minimum) for a third of the default search's cost; any omega is
-consistent, this only trades a little tightness for speed."""
 
 FUSION_METHODS = ('independent', 'covariance_intersection', 'split_covariance_intersection')
 
@@ -560,7 +556,7 @@ class _SourceParts:
             first = tuple(f[has] for f in fused)
             second = m[has, j], P_ind[has, j], P_dep[has, j]
             omega = split_covariance_intersection_omega(first[1], first[2], second[1],
-                                                        second[2], **OMEGA_SEARCH)
+                                                        second[2])
             parts = split_covariance_intersection(*first, *second, omega=omega)
             for f, part in zip(fused, parts):
                 f[has] = part

@@ -13,6 +13,7 @@ from landmark_ros.core.gaussian import (
     split_covariance_intersection, split_covariance_intersection_omega)
 import numpy as np
 import pytest
+from scipy import optimize
 
 inv = np.linalg.inv
 
@@ -190,10 +191,10 @@ def test_sci_with_zero_independent_parts_is_ci(n, rng):
             assert_close_scaled(m, m_ci, 1e-10)
             assert_close_scaled(P_dep, P_ci, 1e-10)
             np.testing.assert_array_equal(P_ind, zero)
-        # The default weight approaches the CI optimum (within the search resolution).
+        # The default weight is the CI optimum.
         omega = split_covariance_intersection_omega(zero, P1, zero, P2)
         omega_ci = covariance_intersection_omega(P1, P2)
-        assert abs(omega - omega_ci) <= 1.0 / 128 + 1e-9
+        assert abs(omega - omega_ci) <= 1e-6
         _, P_ci = covariance_intersection(m1, P1, m2, P2)
         _, _, P_dep = split_covariance_intersection(m1, zero, P1, m2, zero, P2)
         assert np.linalg.det(P_dep) <= np.linalg.det(P_ci) * (1.0 + 2e-2)
@@ -241,10 +242,10 @@ def test_sci_omega_is_near_the_brute_force_optimum(omega_cases):
     assert np.all((omega > 0.0) & (omega < 1.0))
     interior = (best > 0.02) & (best < 0.98)
     assert interior.sum() > 30 and (~interior).sum() > 5   # both kinds are exercised
-    # Grid, finer grid and one parabolic step: omega within ~1e-4 of an interior
+    # Newton to 1e-12: omega within the brute force's 1e-6 grid of an interior
     # optimum; at a bound it goes to the edge (1e-9 from it), beyond the brute force's
     # 1e-6 grid, so it may do slightly better than that grid.
-    assert np.all(np.abs(omega - best)[interior] <= 1e-4)
+    assert np.all(np.abs(omega - best)[interior] <= 2e-6)
     assert np.all(np.minimum(omega, 1.0 - omega)[~interior & ((best < 2e-6) | (best > 1 - 2e-6))]
                   <= 1e-6)
 
@@ -254,19 +255,75 @@ def test_sci_omega_det_within_1e5_of_minimum(omega_cases):
     assert np.all(np.expm1(found - minimum) <= 1e-5)
 
 
-def test_sci_omega_batch_and_grid_argument(rng):
+def test_sci_omega_batch_equals_single(rng):
     parts = sci_parts(rng, 2, 10)
     batch = split_covariance_intersection_omega(*parts)
     assert batch.shape == (10,)
     for k in range(10):
         assert split_covariance_intersection_omega(*(p[k] for p in parts)) == batch[k]
-    # A finer grid gets closer to the brute-force optimum.
-    for k in range(10):
-        single = [p[k] for p in parts]
-        best, _ = brute_force_minimum(single)
-        if 0.02 < best < 0.98:
-            omega = split_covariance_intersection_omega(*single, grid=64)
-            assert abs(omega - best) <= 1.0 / 64 ** 2 + 2e-5
+    # Each element stops on its own: a batch with other elements gives the same bits.
+    mixed = [np.concatenate([p[3:], p[:3]]) for p in parts]
+    np.testing.assert_array_equal(split_covariance_intersection_omega(*mixed),
+                                  np.concatenate([batch[3:], batch[:3]]))
+
+
+def sci_slope(parts, w):
+    """Return d/dw log det(P^-1) of split CI from explicit inverses (numpy)."""
+    P1i, P1d, P2i, P2d = parts
+    Ai, Bi = inv(P1d / w + P1i), inv(P2d / (1.0 - w) + P2i)
+    P = inv(Ai + Bi)
+    return np.trace(P @ (Ai @ P1d @ Ai / w ** 2 - Bi @ P2d @ Bi / (1.0 - w) ** 2))
+
+
+def exact_sci_omega(parts):
+    """Return the exact split-CI optimum: scipy's root of the slope (brentq), else the end."""
+    lo, hi = 1e-7, 1.0 - 1e-7
+    if sci_slope(parts, lo) <= 0.0:
+        return lo
+    if sci_slope(parts, hi) >= 0.0:
+        return hi
+    return optimize.brentq(lambda w: sci_slope(parts, w), lo, hi, xtol=1e-15, rtol=1e-15)
+
+
+@pytest.mark.parametrize('n', [2, 3])
+def test_sci_omega_is_the_exact_optimum(n, rng):
+    # The old map searched a coarse grid (within 1e-3 of the optimum); now the optimum:
+    # Newton on the exact slope for 2x2 (1e-9 here), golden section on log det (whose
+    # flat top limits it to about sqrt(eps)) for other sizes.
+    tol = 1e-9 if n == 2 else 1e-6
+    interior = 0
+    for _ in range(40):
+        parts = sci_parts(rng, n)
+        m1, m2 = rng.normal(0.0, 3.0, (2, n))
+        omega = split_covariance_intersection_omega(*parts)
+        best = exact_sci_omega(parts)
+        assert sci_log_det(*parts, [omega])[0] <= sci_log_det(*parts, [best])[0] + 1e-12
+        if not 1e-4 < best < 1.0 - 1e-4:
+            assert min(abs(omega - best), abs(omega - 1e-9), abs(omega - 1 + 1e-9)) <= 1e-6
+            continue
+        interior += 1
+        assert abs(omega - best) <= tol, (omega, best)
+        fused = split_covariance_intersection(m1, parts[0], parts[1], m2, parts[2], parts[3])
+        reference = sci_reference(m1, *parts[:2], m2, *parts[2:], best)
+        for a, b in zip(fused, reference):
+            assert_close_scaled(a, b, tol)
+    assert interior >= 20
+
+
+def test_ci_omega_is_the_exact_optimum(rng):
+    for _ in range(40):
+        P1, P2 = spd(rng, 2), spd(rng, 2)
+        omega = covariance_intersection_omega(P1, P2)
+        A, B = inv(P1), inv(P2)
+
+        def slope(w):
+            return np.trace(inv(w * A + (1.0 - w) * B) @ (A - B))
+
+        if slope(0.0) > 0.0 > slope(1.0):
+            best = optimize.brentq(slope, 0.0, 1.0, xtol=1e-15, rtol=1e-15)
+            assert abs(omega - best) <= 1e-9
+        else:
+            assert omega == (1.0 if slope(1.0) >= 0.0 else 0.0)
 
 
 def test_sci_omega_with_singular_dependent_parts(rng):

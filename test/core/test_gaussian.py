@@ -8,11 +8,13 @@ from hypothesis import strategies as st
 from landmark_ros.core import gaussian
 from landmark_ros.core.gaussian import (
     chi2_survival, chi2_threshold, covariance_intersection, covariance_intersection_omega,
-    covariance_status, fuse, fuse_many, gate, mahalanobis_sq, validate_covariance)
+    covariance_range_status, covariance_status, fuse, fuse_many, gate, mahalanobis_sq,
+    split_covariance_intersection, split_covariance_intersection_omega, validate_covariance)
 import numpy as np
 import pytest
 
 SETTINGS = settings(max_examples=100, deadline=None, derandomize=True)
+RANGE_SETTINGS = settings(max_examples=300, deadline=None, derandomize=True)
 seeds = st.integers(0, 2 ** 32 - 1)
 dims = st.integers(1, 4)
 
@@ -564,3 +566,154 @@ def test_covariance_checks_reject_wrong_shapes(P):
         covariance_status(P)
     with pytest.raises(ValueError, match='must have shape'):
         validate_covariance(P)
+
+
+# --- covariance range and scale safety ---------------------------------------------------
+
+def in_range_covariance(log_top, log_condition, angle):
+    """Return a 2x2 covariance with largest eigenvalue 10^log_top, given condition, rotated."""
+    big = 10.0 ** log_top
+    c, s = math.cos(angle), math.sin(angle)
+    rotation = np.array([[c, -s], [s, c]])
+    P = rotation @ np.diag([big, big / 10.0 ** log_condition]) @ rotation.T
+    return 0.5 * (P + P.T)
+
+
+log_conditions = st.one_of(st.just(8.99), st.just(0.0), st.floats(0.0, 8.99))
+angles = st.floats(0.0, math.pi)
+
+
+@st.composite
+def covariances(draw):
+    """Draw 2x2 covariances anywhere in the accepted range, often at its corners."""
+    log_condition = draw(log_conditions)
+    low = -12.0 + log_condition + 0.01
+    log_top = draw(st.one_of(st.just(low), st.just(11.99), st.floats(low, 11.99)))
+    return in_range_covariance(log_top, log_condition, draw(angles))
+
+
+@pytest.mark.parametrize('P, code', [
+    (np.eye(2), gaussian.COVARIANCE_OK),
+    (np.diag([1e-12, 1e-12]), gaussian.COVARIANCE_OK),
+    (np.diag([1e12, 1e12]), gaussian.COVARIANCE_OK),
+    (np.diag([1e12, 1e3 + 1.0]), gaussian.COVARIANCE_OK),
+    (np.diag([1.0, 0.99e-12]), gaussian.COVARIANCE_TOO_SMALL),
+    (np.zeros((2, 2)), gaussian.COVARIANCE_TOO_SMALL),
+    (1e-200 * np.eye(2), gaussian.COVARIANCE_TOO_SMALL),
+    (np.diag([1.01e12, 1.0]), gaussian.COVARIANCE_TOO_LARGE),
+    (np.array([[1e200, 1e199], [1e199, 1e200]]), gaussian.COVARIANCE_TOO_LARGE),
+    (np.diag([1e12, 1e3 - 1.0]), gaussian.COVARIANCE_ILL_CONDITIONED),
+    (np.array([[1.0, 1.0], [1.0, 1.0]]), gaussian.COVARIANCE_ILL_CONDITIONED),   # rank one
+    (np.array([[1.0, 1.0 - 1e-11], [1.0 - 1e-11, 1.0]]), gaussian.COVARIANCE_ILL_CONDITIONED),
+    (np.diag([np.nan, 1.0]), gaussian.COVARIANCE_NONFINITE),
+    (np.diag([1.0, 2.0, 3.0]), gaussian.COVARIANCE_OK),
+    (np.diag([1.0, 2.0, 1e-10]), gaussian.COVARIANCE_ILL_CONDITIONED),
+    (np.diag([1.0, 2.0, 1e-13]), gaussian.COVARIANCE_TOO_SMALL),
+])
+def test_covariance_range_status(P, code):
+    assert covariance_range_status(P) == code
+    if code:
+        assert code in gaussian.COVARIANCE_RANGE_PROBLEMS
+
+
+def test_covariance_range_status_batch_and_names():
+    batch = np.stack([np.eye(2), 1e-13 * np.eye(2), 1e13 * np.eye(2), np.diag([1.0, 1e-10])])
+    np.testing.assert_array_equal(covariance_range_status(batch), [0, 4, 5, 6])
+    assert covariance_range_status(batch[:1]).shape == (1,)
+    assert set(gaussian.COVARIANCE_RANGE_PROBLEMS.values()) >= {
+        'covariance_too_small', 'covariance_too_large', 'covariance_ill_conditioned'}
+    assert not set(gaussian.COVARIANCE_RANGE_PROBLEMS) & {
+        gaussian.COVARIANCE_ASYMMETRIC, gaussian.COVARIANCE_NOT_PSD}
+    with pytest.raises(ValueError, match='must have shape'):
+        covariance_range_status(np.zeros(3))
+
+
+@SETTINGS
+@given(log_conditions, angles)
+def test_covariance_range_status_condition_bound(log_condition, angle):
+    P = in_range_covariance(0.0, log_condition, angle)
+    assert covariance_range_status(P) == gaussian.COVARIANCE_OK
+    P = in_range_covariance(0.0, 9.01 + log_condition / 10.0, angle)
+    assert covariance_range_status(P) == gaussian.COVARIANCE_ILL_CONDITIONED
+
+
+def assert_finite_symmetric_psd(P, tol, scale=None):
+    """Assert finite, exactly symmetric and PSD up to ``tol`` times ``scale`` (max |P|)."""
+    assert np.all(np.isfinite(P))
+    np.testing.assert_array_equal(P, np.swapaxes(P, -1, -2))
+    scale = np.abs(P).max() if scale is None else scale
+    assert np.linalg.eigvalsh(P)[..., 0] >= -tol * scale
+
+
+def assert_relative(actual, expected, tol):
+    """Assert ``|actual - expected| <= tol * max |expected|`` and no NaN or inf."""
+    assert np.all(np.isfinite(actual))
+    np.testing.assert_allclose(actual, expected, rtol=0, atol=tol * np.abs(expected).max())
+
+
+RANGE_TOL = 1e-5
+"""Relative tolerance against numpy: condition numbers up to 1e9 leave about 2e-7."""
+
+
+@RANGE_SETTINGS
+@given(covariances(), st.floats(-3.0, 3.0), st.floats(-3.0, 3.0))
+def test_closed_forms_are_scale_safe_in_the_accepted_range(P, x, y):
+    from landmark_ros.core import _arrays
+    a, b, c = _arrays.entries_2x2(P)
+    assert covariance_range_status(P) == gaussian.COVARIANCE_OK
+    assert_relative(_arrays.det(P), np.linalg.det(P), RANGE_TOL)
+    assert_relative(_arrays.det_2x2(a, b, c), np.linalg.det(P), RANGE_TOL)
+    assert_relative(gaussian.information(P), np.linalg.inv(P), RANGE_TOL)
+    assert_relative(np.array(_arrays.inverse_2x2(a, b, c)),
+                    np.linalg.inv(P)[[0, 0, 1], [0, 1, 1]], RANGE_TOL)
+    B = np.array([[x, 1.0], [y, -2.0]]) * math.sqrt(P[0, 0])
+    assert_relative(_arrays.solve(P, B), np.linalg.solve(P, B), RANGE_TOL)
+    d = np.array([x, y]) * math.sqrt(max(P[0, 0], P[1, 1]))
+    reference = d @ np.linalg.solve(P, d)
+    assert abs(mahalanobis_sq(d, np.zeros(2), P) - reference) <= RANGE_TOL * reference
+
+
+@RANGE_SETTINGS
+@given(covariances(), covariances(), covariances(), covariances(), st.floats(0.01, 0.99))
+def test_fusion_is_scale_safe_in_the_accepted_range(P1, P2, P3, P4, omega):
+    # Any two covariances of the range, however different their scales.
+    m1, m2 = np.array([1.0, -2.0]) * math.sqrt(P1[0, 0]), np.array([0.5, 3.0]) * math.sqrt(
+        P2[1, 1])
+    inv = np.linalg.inv
+    m, P = fuse(m1, P1, m2, P2)
+    P_ref = inv(inv(P1) + inv(P2))
+    assert_finite_symmetric_psd(P, RANGE_TOL)
+    assert_relative(P, P_ref, RANGE_TOL)
+    m_ref = P_ref @ (inv(P1) @ m1 + inv(P2) @ m2)
+    assert_relative(m, m_ref, RANGE_TOL * max(1.0, np.abs(np.r_[m1, m2]).max()
+                                              / np.abs(m_ref).max()))
+    m_many, P_many = fuse_many([m1, m2], [P1, P2])
+    assert_relative(P_many, P_ref, RANGE_TOL)
+    # Covariance intersection: the found weight is the best (log det), outputs sound.
+    w = covariance_intersection_omega(P1, P2)
+    assert 0.0 <= w <= 1.0
+
+    def ci_log_det(weight):
+        return -np.linalg.slogdet(weight * inv(P1) + (1.0 - weight) * inv(P2))[1]
+
+    grid = np.linspace(0.0, 1.0, 201)
+    assert ci_log_det(w) <= min(ci_log_det(g) for g in grid) + 1e-6
+    for weight in (None, omega):
+        m, P = covariance_intersection(m1, P1, m2, P2, weight)
+        assert_finite_symmetric_psd(P, RANGE_TOL)
+        assert np.all(np.isfinite(m))
+    _, P = covariance_intersection(m1, P1, m2, P2, omega)
+    assert_relative(P, inv(omega * inv(P1) + (1.0 - omega) * inv(P2)), RANGE_TOL)
+    # Split CI with independent parts P1, P2 and dependent parts P3, P4.
+    w = split_covariance_intersection_omega(P1, P3, P2, P4)
+    assert 0.0 < w < 1.0
+    for weight in (w, omega):
+        m, P_ind, P_dep = split_covariance_intersection(m1, P1, P3, m2, P2, P4, weight)
+        assert np.all(np.isfinite(m))
+        # Each part PSD to rounding of the total (a part may be far smaller).
+        total = np.abs(P_ind + P_dep).max()
+        assert_finite_symmetric_psd(P_ind, RANGE_TOL, total)
+        assert_finite_symmetric_psd(P_dep, RANGE_TOL, total)
+        A, B = P3 / weight + P1, P4 / (1.0 - weight) + P2
+        P_ref = inv(inv(A) + inv(B))
+        assert_relative(P_ind + P_dep, P_ref, RANGE_TOL)

@@ -4,7 +4,7 @@ from collections import Counter
 
 from conftest import random_spd
 from landmark_ros.core import gaussian, landmarks, pose2, sensors
-from landmark_ros.core.landmark_map import FUSION_METHODS, LandmarkMap, OMEGA_SEARCH
+from landmark_ros.core.landmark_map import FUSION_METHODS, LandmarkMap
 import numpy as np
 import pytest
 from scipy import stats
@@ -50,8 +50,7 @@ def reference_fuse(fusion, m, P_ind, P_dep, z, R_ind, R_dep):
     if fusion == 'covariance_intersection':
         m, P = gaussian.covariance_intersection(m, P_ind + P_dep, z, R_ind + R_dep)
         return m, np.zeros((2, 2)), P
-    omega = gaussian.split_covariance_intersection_omega(P_ind, P_dep, R_ind, R_dep,
-                                                         **OMEGA_SEARCH)
+    omega = gaussian.split_covariance_intersection_omega(P_ind, P_dep, R_ind, R_dep)
     return gaussian.split_covariance_intersection(m, P_ind, P_dep, z, R_ind, R_dep, omega)
 
 
