@@ -3,7 +3,8 @@
 from collections import Counter
 
 from landmark_ros.core.gaussian import (COVARIANCE_ASYMMETRIC, COVARIANCE_NOT_PSD,
-                                        COVARIANCE_PROBLEMS, covariance_status)
+                                        COVARIANCE_PROBLEMS, COVARIANCE_RANGE_PROBLEMS,
+                                        covariance_range_status, covariance_status)
 from landmark_ros.core.landmarks import landmark_to_world_dependent
 from landmark_ros.core.sensors import MIN_RANGE
 import numpy as np
@@ -174,10 +175,17 @@ def landmarks_from_rows(ids, z, R, pose, P_pose, sensor_pose=None, R_bias=None):
     with np.errstate(over='ignore', invalid='ignore'):  # huge ranges: caught below
         m, P_m, P_dep = landmark_to_world_dependent(pose, P_pose, z, R, R_bias, sensor_pose)
         finite = np.isfinite(m.sum(axis=1) + P_m.sum(axis=(1, 2)) + P_dep.sum(axis=(1, 2)))
-    if not finite.all():
+    # Only covariances the core handles leave the observer (core.gaussian's range).
+    status = np.atleast_1d(covariance_range_status(np.where(finite[:, None, None], P_m, 1.0)))
+    good = finite & (status == 0)
+    if not good.all():
         reasons['result_nonfinite'] += int((~finite).sum())
-        kept[np.flatnonzero(kept)[~finite]] = False
-        m, P_m, P_dep = m[finite], P_m[finite], P_dep[finite]
+        for code, name in COVARIANCE_RANGE_PROBLEMS.items():
+            count = int((finite & (status == code)).sum())
+            if count:
+                reasons[f'result_{name}'] += count
+        kept[np.flatnonzero(kept)[~good]] = False
+        m, P_m, P_dep = m[good], P_m[good], P_dep[good]
     return kept, m, P_m, P_dep, reasons
 
 
@@ -212,18 +220,22 @@ def landmark_row_problems(ids, m, P, P_dep):
         definite = (a > 0.0) & (a * c - b * b > 1e-12) & (np.abs(b - unit[:, 1, 0]) <= 1e-9)
         rest = unit - dep
         dependent = _psd_2x2(dep) & _psd_2x2(rest)
-        valid = finite & definite & dependent & (ids >= 0) & (ids <= MAX_ID)
+        in_range = np.atleast_1d(covariance_range_status(
+            np.where((finite & definite)[:, None, None], P, np.eye(2)))) == 0
+        valid = finite & definite & in_range & dependent & (ids >= 0) & (ids <= MAX_ID)
         if valid.all():
             return valid, Counter()
         total = np.atleast_1d(covariance_status(np.where(finite[:, None, None], P, 0.0)))
+        span = np.atleast_1d(covariance_range_status(np.where(finite[:, None, None], P, 1.0)))
     checks = [
         ('landmark_nonfinite', ~finite),
         ('invalid_id', (ids < 0) | (ids > MAX_ID)),
         ('covariance_asymmetric', total == COVARIANCE_ASYMMETRIC),
         ('covariance_not_psd', total == COVARIANCE_NOT_PSD),
-        ('covariance_singular', ~definite),
-        ('dependent_part_invalid', ~dependent),
     ]
+    checks.append(('covariance_singular', ~definite))
+    checks += [(name, span == code) for code, name in COVARIANCE_RANGE_PROBLEMS.items()]
+    checks.append(('dependent_part_invalid', ~dependent))
     return first_problems(len(ids), checks)
 
 

@@ -90,8 +90,8 @@ def test_tiny_noise_with_an_exact_pose_never_leaves_the_observer(env):
     observer = ObserverRig(env, tester, unique_namespace(env) + '/robot1')
     observer.pose_pub.publish(pose_message(10.0, [1.0, 2.0, 0.5], np.zeros((3, 3))))
     assert env.spin_until(lambda: observer.node.counters['poses_in'] == 1, DEADLINE_S)
-    msg = observation_message(header(10.0, 'camera'), [7, 8], [[4.0, 0.7], [3.0, 0.2]],
-                              range_variance=[1e-200, 0.01], bearing_variance=[1e-200, 0.001])
+    R = np.array([np.diag([1e-200, 1e-200]), np.diag([0.01, 0.001])])
+    msg = observation_message(header(10.0, 'camera'), [7, 8], [[4.0, 0.7], [3.0, 0.2]], R)
     observer.obs_pub.publish(msg)
     assert env.spin_until(lambda: observer.output.messages, DEADLINE_S)
     assert observer.output.messages[0].width == 1                # landmark 8 only
@@ -205,4 +205,3 @@ def test_stops_under_load_exit_0_without_a_traceback(env, tmp_path, kind):
                 process.wait(timeout=10.0)
         errors = Path(f'{stem}.err').read_text()
         assert code == 0 and 'Traceback' not in errors, f'round {round_}: {code}\n{errors}'
-

@@ -22,7 +22,6 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from landmark_ros.core.gaussian import (covariance_intersection, split_covariance_intersection,
                                         split_covariance_intersection_omega)
-from landmark_ros.core.landmark_map import OMEGA_SEARCH
 from landmark_ros.core.landmarks import landmark_to_world_dependent
 from landmark_ros.nodes.fuser import LandmarkFuser
 from landmark_ros.nodes.observer import LandmarkObserver
@@ -296,8 +295,7 @@ def test_textbook_case5_through_two_observers_and_the_fuser(env, fusion):
         # The map folds the sources from the smallest covariance up.
         first, second = sorted([(m1[0], P1[0] - D1[0], D1[0]), (m2[0], P2[0] - D2[0], D2[0])],
                                key=lambda s: np.linalg.det(s[1] + s[2]))
-        omega = split_covariance_intersection_omega(first[1], first[2], second[1], second[2],
-                                                    **OMEGA_SEARCH)
+        omega = split_covariance_intersection_omega(first[1], first[2], second[1], second[2])
         m, P_ind, P_dep = split_covariance_intersection(*first, *second, omega)
         P, atol = P_ind + P_dep, 1e-12
     else:

@@ -171,11 +171,22 @@ def test_landmark_rows_each_reason(change, reason, rng, no_warnings):
 
 
 def test_landmark_rows_small_but_regular_covariances_are_valid(no_warnings):
-    # The singularity test is relative to the scale of the matrix.
-    for s in (1e-150, 1e-8, 1.0, 1e8, 1e150):
+    # The singularity test is relative to the scale of the matrix; the accepted range
+    # of variances is core.gaussian's [MIN_VARIANCE, MAX_VARIANCE].
+    for s in (1e-11, 1e-8, 1.0, 1e8, 1e11):
         P = np.array([[[2.0, 0.5], [0.5, 1.0]]]) * s
         valid, reasons = landmark_row_problems(np.array([1]), np.zeros((1, 2)), P, 0.5 * P)
         assert valid.all() and not reasons, s
+    for s, reason in ((1e-150, 'covariance_too_small'), (1e150, 'covariance_too_large')):
+        P = np.array([[[2.0, 0.5], [0.5, 1.0]]]) * s
+        valid, reasons = landmark_row_problems(np.array([1]), np.zeros((1, 2)), P, 0.5 * P)
+        assert not valid.any() and reasons == Counter({reason: 1}), s
+
+
+def test_landmark_rows_ill_conditioned_covariance_is_rejected(no_warnings):
+    P = np.array([[[1.0, 1.0 - 1e-11], [1.0 - 1e-11, 1.0]]])
+    valid, reasons = landmark_row_problems(np.array([1]), np.zeros((1, 2)), P, 0.0 * P)
+    assert not valid.any() and reasons == Counter(covariance_ill_conditioned=1)
 
 
 def test_landmark_rows_precedence(rng, no_warnings):
@@ -193,9 +204,9 @@ def test_landmark_rows_precedence(rng, no_warnings):
 
 
 def test_landmark_rows_huge_covariances_without_warnings(no_warnings):
-    P = np.array([np.eye(2) * 1e200])
-    valid, reasons = landmark_row_problems(np.array([1]), np.zeros((1, 2)), P, 0.5 * P)
-    assert valid.all() and not reasons
+    P = np.array([np.eye(2) * 1e200, np.eye(2) * 1e300, [[1e200, 1e199], [1e199, 1e200]]])
+    valid, reasons = landmark_row_problems(np.arange(3), np.zeros((3, 2)), P, 0.5 * P)
+    assert not valid.any() and reasons == Counter(covariance_too_large=3)
 
 
 # --- landmarks_from_rows -------------------------------------------------------------------------
