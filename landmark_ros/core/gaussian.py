@@ -579,13 +579,39 @@ def _fuse_2x2_covariance_form(m1, P1, m2, P2):
 
 
 def _split_ci_2x2(m1, P1i, P1d, m2, P2i, P2d, omega):
-    """
-    Return ``split_covariance_intersection`` for 2x2 parts given as entries.
+    """Return ``split_covariance_intersection`` for 2x2 parts given as entries."""
+    m, P_ind, P_dep = split_ci_2x2_entries((m1[..., 0], m1[..., 1]), P1i, P1d,
+                                           (m2[..., 0], m2[..., 1]), P2i, P2d, omega)
+    return np.stack(m, axis=-1), symmetric_2x2(*P_ind), symmetric_2x2(*P_dep)
 
+
+def split_ci_2x2_entries(m1, P1i, P1d, m2, P2i, P2d, omega):
+    """
+    Return split CI of 2x2 parts given as entries, as entries.
+
+    Parameters
+    ----------
+    m1, m2 : tuple of ndarray
+        ``(x, y)`` of the means, each shape () or (N,) [m].
+    P1i, P1d, P2i, P2d : tuple of ndarray
+        ``(xx, xy, yy)`` of the independent and dependent parts [m^2].
+    omega : ndarray, shape () or (N,)
+        Weight in (0, 1).
+
+    Returns
+    -------
+    m : tuple of ndarray
+        ``(x, y)`` of the fused mean.
+    P_ind, P_dep : tuple of ndarray
+        ``(xx, xy, yy)`` of the fused parts.
+
+    Notes
+    -----
     Information form (see ``_fuse_2x2``) with gains ``W1 = P A^-1``, ``W2 = P B^-1``;
     both parts are congruences, ``P_ind = W1 P1i W1^T + W2 P2i W2^T`` and
     ``P_dep = W1 (P1d / omega) W1^T + W2 (P2d / (1 - omega)) W2^T``: positive
     semi-definite by construction, each accurate on its own scale.
+
     """
     s = power_of_4_scale(P1i[0] + P1d[0], P1i[2] + P1d[2], P2i[0] + P2d[0], P2i[2] + P2d[2])
     P1i, P1d, P2i, P2d = (tuple(x / s for x in P) for P in (P1i, P1d, P2i, P2d))
@@ -598,13 +624,11 @@ def _split_ci_2x2(m1, P1i, P1d, m2, P2i, P2d, omega):
     # W1 = P A^-1, W2 = P B^-1 (W1 + W2 = I).
     w1 = _product(P, Ai)
     w2 = _product(P, Bi)
-    m = np.stack([w1[0] * m1[..., 0] + w1[1] * m1[..., 1] + w2[0] * m2[..., 0]
-                  + w2[1] * m2[..., 1],
-                  w1[2] * m1[..., 0] + w1[3] * m1[..., 1] + w2[2] * m2[..., 0]
-                  + w2[3] * m2[..., 1]], axis=-1)
+    m = (w1[0] * m1[0] + w1[1] * m1[1] + w2[0] * m2[0] + w2[1] * m2[1],
+         w1[2] * m1[0] + w1[3] * m1[1] + w2[2] * m2[0] + w2[3] * m2[1])
     P_ind = tuple((x + y) * s for x, y in zip(_congruence(*w1, P1i), _congruence(*w2, P2i)))
     P_dep = tuple((x + y) * s for x, y in zip(_congruence(*w1, D1), _congruence(*w2, D2)))
-    return m, symmetric_2x2(*P_ind), symmetric_2x2(*P_dep)
+    return m, P_ind, P_dep
 
 
 def _product(P, Q):

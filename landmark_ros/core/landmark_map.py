@@ -5,47 +5,86 @@ Symbols
 -------
 ids : landmark IDs, shape (N,), integers.
 z : observed landmark positions in the world, shape (N, 2) [m].
-R : their covariances, shape (N, 2, 2); ``R_dep`` the dependent part (pose
-    uncertainty, sensor bias: correlated across observations), ``R - R_dep`` the
-    independent part (sensor noise).
-m, P : a landmark estimate and its covariance; ``P_dep`` its dependent part.
+R : their covariances, shape (N, 2, 2) [m^2]; ``R_dep`` the dependent part (pose
+    uncertainty, sensor bias: correlated across observations), ``R_ind = R - R_dep``
+    the independent part (sensor noise). ``update`` takes ``R`` and ``R_dep`` (the
+    wire format) and works with ``R_ind`` and ``R_dep`` from then on.
+m, P : a landmark estimate and its covariance; inside the map ``P`` is held as its
+    independent and dependent parts, ``P = P_ind + P_dep`` only at output.
+stamp_ns : observation times, integer nanoseconds.
 
 Fusion methods
 --------------
 independent
-    Product of Gaussians: exact when every error is independent.
+    Product of Gaussians: exact when every error is independent. Everything counts
+    as independent (``P_dep = 0``).
 covariance_intersection
-    Consistent whatever the correlations; the whole covariance counts as dependent.
+    Consistent whatever the correlations; the whole covariance counts as dependent
+    (``P_ind = 0``).
 split_covariance_intersection
     Within a source (one robot), the dependent parts (its pose error, its sensor
     bias) are one shared error: the source's estimate is the information-weighted
     mean of its observations, whose independent parts (noise) average down while
-    the dependent part, their weighted mean, does not. Across sources the
-    correlation is unknown: the source estimates are fused by split covariance
-    intersection (independent parts as information, dependent parts bounded as
-    CI does), the tightest first.
+    the dependent part, their weighted mean, does not. The map keeps per (landmark,
+    source) sums, updated incrementally. Across sources the correlation is unknown:
+    the source estimates are fused by split covariance intersection (independent
+    parts as information, dependent parts bounded as CI does, the weight omega
+    the exact optimum), folded from the tightest source up so that the result does
+    not depend on the order the sources arrived in.
+
+Each method is a small strategy object (``fuse``, ``update``, ``initialise``,
+``records``, ``load``) chosen once by ``LandmarkMap(fusion)``.
 
 An observation of a known landmark is gated by its squared Mahalanobis distance
 to the estimate (innovation covariance ``P + R``). A new ID becomes a landmark
 once ``min_observations`` of its observations agree with each other; a
 landmark rejected ``max_consecutive_rejections`` times in a row is rebuilt from
 those recent observations when they agree (it moved). Rows of one batch are
-applied in order, so a batch gives the same map as its rows one by one.
+applied in order, so a batch gives the same map as its rows one by one (bit for
+bit): rows of confirmed landmarks go in rounds in which each landmark appears
+once, and every computation is element-wise.
 """
 
 from collections import Counter, deque
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
+from landmark_ros.core._arrays import (det_2x2, inverse_2x2, mahalanobis_sq_2x2,
+                                       symmetric_2x2)
 from landmark_ros.core.gaussian import (chi2_threshold, covariance_intersection, fuse,
-                                        information, split_covariance_intersection,
-                                        split_covariance_intersection_omega)
+                                        information, sci_omega_2x2, split_ci_2x2_entries,
+                                        split_covariance_intersection)
 import numpy as np
 
 _TABLE_LIMIT = 1 << 20
 """IDs below this are looked up in a dense table, others by binary search."""
 
+_NO_STAMP = np.iinfo(np.int64).min
+"""``first_stamp_ns`` of a landmark that has not had an observation yet."""
+
+_SOURCE_BITS = 24
+"""A (landmark row, source) pair is the key ``row << 24 | source code``."""
 
 FUSION_METHODS = ('independent', 'covariance_intersection', 'split_covariance_intersection')
+
+
+class MapSnapshot(NamedTuple):
+    """The confirmed landmarks, sorted by ID (``LandmarkMap.snapshot``)."""
+
+    ids: np.ndarray
+    """Landmark IDs, int64, shape (K,)."""
+    m: np.ndarray
+    """Means, shape (K, 2) [m]."""
+    P: np.ndarray
+    """Total covariances, shape (K, 2, 2) [m^2]."""
+    P_dep: np.ndarray
+    """Their dependent parts, shape (K, 2, 2) [m^2]."""
+    observations: np.ndarray
+    """Observations fused into each, int64, shape (K,)."""
+
+
+def _no_ids():
+    return np.empty(0, np.int64)
 
 
 @dataclass
@@ -60,6 +99,9 @@ class UpdateResult:
     """IDs that became landmarks."""
     reinitialised: list = field(default_factory=list)
     """IDs rebuilt from their recent observations."""
+    changed_ids: np.ndarray = field(default_factory=_no_ids, compare=False)
+    """IDs (int64, sorted, unique) whose published estimate changed in this update;
+    not part of ``==`` (an array)."""
 
     @property
     def changed(self):
@@ -70,25 +112,145 @@ class UpdateResult:
 @dataclass(frozen=True)
 class _Observation:
     z: np.ndarray
-    R: np.ndarray
+    R_ind: np.ndarray
     R_dep: np.ndarray
     source: str
-    stamp: float
+    stamp_ns: int
 
 
 @dataclass(frozen=True)
 class _Batch:
+    """One ``update`` call's rows: independent and dependent parts, global source codes."""
+
     z: np.ndarray
-    R: np.ndarray
+    R_ind: np.ndarray
     R_dep: np.ndarray
     names: list
     codes: np.ndarray
-    stamps: np.ndarray
+    stamps_ns: np.ndarray
 
     def observation(self, i):
-        return _Observation(self.z[i], self.R[i], self.R_dep[i], self.names[self.codes[i]],
-                            float(self.stamps[i]))
+        return _Observation(self.z[i], self.R_ind[i], self.R_dep[i], self.names[self.codes[i]],
+                            int(self.stamps_ns[i]))
 
+
+def _entries(P):
+    """Return ``(xx, xy, yy)`` of symmetric 2x2 matrices (views, no averaging)."""
+    return P[..., 0, 0], P[..., 0, 1], P[..., 1, 1]
+
+
+def _stack(observations):
+    """Return ``z, R_ind, R_dep`` of a list of observations as arrays."""
+    return (np.array([obs.z for obs in observations]),
+            np.array([obs.R_ind for obs in observations]),
+            np.array([obs.R_dep for obs in observations]))
+
+
+# --- Fusion methods --------------------------------------------------------------------------
+
+class _Independent:
+    """Product of Gaussians; the estimate is held as independent (``P_dep = 0``)."""
+
+    name = 'independent'
+
+    def reset(self):
+        """Forget every landmark (nothing to forget)."""
+
+    def fuse(self, m, P_ind, P_dep, z, R_ind, R_dep):
+        """Fuse estimates with observations row by row; return ``(m, P_ind, P_dep)``."""
+        m, P = fuse(m, P_ind + P_dep, z, R_ind + R_dep)
+        return m, P, np.zeros_like(P)
+
+    def update(self, landmark_map, rows, codes, z, R_ind, R_dep):
+        """Return the new estimates of ``rows`` (one accepted observation each)."""
+        return self.fuse(landmark_map.mean[rows], landmark_map.cov_ind[rows],
+                         landmark_map.cov_dep[rows], z, R_ind, R_dep)
+
+    def initialise(self, landmark_map, row, cluster):
+        """Return the estimate of a landmark from agreeing observations, in order."""
+        z, R_ind, R_dep = _stack(cluster)
+        m, P_ind, P_dep = z[:1], R_ind[:1], R_dep[:1]
+        for k in range(1, len(cluster)):
+            m, P_ind, P_dep = self.fuse(m, P_ind, P_dep, z[k:k + 1], R_ind[k:k + 1],
+                                        R_dep[k:k + 1])
+        return self.held(m[0], P_ind[0], P_dep[0])
+
+    @staticmethod
+    def held(m, P_ind, P_dep):
+        """Return an estimate the way this method holds it."""
+        return m, P_ind + P_dep, np.zeros_like(P_dep)
+
+    def records(self, landmark_map, row):
+        """Return method state of one landmark for ``to_records`` (none)."""
+        return {}
+
+    def load(self, landmark_map, row, record, m, P_ind, P_dep):
+        """Restore method state of one landmark (none)."""
+
+
+class _CovarianceIntersection(_Independent):
+    """Covariance intersection; the estimate is held as dependent (``P_ind = 0``)."""
+
+    name = 'covariance_intersection'
+
+    def fuse(self, m, P_ind, P_dep, z, R_ind, R_dep):
+        """Fuse estimates with observations row by row; return ``(m, P_ind, P_dep)``."""
+        m, P = covariance_intersection(m, P_ind + P_dep, z, R_ind + R_dep)
+        return m, np.zeros_like(P), P
+
+    @staticmethod
+    def held(m, P_ind, P_dep):
+        """Return an estimate the way this method holds it."""
+        return m, np.zeros_like(P_ind), P_ind + P_dep
+
+
+class _SplitCovarianceIntersection(_Independent):
+    """Split CI across sources over per-(landmark, source) information sums."""
+
+    name = 'split_covariance_intersection'
+
+    def reset(self):
+        """Forget every landmark."""
+        self.parts = _SourceParts()
+
+    def fuse(self, m, P_ind, P_dep, z, R_ind, R_dep):
+        """Fuse estimates with observations row by row (split CI, exact omega)."""
+        return split_covariance_intersection(m, P_ind, P_dep, z, R_ind, R_dep)
+
+    def update(self, landmark_map, rows, codes, z, R_ind, R_dep):
+        """Add accepted observations (one per landmark) to their sums; refold those rows."""
+        self.parts.add(rows, codes, z, R_ind, R_dep, unique=True)
+        return self.parts.combine(rows)
+
+    def initialise(self, landmark_map, row, cluster):
+        """Replace a landmark's sums by those of agreeing observations; fold them."""
+        z, R_ind, R_dep = _stack(cluster)
+        codes = np.array([landmark_map.source_code(obs.source) for obs in cluster], np.int64)
+        self.parts.clear(row)
+        self.parts.add(np.full(len(cluster), row, np.int64), codes, z, R_ind, R_dep)
+        m, P_ind, P_dep = self.parts.combine(np.array([row], np.int64))
+        return m[0], P_ind[0], P_dep[0]
+
+    @staticmethod
+    def held(m, P_ind, P_dep):
+        """Return an estimate the way this method holds it."""
+        return m, P_ind, P_dep
+
+    def records(self, landmark_map, row):
+        """Return the per-source sums of one landmark, sorted by source name."""
+        return {'per_source': self.parts.records(row, landmark_map.source_names)}
+
+    def load(self, landmark_map, row, record, m, P_ind, P_dep):
+        """Restore the per-source sums of one landmark (one source if absent)."""
+        self.parts.load(row, record.get('per_source') or _one_source(m, P_ind, P_dep),
+                        landmark_map.source_code)
+
+
+_STRATEGIES = {cls.name: cls for cls in (
+    _Independent, _CovarianceIntersection, _SplitCovarianceIntersection)}
+
+
+# --- The map ---------------------------------------------------------------------------------
 
 class LandmarkMap:
     """
@@ -105,6 +267,11 @@ class LandmarkMap:
     max_consecutive_rejections : int
         Rejections in a row after which a landmark is rebuilt from them.
 
+    Raises
+    ------
+    ValueError
+        If ``fusion`` is unknown or a count is below 1.
+
     """
 
     def __init__(self, fusion='split_covariance_intersection', gate_probability=0.999,
@@ -114,6 +281,7 @@ class LandmarkMap:
         if min_observations < 1 or max_consecutive_rejections < 1:
             raise ValueError('min_observations and max_consecutive_rejections must be >= 1')
         self.fusion = fusion
+        self._method = _STRATEGIES[fusion]()
         self.threshold = chi2_threshold(2, gate_probability)
         self.min_observations = int(min_observations)
         self.max_consecutive_rejections = int(max_consecutive_rejections)
@@ -136,15 +304,32 @@ class LandmarkMap:
         self.observations = np.empty(0, np.int64)
         self.rejections = np.empty(0, np.int64)
         self.consecutive = np.empty(0, np.int64)
-        self.first_stamp = np.empty(0)
-        self.last_stamp = np.empty(0)
+        self.first_stamp_ns = np.empty(0, np.int64)
+        self.last_stamp_ns = np.empty(0, np.int64)
         self._seen_by = {}
         self._buffers = {}
-        self._parts = _SourceParts() if self.fusion == 'split_covariance_intersection' else None
+        self._source_names = []
+        self._source_codes = {}
+        self._method.reset()
 
     def __len__(self):
         """Return the number of confirmed landmarks."""
         return int(self.confirmed[:self._count].sum())
+
+    @property
+    def source_names(self):
+        """Return the source names, indexed by their codes."""
+        return self._source_names
+
+    def source_code(self, name):
+        """Return the map's integer code of a source name, registering a new one."""
+        code = self._source_codes.get(name)
+        if code is None:
+            code = self._source_codes[name] = len(self._source_names)
+            if code >= 1 << _SOURCE_BITS:
+                raise ValueError(f'more than {1 << _SOURCE_BITS} sources')
+            self._source_names.append(name)
+        return code
 
     def _grow(self, extra):
         need = self._count + extra
@@ -152,11 +337,11 @@ class LandmarkMap:
             return
         size = max(need, 2 * len(self.ids), 64)
         for name in ('ids', 'mean', 'cov_ind', 'cov_dep', 'confirmed', 'observations',
-                     'rejections', 'consecutive', 'first_stamp', 'last_stamp'):
+                     'rejections', 'consecutive', 'first_stamp_ns', 'last_stamp_ns'):
             old = getattr(self, name)
             new = np.zeros((size,) + old.shape[1:], old.dtype)
-            if name == 'first_stamp':
-                new[:] = np.nan
+            if name == 'first_stamp_ns':
+                new[:] = _NO_STAMP
             new[:len(old)] = old
             setattr(self, name, new)
         for source, seen in self._seen_by.items():
@@ -202,7 +387,7 @@ class LandmarkMap:
 
     # Update --------------------------------------------------------------------
 
-    def update(self, ids, z, R, R_dep=None, source='', stamp=0.0):
+    def update(self, ids, z, R, R_dep=None, source='', stamp_ns=0):
         """
         Fuse a batch of observations, row by row in order.
 
@@ -213,17 +398,22 @@ class LandmarkMap:
         z : array_like, shape (N, 2)
             Observed positions in the world [m].
         R : array_like, shape (N, 2, 2)
-            Their covariances, positive definite.
+            Their total covariances, positive definite [m^2].
         R_dep : array_like, shape (N, 2, 2), optional
-            Dependent part of ``R`` (zero when absent).
+            Dependent part of ``R`` (zero when absent) [m^2].
         source : str or sequence of str, length N
             Who made each observation (for counters and the saved map).
-        stamp : float or array_like, shape (N,)
-            Time of each observation [s].
+        stamp_ns : int or array_like of int, shape (N,)
+            Time of each observation [ns].
 
         Returns
         -------
         UpdateResult
+
+        Raises
+        ------
+        ValueError
+            If ``stamp_ns`` is not integer.
 
         """
         ids = np.asarray(ids, dtype=np.int64).reshape(-1)
@@ -231,18 +421,28 @@ class LandmarkMap:
         R = np.asarray(R, dtype=np.float64).reshape(-1, 2, 2)
         R_dep = np.zeros_like(R) if R_dep is None else np.asarray(
             R_dep, dtype=np.float64).reshape(-1, 2, 2)
+        stamps_ns = np.asarray(stamp_ns)
+        if not (np.issubdtype(stamps_ns.dtype, np.integer) or stamps_ns.size == 0):
+            raise ValueError(f'stamp_ns must be integer nanoseconds, got {stamps_ns.dtype}')
         count = len(ids)
+        stamps_ns = np.broadcast_to(stamps_ns.astype(np.int64), (count,))
         if isinstance(source, str):
-            names, codes = [source], np.zeros(count, np.int64)
+            codes = np.full(count, self.source_code(source), np.int64)
         else:
-            names, codes = np.unique(np.asarray(source, dtype=str), return_inverse=True)
-            names = names.tolist()
-        stamps = np.broadcast_to(np.asarray(stamp, dtype=np.float64), (count,))
+            names, first, inverse = np.unique(np.asarray(source, dtype=str),
+                                              return_index=True, return_inverse=True)
+            # Register new names in the order they first appear (as row by row would).
+            by_name = np.empty(len(names), np.int64)
+            for k in np.argsort(first, kind='stable').tolist():
+                by_name[k] = self.source_code(str(names[k]))
+            codes = by_name[inverse.reshape(-1)]
         result = UpdateResult()
         if not count:
             return result
         rows = self._rows_of(ids)
-        batch = _Batch(z, R, R_dep, names, codes.reshape(-1), stamps)
+        # The one conversion to the independent part.
+        batch = _Batch(z, R - R_dep, R_dep, self._source_names, codes, stamps_ns)
+        changed = []
         known = self.confirmed[rows]
         # Rows of already confirmed landmarks: in rounds of distinct landmarks, which
         # keeps each landmark's own order while fusing the rows of a round together.
@@ -250,41 +450,38 @@ class LandmarkMap:
             index = np.flatnonzero(known)
             for positions in _rounds(rows[index]):
                 self._update_confirmed(rows[index[positions]], batch, index[positions],
-                                       result)
+                                       result, changed)
         for i in np.flatnonzero(~known).tolist():
             if self.confirmed[rows[i]]:  # confirmed earlier in this batch
-                self._update_confirmed(rows[i:i + 1], batch, np.array([i]), result)
+                self._update_confirmed(rows[i:i + 1], batch, np.array([i]), result, changed)
             else:
-                self._add_tentative(rows[i], batch.observation(i), result)
+                self._add_tentative(rows[i], batch.observation(i), result, changed)
+        if changed:
+            result.changed_ids = np.unique(self.ids[np.concatenate(changed)])
         return result
 
-    def _update_confirmed(self, rows, batch, positions, result):
-        z, R, R_dep = batch.z[positions], batch.R[positions], batch.R_dep[positions]
+    def _update_confirmed(self, rows, batch, positions, result, changed):
+        """Gate and fuse rows of confirmed landmarks, each landmark at most once."""
+        z, R_ind, R_dep = batch.z[positions], batch.R_ind[positions], batch.R_dep[positions]
         m, P_ind, P_dep = self.mean[rows], self.cov_ind[rows], self.cov_dep[rows]
+        S = P_ind + P_dep + R_ind + R_dep
         d = z - m
-        S = P_ind + P_dep + R
-        det = S[:, 0, 0] * S[:, 1, 1] - S[:, 0, 1] * S[:, 1, 0]
-        d2 = (d[:, 0] * (S[:, 1, 1] * d[:, 0] - S[:, 0, 1] * d[:, 1])
-              + d[:, 1] * (S[:, 0, 0] * d[:, 1] - S[:, 1, 0] * d[:, 0])) / det
-        ok = d2 <= self.threshold
+        d2 = mahalanobis_sq_2x2(d[:, 0], d[:, 1], *_entries(S))
+        ok = d2 <= self.threshold   # NaN (degenerate input) is rejected
         if ok.any():
             good = rows[ok]
-            if self._parts is None:
-                self.mean[good], self.cov_ind[good], self.cov_dep[good] = self._fuse(
-                    m[ok], P_ind[ok], P_dep[ok], z[ok], R[ok] - R_dep[ok], R_dep[ok])
-            else:
-                names = [batch.names[c] for c in batch.codes[positions[ok]].tolist()]
-                self._parts.add(good, names, z[ok], R[ok] - R_dep[ok], R_dep[ok])
-                self.mean[good], self.cov_ind[good], self.cov_dep[good] = (
-                    self._parts.combine(good))
+            codes = batch.codes[positions[ok]]
+            self.mean[good], self.cov_ind[good], self.cov_dep[good] = self._method.update(
+                self, good, codes, z[ok], R_ind[ok], R_dep[ok])
             self.observations[good] += 1
             self.consecutive[good] = 0
-            self.last_stamp[good] = batch.stamps[positions[ok]]
-            codes = batch.codes[positions[ok]]
-            for code, count in enumerate(np.bincount(codes, minlength=len(batch.names))):
+            self.last_stamp_ns[good] = batch.stamps_ns[positions[ok]]
+            changed.append(good)
+            for code, count in enumerate(np.bincount(codes).tolist()):
                 if count:
-                    self._seen(batch.names[code])[good[codes == code]] = True
-                    result.accepted[batch.names[code]] += int(count)
+                    name = batch.names[code]
+                    self._seen(name)[good[codes == code]] = True
+                    result.accepted[name] += count
             if self._buffers:
                 for row in self._buffers.keys() & set(good.tolist()):
                     del self._buffers[row]
@@ -298,27 +495,17 @@ class LandmarkMap:
                 row, deque(maxlen=self.max_consecutive_rejections))
             recent.append(observation)
             if self.consecutive[row] >= self.max_consecutive_rejections:
-                self._reinitialise(row, result)
+                self._reinitialise(row, result, changed)
 
-    def _fuse(self, m, P_ind, P_dep, z, R_ind, R_dep):
-        """Fuse estimates with observations; return the new mean and covariance parts."""
-        if self.fusion == 'independent':
-            m, P = fuse(m, P_ind + P_dep, z, R_ind + R_dep)
-            return m, P, np.zeros_like(P)
-        if self.fusion == 'covariance_intersection':
-            m, P = covariance_intersection(m, P_ind + P_dep, z, R_ind + R_dep)
-            return m, np.zeros_like(P), P
-        return split_covariance_intersection(m, P_ind, P_dep, z, R_ind, R_dep)
-
-    def _add_tentative(self, row, observation, result):
+    def _add_tentative(self, row, observation, result, changed):
         buffer = self._buffers.setdefault(
             row, deque(maxlen=max(4 * self.min_observations, self.max_consecutive_rejections)))
         if len(buffer) == buffer.maxlen:
             result.rejected[buffer[0].source] += 1
             self.rejections[row] += 1
         buffer.append(observation)
-        if np.isnan(self.first_stamp[row]):
-            self.first_stamp[row] = observation.stamp
+        if self.first_stamp_ns[row] == _NO_STAMP:
+            self.first_stamp_ns[row] = observation.stamp_ns
         buffered = list(buffer)
         cluster = self._rebuild(row, buffered)
         if cluster:
@@ -329,38 +516,25 @@ class LandmarkMap:
                     result.rejected[obs.source] += 1
                     self.rejections[row] += 1
             result.confirmed.append(int(self.ids[row]))
+            changed.append(np.array([row]))
 
-    def _reinitialise(self, row, result):
+    def _reinitialise(self, row, result, changed):
         # The recent rejections stay counted as rejections: they were, when they came.
         if self._rebuild(row, list(self._buffers.get(row, ()))):
             result.reinitialised.append(int(self.ids[row]))
+            changed.append(np.array([row]))
 
     def _rebuild(self, row, observations):
         """Set ``row`` from the largest agreeing subset; return it (empty if too small)."""
-        cluster = _agreeing(observations, self.threshold, self._fuse)
+        cluster = _agreeing(observations, self.threshold, self._method.fuse)
         if len(cluster) < self.min_observations:
             return []
-        first = cluster[0]
-        m, P_ind, P_dep = first.z[None], (first.R - first.R_dep)[None], first.R_dep[None]
-        for obs in cluster[1:]:
-            m, P_ind, P_dep = self._fuse(m, P_ind, P_dep, obs.z[None],
-                                         (obs.R - obs.R_dep)[None], obs.R_dep[None])
-        if self.fusion == 'independent':
-            P_ind, P_dep = P_ind + P_dep, np.zeros_like(P_dep)
-        elif self.fusion == 'covariance_intersection':
-            P_ind, P_dep = np.zeros_like(P_ind), P_ind + P_dep
-        else:
-            self._parts.clear(row)
-            self._parts.add(np.full(len(cluster), row), [obs.source for obs in cluster],
-                            np.array([obs.z for obs in cluster]),
-                            np.array([obs.R - obs.R_dep for obs in cluster]),
-                            np.array([obs.R_dep for obs in cluster]))
-            m, P_ind, P_dep = self._parts.combine(np.array([row]))
-        self.mean[row], self.cov_ind[row], self.cov_dep[row] = m[0], P_ind[0], P_dep[0]
+        self.mean[row], self.cov_ind[row], self.cov_dep[row] = self._method.initialise(
+            self, row, cluster)
         self.confirmed[row] = True
         self.observations[row] = len(cluster)
         self.consecutive[row] = 0
-        self.last_stamp[row] = max(obs.stamp for obs in cluster)
+        self.last_stamp_ns[row] = max(obs.stamp_ns for obs in cluster)
         for obs in cluster:
             self._seen(obs.source)[row] = True
         self._buffers.pop(row, None)
@@ -374,21 +548,17 @@ class LandmarkMap:
 
         Returns
         -------
-        ids : ndarray of int64, shape (K,)
-        m : ndarray, shape (K, 2)
-        P : ndarray, shape (K, 2, 2)
-            Total covariance.
-        P_dep : ndarray, shape (K, 2, 2)
-            Its dependent part.
-        observations : ndarray of int64, shape (K,)
-            Observations fused into each.
+        MapSnapshot
+            ``(ids, m, P, P_dep, observations)``: IDs int64 (K,), means (K, 2) [m],
+            total covariances and their dependent parts (K, 2, 2) [m^2], observations
+            fused into each int64 (K,). Unpacks like a tuple.
 
         """
         rows = np.flatnonzero(self.confirmed[:self._count])
         rows = rows[np.argsort(self.ids[rows], kind='stable')]
-        return (self.ids[rows].copy(), self.mean[rows].copy(),
-                self.cov_ind[rows] + self.cov_dep[rows], self.cov_dep[rows].copy(),
-                self.observations[rows].copy())
+        return MapSnapshot(self.ids[rows].copy(), self.mean[rows].copy(),
+                           self.cov_ind[rows] + self.cov_dep[rows], self.cov_dep[rows].copy(),
+                           self.observations[rows].copy())
 
     def sources_of(self, landmark_id):
         """Return the sorted sources whose observations a landmark fused."""
@@ -396,9 +566,9 @@ class LandmarkMap:
         return sorted(source for source, seen in self._seen_by.items() if seen[row])
 
     def to_records(self):
-        """Return the confirmed landmarks as plain dicts (for saving)."""
+        """Return the confirmed landmarks as plain dicts (for saving); stamps in ns."""
         records = []
-        for landmark_id in self.snapshot()[0].tolist():
+        for landmark_id in self.snapshot().ids.tolist():
             row = self._row[landmark_id]
             records.append({
                 'id': landmark_id,
@@ -408,11 +578,10 @@ class LandmarkMap:
                 'observations': int(self.observations[row]),
                 'rejections': int(self.rejections[row]),
                 'sources': self.sources_of(landmark_id),
-                'first_stamp': float(self.first_stamp[row]),
-                'last_stamp': float(self.last_stamp[row]),
+                'first_stamp_ns': int(self.first_stamp_ns[row]),
+                'last_stamp_ns': int(self.last_stamp_ns[row]),
+                **self._method.records(self, row),
             })
-            if self._parts is not None:
-                records[-1]['per_source'] = self._parts.records(row)
         return records
 
     def load_records(self, records):
@@ -447,17 +616,24 @@ class LandmarkMap:
                 self.confirmed[row] = True
                 self.observations[row] = int(record['observations'])
                 self.rejections[row] = int(record.get('rejections', 0))
-                self.first_stamp[row] = float(record['first_stamp'])
-                self.last_stamp[row] = float(record['last_stamp'])
+                self.first_stamp_ns[row] = _integer(record['first_stamp_ns'])
+                self.last_stamp_ns[row] = _integer(record['last_stamp_ns'])
                 for source in record['sources']:
                     self._seen(str(source))[row] = True
-                if self._parts is not None:
-                    self._parts.load(row, record.get('per_source')
-                                     or _one_source(mean, P - P_dep, P_dep))
+                self._method.load(self, row, record, mean, P - P_dep, P_dep)
         except (KeyError, TypeError, ValueError) as error:
             self.reset()
             raise ValueError(f'malformed landmark record: {error}') from error
 
+
+def _integer(value):
+    """Return ``value`` as an int; raise ValueError unless it is an integer (not bool)."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
+        raise ValueError(f'expected an integer, got {value!r}')
+    return int(value)
+
+
+# --- Per-source sums for split CI ------------------------------------------------------------
 
 class _SourceParts:
     """
@@ -465,71 +641,89 @@ class _SourceParts:
 
     A source's estimate of a landmark is ``m_s = Y^-1 y`` with ``Y = sum R_ind_i^-1``
     and ``y = sum R_ind_i^-1 z_i`` (independent parts as information), covariance
-    ``Y^-1 + D`` where ``D = sym(Y^-1 sum R_ind_i^-1 R_dep_i)``: the information-weighted
-    mean of the dependent parts, a shared error that averaging does not reduce.
+    ``Y^-1 + D`` where ``D = sym(Y^-1 Q)``, ``Q = sum R_ind_i^-1 R_dep_i``: the
+    information-weighted mean of the dependent parts, a shared error that averaging
+    does not reduce. Pairs are found by binary search in a sorted array of keys
+    ``row << 24 | source code``, so a landmark's pairs are contiguous, in source-code
+    order; their sums live in flat arrays indexed by a slot.
     """
 
     def __init__(self):
-        self.index = {}
-        self.sources = []
-        self.table = np.full((64, 4), -1, np.int64)
-        self.Y = np.zeros((64, 2, 2))
+        self.keys = np.empty(0, np.int64)     # sorted
+        self.slots = np.empty(0, np.int64)    # slot of each key
+        self.count = 0
+        self.Y = np.zeros((64, 3))            # (xx, xy, yy) of the information sum
         self.y = np.zeros((64, 2))
-        self.Q = np.zeros((64, 2, 2))
+        self.Q = np.zeros((64, 4))            # (00, 01, 10, 11) of sum R_ind^-1 R_dep
 
-    def _pair(self, row, source):
-        pair = self.index.get((row, source))
-        if pair is not None:
-            return pair
-        pair = self.index[(row, source)] = len(self.sources)
-        self.sources.append(source)
-        if pair >= len(self.Y):
-            grow = len(self.Y)
-            self.Y = np.concatenate([self.Y, np.zeros((grow, 2, 2))])
-            self.y = np.concatenate([self.y, np.zeros((grow, 2))])
-            self.Q = np.concatenate([self.Q, np.zeros((grow, 2, 2))])
-        if row >= len(self.table):
-            self.table = np.concatenate(
-                [self.table, np.full((max(row + 1, 2 * len(self.table)) - len(self.table),
-                                      self.table.shape[1]), -1, np.int64)])
-        free = np.flatnonzero(self.table[row] < 0)
-        if not len(free):
-            self.table = np.concatenate(
-                [self.table, np.full((len(self.table), self.table.shape[1]), -1, np.int64)],
-                axis=1)
-            free = np.flatnonzero(self.table[row] < 0)
-        self.table[row, free[0]] = pair
-        return pair
+    def _pairs(self, rows, codes):
+        """Return the slots of (row, code) pairs, creating the new ones."""
+        keys = (rows << _SOURCE_BITS) | codes
+        position = np.searchsorted(self.keys, keys)
+        found = position < len(self.keys)
+        found[found] = self.keys[position[found]] == keys[found]
+        if not found.all():
+            new = np.unique(keys[~found])
+            slots = np.arange(self.count, self.count + len(new))
+            self.count += len(new)
+            if self.count > len(self.Y):
+                size = max(self.count, 2 * len(self.Y))
+                for name in ('Y', 'y', 'Q'):
+                    old = getattr(self, name)
+                    grown = np.zeros((size,) + old.shape[1:])
+                    grown[:len(old)] = old
+                    setattr(self, name, grown)
+            at = np.searchsorted(self.keys, new)
+            self.keys = np.insert(self.keys, at, new)
+            self.slots = np.insert(self.slots, at, slots)
+            position = np.searchsorted(self.keys, keys)
+        return self.slots[position]
 
-    def add(self, rows, sources, z, R_ind, R_dep):
-        """Add observations (rows of the map, source names) to their sums."""
-        pairs = np.array([self._pair(row, source)
-                          for row, source in zip(rows.tolist(), sources)], dtype=np.int64)
+    def add(self, rows, codes, z, R_ind, R_dep, unique=False):
+        """
+        Add observations to the sums of their (landmark row, source code) pairs.
+
+        Rows of one call that share a pair are added in order (``np.add.at``); with
+        ``unique`` (every pair once, as in a round) by plain indexing.
+        """
+        slots = self._pairs(rows, codes)
+        a, b, c = _entries(R_ind)
         # A positive definite independent part is needed for weights; a tiny floor
         # keeps an all-dependent observation from dividing by zero.
-        scale = 1e-12 * np.maximum(R_ind[:, 0, 0] + R_ind[:, 1, 1], 1e-300)
-        a, b, c = R_ind[:, 0, 0] + scale, R_ind[:, 0, 1], R_ind[:, 1, 1] + scale
-        det = a * c - b * b
-        Y = np.empty_like(R_ind)
-        Y[:, 0, 0], Y[:, 1, 1] = c / det, a / det
-        Y[:, 0, 1] = Y[:, 1, 0] = -b / det
-        np.add.at(self.Y, pairs, Y)
-        np.add.at(self.y, pairs, (Y @ z[:, :, None])[:, :, 0])
-        np.add.at(self.Q, pairs, Y @ R_dep)
+        trace = a + c
+        floor = 1e-12 * np.where(trace > 0.0, trace, R_dep[:, 0, 0] + R_dep[:, 1, 1])
+        ya, yb, yc = inverse_2x2(a + floor, b, c + floor)
+        Y = np.stack([ya, yb, yc], axis=1)
+        y = np.stack([ya * z[:, 0] + yb * z[:, 1], yb * z[:, 0] + yc * z[:, 1]], axis=1)
+        Q = np.stack([ya * R_dep[:, 0, 0] + yb * R_dep[:, 1, 0],
+                      ya * R_dep[:, 0, 1] + yb * R_dep[:, 1, 1],
+                      yb * R_dep[:, 0, 0] + yc * R_dep[:, 1, 0],
+                      yb * R_dep[:, 0, 1] + yc * R_dep[:, 1, 1]], axis=1)
+        if unique:
+            self.Y[slots] += Y
+            self.y[slots] += y
+            self.Q[slots] += Q
+        else:
+            np.add.at(self.Y, slots, Y)
+            np.add.at(self.y, slots, y)
+            np.add.at(self.Q, slots, Q)
 
     def clear(self, row):
         """Forget the sources of one landmark."""
-        if row < len(self.table):
-            for pair in self.table[row][self.table[row] >= 0].tolist():
-                del self.index[(row, self.sources[pair])]
-            self.table[row] = -1
+        lo, hi = np.searchsorted(self.keys, [row << _SOURCE_BITS, (row + 1) << _SOURCE_BITS])
+        self.keys = np.delete(self.keys, np.s_[lo:hi])
+        self.slots = np.delete(self.slots, np.s_[lo:hi])
 
-    def estimate(self, pairs):
-        """Return the source estimates ``(m, P_ind, P_dep)`` of some pairs."""
-        P_ind = information(self.Y[pairs])
-        m = (P_ind @ self.y[pairs][:, :, None])[:, :, 0]
-        P_dep = P_ind @ self.Q[pairs]
-        return m, P_ind, 0.5 * (P_dep + np.swapaxes(P_dep, 1, 2))
+    def estimate(self, slots):
+        """Return the source estimates ``m, P_ind, P_dep`` of some pairs, as entries."""
+        Y, y, Q = self.Y[slots], self.y[slots], self.Q[slots]
+        P_ind = inverse_2x2(Y[..., 0], Y[..., 1], Y[..., 2])
+        a, b, c = P_ind
+        m = (a * y[..., 0] + b * y[..., 1], b * y[..., 0] + c * y[..., 1])
+        P_dep = (a * Q[..., 0] + b * Q[..., 2],
+                 0.5 * (a * Q[..., 1] + b * Q[..., 3] + b * Q[..., 0] + c * Q[..., 2]),
+                 b * Q[..., 1] + c * Q[..., 3])
+        return m, P_ind, P_dep
 
     def combine(self, rows):
         """
@@ -537,50 +731,82 @@ class _SourceParts:
 
         Split CI is not associative: folding the sources from the smallest covariance
         (determinant) up makes the result independent of the order they arrived in.
+        Vectorised over the landmarks: step ``j`` folds the ``j``-th tightest source
+        of every landmark that has one.
+
+        Returns
+        -------
+        m : ndarray, shape (K, 2)
+        P_ind, P_dep : ndarray, shape (K, 2, 2)
+
         """
-        table = self.table[rows]
-        table = table[:, :int((table >= 0).sum(axis=1).max())]
-        count, width = table.shape
-        m, P_ind, P_dep = self.estimate(np.maximum(table, 0).reshape(-1))
-        m, P_ind, P_dep = (a.reshape((count, width) + a.shape[1:]) for a in (m, P_ind, P_dep))
-        P = P_ind + P_dep
-        size = np.where(table >= 0, P[..., 0, 0] * P[..., 1, 1] - P[..., 0, 1] ** 2, np.inf)
+        lo = np.searchsorted(self.keys, rows << _SOURCE_BITS)
+        hi = np.searchsorted(self.keys, (rows + 1) << _SOURCE_BITS)
+        counts = hi - lo
+        # Landmarks with the most sources first: those still folding form a prefix.
+        by_count = np.argsort(-counts, kind='stable')
+        lo, counts = lo[by_count], counts[by_count]
+        width = int(counts[0])
+        columns = np.arange(width)
+        valid = columns < counts[:, None]
+        slots = self.slots[np.minimum(lo[:, None] + columns, len(self.keys) - 1)]
+        m, P_ind, P_dep = self.estimate(slots)
+        size = np.where(valid, det_2x2(*(i + d for i, d in zip(P_ind, P_dep))), np.inf)
         order = np.argsort(size, axis=1, kind='stable')
-        valid = np.take_along_axis(table >= 0, order, 1)
-        m = np.take_along_axis(m, order[..., None], 1)
-        P_ind = np.take_along_axis(P_ind, order[..., None, None], 1)
-        P_dep = np.take_along_axis(P_dep, order[..., None, None], 1)
-        fused = m[:, 0], P_ind[:, 0], P_dep[:, 0]
+
+        def column(parts, j, k):
+            return tuple(np.take_along_axis(x[:k], order[:k, j:j + 1], 1)[:, 0] for x in parts)
+
+        total = len(rows)
+        fused_m, fused_i, fused_d = column(m, 0, total), column(P_ind, 0, total), column(
+            P_dep, 0, total)
+        steps = (counts[:, None] > columns[1:]).sum(axis=0)
         for j in range(1, width):
-            has = valid[:, j]
-            first = tuple(f[has] for f in fused)
-            second = m[has, j], P_ind[has, j], P_dep[has, j]
-            omega = split_covariance_intersection_omega(first[1], first[2], second[1],
-                                                        second[2])
-            parts = split_covariance_intersection(*first, *second, omega=omega)
-            for f, part in zip(fused, parts):
-                f[has] = part
-        return fused
+            k = int(steps[j - 1])
+            first_m = tuple(x[:k] for x in fused_m)
+            first_i = tuple(x[:k] for x in fused_i)
+            first_d = tuple(x[:k] for x in fused_d)
+            second_m, second_i, second_d = column(m, j, k), column(P_ind, j, k), column(
+                P_dep, j, k)
+            omega = sci_omega_2x2(first_i, first_d, second_i, second_d)
+            new_m, new_i, new_d = split_ci_2x2_entries(first_m, first_i, first_d, second_m,
+                                                       second_i, second_d, omega)
+            for fused, new in ((fused_m, new_m), (fused_i, new_i), (fused_d, new_d)):
+                for x, value in zip(fused, new):
+                    x[:k] = value
+        back = np.empty_like(by_count)
+        back[by_count] = np.arange(total)
+        mean = np.stack(fused_m, axis=1)[back]
+        return (mean, symmetric_2x2(*(x[back] for x in fused_i)),
+                symmetric_2x2(*(x[back] for x in fused_d)))
 
-    def records(self, row):
-        """Return the sums of one landmark as plain data."""
-        pairs = self.table[row][self.table[row] >= 0].tolist() if row < len(self.table) else []
-        return [{'source': self.sources[p], 'information': self.Y[p].tolist(),
-                 'information_mean': self.y[p].tolist(), 'dependent_sum': self.Q[p].tolist()}
-                for p in pairs]
+    def records(self, row, names):
+        """Return the sums of one landmark as plain data, sorted by source name."""
+        lo, hi = np.searchsorted(self.keys, [row << _SOURCE_BITS, (row + 1) << _SOURCE_BITS])
+        out = []
+        for key, slot in zip(self.keys[lo:hi].tolist(), self.slots[lo:hi].tolist()):
+            Y, Q = self.Y[slot].tolist(), self.Q[slot].tolist()
+            out.append({'source': names[key & ((1 << _SOURCE_BITS) - 1)],
+                        'information': [[Y[0], Y[1]], [Y[1], Y[2]]],
+                        'information_mean': self.y[slot].tolist(),
+                        'dependent_sum': [[Q[0], Q[1]], [Q[2], Q[3]]]})
+        return sorted(out, key=lambda record: record['source'])
 
-    def load(self, row, records):
-        """Restore the sums of one landmark from ``records``."""
-        for record in records:
-            pair = self._pair(row, str(record['source']))
-            self.Y[pair] = np.array(record['information'], dtype=np.float64).reshape(2, 2)
-            self.y[pair] = np.array(record['information_mean'], dtype=np.float64).reshape(2)
-            self.Q[pair] = np.array(record['dependent_sum'], dtype=np.float64).reshape(2, 2)
+    def load(self, row, records, source_code):
+        """Restore the sums of one landmark from ``records`` (``source_code``: name to code)."""
+        codes = np.array([source_code(str(r['source'])) for r in records], np.int64)
+        slots = self._pairs(np.full(len(records), row, np.int64), codes)
+        for slot, record in zip(slots.tolist(), records):
+            Y = np.array(record['information'], dtype=np.float64).reshape(2, 2)
+            Q = np.array(record['dependent_sum'], dtype=np.float64).reshape(2, 2)
+            self.Y[slot] = Y[0, 0], 0.5 * (Y[0, 1] + Y[1, 0]), Y[1, 1]
+            self.y[slot] = np.array(record['information_mean'], dtype=np.float64).reshape(2)
+            self.Q[slot] = Q.reshape(4)
 
 
 def _one_source(mean, P_ind, P_dep):
     """Return the per-source record of an estimate held as a single source."""
-    Y = np.linalg.inv(P_ind)
+    Y = information(P_ind)
     return [{'source': 'loaded', 'information': Y.tolist(),
              'information_mean': (Y @ mean).tolist(),
              'dependent_sum': (Y @ P_dep).tolist()}]
@@ -608,31 +834,31 @@ def _agreeing(observations, threshold, fuse_rows):
 
     The seed is the observation that passes the pairwise gate with the most others
     (latest on ties); its partners join in arrival order while each passes the gate
-    against the estimate fused so far.
+    against the estimate fused so far. The seed always belongs to its own subset
+    (it is never gated out), so the subset is never empty, even when distances are
+    NaN (degenerate covariances).
     """
     if not observations:
         return []
-    z = np.array([obs.z for obs in observations])
-    R = np.array([obs.R for obs in observations])
+    z, R_ind, R_dep = _stack(observations)
+    R = R_ind + R_dep
     d = z[:, None, :] - z[None, :, :]
     S = R[:, None] + R[None, :]
-    det = S[..., 0, 0] * S[..., 1, 1] - S[..., 0, 1] * S[..., 1, 0]
-    d2 = (d[..., 0] * (S[..., 1, 1] * d[..., 0] - S[..., 0, 1] * d[..., 1])
-          + d[..., 1] * (S[..., 0, 0] * d[..., 1] - S[..., 1, 0] * d[..., 0])) / det
+    d2 = mahalanobis_sq_2x2(d[..., 0], d[..., 1], *_entries(S))
     agree = d2 <= threshold
+    np.fill_diagonal(agree, True)
     votes = agree.sum(axis=1)
     seed = len(observations) - 1 - int(np.argmax(votes[::-1]))
-    members = [i for i in range(len(observations)) if agree[seed, i]]
-    cluster = [observations[members[0]]]
-    m = cluster[0].z[None]
-    P_ind, P_dep = (cluster[0].R - cluster[0].R_dep)[None], cluster[0].R_dep[None]
+    members = np.flatnonzero(agree[seed]).tolist()
+    first = members[0]
+    cluster = [observations[first]]
+    m, P_ind, P_dep = z[first:first + 1], R_ind[first:first + 1], R_dep[first:first + 1]
     for i in members[1:]:
-        obs = observations[i]
-        S = P_ind[0] + P_dep[0] + obs.R
-        diff = obs.z - m[0]
-        if diff @ np.linalg.solve(S, diff) > threshold:
+        diff = z[i] - m[0]
+        S = P_ind[0] + P_dep[0] + R[i]
+        if i != seed and not mahalanobis_sq_2x2(diff[0], diff[1], *_entries(S)) <= threshold:
             continue
-        m, P_ind, P_dep = fuse_rows(m, P_ind, P_dep, obs.z[None], (obs.R - obs.R_dep)[None],
-                                    obs.R_dep[None])
-        cluster.append(obs)
+        m, P_ind, P_dep = fuse_rows(m, P_ind, P_dep, z[i:i + 1], R_ind[i:i + 1],
+                                    R_dep[i:i + 1])
+        cluster.append(observations[i])
     return cluster

@@ -10,6 +10,8 @@ import pytest
 from scipy import stats
 
 METHODS = pytest.mark.parametrize('fusion', FUSION_METHODS)
+S = 1_000_000_000
+"""One second [ns]."""
 
 # The textbook example (chapter, case 5): one landmark seen by two robots.
 R_TEXTBOOK = np.diag([0.25, 0.04])
@@ -126,11 +128,11 @@ def test_textbook_case(fusion, batched):
     lm = LandmarkMap(fusion, min_observations=2)
     if batched:
         result = lm.update([7, 7], [m1, m2], [P1, P2], source=['robot1', 'robot2'],
-                           stamp=[1.0, 2.0])
+                           stamp_ns=[1 * S, 2 * S])
     else:
-        first = lm.update([7], *one(m1, P1), source='robot1', stamp=1.0)
+        first = lm.update([7], *one(m1, P1), source='robot1', stamp_ns=1 * S)
         assert len(lm) == 0 and not first.changed and first.confirmed == []
-        result = lm.update([7], *one(m2, P2), source='robot2', stamp=2.0)
+        result = lm.update([7], *one(m2, P2), source='robot2', stamp_ns=2 * S)
     assert result.confirmed == [7]
     assert result.accepted == Counter(robot1=1, robot2=1) and not result.rejected
     ids, m, P, P_dep, count = lm.snapshot()
@@ -147,7 +149,7 @@ def test_textbook_case(fusion, batched):
         np.testing.assert_allclose(P_dep[0], 0.0, rtol=0, atol=1e-15)
     assert lm.sources_of(7) == ['robot1', 'robot2']
     record, = lm.to_records()
-    assert record['first_stamp'] == 1.0 and record['last_stamp'] == 2.0
+    assert record['first_stamp_ns'] == 1 * S and record['last_stamp_ns'] == 2 * S
 
 
 def test_textbook_case_with_dependent_parts_differs_by_method():
@@ -197,7 +199,7 @@ def random_stream(rng, count=300, large_ids=False):
     outliers = rng.uniform(size=count) < 0.05
     z[outliers] += rng.uniform(20.0, 60.0, (outliers.sum(), 1)) * np.array([1.0, 0.5])
     sources = rng.choice(['robot_a', 'robot_b', 'robot_c'], count)
-    stamps = np.arange(count) * 0.1 + 1.0
+    stamps = S + np.arange(count) * (S // 10)
     return ids_all[which], z, R, R_dep, sources, stamps, int(ids_all[moved])
 
 
@@ -365,12 +367,12 @@ def test_first_outlier_is_never_published(fusion, rng):
     outlier = truth + [40.0, 0.0]
     z = draw(rng, truth, R, 0.3)
     lm = LandmarkMap(fusion, min_observations=2)
-    r0 = lm.update([11], *one(outlier, R[0], R_dep[0]), source='liar', stamp=1.0)
-    r1 = lm.update([11], *one(z[1], R[1], R_dep[1]), source='robot1', stamp=2.0)
+    r0 = lm.update([11], *one(outlier, R[0], R_dep[0]), source='liar', stamp_ns=1 * S)
+    r1 = lm.update([11], *one(z[1], R[1], R_dep[1]), source='robot1', stamp_ns=2 * S)
     for r in (r0, r1):
         assert not r.changed and not r.confirmed
         assert len(lm) == 0 and lm.snapshot()[0].size == 0
-    r2 = lm.update([11], *one(z[2], R[2], R_dep[2]), source='robot2', stamp=3.0)
+    r2 = lm.update([11], *one(z[2], R[2], R_dep[2]), source='robot2', stamp_ns=3 * S)
     assert r2.confirmed == [11]
     assert r2.accepted == Counter(robot1=1, robot2=1) and r2.rejected == Counter(liar=1)
     ids, m, P, P_dep, count = lm.snapshot()
@@ -382,7 +384,7 @@ def test_first_outlier_is_never_published(fusion, rng):
     record, = lm.to_records()
     assert record['observations'] == 2 and record['rejections'] == 1
     assert record['sources'] == ['robot1', 'robot2']
-    assert record['first_stamp'] == 1.0 and record['last_stamp'] == 3.0
+    assert record['first_stamp_ns'] == 1 * S and record['last_stamp_ns'] == 3 * S
 
 
 @METHODS
@@ -403,7 +405,7 @@ def test_single_observation_is_not_published_with_two_required(fusion, rng):
 def test_min_observations_one_publishes_at_once(fusion, rng):
     R, R_dep = noise_parts(rng, 1)
     lm = LandmarkMap(fusion, min_observations=1)
-    result = lm.update([5], *one([1.5, -2.5], R[0], R_dep[0]), source='r', stamp=4.0)
+    result = lm.update([5], *one([1.5, -2.5], R[0], R_dep[0]), source='r', stamp_ns=4 * S)
     assert result.confirmed == [5] and result.accepted == Counter(r=1) and len(lm) == 1
     ids, m, P, P_dep, count = lm.snapshot()
     np.testing.assert_allclose(m[0], [1.5, -2.5], rtol=1e-14, atol=0)
@@ -574,7 +576,7 @@ def test_records_round_trip(fusion, rng):
     z_more = lm.snapshot()[1][:4] + 0.01
     R_more = np.repeat(0.1 * np.eye(2)[None], 4, axis=0)
     for m in (lm, copy):
-        m.update(more, z_more, R_more, 0.5 * R_more, 'later', 99.0)
+        m.update(more, z_more, R_more, 0.5 * R_more, 'later', 99 * S)
     for x, y in zip(lm.snapshot(), copy.snapshot()):
         np.testing.assert_allclose(x, y, rtol=1e-12, atol=1e-15)
 
@@ -582,13 +584,14 @@ def test_records_round_trip(fusion, rng):
 def _record():
     return {'id': 4, 'mean': [1.0, 2.0], 'covariance': [[1.0, 0.1], [0.1, 2.0]],
             'covariance_dependent': [[0.5, 0.0], [0.0, 0.5]], 'observations': 3,
-            'rejections': 1, 'sources': ['a'], 'first_stamp': 1.0, 'last_stamp': 2.0}
+            'rejections': 1, 'sources': ['a'], 'first_stamp_ns': 1 * S,
+            'last_stamp_ns': 2 * S}
 
 
 def _malformed():
     cases = []
     for key in ('id', 'mean', 'covariance', 'covariance_dependent', 'observations',
-                'sources', 'first_stamp', 'last_stamp'):
+                'sources', 'first_stamp_ns', 'last_stamp_ns'):
         record = _record()
         del record[key]
         cases.append(('missing ' + key, [record]))
@@ -597,7 +600,8 @@ def _malformed():
                        ('covariance', [[1.0, float('inf')], [0.0, 1.0]]),
                        ('covariance_dependent', [[float('nan'), 0.0], [0.0, 1.0]]),
                        ('covariance_dependent', None), ('id', 'four'), ('id', None),
-                       ('observations', 'many'), ('first_stamp', 'now'), ('sources', 5)):
+                       ('observations', 'many'), ('first_stamp_ns', 'now'),
+                       ('first_stamp_ns', 1.5), ('last_stamp_ns', True), ('sources', 5)):
         record = _record()
         record[key] = value
         cases.append((f'{key}={value!r}', [record]))
@@ -719,12 +723,13 @@ def test_per_row_sources_and_stamps(rng):
     lm = LandmarkMap('split_covariance_intersection', min_observations=1)
     R = np.repeat(0.05 * np.eye(2)[None], 4, 0)
     result = lm.update([1, 1, 2, 1], [[0, 0], [0, 0.01], [3, 3], [0.01, 0]], R,
-                       source=np.array(['x', 'y', 'x', 'z']), stamp=[1.0, 2.0, 3.0, 4.0])
+                       source=np.array(['x', 'y', 'x', 'z']),
+                       stamp_ns=[1 * S, 2 * S, 3 * S, 4 * S])
     assert result.accepted == Counter(x=2, y=1, z=1) and sorted(result.confirmed) == [1, 2]
     records = {r['id']: r for r in lm.to_records()}
     assert records[1]['sources'] == ['x', 'y', 'z']
-    assert records[1]['first_stamp'] == 1.0 and records[1]['last_stamp'] == 4.0
-    assert records[2]['first_stamp'] == records[2]['last_stamp'] == 3.0
+    assert records[1]['first_stamp_ns'] == 1 * S and records[1]['last_stamp_ns'] == 4 * S
+    assert records[2]['first_stamp_ns'] == records[2]['last_stamp_ns'] == 3 * S
 
 
 # --- Monte Carlo consistency through the map ---------------------------------------------------
