@@ -21,8 +21,10 @@ def example_map(rng):
     R = A @ np.swapaxes(A, 1, 2) * 0.1 + 0.01 * np.eye(2)
     ids = np.array([0, 3, 17, 2 ** 20 + 1, 2 ** 32 - 1, 9], np.int64)
     lm.update(ids, rng.uniform(-1e3, 1e3, (count, 2)) / 3.0, R, 0.3 * R,
-              source=['a', 'b', 'a', 'c', 'b', 'a'], stamp=np.arange(count) * 0.1 + 1e9 / 7)
-    lm.update(ids[:3], lm.snapshot()[1][:3] + 1e-3, R[:3], 0.3 * R[:3], source='d', stamp=2e9)
+              source=['a', 'b', 'a', 'c', 'b', 'a'],
+              stamp_ns=np.arange(count) * 100_000_000 + 1_000_000_000_000)
+    lm.update(ids[:3], lm.snapshot()[1][:3] + 1e-3, R[:3], 0.3 * R[:3], source='d',
+              stamp_ns=2_000_000_000_000)
     return lm
 
 
