@@ -542,9 +542,14 @@ class LandmarkMap:
 
     # Output --------------------------------------------------------------------
 
-    def snapshot(self):
+    def snapshot(self, ids=None):
         """
         Return the confirmed landmarks, sorted by ID.
+
+        Parameters
+        ----------
+        ids : array_like of int, optional
+            Only these landmarks (those of them that are confirmed); all by default.
 
         Returns
         -------
@@ -554,7 +559,12 @@ class LandmarkMap:
             fused into each int64 (K,). Unpacks like a tuple.
 
         """
-        rows = np.flatnonzero(self.confirmed[:self._count])
+        if ids is None:
+            rows = np.flatnonzero(self.confirmed[:self._count])
+        else:
+            rows = self._lookup(np.unique(np.asarray(ids, dtype=np.int64)))
+            rows = rows[rows >= 0]
+            rows = rows[self.confirmed[rows]]
         rows = rows[np.argsort(self.ids[rows], kind='stable')]
         return MapSnapshot(self.ids[rows].copy(), self.mean[rows].copy(),
                            self.cov_ind[rows] + self.cov_dep[rows], self.cov_dep[rows].copy(),

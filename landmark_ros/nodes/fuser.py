@@ -4,7 +4,8 @@ landmark_fuser: the landmark observations of several robots in, one fused map ou
 Subscribes every topic of ``input_topics`` (landmark clouds, one source each),
 queues their rows and fuses them by landmark ID in batches with
 ``landmark_ros.pipeline.fuser.Fuser``. Publishes the confirmed map on
-``fused_landmarks`` (transient local: late subscribers get it), RViz markers on
+``fused_landmarks`` (transient local: late subscribers get it), the landmarks changed
+since the last update on ``fused_landmark_updates``, RViz markers on
 ``fused_markers`` and ``/diagnostics``; services ``~/reset`` and ``~/save``. With
 ``map_file`` set the map is loaded at start and saved atomically.
 """
@@ -61,13 +62,17 @@ class LandmarkFuser(Node):
         self.fuser.load()
         self._markers_stale = self.fuser.map_changed or self._markers_stale
         self.map_pub = self.create_publisher(PointCloud2, 'fused_landmarks', qos.LATCHED)
+        self.updates_pub = self.create_publisher(PointCloud2, 'fused_landmark_updates',
+                                                 qos.reliable_output(10))
         self.marker_pub = self.create_publisher(MarkerArray, 'fused_markers', qos.LATCHED)
+        self._marker_subscribers = 0
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics',
                                                      qos.DIAGNOSTICS)
         self.create_service(Trigger, '~/reset', self._guard(self.on_reset))
         self.create_service(Trigger, '~/save', self._guard(self.on_save))
         self.create_timer(config.update_period_s, self._guard(self.fuse_queued))
         self.create_timer(1.0 / config.publish_rate_hz, self._guard(self.publish_map))
+        self.create_timer(1.0 / config.updates_rate_hz, self._guard(self.publish_updates))
         self.create_timer(config.diagnostics_period_s, self._guard(self.publish_diagnostics))
         if config.map_file and config.autosave_period_s > 0.0:
             self.create_timer(config.autosave_period_s, self._guard(self.autosave))
@@ -110,9 +115,7 @@ class LandmarkFuser(Node):
 
     def fuse_queued(self):
         """Fuse every queued row, in arrival order, in one batch."""
-        result = self.fuser.fuse_queued()
-        if result is not None and result.changed:
-            self._markers_stale = True
+        self.fuser.fuse_queued()
 
     # Output --------------------------------------------------------------------
 
@@ -120,19 +123,35 @@ class LandmarkFuser(Node):
         return Header(stamp=self.get_clock().now().to_msg(), frame_id=self.config.world_frame)
 
     def publish_map(self):
-        """Publish the map if it changed, and the markers if someone wants them."""
-        markers = self._markers_stale and self.marker_pub.get_subscription_count()
-        if not (self.fuser.map_changed or markers):
+        """Publish the full map if it changed (``publish_rate_hz``)."""
+        if not self.fuser.map_changed:
             return
-        changed = self.fuser.map_changed
         ids, m, P, P_dep, observations = self.fuser.snapshot()
+        self.map_pub.publish(landmark_message(self._header(), ids, m, P, P_dep, observations))
+
+    def publish_updates(self):
+        """
+        Publish the landmarks changed since last time, and their markers.
+
+        Markers go out for the changed landmarks only (ADD replaces a marker by ID),
+        and in full when a subscriber joined, after a reset or a load, or when the
+        marker size changed.
+        """
+        ids, m, P, P_dep, observations = self.fuser.take_updates()
         header = self._header()
-        if changed:
-            self.map_pub.publish(landmark_message(header, ids, m, P, P_dep, observations))
-        if self.marker_pub.get_subscription_count():
-            self.marker_pub.publish(landmark_markers(header, ids, m, P, self.config.marker_sigma,
-                                                     rgb=(1.0, 0.5, 0.0)))
+        if len(ids):
+            self.updates_pub.publish(landmark_message(header, ids, m, P, P_dep, observations))
+        subscribers = self.marker_pub.get_subscription_count()
+        joined, self._marker_subscribers = subscribers > self._marker_subscribers, subscribers
+        if not subscribers:
+            return
+        if joined or self._markers_stale:
+            ids, m, P, _, _ = self.fuser.map.snapshot()
             self._markers_stale = False
+        elif not len(ids):
+            return
+        self.marker_pub.publish(landmark_markers(header, ids, m, P, self.config.marker_sigma,
+                                                 rgb=(1.0, 0.5, 0.0)))
 
     def publish_diagnostics(self):
         """Publish the fuser's status and one status per source on /diagnostics."""
@@ -150,7 +169,7 @@ class LandmarkFuser(Node):
         self.map_pub.publish(landmark_message(header, [], np.empty((0, 2)),
                                               np.empty((0, 2, 2)), observations=[]))
         self.marker_pub.publish(delete_all(header))
-        self._markers_stale = False
+        self._markers_stale = True
         self.get_logger().info(f'map reset: {count} landmarks cleared')
         response.success, response.message = True, f'cleared {count} landmarks'
         return response

@@ -201,8 +201,17 @@ class FuserConfig(ConfigBase):
         0.02, 'Queued observations are fused in one batch at this period [s].',
         read_only=True, low=0.001, high=10.0)
     publish_rate_hz: float = param(
-        5.0, 'Most fused maps per second, published only when the map changed.',
-        read_only=True, low=0.01, high=1000.0)
+        5.0, 'Most full maps (fused_landmarks) per second, published only when the map '
+        'changed.', read_only=True, low=0.01, high=1000.0)
+    updates_rate_hz: float = param(
+        10.0, 'Most fused_landmark_updates (the landmarks changed since the last one) and '
+        'marker updates per second.', read_only=True, low=0.01, high=1000.0)
+    shard_count: int = param(
+        1, 'Fusers sharing the team: this one fuses the landmark IDs with ID modulo '
+        'shard_count equal to shard_index.', read_only=True, low=1, high=1000)
+    shard_index: int = param(
+        0, 'Which shard this fuser is (0 to shard_count - 1).', read_only=True, low=0,
+        high=999)
     max_queue_messages: int = param(
         100, 'Messages one source may have waiting; the oldest is dropped beyond.',
         read_only=True, low=1, high=100000)
@@ -238,6 +247,9 @@ class FuserConfig(ConfigBase):
             raise ValueError('input_topics must list at least one topic name')
         if len(set(self.input_topics)) != len(self.input_topics):
             raise ValueError('input_topics must not repeat a topic')
+        if self.shard_index >= self.shard_count:
+            raise ValueError(f'shard_index must be below shard_count ({self.shard_count}), '
+                             f'got {self.shard_index}')
 
 
 def markdown_table(config_class):

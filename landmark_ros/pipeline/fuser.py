@@ -21,7 +21,7 @@ from landmark_ros.pipeline.rows import landmark_row_problems, MAX_ID
 import numpy as np
 from numpy.typing import NDArray
 
-NOT_PROBLEMS = frozenset({'landmarks_confirmed', 'saves'})
+NOT_PROBLEMS = frozenset({'landmarks_confirmed', 'saves', 'other_shard'})
 """Fuser counters that do not make its status a warning (a re-initialisation does)."""
 
 
@@ -95,6 +95,7 @@ class Fuser:
         """Whether the confirmed map changed since the last ``snapshot`` was taken."""
         self.unsaved = False
         """Whether the map changed since the last save."""
+        self._updated: List[NDArray[np.int64]] = []
 
     def reconfigure(self, config: FuserConfig) -> None:
         """Apply new parameters (those that may change at run time)."""
@@ -153,6 +154,11 @@ class Fuser:
         ids = np.asarray(ids)
         state.counts['observations_in'] += len(ids)
         valid, reasons = landmark_row_problems(ids, m, P, P_dep)
+        if self.config.shard_count > 1:
+            other = valid & (ids % self.config.shard_count != self.config.shard_index)
+            if other.any():
+                state.counts['other_shard'] += int(other.sum())
+                valid &= ~other
         for reason, count in reasons.items():
             self.reject(source, reason, count, f'{count} of {len(valid)} rows rejected')
         if not valid.any():
@@ -211,6 +217,7 @@ class Fuser:
                               'rebuilt from their recent observations (moved?)')
         if result.changed:
             self.map_changed = self.unsaved = True
+            self._updated.append(result.changed_ids)
         return result
 
     # Output --------------------------------------------------------------------
@@ -220,12 +227,28 @@ class Fuser:
         self.map_changed = False
         return self.map.snapshot()
 
+    def take_updates(self):
+        """
+        Return the confirmed landmarks that changed since the last call.
+
+        Returns
+        -------
+        MapSnapshot
+            Rows (sorted by ID) of the landmarks whose estimate changed; empty when none.
+
+        """
+        changed = np.unique(np.concatenate(self._updated)) if self._updated else np.empty(
+            0, np.int64)
+        self._updated = []
+        return self.map.snapshot(changed)
+
     def reset(self) -> int:
         """Clear the map and the queues; return how many landmarks were cleared."""
         count = len(self.map)
         self.map.reset()
         for state in self.sources.values():
             state.queue.clear()
+        self._updated = []
         self.map_changed = False
         self.unsaved = True
         return count

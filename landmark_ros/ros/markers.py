@@ -10,13 +10,23 @@ ELLIPSE_HEIGHT = 0.02
 """Thickness of the flat cylinder that draws an ellipse [m]."""
 
 
+def marker_id(landmark_id):
+    """
+    Return the int32 ``Marker.id`` of a landmark ID in 0..2^32-1 (two's complement).
+
+    IDs above 2^31 - 1 wrap to negative markers IDs, one to one.
+    """
+    return landmark_id - (1 << 32) if landmark_id >= 1 << 31 else landmark_id
+
+
 def landmark_markers(header, ids, m, P_m, sigma, lifetime_s=0.0, rgb=(0.1, 0.6, 1.0),
                      prefix=''):
     """
     Return one ellipse and one text label per landmark.
 
     Markers are keyed by landmark ID (namespaces ``<prefix>ellipses`` and
-    ``<prefix>labels``), so a newer estimate replaces the older one in RViz.
+    ``<prefix>labels``; ``marker_id``), so a newer estimate replaces the older one in
+    RViz.
 
     Parameters
     ----------
@@ -46,7 +56,7 @@ def landmark_markers(header, ids, m, P_m, sigma, lifetime_s=0.0, rgb=(0.1, 0.6, 
     lifetime = Duration(sec=int(lifetime_s), nanosec=int((lifetime_s % 1.0) * 1e9))
     markers = []
     for i, landmark_id in enumerate(int(v) for v in ids):
-        ellipse = Marker(header=header, ns=prefix + 'ellipses', id=landmark_id,
+        ellipse = Marker(header=header, ns=prefix + 'ellipses', id=marker_id(landmark_id),
                          type=Marker.CYLINDER, action=Marker.ADD, lifetime=lifetime)
         ellipse.pose.position.x, ellipse.pose.position.y = float(m[i, 0]), float(m[i, 1])
         ellipse.pose.orientation.z = float(np.sin(angle[i] / 2.0))
@@ -55,7 +65,7 @@ def landmark_markers(header, ids, m, P_m, sigma, lifetime_s=0.0, rgb=(0.1, 0.6, 
         ellipse.scale.y = max(2.0 * float(minor[i]), 1e-3)
         ellipse.scale.z = ELLIPSE_HEIGHT
         ellipse.color.r, ellipse.color.g, ellipse.color.b, ellipse.color.a = (*rgb, 0.5)
-        label = Marker(header=header, ns=prefix + 'labels', id=landmark_id,
+        label = Marker(header=header, ns=prefix + 'labels', id=marker_id(landmark_id),
                        type=Marker.TEXT_VIEW_FACING, action=Marker.ADD, lifetime=lifetime,
                        text=str(landmark_id))
         label.pose.position.x, label.pose.position.y = float(m[i, 0]), float(m[i, 1])

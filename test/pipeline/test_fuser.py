@@ -174,3 +174,49 @@ def test_a_corrupt_file_is_moved_aside(tmp_path):
 def test_duplicate_sources_are_refused():
     with pytest.raises(ValueError, match='twice'):
         Fuser(FuserConfig(), ['/a', '/a'])
+
+
+def test_take_updates_returns_only_the_landmarks_changed_since_last_time(rng):
+    fuser = Fuser(FuserConfig(fusion='independent'), SOURCES)
+    for _ in range(2):
+        fuser.add_landmarks(SOURCES[0], S, *rows(6, rng))
+    fuser.fuse_queued()
+    assert fuser.take_updates().ids.tolist() == list(range(6))
+    assert fuser.take_updates().ids.tolist() == []
+    fuser.add_landmarks(SOURCES[1], 2 * S, *rows(2, rng, ids=[4, 1]))
+    fuser.fuse_queued()
+    updates = fuser.take_updates()
+    full = fuser.snapshot()
+    assert updates.ids.tolist() == [1, 4]
+    for a, b in zip(updates, full, strict=True):
+        np.testing.assert_array_equal(a, b[[1, 4]])
+
+
+@pytest.mark.parametrize('fusion', ['independent', 'split_covariance_intersection'])
+def test_two_shards_together_give_the_map_of_one_fuser(fusion, rng):
+    one = Fuser(FuserConfig(fusion=fusion), SOURCES)
+    shards = [Fuser(FuserConfig(fusion=fusion, shard_count=2, shard_index=k), SOURCES)
+              for k in range(2)]
+    for k in range(8):
+        batch = rows(9, rng, spread=0.1)
+        for fuser in [one] + shards:
+            fuser.add_landmarks(SOURCES[k % 2], (k + 1) * S, *batch)
+        if k % 3 == 2:
+            for fuser in [one] + shards:
+                fuser.fuse_queued()
+    for fuser in [one] + shards:
+        fuser.fuse_queued()
+    whole = one.snapshot()
+    parts = [shard.snapshot() for shard in shards]
+    assert parts[0].ids.tolist() == [0, 2, 4, 6, 8] and parts[1].ids.tolist() == [1, 3, 5, 7]
+    order = np.argsort(np.concatenate([p.ids for p in parts]))
+    for j, column in enumerate(whole):
+        joined = np.concatenate([p[j] for p in parts])[order]
+        np.testing.assert_array_equal(joined, column)
+    assert shards[0].sources[SOURCES[0]].counts['other_shard'] == 4 * 4
+    assert 'other_shard' not in problems(shards[0])
+
+
+def test_shard_index_must_be_below_the_count():
+    with pytest.raises(ValueError, match='shard_index'):
+        FuserConfig(shard_count=2, shard_index=2)
