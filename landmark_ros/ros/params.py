@@ -116,7 +116,7 @@ def _override(spec, parameter):
         got = (f'the {TYPE_NAMES.get(parameter.type_, parameter.type_.name.lower())} '
                f'{parameter.value!r}' if parameter.type_ != Parameter.Type.NOT_SET
                else 'no value')
-        raise ValueError(f'{spec.name} is a {TYPE_NAMES[kind]} parameter, got {got}: write '
+        raise ValueError(f'{spec.name} is of type {TYPE_NAMES[kind]}, got {got}: write '
                          f'e.g. {spec.name}:={example(spec)}')
     return parameter
 
