@@ -87,5 +87,5 @@ def test_empty_input_topics_gives_the_packages_message():
 def test_a_string_for_a_double_says_what_to_write():
     result = run('landmark_observer', '--ros-args', '-p', 'range_stddev:=wide')
     assert result.returncode == 2
-    assert result.stderr == ("landmark_observer: invalid parameters: range_stddev is of type "
+    assert result.stderr == ('landmark_observer: invalid parameters: range_stddev is of type '
                              "double, got the string 'wide': write e.g. range_stddev:=0.1\n")

@@ -76,8 +76,8 @@ class OdometryRig:
 @pytest.mark.parametrize('frame', ['odom', 'map'])
 def test_odometry_pose_and_covariance_give_the_textbook_landmark(env, frame):
     rig = OdometryRig(env, world_frame=frame, base_frame='base_link')
-    names = dict(rig.node.get_subscriber_names_and_types_by_node('landmark_observer',
-                                                                  '/robot1'))
+    names = dict(rig.node.get_subscriber_names_and_types_by_node(
+        'landmark_observer', '/robot1'))
     assert names['/robot1/odometry'] == ['nav_msgs/msg/Odometry']
     assert '/robot1/pose' not in names
     rig.send(rig.odometry_pub, odometry(10.0, frame))
