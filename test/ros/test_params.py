@@ -10,6 +10,7 @@ from landmark_ros.sim.simulation import SimConfig
 import pytest
 from rcl_interfaces.msg import ParameterType
 from rclpy.parameter import Parameter
+from rclpy.parameter_client import AsyncParameterClient
 import yaml
 
 
@@ -117,3 +118,19 @@ def test_help_lists_every_parameter_with_type_and_default(config_class):
     if config_class is ObserverConfig:
         assert '  range_stddev (double, default 0.1, 0 to 1000)' in text
         assert '  sensor_pose (double[], default [0.0, 0.0, 0.0], read-only)' in text
+
+
+def test_ros2_param_set_with_an_integer_over_the_service(env):
+    # What `ros2 param set /landmark_observer range_stddev 1` sends.
+    node = env.add(LandmarkObserver(context=env.context))
+    client = AsyncParameterClient(env.node('param_client'), 'landmark_observer')
+    assert env.spin_until(lambda: client.services_are_ready(), 10.0)
+    future = client.set_parameters([Parameter('range_stddev', value=1)])
+    assert env.spin_until(future.done, 10.0)
+    result, = future.result().results
+    assert result.successful, result.reason
+    future = client.describe_parameters(['range_stddev'])
+    assert env.spin_until(future.done, 10.0)
+    assert future.result().descriptors[0].type == ParameterType.PARAMETER_DOUBLE
+    assert node.get_parameter('range_stddev').value == 1.0
+    assert node.config.range_stddev == 1.0
