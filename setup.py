@@ -13,6 +13,8 @@ setup(
         ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
         ('share/' + package_name, ['package.xml']),
         ('share/' + package_name + '/config', glob('config/*.yaml')),
+        ('share/' + package_name + '/launch', glob('launch/*.launch.py')),
+        ('share/' + package_name + '/rviz', glob('rviz/*.rviz')),
     ],
     # Only plain-PyPI runtime deps here. The ROS 2 packages (rclpy, *_msgs,
     # std_srvs) are declared in package.xml and come from apt/rosdep on a ROS

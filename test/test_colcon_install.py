@@ -82,6 +82,15 @@ def test_config_files_installed(install_prefix):
     assert installed == source
 
 
+@pytest.mark.parametrize('folder, pattern', [('launch', '*.launch.py'), ('rviz', '*.rviz')])
+def test_launch_and_rviz_files_installed(install_prefix, folder, pattern):
+    source = {p.name for p in (REPO_ROOT / folder).glob(pattern)}
+    assert source, f'no {folder}/{pattern} in the repository'
+    target = install_prefix / 'share' / PACKAGE / folder
+    installed = {p.name for p in target.glob(pattern)} if target.is_dir() else set()
+    assert installed == source
+
+
 def _declared_console_scripts(install_prefix):
     """Console scripts from the entry_points.txt colcon installed (none: no file)."""
     names = set()

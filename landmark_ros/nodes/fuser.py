@@ -25,6 +25,7 @@ from landmark_ros.ros.schemas import landmark_message, read_landmarks
 from landmark_ros.ros.subscriptions import take_waiting
 import numpy as np
 from rclpy.node import Node
+from rclpy.qos_overriding_options import QoSOverridingOptions
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header
 from std_srvs.srv import Trigger
@@ -49,11 +50,14 @@ class LandmarkFuser(Node):
         super().__init__('landmark_fuser', **kwargs)
         config = declare_config(self, FuserConfig)
         self._subscriptions_by_topic = {}
-        input_qos = qos.reliable_input(config.input_depth)
+        # qos_overrides.<topic>.subscription.* parameters, per input topic. rclpy applies
+        # them to the profile it is given: each subscription gets its own.
+        overrides = QoSOverridingOptions.with_default_policies()
         for topic in config.input_topics:
             self._subscriptions_by_topic[topic] = self.create_subscription(
                 PointCloud2, topic, self._guard(lambda msg, topic=topic: self.on_landmarks(
-                    msg, topic), 'landmarks callback'), input_qos)
+                    msg, topic), 'landmarks callback'),
+                qos.reliable_input(config.input_depth), qos_overriding_options=overrides)
         self._source_of = {topic: subscription.topic_name
                            for topic, subscription in self._subscriptions_by_topic.items()}
         self.fuser = Fuser(config, list(self._source_of.values()), self.get_logger())

@@ -1,7 +1,8 @@
 """
 landmark_observer: robot pose and range-bearing observations in, landmarks out.
 
-Subscribes ``pose`` (geometry_msgs/PoseWithCovarianceStamped) and ``observations``
+Subscribes ``pose`` (geometry_msgs/PoseWithCovarianceStamped; with ``pose_type:
+odometry`` ``odometry``, nav_msgs/Odometry, instead) and ``observations``
 (sensor_msgs/PointCloud2 with ``id``, ``range``, ``bearing`` and optional noise
 fields); publishes ``landmarks`` (PointCloud2: ``id``, ``x``, ``y``, ``z``,
 ``cov_xx``, ``cov_xy``, ``cov_yy`` and the dependent part ``cov_dep_*``),
@@ -17,11 +18,13 @@ from landmark_ros.pipeline.config import ObserverConfig
 from landmark_ros.pipeline.observer import ObservationMessage, Observer
 from landmark_ros.ros import diagnostics, guard, qos, runner
 from landmark_ros.ros.cloud import CloudError, read_columns
-from landmark_ros.ros.conversions import InputError, pose_from_msg, stamp_ns
+from landmark_ros.ros.conversions import (InputError, pose_from_msg, pose_from_odometry,
+                                          stamp_ns)
 from landmark_ros.ros.markers import landmark_markers
 from landmark_ros.ros.params import declare_config, keep_in_sync
 from landmark_ros.ros.schemas import landmark_message, OBSERVATION_FIELDS
 from landmark_ros.ros.subscriptions import take_waiting
+from nav_msgs.msg import Odometry
 import numpy as np
 from rclpy.event_handler import PublisherEventCallbacks
 from rclpy.node import Node
@@ -42,9 +45,15 @@ class LandmarkObserver(Node):
         self._latest_markers = {}
 
         overrides = QoSOverridingOptions.with_default_policies()
-        self.create_subscription(PoseWithCovarianceStamped, 'pose', self._guard(self.on_pose),
-                                 qos.sensor_input(config.input_depth),
-                                 qos_overriding_options=overrides)
+        if config.pose_type == 'odometry':
+            self.create_subscription(Odometry, 'odometry', self._guard(self.on_odometry),
+                                     qos.sensor_input(config.input_depth),
+                                     qos_overriding_options=overrides)
+        else:
+            self.create_subscription(PoseWithCovarianceStamped, 'pose',
+                                     self._guard(self.on_pose),
+                                     qos.sensor_input(config.input_depth),
+                                     qos_overriding_options=overrides)
         self._observation_sub = self.create_subscription(
             PointCloud2, 'observations', self._guard(self.on_observations),
             qos.sensor_input(config.input_depth), qos_overriding_options=overrides)
@@ -60,7 +69,7 @@ class LandmarkObserver(Node):
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics',
                                                      qos.DIAGNOSTICS, event_callbacks=quiet)
         self._tick_timer = None
-        self._last_run = {}
+        self._next_due = {}
         self._reset_timers()
 
     def _guard(self, callback):
@@ -84,19 +93,35 @@ class LandmarkObserver(Node):
 
     def _reset_timers(self):
         # One timer for all housekeeping: every timer in a node costs every message
-        # some executor time, so the node keeps a single one.
+        # some executor time, so the node keeps a single one, at the shortest period;
+        # each task keeps its own schedule (_due).
         if self._tick_timer is not None:
             self.destroy_timer(self._tick_timer)
         periods = [self.config.diagnostics_period_s, max(self.config.max_wait_s / 2.0, 0.01)]
         if self.config.marker_rate_hz > 0.0:
             periods.append(1.0 / self.config.marker_rate_hz)
+        self._tick_ns = int(min(periods) * 1e9)
+        self._next_due.pop('markers', None)
         self._tick_timer = self.create_timer(min(periods), self._guard(self.tick))
 
     def _due(self, task, period_s, now):
-        last = self._last_run.get(task)
-        if last is not None and 0 <= now - last < period_s * 1e9:
-            return False
-        self._last_run[task] = now
+        """
+        Return whether ``task`` is due at ``now`` [ns]; if so, schedule its next run.
+
+        The next due time advances by the period from the last due time, not from
+        ``now``, so a tick that comes a little early or late neither drops a run nor
+        shifts the rest: over time the task runs at exactly 1 / ``period_s``. A tick
+        within half a tick period of the due time counts as on time. After a stall (or
+        a clock jump) of more than a period the schedule restarts from ``now``.
+        """
+        period = int(period_s * 1e9)
+        due = self._next_due.get(task)
+        if due is not None and now < due - self._tick_ns // 2:
+            if due - now <= period + self._tick_ns:
+                return False
+            due = now  # the clock jumped back
+        due = now if due is None else due
+        self._next_due[task] = due + period if now - due < period else now + period
         return True
 
     def _now_ns(self):
@@ -114,6 +139,17 @@ class LandmarkObserver(Node):
             self.publish_diagnostics()
 
     # Inputs -------------------------------------------------------------------
+
+    def on_odometry(self, msg):
+        """Convert the pose part of an odometry message and hand it to the observer."""
+        try:
+            pose, P_pose = pose_from_odometry(msg, self.config.world_frame,
+                                              self.config.base_frame)
+        except InputError as error:
+            self.observer.reject(error.reason, 1, error.detail)
+            return
+        self.publish(self.observer.add_pose(stamp_ns(msg.header.stamp), pose, P_pose,
+                                            self._now_ns()))
 
     def on_pose(self, msg):
         """Convert a pose message and hand it to the observer; publish what it unblocks."""

@@ -102,12 +102,24 @@ def _coerce(spec, value):
     return tuple(float(v) for v in items)
 
 
+POSE_TYPES = ('pose_with_covariance', 'odometry')
+"""Values of ``ObserverConfig.pose_type``: the message type of the robot pose input."""
+
+
 @dataclass(frozen=True)
 class ObserverConfig(ConfigBase):
     """Parameters of ``landmark_observer``."""
 
     world_frame: str = param(
         'map', 'Frame of the robot poses in and of the landmarks out.', read_only=True)
+    pose_type: str = param(
+        'pose_with_covariance', "Robot pose input: 'pose_with_covariance' subscribes 'pose' "
+        "(geometry_msgs/PoseWithCovarianceStamped), 'odometry' subscribes 'odometry' "
+        '(nav_msgs/Odometry, e.g. from robot_localization; the twist is ignored).',
+        read_only=True)
+    base_frame: str = param(
+        '', "Robot frame an odometry message must name as its child_frame_id; '' accepts "
+        'any.', read_only=True)
     sensor_frame: str = param(
         '', "Frame the observation clouds must carry; '' accepts any.", read_only=True)
     sensor_pose: tuple = param(
@@ -172,6 +184,8 @@ class ObserverConfig(ConfigBase):
         """Check relations between fields."""
         if self.max_pose_gap_s > self.pose_buffer_s:
             raise ValueError('max_pose_gap_s must not exceed pose_buffer_s')
+        if self.pose_type not in POSE_TYPES:
+            raise ValueError(f'pose_type must be one of {POSE_TYPES}, got {self.pose_type!r}')
 
 
 @dataclass(frozen=True)

@@ -47,6 +47,9 @@ def save(path, records, world_frame, fusion):
     handle, temporary = tempfile.mkstemp(prefix='.' + os.path.basename(path) + '.',
                                          suffix='.tmp', dir=directory)
     try:
+        # mkstemp makes the file 0600; the map gets the mode of the file it replaces,
+        # or the usual one (0666 less the umask), as open() would have given it.
+        os.fchmod(handle, _file_mode(path))
         with os.fdopen(handle, 'w') as stream:
             json.dump(document, stream, indent=1, allow_nan=False)  # never a NaN or inf
             stream.write('\n')
@@ -62,6 +65,28 @@ def save(path, records, world_frame, fusion):
         os.fsync(descriptor)
     finally:
         os.close(descriptor)
+
+
+def _umask():
+    """Return the process umask (from /proc where possible: reading it so is race-free)."""
+    try:
+        with open('/proc/self/status') as status:
+            for line in status:
+                if line.startswith('Umask:'):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError):
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+def _file_mode(path):
+    """Return the permission bits a new map file at ``path`` gets."""
+    try:
+        return os.stat(path).st_mode & 0o7777
+    except OSError:
+        return 0o666 & ~_umask()
 
 
 def remove_stale_temporaries(path):

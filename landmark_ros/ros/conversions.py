@@ -113,3 +113,38 @@ def pose_from_msg(msg, world_frame):
         raise InputError(f'pose_{COVARIANCE_PROBLEMS[status]}',
                          f'(x, y, yaw) block {P_pose.tolist()}')
     return np.array([position.x, position.y, yaw]), P_pose
+
+
+def pose_from_odometry(msg, world_frame, base_frame=''):
+    """
+    Return the planar pose and its covariance from a nav_msgs/Odometry message.
+
+    The pose part is read with every check of ``pose_from_msg`` (its header frame must
+    be ``world_frame``, its 6x6 row-major covariance gives the (x, y, yaw) block); the
+    twist is ignored.
+
+    Parameters
+    ----------
+    msg : nav_msgs.msg.Odometry
+        The message to read.
+    world_frame : str
+        The frame the pose must be given in (``header.frame_id``).
+    base_frame : str
+        The robot frame ``child_frame_id`` must name; '' accepts any.
+
+    Returns
+    -------
+    pose : ndarray, shape (3,)
+    P_pose : ndarray, shape (3, 3)
+
+    Raises
+    ------
+    InputError
+        ``pose_wrong_child_frame``, or any reason of ``pose_from_msg``.
+
+    """
+    pose, P_pose = pose_from_msg(msg, world_frame)
+    if base_frame and msg.child_frame_id != base_frame:
+        raise InputError('pose_wrong_child_frame',
+                         f"odometry of frame '{msg.child_frame_id}', expected '{base_frame}'")
+    return pose, P_pose

@@ -1,11 +1,138 @@
-"""The console entry point every node of the package shares."""
+"""
+The console entry point every node of the package shares.
 
+``run`` handles the command line the way users expect of a ROS tool: ``-h`` /
+``--help`` before ``--ros-args`` print the usage (topics, parameter file, every
+parameter with its type, default and range) and exit 0; a missing parameter file, a
+remap or override rcl cannot parse, an unknown argument or an invalid parameter give
+one line on stderr and exit code 2, never a traceback.
+"""
+
+import importlib
+import os
 import signal
 import sys
+import tempfile
 
 import rclpy
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException
+from rclpy.impl.implementation_singleton import rclpy_implementation
+
+USAGE_ERROR = 2
+"""Exit code of a command line or parameter the node cannot start with."""
+
+NODE_CONFIGS = {
+    'landmark_observer': ('landmark_ros.pipeline.config', 'ObserverConfig', 'observer.yaml'),
+    'landmark_fuser': ('landmark_ros.pipeline.config', 'FuserConfig', 'fuser.yaml'),
+    'landmark_sim': ('landmark_ros.sim.simulation', 'SimConfig', 'sim.yaml'),
+}
+"""Per executable: module and name of its config class, its shipped parameter file."""
+
+
+def split_arguments(argv):
+    """
+    Split a command line into the arguments before and inside ``--ros-args``.
+
+    Parameters
+    ----------
+    argv : list of str
+        The command line without the program name.
+
+    Returns
+    -------
+    own : list of str
+        Arguments outside every ``--ros-args ... [--]`` block.
+    ros : list of str
+        Arguments inside them.
+
+    """
+    own, ros, inside = [], [], False
+    for arg in argv:
+        if arg == '--ros-args':
+            inside = True
+        elif inside and arg == '--':
+            inside = False
+        else:
+            (ros if inside else own).append(arg)
+    return own, ros
+
+
+def usage(node_class, name):
+    """
+    Return the ``--help`` text of a node.
+
+    Parameters
+    ----------
+    node_class : type
+        The Node subclass; its module docstring describes the topics.
+    name : str
+        The executable (and default node) name.
+
+    Returns
+    -------
+    str
+
+    """
+    text = [f'usage: {name} [-h] [--ros-args [-r __ns:=/NAMESPACE] [-r FROM:=TO] '
+            '[--params-file FILE] [-p NAME:=VALUE] ...]', '']
+    doc = sys.modules[node_class.__module__].__doc__ or ''
+    text += [doc.strip(), '']
+    if name in NODE_CONFIGS:
+        from landmark_ros.ros.params import parameter_help
+        module, class_name, params_file = NODE_CONFIGS[name]
+        config_class = getattr(importlib.import_module(module), class_name)
+        text += [
+            'Parameter file: config/' + params_file + ' of the package, installed as',
+            f'  $(ros2 pkg prefix --share landmark_ros)/config/{params_file}:',
+            f'  {name} --ros-args --params-file FILE -p NAME:=VALUE',
+            f"Its section '/**/{name}' applies to every node named {name} in any "
+            'namespace;',
+            'a node renamed with -r __node:=OTHER reads the section of OTHER instead.',
+            'Integers are accepted for doubles (range_stddev:=1, sensor_pose:=[0, 0, 1]);',
+            'a list must not mix them: [0.0, 0, 1] is refused, write [0.0, 0.0, 1.0].',
+            '', 'Parameters:', parameter_help(config_class)]
+    return '\n'.join(text) + '\n'
+
+
+def _error(name, text):
+    print(f'{name}: {text}', file=sys.stderr)
+    return USAGE_ERROR
+
+
+def _rcl_message(error):
+    """Return the first sentence of an rcl initialisation error, without source locations."""
+    text = str(error).replace('failed to initialize rcl: ', '')
+    text = text.split(', at /')[0].strip()
+    if 'Sequence should be of same type' in text:
+        text += ('; every entry of a list must have the same type: write doubles with a '
+                 'decimal point, e.g. [0.0, 0.0, 1.0]')
+    return text
+
+
+def _init(args, name):
+    """
+    Initialise rclpy; return None or the one-line reason it refused the command line.
+
+    rcl logs its own 'Failed to parse global arguments' line on stderr before the
+    exception; it is kept only when initialisation succeeds (nothing to hide then).
+    """
+    saved = os.dup(2)
+    with tempfile.TemporaryFile() as captured:
+        sys.stderr.flush()
+        os.dup2(captured.fileno(), 2)
+        try:
+            rclpy.init(args=args)
+            failure = None
+        except rclpy_implementation.RCLError as error:
+            failure = _rcl_message(error)
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+        if failure is None:
+            captured.seek(0)
+            sys.stderr.write(captured.read().decode(errors='replace'))
+    return failure
 
 
 def run(node_class, name, args=None, startup_errors=(), what='invalid parameters'):
@@ -17,9 +144,9 @@ def run(node_class, name, args=None, startup_errors=(), what='invalid parameters
     node_class : type
         The Node subclass; constructed without arguments.
     name : str
-        For the error message.
+        The executable name, for the help and the error messages.
     args : list of str, optional
-        Command-line arguments for ``rclpy.init``.
+        Command line for ``rclpy.init``, program name first; ``sys.argv`` by default.
     startup_errors : tuple of exception types
         Besides invalid parameters, errors at construction that end the process with
         a message and exit code 2 instead of a traceback.
@@ -29,15 +156,28 @@ def run(node_class, name, args=None, startup_errors=(), what='invalid parameters
     Returns
     -------
     int
-        0 after a normal shutdown (Ctrl-C, SIGTERM, external shutdown), 2 if the
-        node could not start.
+        0 after a normal shutdown (Ctrl-C, SIGTERM, external shutdown) or ``--help``,
+        2 if the command line is wrong or the node could not start.
 
     """
+    argv = list(sys.argv if args is None else args)
+    own, ros = split_arguments(argv[1:])
+    if '-h' in own or '--help' in own:
+        sys.stdout.write(usage(node_class, name))
+        return 0
+    if own:
+        return _error(name, f'unknown argument {own[0]!r}: ROS arguments go after '
+                            '--ros-args (see --help)')
+    for flag, value in zip(ros, ros[1:]):
+        if flag == '--params-file' and not os.path.isfile(value):
+            return _error(name, f'parameter file not found: {value}')
     if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
         # Started in the background of a script: SIGINT (what launchers send to stop
         # a node) would otherwise be ignored.
         signal.signal(signal.SIGINT, signal.default_int_handler)
-    rclpy.init(args=args)
+    failure = _init(argv, name)
+    if failure is not None:
+        return _error(name, f'bad command line: {failure}')
     node = None
     try:
         node = node_class()
@@ -47,8 +187,7 @@ def run(node_class, name, args=None, startup_errors=(), what='invalid parameters
     except (ValueError, ParameterException, *startup_errors) as error:
         if node is not None and not rclpy.ok():
             return 0  # a stop signal during a callback: a clean stop all the same
-        print(f'{name}: {what}: {error}', file=sys.stderr)
-        return 2
+        return _error(name, f'{what}: {error}')
     except Exception:  # noqa: B902 - see below
         # rclpy raises from inside the executor when a stop signal invalidates the
         # context in the middle of a take or a publish: that is a clean stop too.
