@@ -4,7 +4,8 @@ from collections import Counter
 
 from landmark_ros.core.gaussian import (COVARIANCE_ASYMMETRIC, COVARIANCE_NOT_PSD,
                                         COVARIANCE_PROBLEMS, COVARIANCE_RANGE_PROBLEMS,
-                                        covariance_range_status, covariance_status)
+                                        covariance_range_status, covariance_status,
+                                        MAX_CONDITION, MAX_VARIANCE, MIN_VARIANCE)
 from landmark_ros.core.landmarks import landmark_to_world_dependent
 from landmark_ros.core.sensors import MIN_RANGE
 import numpy as np
@@ -176,7 +177,7 @@ def landmarks_from_rows(ids, z, R, pose, P_pose, sensor_pose=None, R_bias=None):
         m, P_m, P_dep = landmark_to_world_dependent(pose, P_pose, z, R, R_bias, sensor_pose)
         finite = np.isfinite(m.sum(axis=1) + P_m.sum(axis=(1, 2)) + P_dep.sum(axis=(1, 2)))
     # Only covariances the core handles leave the observer (core.gaussian's range).
-    status = np.atleast_1d(covariance_range_status(np.where(finite[:, None, None], P_m, 1.0)))
+    status = range_status(P_m, finite)
     good = finite & (status == 0)
     if not good.all():
         reasons['result_nonfinite'] += int((~finite).sum())
@@ -220,8 +221,7 @@ def landmark_row_problems(ids, m, P, P_dep):
         definite = (a > 0.0) & (a * c - b * b > 1e-12) & (np.abs(b - unit[:, 1, 0]) <= 1e-9)
         rest = unit - dep
         dependent = _psd_2x2(dep) & _psd_2x2(rest)
-        in_range = np.atleast_1d(covariance_range_status(
-            np.where((finite & definite)[:, None, None], P, np.eye(2)))) == 0
+        in_range = range_status(P, finite & definite) == 0
         valid = finite & definite & in_range & dependent & (ids >= 0) & (ids <= MAX_ID)
         if valid.all():
             return valid, Counter()
@@ -237,6 +237,40 @@ def landmark_row_problems(ids, m, P, P_dep):
     checks += [(name, span == code) for code, name in COVARIANCE_RANGE_PROBLEMS.items()]
     checks.append(('dependent_part_invalid', ~dependent))
     return first_problems(len(ids), checks)
+
+
+def range_status(P, usable):
+    """
+    Return ``core.gaussian.covariance_range_status`` of symmetric 2x2 covariances, fast.
+
+    A sufficient test in a few vector operations passes most rows (diagonal inside
+    ``[MIN_VARIANCE, MAX_VARIANCE]`` and ``trace^2 <= MAX_CONDITION det``, which bounds
+    the condition number since the largest eigenvalue is below the trace); only the
+    others go through the core's exact check.
+
+    Parameters
+    ----------
+    P : ndarray, shape (N, 2, 2)
+        Covariances [m^2].
+    usable : ndarray of bool, shape (N,)
+        Rows to check; the others get status 0 (they are rejected for another reason).
+
+    Returns
+    -------
+    ndarray of int, shape (N,)
+        0 where in range, else a code of ``COVARIANCE_RANGE_PROBLEMS``.
+
+    """
+    a, b, c = P[:, 0, 0], P[:, 0, 1], P[:, 1, 1]
+    with np.errstate(invalid='ignore', over='ignore'):
+        trace = a + c
+        fast = (np.minimum(a, c) >= MIN_VARIANCE) & (np.maximum(a, c) <= MAX_VARIANCE) & (
+            trace * trace <= MAX_CONDITION * (a * c - b * b))
+    status = np.zeros(len(P), np.int64)
+    slow = usable & ~fast
+    if slow.any():
+        status[slow] = np.atleast_1d(covariance_range_status(P[slow]))
+    return status
 
 
 def _psd_2x2(P, tol=1e-9):

@@ -305,3 +305,16 @@ def test_landmarks_from_rows_dependent_part_is_the_pose_and_bias(rng, no_warning
     _, _, P_m3, P_dep3, _ = landmarks_from_rows(ids, z, R, pose, P_pose, R_bias=R_bias)
     np.testing.assert_allclose(P_m3 - P_m2, P_dep3 - P_dep2, rtol=0, atol=1e-12)
     assert np.all(np.linalg.eigvalsh(P_dep3 - P_dep2)[:, -1] > 0)
+
+
+# --- range_status ----------------------------------------------------------------------------
+
+def test_range_status_fast_path_agrees_with_the_core(rng):
+    from landmark_ros.core.gaussian import covariance_range_status
+    from landmark_ros.pipeline.rows import range_status
+    scale = 10.0 ** rng.uniform(-14, 14, (4000, 1, 1))
+    P = random_spd(rng, 2, 4000, eps=10.0 ** rng.uniform(-12, 0, (4000, 1, 1))) * scale
+    P[:50] = [[1.0, 1.0 - 1e-10], [1.0 - 1e-10, 1.0]]          # ill conditioned
+    expected = np.atleast_1d(covariance_range_status(P))
+    assert 0 < (expected == 0).sum() < len(P)                   # both kinds present
+    np.testing.assert_array_equal(range_status(P, np.ones(len(P), bool)), expected)
