@@ -432,7 +432,9 @@ def sci_omega_2x2(P1i, P1d, P2i, P2d):
                  for P in constants[:6]]
         parts += [np.broadcast_to(x, shape).reshape(-1)[active] for x in constants[6:]]
         lo, hi = lo.reshape(-1)[active], hi.reshape(-1)[active]
-        u = np.full(active.size, 0.5)
+        # Start where the slope, interpolated linearly between the ends, is zero.
+        a, b = slope_lo.reshape(-1)[active], slope_hi.reshape(-1)[active]
+        u = lo + (hi - lo) * (a / (a - b))
         for _ in range(200):
             slope, curvature = _sci_slope(u, *parts)
             positive = slope > 0.0
@@ -440,10 +442,11 @@ def sci_omega_2x2(P1i, P1d, P2i, P2d):
             hi = np.where(positive, hi, u)
             step = slope / curvature
             new = u - step
-            new = np.where((new > lo) & (new < hi), new, 0.5 * (lo + hi))
-            done = (np.abs(new - u) <= OMEGA_TOLERANCE) | (hi - lo <= OMEGA_TOLERANCE) | (
-                slope == 0.0)
-            flat[active[done]] = np.where(slope[done] == 0.0, u[done], new[done])
+            # A step below the tolerance ends the search at the Newton point (which
+            # may round onto the bracket's end); a step out of the bracket bisects.
+            done = (np.abs(step) <= OMEGA_TOLERANCE) | (hi - lo <= OMEGA_TOLERANCE)
+            new = np.where(done | ((new > lo) & (new < hi)), new, 0.5 * (lo + hi))
+            flat[active[done]] = new[done]
             keep = ~done
             if not keep.any():
                 break

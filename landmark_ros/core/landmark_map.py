@@ -49,7 +49,7 @@ from collections import Counter, deque
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
-from landmark_ros.core._arrays import (det_2x2, inverse_2x2, mahalanobis_sq_2x2,
+from landmark_ros.core._arrays import (inverse_2x2, mahalanobis_sq_2x2, power_of_4_scale,
                                        symmetric_2x2)
 from landmark_ros.core.gaussian import (chi2_threshold, covariance_intersection, fuse,
                                         information, sci_omega_2x2, split_ci_2x2_entries,
@@ -761,7 +761,7 @@ class _SourceParts:
         valid = columns < counts[:, None]
         slots = self.slots[np.minimum(lo[:, None] + columns, len(self.keys) - 1)]
         m, P_ind, P_dep = self.estimate(slots)
-        size = np.where(valid, det_2x2(*(i + d for i, d in zip(P_ind, P_dep))), np.inf)
+        size = np.where(valid, _log2_det(*(i + d for i, d in zip(P_ind, P_dep))), np.inf)
         order = np.argsort(size, axis=1, kind='stable')
 
         def column(parts, j, k):
@@ -812,6 +812,19 @@ class _SourceParts:
             self.Y[slot] = Y[0, 0], 0.5 * (Y[0, 1] + Y[1, 0]), Y[1, 1]
             self.y[slot] = np.array(record['information_mean'], dtype=np.float64).reshape(2)
             self.Q[slot] = Q.reshape(4)
+
+
+def _log2_det(a, b, c):
+    """
+    Return a key increasing with ``a c - b^2`` (about its base-2 logarithm), never inf.
+
+    From the scaled determinant's exact exponent and mantissa: it orders covariances
+    by size however large or small they are; -inf for a singular one.
+    """
+    s = power_of_4_scale(a, c)
+    mantissa, exponent = np.frexp((a / s) * (c / s) - (b / s) * (b / s))
+    key = exponent + 2 * (np.frexp(s)[1] - 1) + 2.0 * (mantissa - 0.5)
+    return np.where(mantissa > 0.0, key, -np.inf)
 
 
 def _one_source(mean, P_ind, P_dep):

@@ -812,3 +812,127 @@ def test_split_ci_is_tighter_than_ci_in_the_map(map_nees):
     ratio = out['split_covariance_intersection'][2] / out['covariance_intersection'][2]
     assert np.median(ratio) < 0.95 and np.quantile(ratio, 0.99) < 1.0
     assert out['split_covariance_intersection'][0] < out['covariance_intersection'][0]
+
+
+# --- scale safety (issue 9) --------------------------------------------------------------------
+
+def one_landmark_rows(count, R):
+    """Return ``count`` agreeing rows of landmark 1 with covariance R, in units of its scale."""
+    sigma = np.sqrt(R[0, 0])
+    z = sigma * (np.array([3.0, 4.0]) + 0.1 * np.arange(count)[:, None])
+    return [1] * count, z, np.repeat(np.asarray(R)[None], count, 0)
+
+
+TINY = 1e-200 * np.eye(2)
+HUGE = np.array([[1e200, 1e199], [1e199, 1e200]])
+
+
+@METHODS
+@pytest.mark.parametrize('R', [TINY, HUGE], ids=['1e-200 I', '1e200 correlated'])
+def test_out_of_range_covariances_do_not_raise_and_stay_finite(fusion, R):
+    # These raised IndexError in _agreeing (NaN d2 emptied the cluster): now two
+    # agreeing rows confirm the landmark with the estimate of in-range inputs, scaled.
+    lm = LandmarkMap(fusion)
+    ids, z, Rs = one_landmark_rows(2, R)
+    result = lm.update(ids, z, Rs)
+    assert result.confirmed == [1]
+    _, m, P, P_dep, count = lm.snapshot()
+    assert np.all(np.isfinite(m)) and np.all(np.isfinite(P)) and np.all(np.isfinite(P_dep))
+    assert count.tolist() == [2]
+    unit = LandmarkMap(fusion)
+    unit.update(ids, z / np.sqrt(R[0, 0]), Rs / R[0, 0])
+    _, m_unit, P_unit, _, _ = unit.snapshot()
+    np.testing.assert_allclose(m, m_unit * np.sqrt(R[0, 0]), rtol=1e-12, atol=0)
+    np.testing.assert_allclose(P, P_unit * R[0, 0], rtol=1e-9, atol=0)
+    # A row far away (in units of R) is gated out, a near one is fused.
+    sigma = np.sqrt(R[0, 0])
+    far = lm.update([1], [m[0] + [0.0, 1e3 * sigma]], R[None])
+    assert far.rejected and not far.accepted
+    near = lm.update([1], [m[0] + [0.0, 0.1 * sigma]], R[None])
+    assert near.accepted and np.all(np.isfinite(lm.snapshot().P))
+
+
+@METHODS
+def test_three_rows_of_1e300_give_a_finite_map(fusion):
+    # Three rows of one ID with 1e300 I made NaN means and covariances.
+    R = 1e300 * np.eye(2)
+    ids, z, Rs = one_landmark_rows(3, R)
+    lm = LandmarkMap(fusion, min_observations=3)
+    result = lm.update(ids, z, Rs)
+    assert result.confirmed == [1] and sum(result.accepted.values()) == 3
+    _, m, P, P_dep, count = lm.snapshot()
+    for x in (m, P, P_dep):
+        assert np.all(np.isfinite(x))
+    unit = LandmarkMap(fusion, min_observations=3)
+    unit.update(ids, z / 1e150, Rs / 1e300)
+    _, m_unit, P_unit, _, _ = unit.snapshot()
+    np.testing.assert_allclose(m, m_unit * 1e150, rtol=1e-12, atol=0)
+    np.testing.assert_allclose(P, P_unit * 1e300, rtol=1e-9, atol=0)
+    if fusion != 'covariance_intersection':
+        np.testing.assert_allclose(P[0], R / 3.0, rtol=1e-9, atol=0)
+
+
+def test_agreeing_never_empties_the_cluster():
+    from landmark_ros.core import landmark_map
+    nan = np.full((2, 2), np.nan)
+    observations = [landmark_map._Observation(np.array([k, 0.0]), nan, np.zeros((2, 2)),
+                                              's', k) for k in range(3)]
+    cluster = landmark_map._agreeing(observations, 13.8, lambda *a: a[:3])
+    assert cluster == [observations[-1]]   # the seed, alone
+    lm = LandmarkMap('split_covariance_intersection')
+    result = lm.update([1, 1], [[0.0, 0.0], [0.0, 0.0]], [nan, nan])
+    assert not result.confirmed and len(lm) == 0
+
+
+# --- the records of an update ------------------------------------------------------------------
+
+def test_snapshot_is_a_named_tuple():
+    lm = LandmarkMap('independent', min_observations=1)
+    lm.update([4, 2], [[1.0, 2.0], [3.0, 4.0]], [np.eye(2), 2.0 * np.eye(2)])
+    snapshot = lm.snapshot()
+    assert snapshot.ids.tolist() == [2, 4] and snapshot.ids.dtype == np.int64
+    np.testing.assert_array_equal(snapshot.m, [[3.0, 4.0], [1.0, 2.0]])
+    np.testing.assert_array_equal(snapshot.P[0], 2.0 * np.eye(2))
+    np.testing.assert_array_equal(snapshot.P_dep, np.zeros((2, 2, 2)))
+    assert snapshot.observations.tolist() == [1, 1]
+    ids, m, P, P_dep, count = snapshot
+    assert ids is snapshot.ids and snapshot._fields == ('ids', 'm', 'P', 'P_dep',
+                                                        'observations')
+
+
+@METHODS
+def test_changed_ids_lists_the_landmarks_whose_estimate_changed(fusion):
+    lm = LandmarkMap(fusion, min_observations=2, max_consecutive_rejections=2)
+    R = 0.01 * np.eye(2)
+    result = lm.update([5, 9, 5], [[0.0, 0.0], [9.0, 9.0], [0.0, 0.01]], [R] * 3)
+    assert result.changed_ids.tolist() == [5] and result.changed_ids.dtype == np.int64
+    result = lm.update([9, 5, 5], [[9.0, 9.01], [0.01, 0.0], [50.0, 0.0]], [R] * 3)
+    assert result.changed_ids.tolist() == [5, 9]   # 9 confirmed, 5 fused (one rejected)
+    result = lm.update([5], [[50.0, 0.01]], [R])     # second rejection: moved
+    assert result.reinitialised == [5] and result.changed_ids.tolist() == [5]
+    result = lm.update([9, 7], [[80.0, 0.0], [1.0, 1.0]], [R] * 2)
+    assert not result.changed and result.changed_ids.tolist() == []
+
+
+def test_stamps_are_integer_nanoseconds():
+    lm = LandmarkMap('independent', min_observations=1)
+    big = 1_700_000_000_123_456_789   # beyond float64's integer precision
+    lm.update([1, 1], [[0.0, 0.0], [0.0, 0.0]], [np.eye(2)] * 2, stamp_ns=[big, big + 1])
+    record, = lm.to_records()
+    assert record['first_stamp_ns'] == big and record['last_stamp_ns'] == big + 1
+    assert isinstance(record['first_stamp_ns'], int)
+    with pytest.raises(ValueError, match='integer nanoseconds'):
+        lm.update([1], [[0.0, 0.0]], [np.eye(2)], stamp_ns=1.5)
+    copy = LandmarkMap('independent')
+    copy.load_records([record])
+    assert copy.to_records() == [record]
+
+
+def test_fusion_methods_are_strategy_objects():
+    from landmark_ros.core import landmark_map
+    for fusion in FUSION_METHODS:
+        method = LandmarkMap(fusion)._method
+        assert method.name == fusion
+        for name in ('fuse', 'update', 'initialise', 'records', 'load', 'reset'):
+            assert callable(getattr(method, name))
+    assert set(landmark_map._STRATEGIES) == set(FUSION_METHODS)
