@@ -46,6 +46,7 @@ once, and every computation is element-wise.
 """
 
 from collections import Counter, deque
+import copy
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
@@ -184,6 +185,13 @@ class _Independent:
         """Return method state of one landmark for ``to_records`` (none)."""
         return {}
 
+    def checkpoint(self, rows):
+        """Return what ``restore`` needs to undo an update of ``rows`` (nothing here)."""
+        return None
+
+    def restore(self, state):
+        """Undo an update from a ``checkpoint`` (nothing here)."""
+
     def load(self, landmark_map, row, record, m, P_ind, P_dep):
         """Restore method state of one landmark (none)."""
 
@@ -244,6 +252,14 @@ class _SplitCovarianceIntersection(_Independent):
         """Restore the per-source sums of one landmark (one source if absent)."""
         self.parts.load(row, record.get('per_source') or _one_source(m, P_ind, P_dep),
                         landmark_map.source_code)
+
+    def checkpoint(self, rows):
+        """Return the pair index and the sums of the pairs of ``rows``."""
+        return self.parts.checkpoint(rows)
+
+    def restore(self, state):
+        """Put the pair index and the saved sums back."""
+        self.parts.restore(state)
 
 
 _STRATEGIES = {cls.name: cls for cls in (
@@ -416,6 +432,65 @@ class LandmarkMap:
             If ``stamp_ns`` is not integer.
 
         """
+        ids = np.asarray(ids, dtype=np.int64).reshape(-1)
+        checkpoint = self._checkpoint(ids)
+        try:
+            return self._update(ids, z, R, R_dep, source, stamp_ns)
+        except BaseException:
+            # All or nothing: whatever failed half way, the map is as it was.
+            self._restore(checkpoint)
+            raise
+
+    _ROW_ARRAYS = ('ids', 'mean', 'cov_ind', 'cov_dep', 'confirmed', 'observations',
+                   'rejections', 'consecutive', 'first_stamp_ns', 'last_stamp_ns')
+
+    def _checkpoint(self, ids):
+        """Save what an update of ``ids`` can change (their rows, the registries)."""
+        rows = self._lookup(np.unique(ids))
+        rows = rows[rows >= 0]
+        return {
+            'count': self._count, 'rows': rows,
+            'arrays': {name: getattr(self, name)[rows].copy() for name in self._ROW_ARRAYS},
+            'seen': {source: seen[rows].copy() for source, seen in self._seen_by.items()},
+            'buffers': {row: copy.copy(self._buffers[row]) for row in rows.tolist()
+                        if row in self._buffers},
+            'sources': list(self._source_names),
+            'method': self._method.checkpoint(rows),
+        }
+
+    def _restore(self, checkpoint):
+        """Put the map back to a ``_checkpoint``."""
+        count, rows = checkpoint['count'], checkpoint['rows']
+        for name, values in checkpoint['arrays'].items():
+            getattr(self, name)[rows] = values
+        added = np.arange(count, self._count)
+        added_ids = self.ids[added].tolist()
+        for name in self._ROW_ARRAYS:      # rows added by the failed update, as new
+            getattr(self, name)[added] = _NO_STAMP if name == 'first_stamp_ns' else 0
+        for source in list(self._seen_by):
+            if source in checkpoint['seen']:
+                self._seen_by[source][rows] = checkpoint['seen'][source]
+                self._seen_by[source][added] = False
+            else:
+                del self._seen_by[source]
+        for row in rows.tolist():
+            self._buffers.pop(row, None)
+        for row in [row for row in self._buffers if row >= count]:
+            del self._buffers[row]
+        self._buffers.update(checkpoint['buffers'])
+        for name in self._source_names[len(checkpoint['sources']):]:
+            del self._source_codes[name]
+        self._source_names[:] = checkpoint['sources']
+        self._method.restore(checkpoint['method'])
+        if self._count != count:
+            self._count = count
+            for landmark_id in added_ids:
+                self._row.pop(landmark_id, None)
+            order = np.argsort(self.ids[:count], kind='stable')
+            self._sorted_ids, self._sorted_rows = self.ids[:count][order], order
+            self._table[self._table >= count] = -1
+
+    def _update(self, ids, z, R, R_dep, source, stamp_ns):
         ids = np.asarray(ids, dtype=np.int64).reshape(-1)
         z = np.asarray(z, dtype=np.float64).reshape(-1, 2)
         R = np.asarray(R, dtype=np.float64).reshape(-1, 2, 2)
@@ -717,6 +792,23 @@ class _SourceParts:
             np.add.at(self.Y, slots, Y)
             np.add.at(self.y, slots, y)
             np.add.at(self.Q, slots, Q)
+
+    def checkpoint(self, rows):
+        """Return the index and the sums of every pair of ``rows`` (for ``restore``)."""
+        lo = np.searchsorted(self.keys, rows << _SOURCE_BITS)
+        hi = np.searchsorted(self.keys, (rows + 1) << _SOURCE_BITS)
+        slots = self.slots[np.concatenate([np.arange(a, b) for a, b in zip(lo, hi)])
+                           .astype(np.int64)] if len(rows) else np.empty(0, np.int64)
+        return (self.keys.copy(), self.slots.copy(), self.count, slots,
+                self.Y[slots].copy(), self.y[slots].copy(), self.Q[slots].copy())
+
+    def restore(self, state):
+        """Undo every change since ``checkpoint`` (new pairs and new sums)."""
+        keys, slots_of_keys, count, slots, Y, y, Q = state
+        for sums in (self.Y, self.y, self.Q):     # new slots are taken as zero sums
+            sums[count:self.count] = 0.0
+        self.keys, self.slots, self.count = keys, slots_of_keys, count
+        self.Y[slots], self.y[slots], self.Q[slots] = Y, y, Q
 
     def clear(self, row):
         """Forget the sources of one landmark."""

@@ -1,6 +1,7 @@
 """Tests of landmark_ros.core.landmark_map.LandmarkMap: fusion by ID, gating, confirmation."""
 
 from collections import Counter
+import json
 
 from conftest import random_spd
 from landmark_ros.core import gaussian, landmarks, pose2, sensors
@@ -936,3 +937,48 @@ def test_fusion_methods_are_strategy_objects():
         for name in ('fuse', 'update', 'initialise', 'records', 'load', 'reset'):
             assert callable(getattr(method, name))
     assert set(landmark_map._STRATEGIES) == set(FUSION_METHODS)
+
+
+# --- all or nothing ------------------------------------------------------------------------
+
+@pytest.mark.parametrize('fusion', FUSION_METHODS)
+@pytest.mark.parametrize('fail_at', [1, 2, 3])
+def test_an_update_that_fails_half_way_leaves_the_map_as_it_was(fusion, fail_at, rng):
+    def batch(n, first_id, count):
+        ids = rng.integers(first_id, first_id + count, n)
+        z = np.column_stack([ids * 1.0, -ids * 1.0]) + rng.normal(0, 0.05, (n, 2))
+        R = np.broadcast_to(np.diag([0.01, 0.02]), (n, 2, 2)).copy()
+        sources = rng.choice(['a', 'b', 'c'], n)
+        return ids, z, R, 0.3 * R, sources, np.arange(n, dtype=np.int64) + 10 ** 12
+
+    def state(landmark_map):
+        return json.dumps(landmark_map.to_records(), sort_keys=True), [
+            a.tolist() for a in landmark_map.snapshot()]
+
+    landmark_map, twin = LandmarkMap(fusion), LandmarkMap(fusion)
+    first = batch(60, 0, 20)
+    landmark_map.update(*first)
+    twin.update(*first)
+    before = state(landmark_map)
+    # The failing batch has confirmed, tentative and new landmarks and a new source.
+    failing = list(batch(40, 10, 25))
+    failing[4] = np.where(failing[4] == 'c', 'd', failing[4])
+    calls = []
+    method_update = landmark_map._method.update
+
+    def broken(*args):
+        calls.append(1)
+        result = method_update(*args)
+        if len(calls) == fail_at:
+            raise RuntimeError('injected fault')
+        return result
+    landmark_map._method.update = broken
+    with pytest.raises(RuntimeError, match='injected'):
+        landmark_map.update(*failing)
+    del landmark_map._method.update
+    assert calls and state(landmark_map) == before
+    # And it goes on exactly as a map that never saw the failed batch.
+    after = batch(50, 5, 30)
+    landmark_map.update(*after)
+    twin.update(*after)
+    assert state(landmark_map) == state(twin)
