@@ -96,8 +96,14 @@ def joint_thresholds(n, probability=DEFAULT_PROBABILITY):
     """
     if not 0.0 < probability < 1.0:
         raise ValueError(f'probability must lie in (0, 1), got {probability!r}')
+    return _joint_thresholds(int(n), float(probability)).copy()
+
+
+@functools.lru_cache(maxsize=64)
+def _joint_thresholds(n, probability):
     thresholds = np.zeros(n + 1)
     thresholds[1:] = chdtri(2.0 * np.arange(1, n + 1), 1.0 - probability)
+    thresholds.flags.writeable = False
     return thresholds
 
 
@@ -720,7 +726,7 @@ def jcbb(cands, index, z, C_z, max_nodes=DEFAULT_MAX_NODES):
     cand_landmarks = [landmarks[part] for part in parts]
     cand_nu = [nu[part] for part in parts]
     cand_S = [S[part] for part in parts]
-    thresholds = joint_thresholds(len(rows), cands.probability)
+    thresholds = _joint_thresholds(len(rows), float(cands.probability))
     first = starts[order[:np.count_nonzero(counts == 1)]]
     single = (cands.landmarks[first], nu[first], S[first])
     search = _Search(rows[order], cand_landmarks, cand_nu, cand_S, single, C_z, thresholds,
@@ -742,8 +748,12 @@ def jcbb(cands, index, z, C_z, max_nodes=DEFAULT_MAX_NODES):
 
 def _pair_d2(cands, rows, landmarks):
     """Return the individual d2 of given (row, landmark) pairs, all among the candidates."""
-    lookup = dict(zip(zip(cands.rows.tolist(), cands.landmarks.tolist()), cands.d2.tolist()))
-    return np.array([lookup[pair] for pair in zip(rows.tolist(), landmarks.tolist())])
+    stride = int(max(cands.landmarks.max(initial=0), landmarks.max(initial=0))) + 1
+    keys = cands.rows.astype(np.int64) * stride + cands.landmarks
+    order = np.argsort(keys)
+    found = order[np.searchsorted(keys, rows.astype(np.int64) * stride + landmarks,
+                                  sorter=order)]
+    return cands.d2[found]
 
 
 def joint_mahalanobis_sq(index, z, C_z, rows, landmarks):
@@ -809,20 +819,24 @@ def _jointly_ambiguous(cands, index, z, C_z, rows, landmarks, threshold):
     if not alternative.any():
         return np.zeros(0, dtype=np.intp)
     nu, S = _joint_innovation(index, z, C_z, rows, landmarks)
-    factor = cho_factor(S, lower=True)
-    y = cho_solve(factor, nu)
-    d2 = float(nu @ y)
-    Lambda = cho_solve(factor, np.eye(len(nu))).reshape(len(rows), 2, len(rows), 2)
-    diagonal = np.arange(len(rows))
-    Sigma = np.linalg.inv(Lambda[diagonal, :, diagonal, :])
-    y = y.reshape(-1, 2)
+    factor = cho_factor(S, lower=True, check_finite=False)
+    y = cho_solve(factor, nu, check_finite=False).reshape(-1, 2)
+    d2 = float(nu @ y.reshape(-1))
     nu = nu.reshape(-1, 2)
-    Sigma_y = (Sigma @ y[..., None])[..., 0]
-    mean = nu - Sigma_y
-    d2_rest = d2 - np.sum(y * Sigma_y, axis=-1)
-    t = position[cands.rows[alternative]]
+    # Only the diagonal blocks of Lambda of the rows with alternatives are needed.
+    t_all = position[cands.rows[alternative]]
+    wanted = np.unique(t_all)
+    columns = np.zeros((len(rows), 2, len(wanted), 2))
+    columns[wanted, :, np.arange(len(wanted)), :] = np.eye(2)
+    Lambda = cho_solve(factor, columns.reshape(2 * len(rows), -1), check_finite=False)
+    Lambda = Lambda.reshape(len(rows), 2, len(wanted), 2)[wanted, :, np.arange(len(wanted)), :]
+    Sigma = np.linalg.inv(Lambda)
+    Sigma_y = (Sigma @ y[wanted, :, None])[..., 0]
+    mean = nu[wanted] - Sigma_y
+    d2_rest = d2 - np.sum(y[wanted] * Sigma_y, axis=-1)
+    t = np.searchsorted(wanted, t_all)
     swapped = cands.landmarks[alternative]
-    S_swap = Sigma[t] - index.P_map[landmarks[t]] + index.P_map[swapped]
+    S_swap = Sigma[t] - index.P_map[landmarks[t_all]] + index.P_map[swapped]
     d2_swap = d2_rest[t] + np.atleast_1d(mahalanobis_sq(
-        z[rows[t]] - index.m_map[swapped], mean[t], S_swap))
-    return np.unique(rows[t][d2_swap <= threshold])
+        z[rows[t_all]] - index.m_map[swapped], mean[t], S_swap))
+    return np.unique(rows[t_all][d2_swap <= threshold])

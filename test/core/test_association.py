@@ -414,3 +414,25 @@ def test_scan_covariance_rejects_rows_smaller_than_the_shared_part():
         scan_covariance(z, isotropic(3, 0.01), [0.0, 0.0], P_pose)
     C_z = scan_covariance(z, isotropic(2, 0.01), [0.0, 0.0], np.zeros((3, 3)))
     np.testing.assert_array_equal(C_z, 0.01 * np.eye(4))
+
+
+@pytest.mark.parametrize('seed', range(10))
+def test_ambiguity_swap_test_equals_recomputing_each_swapped_hypothesis(seed):
+    rng = np.random.default_rng(200 + seed)
+    m_map, P_map, z, R, P_pose = random_scene(rng, n_landmarks=30, n_rows=8, clutter=1)
+    P_map = isotropic(len(m_map), 0.1)  # wide landmarks: several candidates per row
+    index, cands = scene(m_map, P_map, z, R)
+    C_z = scan_covariance(z, R, [0.0, 0.0], P_pose)
+    result = jcbb(cands, index, z, C_z)
+    rows = np.flatnonzero(result.assignment >= 0)
+    threshold = joint_thresholds(len(rows))[len(rows)]
+    expected = set()
+    for position, row in enumerate(rows):
+        for landmark in cands.landmarks[cands.rows == row]:
+            if landmark == result.assignment[row]:
+                continue
+            swapped = result.assignment[rows].copy()
+            swapped[position] = landmark
+            if joint_mahalanobis_sq(index, z, C_z, rows, swapped) <= threshold:
+                expected.add(int(row))
+    assert sorted(expected) == result.ambiguous.tolist()
