@@ -18,7 +18,7 @@ setup(
     # std_srvs) are declared in package.xml and come from apt/rosdep on a ROS
     # machine or from requirements-ros.txt in the dev venv; listing them here
     # would pull a second rclpy into an apt-installed Jazzy.
-    install_requires=['numpy'],
+    install_requires=['numpy', 'scipy'],
     extras_require={
         'plot': ['matplotlib'],
     },
