@@ -394,14 +394,24 @@ def _sci_slope(u, P1i, P1d, P2i, P2d, Si, Dd, two_det_1i, two_det_2i):
     return slope, curvature
 
 
-def sci_omega_2x2(P1i, P1d, P2i, P2d):
+def sci_omega_2x2(P1i, P1d, P2i, P2d, start=None):
     """
     Return ``split_covariance_intersection_omega`` for 2x2 parts given as entries.
+
+    Safeguarded Newton on the slope of ``log det P^-1`` (decreasing: the function is
+    concave), from ``start``. The bracket starts as ``[1e-6, 1 - 1e-6]``; a step out
+    of it first goes to that end, where a slope pointing outwards means the optimum is
+    at the end (``OMEGA_EDGE`` or ``1 - OMEGA_EDGE`` is returned); a step out of an
+    evaluated bracket bisects. Each element stops on its own once a Newton step is
+    below ``OMEGA_TOLERANCE``, so its result depends on its inputs and ``start`` only.
 
     Parameters
     ----------
     P1i, P1d, P2i, P2d : tuple of ndarray, each entry shape (N,) or ()
         ``(xx, xy, yy)`` of the four parts, broadcast to one shape.
+    start : ndarray, shape (N,) or (), optional
+        First iterate (a previous optimum of a similar problem saves iterations);
+        0.5 by default.
 
     Returns
     -------
@@ -409,53 +419,56 @@ def sci_omega_2x2(P1i, P1d, P2i, P2d):
 
     """
     s = power_of_4_scale(P1i[0] + P1d[0], P1i[2] + P1d[2], P2i[0] + P2d[0], P2i[2] + P2d[2])
-    P1i, P1d, P2i, P2d = (tuple(np.asarray(x / s, dtype=np.float64) for x in P)
-                          for P in (P1i, P1d, P2i, P2d))
     shape = s.shape
+    P1i, P1d, P2i, P2d = (tuple(np.broadcast_to(x / s, shape).reshape(-1) for x in P)
+                          for P in (P1i, P1d, P2i, P2d))
     Si = tuple(x + y for x, y in zip(P1i, P2i))
     Dd = tuple(y - x for x, y in zip(P1d, P2d))
-    constants = (P1i, P1d, P2i, P2d, Si, Dd, 2.0 * (P1i[0] * P1i[2] - P1i[1] * P1i[1]),
-                 2.0 * (P2i[0] * P2i[2] - P2i[1] * P2i[1]))
+    parts = [P1i, P1d, P2i, P2d, Si, Dd, 2.0 * (P1i[0] * P1i[2] - P1i[1] * P1i[1]),
+             2.0 * (P2i[0] * P2i[2] - P2i[1] * P2i[1])]
+    edge_lo, edge_hi = _OMEGA_BRACKET, 1.0 - _OMEGA_BRACKET
+    size = s.size
+    omega = np.full(size, 0.5)
+    u = np.full(size, 0.5) if start is None else np.clip(
+        np.broadcast_to(start, shape).reshape(-1), edge_lo, edge_hi)
+    lo, hi = np.full(size, edge_lo), np.full(size, edge_hi)
+    lo_seen, hi_seen = np.zeros(size, bool), np.zeros(size, bool)
+    active = np.arange(size)
     with np.errstate(divide='ignore', invalid='ignore', over='ignore'):
-        lo = np.full(shape, _OMEGA_BRACKET)
-        hi = np.full(shape, 1.0 - _OMEGA_BRACKET)
-        slope_lo = _sci_slope(lo, *constants)[0]
-        slope_hi = _sci_slope(hi, *constants)[0]
-        omega = np.where(slope_lo <= 0.0, OMEGA_EDGE,
-                         np.where(slope_hi >= 0.0, 1.0 - OMEGA_EDGE, 0.5))
-        omega = np.where(np.isfinite(slope_lo) & np.isfinite(slope_hi), omega, 0.5)
-        active = np.flatnonzero((slope_lo > 0.0) & (slope_hi < 0.0))
-        if not active.size:
-            return omega
-        flat = omega.reshape(-1)
-        parts = [tuple(np.broadcast_to(x, shape).reshape(-1)[active] for x in P)
-                 for P in constants[:6]]
-        parts += [np.broadcast_to(x, shape).reshape(-1)[active] for x in constants[6:]]
-        lo, hi = lo.reshape(-1)[active], hi.reshape(-1)[active]
-        # Start where the slope, interpolated linearly between the ends, is zero.
-        a, b = slope_lo.reshape(-1)[active], slope_hi.reshape(-1)[active]
-        u = lo + (hi - lo) * (a / (a - b))
         for _ in range(200):
             slope, curvature = _sci_slope(u, *parts)
             positive = slope > 0.0
+            lo_seen |= positive
+            hi_seen |= ~positive
             lo = np.where(positive, u, lo)
             hi = np.where(positive, hi, u)
             step = slope / curvature
             new = u - step
+            # The optimum at an end: the slope there points outwards.
+            at_lo = (u <= edge_lo) & ~positive
+            at_hi = (u >= edge_hi) & positive
             # A step below the tolerance ends the search at the Newton point (which
-            # may round onto the bracket's end); a step out of the bracket bisects.
+            # may round onto the bracket's end).
             done = (np.abs(step) <= OMEGA_TOLERANCE) | (hi - lo <= OMEGA_TOLERANCE)
-            new = np.where(done | ((new > lo) & (new < hi)), new, 0.5 * (lo + hi))
-            flat[active[done]] = new[done]
+            result = np.where(at_lo, OMEGA_EDGE, np.where(at_hi, 1.0 - OMEGA_EDGE, new))
+            failed = ~np.isfinite(slope)
+            done |= at_lo | at_hi | failed
+            result = np.where(failed, 0.5, result)
+            # Out of the bracket: to an end not evaluated yet, else bisect.
+            below, above = ~(new > lo), ~(new < hi)
+            new = np.where(below & ~lo_seen, edge_lo, np.where(above & ~hi_seen, edge_hi, new))
+            new = np.where((below & lo_seen) | (above & hi_seen), 0.5 * (lo + hi), new)
+            omega[active[done]] = result[done]
             keep = ~done
             if not keep.any():
                 break
             active, u, lo, hi = active[keep], new[keep], lo[keep], hi[keep]
+            lo_seen, hi_seen = lo_seen[keep], hi_seen[keep]
             parts = [tuple(x[keep] for x in P) if isinstance(P, tuple) else P[keep]
                      for P in parts]
         else:
-            flat[active] = u
-    return omega
+            omega[active] = u
+    return omega.reshape(shape)
 
 
 def split_covariance_intersection(m1, P1_ind, P1_dep, m2, P2_ind, P2_dep, omega=None):
