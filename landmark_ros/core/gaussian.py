@@ -223,6 +223,40 @@ def covariance_intersection_omega(P1, P2):
     return _omega_golden(A, B)
 
 
+def _ci_2x2(m1, P1, m2, P2, omega):
+    """
+    Return covariance intersection of 2x2 entries in information form, or None.
+
+    ``P^-1 = omega A + (1 - omega) B`` with ``A = P1^-1``, ``B = P2^-1`` (scaled closed
+    forms, see ``_fuse_2x2``); omega 0 and 1 return the inputs exactly. None when an
+    input is singular (relative determinant below 1e-13): the caller's general path
+    handles that.
+    """
+    s = power_of_4_scale(P1[0], P1[2], P2[0], P2[2])
+    p1 = tuple(x / s for x in P1)
+    p2 = tuple(x / s for x in P2)
+    with np.errstate(divide='ignore', invalid='ignore', over='ignore'):
+        if not np.all((p1[0] * p1[2] - p1[1] * p1[1] > 1e-13 * p1[0] * p1[2])
+                      & (p2[0] * p2[2] - p2[1] * p2[1] > 1e-13 * p2[0] * p2[2])):
+            return None
+        one = np.ones_like(s)
+        A, B = inverse_2x2(*p1, one), inverse_2x2(*p2, one)
+        u, v = omega, 1.0 - omega
+        Y = tuple(u * a + v * b for a, b in zip(A, B))
+        P = inverse_2x2(*Y)
+        x1, z1, x2, z2 = m1[..., 0], m1[..., 1], m2[..., 0], m2[..., 1]
+        y0 = u * (A[0] * x1 + A[1] * z1) + v * (B[0] * x2 + B[1] * z2)
+        y1 = u * (A[1] * x1 + A[2] * z1) + v * (B[1] * x2 + B[2] * z2)
+        m = np.stack([P[0] * y0 + P[1] * y1, P[1] * y0 + P[2] * y1], axis=-1)
+    P = symmetric_2x2(*(x * s for x in P))
+    first = (omega >= 1.0)[..., None]
+    second = (omega <= 0.0)[..., None]
+    P1_full, P2_full = symmetric_2x2(*P1), symmetric_2x2(*P2)
+    m = np.where(first, m1, np.where(second, m2, m))
+    P = np.where(first[..., None], P1_full, np.where(second[..., None], P2_full, P))
+    return m, P
+
+
 def _omega_2x2(P1, P2):
     # Both scaled by one power of 4 (omega does not depend on a common scale). With
     # A = P1^-1 and B = P2^-1, D = A - B: det(B + w D) = det B + w t + w^2 det D,
@@ -299,6 +333,11 @@ def covariance_intersection(m1, P1, m2, P2, omega=None):
     omega = np.asarray(omega, dtype=np.float64)
     if np.any((omega < 0.0) | (omega > 1.0)) or not np.all(np.isfinite(omega)):
         raise ValueError(f'omega must lie in [0, 1], got {omega}')
+    if m1.shape[-1] == 2:
+        fast = _ci_2x2(m1, entries_2x2(P1), m2, entries_2x2(P2), omega)
+        if fast is not None:
+            shape = np.broadcast_shapes(common_batch_shape([m1, m2], [P1, P2]), omega.shape)
+            return to_batch(shape, fast[0], 1), to_batch(shape, fast[1], 2)
     # CI is the product of the two Gaussians with covariances inflated by 1/omega.
     w = omega[..., None, None]
     with np.errstate(divide='ignore', invalid='ignore'):
