@@ -223,14 +223,29 @@ def covariance_intersection_omega(P1, P2):
     return _omega_golden(A, B)
 
 
-def _ci_2x2(m1, P1, m2, P2, omega):
+def ci_2x2(m1, P1, m2, P2, omega=None):
     """
     Return covariance intersection of 2x2 entries in information form, or None.
 
     ``P^-1 = omega A + (1 - omega) B`` with ``A = P1^-1``, ``B = P2^-1`` (scaled closed
-    forms, see ``_fuse_2x2``); omega 0 and 1 return the inputs exactly. None when an
-    input is singular (relative determinant below 1e-13): the caller's general path
-    handles that.
+    forms, see ``_fuse_2x2``); omega 0 and 1 return the inputs exactly.
+
+    Parameters
+    ----------
+    m1, m2 : ndarray, shape (2,) or (N, 2)
+        Means [m].
+    P1, P2 : tuple of ndarray
+        ``(xx, xy, yy)`` of the covariances [m^2].
+    omega : ndarray, shape () or (N,), optional
+        Weight of the first estimate in [0, 1]; by default the one minimising
+        ``det P``, from the same inverses (``covariance_intersection_omega``).
+
+    Returns
+    -------
+    tuple or None
+        ``(m, P)``; None when an input is singular (relative determinant below
+        1e-13), for which ``covariance_intersection`` takes its general path.
+
     """
     s = power_of_4_scale(P1[0], P1[2], P2[0], P2[2])
     p1 = tuple(x / s for x in P1)
@@ -241,6 +256,8 @@ def _ci_2x2(m1, P1, m2, P2, omega):
             return None
         one = np.ones_like(s)
         A, B = inverse_2x2(*p1, one), inverse_2x2(*p2, one)
+        if omega is None:
+            omega = np.asarray(_omega_of_information(A, B))
         u, v = omega, 1.0 - omega
         Y = tuple(u * a + v * b for a, b in zip(A, B))
         P = inverse_2x2(*Y)
@@ -258,14 +275,17 @@ def _ci_2x2(m1, P1, m2, P2, omega):
 
 
 def _omega_2x2(P1, P2):
-    # Both scaled by one power of 4 (omega does not depend on a common scale). With
-    # A = P1^-1 and B = P2^-1, D = A - B: det(B + w D) = det B + w t + w^2 det D,
-    # maximised over [0, 1].
+    # Both scaled by one power of 4 (omega does not depend on a common scale).
     s = power_of_4_scale(P1[0], P1[2], P2[0], P2[2])
     (a1, b1, c1), (a2, b2, c2) = ((x / s for x in P) for P in (P1, P2))
     one = np.ones_like(s)
-    axx, axy, ayy = inverse_2x2(a1, b1, c1, one)
-    bxx, bxy, byy = inverse_2x2(a2, b2, c2, one)
+    return _omega_of_information(inverse_2x2(a1, b1, c1, one), inverse_2x2(a2, b2, c2, one))
+
+
+def _omega_of_information(A, B):
+    # With A = P1^-1 and B = P2^-1 as entries, D = A - B:
+    # det(B + w D) = det B + w t + w^2 det D, maximised over [0, 1].
+    (axx, axy, ayy), (bxx, bxy, byy) = A, B
     dxx, dxy, dyy = axx - bxx, axy - bxy, ayy - byy
     t = bxx * dyy + byy * dxx - 2.0 * bxy * dxy
     det_D = dxx * dyy - dxy * dxy
@@ -334,7 +354,7 @@ def covariance_intersection(m1, P1, m2, P2, omega=None):
     if np.any((omega < 0.0) | (omega > 1.0)) or not np.all(np.isfinite(omega)):
         raise ValueError(f'omega must lie in [0, 1], got {omega}')
     if m1.shape[-1] == 2:
-        fast = _ci_2x2(m1, entries_2x2(P1), m2, entries_2x2(P2), omega)
+        fast = ci_2x2(m1, entries_2x2(P1), m2, entries_2x2(P2), omega)
         if fast is not None:
             shape = np.broadcast_shapes(common_batch_shape([m1, m2], [P1, P2]), omega.shape)
             return to_batch(shape, fast[0], 1), to_batch(shape, fast[1], 2)

@@ -51,9 +51,9 @@ from typing import NamedTuple
 
 from landmark_ros.core._arrays import (inverse_2x2, mahalanobis_sq_2x2, power_of_4_scale,
                                        symmetric_2x2)
-from landmark_ros.core.gaussian import (chi2_threshold, covariance_intersection, fuse,
-                                        information, sci_omega_2x2, split_ci_2x2_entries,
-                                        split_covariance_intersection)
+from landmark_ros.core.gaussian import (chi2_threshold, ci_2x2, covariance_intersection,
+                                        fuse, information, sci_omega_2x2,
+                                        split_ci_2x2_entries, split_covariance_intersection)
 import numpy as np
 
 _TABLE_LIMIT = 1 << 20
@@ -195,7 +195,9 @@ class _CovarianceIntersection(_Independent):
 
     def fuse(self, m, P_ind, P_dep, z, R_ind, R_dep):
         """Fuse estimates with observations row by row; return ``(m, P_ind, P_dep)``."""
-        m, P = covariance_intersection(m, P_ind + P_dep, z, R_ind + R_dep)
+        P, R = P_ind + P_dep, R_ind + R_dep
+        fused = ci_2x2(m, _entries(P), z, _entries(R))   # the closed form, omega optimal
+        m, P = covariance_intersection(m, P, z, R) if fused is None else fused
         return m, np.zeros_like(P), P
 
     @staticmethod
