@@ -131,7 +131,7 @@ def fuse(m1, P1, m2, P2):
     m1, P1, m2, P2 = _pair(m1, P1, m2, P2)
     shape = common_batch_shape([m1, m2], [P1, P2])
     if m1.shape[-1] == 2:
-        m, P = _fuse_2x2(m1, entries_2x2(P1), m2, entries_2x2(P2))
+        m, P = fuse_2x2(m1, entries_2x2(P1), m2, entries_2x2(P2))
         return to_batch(shape, m, 1), to_batch(shape, P, 2)
     S = P1 + P2
     # P1 S^-1 P2 equals P1 - P1 S^-1 P1 and treats both inputs alike.
@@ -228,7 +228,7 @@ def ci_2x2(m1, P1, m2, P2, omega=None):
     Return covariance intersection of 2x2 entries in information form, or None.
 
     ``P^-1 = omega A + (1 - omega) B`` with ``A = P1^-1``, ``B = P2^-1`` (scaled closed
-    forms, see ``_fuse_2x2``); omega 0 and 1 return the inputs exactly.
+    forms, see ``fuse_2x2``); omega 0 and 1 return the inputs exactly.
 
     Parameters
     ----------
@@ -594,9 +594,12 @@ def split_covariance_intersection(m1, P1_ind, P1_dep, m2, P2_ind, P2_dep, omega=
     return to_batch(shape, m, 1), to_batch(shape, P_ind, 2), to_batch(shape, P - P_ind, 2)
 
 
-def _fuse_2x2(m1, P1, m2, P2):
+def fuse_2x2(m1, P1, m2, P2):
     """
     Return ``fuse`` for 2x2 covariances given as ``(xx, xy, yy)`` entries.
+
+    ``m1``, ``m2`` have shape (2,) or (N, 2); returns ``m`` (N, 2) and ``P`` (N, 2, 2)
+    (or single items). Raises ``numpy.linalg.LinAlgError`` if ``P1 + P2`` is singular.
 
     Information form: a closed-form 2x2 inverse is its adjugate over its determinant,
     so its error is a common factor ``1 + delta`` (``|delta|`` about the condition
@@ -682,7 +685,7 @@ def split_ci_2x2_entries(m1, P1i, P1d, m2, P2i, P2d, omega):
 
     Notes
     -----
-    Information form (see ``_fuse_2x2``) with gains ``W1 = P A^-1``, ``W2 = P B^-1``;
+    Information form (see ``fuse_2x2``) with gains ``W1 = P A^-1``, ``W2 = P B^-1``;
     both parts are congruences, ``P_ind = W1 P1i W1^T + W2 P2i W2^T`` and
     ``P_dep = W1 (P1d / omega) W1^T + W2 (P2d / (1 - omega)) W2^T``: positive
     semi-definite by construction, each accurate on its own scale.

@@ -52,7 +52,7 @@ from typing import NamedTuple
 from landmark_ros.core._arrays import (inverse_2x2, mahalanobis_sq_2x2, power_of_4_scale,
                                        symmetric_2x2)
 from landmark_ros.core.gaussian import (chi2_threshold, ci_2x2, covariance_intersection,
-                                        fuse, information, sci_omega_2x2,
+                                        fuse_2x2, information, sci_omega_2x2,
                                         split_ci_2x2_entries, split_covariance_intersection)
 import numpy as np
 
@@ -158,7 +158,8 @@ class _Independent:
 
     def fuse(self, m, P_ind, P_dep, z, R_ind, R_dep):
         """Fuse estimates with observations row by row; return ``(m, P_ind, P_dep)``."""
-        m, P = fuse(m, P_ind + P_dep, z, R_ind + R_dep)
+        # The closed form behind gaussian.fuse, on entries (batches of (N, 2) here).
+        m, P = fuse_2x2(m, _entries(P_ind + P_dep), z, _entries(R_ind + R_dep))
         return m, P, np.zeros_like(P)
 
     def update(self, landmark_map, rows, codes, z, R_ind, R_dep):
