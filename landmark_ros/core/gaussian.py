@@ -131,7 +131,7 @@ def fuse(m1, P1, m2, P2):
     m1, P1, m2, P2 = _pair(m1, P1, m2, P2)
     shape = common_batch_shape([m1, m2], [P1, P2])
     if m1.shape[-1] == 2:
-        m, P = _fuse_2x2(m1, entries_2x2(P1), m2, entries_2x2(P2))
+        m, P = fuse_2x2(m1, entries_2x2(P1), m2, entries_2x2(P2))
         return to_batch(shape, m, 1), to_batch(shape, P, 2)
     S = P1 + P2
     # P1 S^-1 P2 equals P1 - P1 S^-1 P1 and treats both inputs alike.
@@ -223,15 +223,69 @@ def covariance_intersection_omega(P1, P2):
     return _omega_golden(A, B)
 
 
+def ci_2x2(m1, P1, m2, P2, omega=None):
+    """
+    Return covariance intersection of 2x2 entries in information form, or None.
+
+    ``P^-1 = omega A + (1 - omega) B`` with ``A = P1^-1``, ``B = P2^-1`` (scaled closed
+    forms, see ``fuse_2x2``); omega 0 and 1 return the inputs exactly.
+
+    Parameters
+    ----------
+    m1, m2 : ndarray, shape (2,) or (N, 2)
+        Means [m].
+    P1, P2 : tuple of ndarray
+        ``(xx, xy, yy)`` of the covariances [m^2].
+    omega : ndarray, shape () or (N,), optional
+        Weight of the first estimate in [0, 1]; by default the one minimising
+        ``det P``, from the same inverses (``covariance_intersection_omega``).
+
+    Returns
+    -------
+    tuple or None
+        ``(m, P)``; None when an input is singular (relative determinant below
+        1e-13), for which ``covariance_intersection`` takes its general path.
+
+    """
+    s = power_of_4_scale(P1[0], P1[2], P2[0], P2[2])
+    p1 = tuple(x / s for x in P1)
+    p2 = tuple(x / s for x in P2)
+    with np.errstate(divide='ignore', invalid='ignore', over='ignore'):
+        if not np.all((p1[0] * p1[2] - p1[1] * p1[1] > 1e-13 * p1[0] * p1[2])
+                      & (p2[0] * p2[2] - p2[1] * p2[1] > 1e-13 * p2[0] * p2[2])):
+            return None
+        one = np.ones_like(s)
+        A, B = inverse_2x2(*p1, one), inverse_2x2(*p2, one)
+        if omega is None:
+            omega = np.asarray(_omega_of_information(A, B))
+        u, v = omega, 1.0 - omega
+        Y = tuple(u * a + v * b for a, b in zip(A, B))
+        P = inverse_2x2(*Y)
+        x1, z1, x2, z2 = m1[..., 0], m1[..., 1], m2[..., 0], m2[..., 1]
+        y0 = u * (A[0] * x1 + A[1] * z1) + v * (B[0] * x2 + B[1] * z2)
+        y1 = u * (A[1] * x1 + A[2] * z1) + v * (B[1] * x2 + B[2] * z2)
+        m = np.stack([P[0] * y0 + P[1] * y1, P[1] * y0 + P[2] * y1], axis=-1)
+    P = symmetric_2x2(*(x * s for x in P))
+    first = (omega >= 1.0)[..., None]
+    second = (omega <= 0.0)[..., None]
+    P1_full, P2_full = symmetric_2x2(*P1), symmetric_2x2(*P2)
+    m = np.where(first, m1, np.where(second, m2, m))
+    P = np.where(first[..., None], P1_full, np.where(second[..., None], P2_full, P))
+    return m, P
+
+
 def _omega_2x2(P1, P2):
-    # Both scaled by one power of 4 (omega does not depend on a common scale). With
-    # A = P1^-1 and B = P2^-1, D = A - B: det(B + w D) = det B + w t + w^2 det D,
-    # maximised over [0, 1].
+    # Both scaled by one power of 4 (omega does not depend on a common scale).
     s = power_of_4_scale(P1[0], P1[2], P2[0], P2[2])
     (a1, b1, c1), (a2, b2, c2) = ((x / s for x in P) for P in (P1, P2))
     one = np.ones_like(s)
-    axx, axy, ayy = inverse_2x2(a1, b1, c1, one)
-    bxx, bxy, byy = inverse_2x2(a2, b2, c2, one)
+    return _omega_of_information(inverse_2x2(a1, b1, c1, one), inverse_2x2(a2, b2, c2, one))
+
+
+def _omega_of_information(A, B):
+    # With A = P1^-1 and B = P2^-1 as entries, D = A - B:
+    # det(B + w D) = det B + w t + w^2 det D, maximised over [0, 1].
+    (axx, axy, ayy), (bxx, bxy, byy) = A, B
     dxx, dxy, dyy = axx - bxx, axy - bxy, ayy - byy
     t = bxx * dyy + byy * dxx - 2.0 * bxy * dxy
     det_D = dxx * dyy - dxy * dxy
@@ -299,6 +353,11 @@ def covariance_intersection(m1, P1, m2, P2, omega=None):
     omega = np.asarray(omega, dtype=np.float64)
     if np.any((omega < 0.0) | (omega > 1.0)) or not np.all(np.isfinite(omega)):
         raise ValueError(f'omega must lie in [0, 1], got {omega}')
+    if m1.shape[-1] == 2:
+        fast = ci_2x2(m1, entries_2x2(P1), m2, entries_2x2(P2), omega)
+        if fast is not None:
+            shape = np.broadcast_shapes(common_batch_shape([m1, m2], [P1, P2]), omega.shape)
+            return to_batch(shape, fast[0], 1), to_batch(shape, fast[1], 2)
     # CI is the product of the two Gaussians with covariances inflated by 1/omega.
     w = omega[..., None, None]
     with np.errstate(divide='ignore', invalid='ignore'):
@@ -394,14 +453,24 @@ def _sci_slope(u, P1i, P1d, P2i, P2d, Si, Dd, two_det_1i, two_det_2i):
     return slope, curvature
 
 
-def sci_omega_2x2(P1i, P1d, P2i, P2d):
+def sci_omega_2x2(P1i, P1d, P2i, P2d, start=None):
     """
     Return ``split_covariance_intersection_omega`` for 2x2 parts given as entries.
+
+    Safeguarded Newton on the slope of ``log det P^-1`` (decreasing: the function is
+    concave), from ``start``. The bracket starts as ``[1e-6, 1 - 1e-6]``; a step out
+    of it first goes to that end, where a slope pointing outwards means the optimum is
+    at the end (``OMEGA_EDGE`` or ``1 - OMEGA_EDGE`` is returned); a step out of an
+    evaluated bracket bisects. Each element stops on its own once a Newton step is
+    below ``OMEGA_TOLERANCE``, so its result depends on its inputs and ``start`` only.
 
     Parameters
     ----------
     P1i, P1d, P2i, P2d : tuple of ndarray, each entry shape (N,) or ()
         ``(xx, xy, yy)`` of the four parts, broadcast to one shape.
+    start : ndarray, shape (N,) or (), optional
+        First iterate (a previous optimum of a similar problem saves iterations);
+        0.5 by default.
 
     Returns
     -------
@@ -409,53 +478,56 @@ def sci_omega_2x2(P1i, P1d, P2i, P2d):
 
     """
     s = power_of_4_scale(P1i[0] + P1d[0], P1i[2] + P1d[2], P2i[0] + P2d[0], P2i[2] + P2d[2])
-    P1i, P1d, P2i, P2d = (tuple(np.asarray(x / s, dtype=np.float64) for x in P)
-                          for P in (P1i, P1d, P2i, P2d))
     shape = s.shape
+    P1i, P1d, P2i, P2d = (tuple(np.broadcast_to(x / s, shape).reshape(-1) for x in P)
+                          for P in (P1i, P1d, P2i, P2d))
     Si = tuple(x + y for x, y in zip(P1i, P2i))
     Dd = tuple(y - x for x, y in zip(P1d, P2d))
-    constants = (P1i, P1d, P2i, P2d, Si, Dd, 2.0 * (P1i[0] * P1i[2] - P1i[1] * P1i[1]),
-                 2.0 * (P2i[0] * P2i[2] - P2i[1] * P2i[1]))
+    parts = [P1i, P1d, P2i, P2d, Si, Dd, 2.0 * (P1i[0] * P1i[2] - P1i[1] * P1i[1]),
+             2.0 * (P2i[0] * P2i[2] - P2i[1] * P2i[1])]
+    edge_lo, edge_hi = _OMEGA_BRACKET, 1.0 - _OMEGA_BRACKET
+    size = s.size
+    omega = np.full(size, 0.5)
+    u = np.full(size, 0.5) if start is None else np.clip(
+        np.broadcast_to(start, shape).reshape(-1), edge_lo, edge_hi)
+    lo, hi = np.full(size, edge_lo), np.full(size, edge_hi)
+    lo_seen, hi_seen = np.zeros(size, bool), np.zeros(size, bool)
+    active = np.arange(size)
     with np.errstate(divide='ignore', invalid='ignore', over='ignore'):
-        lo = np.full(shape, _OMEGA_BRACKET)
-        hi = np.full(shape, 1.0 - _OMEGA_BRACKET)
-        slope_lo = _sci_slope(lo, *constants)[0]
-        slope_hi = _sci_slope(hi, *constants)[0]
-        omega = np.where(slope_lo <= 0.0, OMEGA_EDGE,
-                         np.where(slope_hi >= 0.0, 1.0 - OMEGA_EDGE, 0.5))
-        omega = np.where(np.isfinite(slope_lo) & np.isfinite(slope_hi), omega, 0.5)
-        active = np.flatnonzero((slope_lo > 0.0) & (slope_hi < 0.0))
-        if not active.size:
-            return omega
-        flat = omega.reshape(-1)
-        parts = [tuple(np.broadcast_to(x, shape).reshape(-1)[active] for x in P)
-                 for P in constants[:6]]
-        parts += [np.broadcast_to(x, shape).reshape(-1)[active] for x in constants[6:]]
-        lo, hi = lo.reshape(-1)[active], hi.reshape(-1)[active]
-        # Start where the slope, interpolated linearly between the ends, is zero.
-        a, b = slope_lo.reshape(-1)[active], slope_hi.reshape(-1)[active]
-        u = lo + (hi - lo) * (a / (a - b))
         for _ in range(200):
             slope, curvature = _sci_slope(u, *parts)
             positive = slope > 0.0
+            lo_seen |= positive
+            hi_seen |= ~positive
             lo = np.where(positive, u, lo)
             hi = np.where(positive, hi, u)
             step = slope / curvature
             new = u - step
+            # The optimum at an end: the slope there points outwards.
+            at_lo = (u <= edge_lo) & ~positive
+            at_hi = (u >= edge_hi) & positive
             # A step below the tolerance ends the search at the Newton point (which
-            # may round onto the bracket's end); a step out of the bracket bisects.
+            # may round onto the bracket's end).
             done = (np.abs(step) <= OMEGA_TOLERANCE) | (hi - lo <= OMEGA_TOLERANCE)
-            new = np.where(done | ((new > lo) & (new < hi)), new, 0.5 * (lo + hi))
-            flat[active[done]] = new[done]
+            result = np.where(at_lo, OMEGA_EDGE, np.where(at_hi, 1.0 - OMEGA_EDGE, new))
+            failed = ~np.isfinite(slope)
+            done |= at_lo | at_hi | failed
+            result = np.where(failed, 0.5, result)
+            # Out of the bracket: to an end not evaluated yet, else bisect.
+            below, above = ~(new > lo), ~(new < hi)
+            new = np.where(below & ~lo_seen, edge_lo, np.where(above & ~hi_seen, edge_hi, new))
+            new = np.where((below & lo_seen) | (above & hi_seen), 0.5 * (lo + hi), new)
+            omega[active[done]] = result[done]
             keep = ~done
             if not keep.any():
                 break
             active, u, lo, hi = active[keep], new[keep], lo[keep], hi[keep]
+            lo_seen, hi_seen = lo_seen[keep], hi_seen[keep]
             parts = [tuple(x[keep] for x in P) if isinstance(P, tuple) else P[keep]
                      for P in parts]
         else:
-            flat[active] = u
-    return omega
+            omega[active] = u
+    return omega.reshape(shape)
 
 
 def split_covariance_intersection(m1, P1_ind, P1_dep, m2, P2_ind, P2_dep, omega=None):
@@ -522,9 +594,12 @@ def split_covariance_intersection(m1, P1_ind, P1_dep, m2, P2_ind, P2_dep, omega=
     return to_batch(shape, m, 1), to_batch(shape, P_ind, 2), to_batch(shape, P - P_ind, 2)
 
 
-def _fuse_2x2(m1, P1, m2, P2):
+def fuse_2x2(m1, P1, m2, P2):
     """
     Return ``fuse`` for 2x2 covariances given as ``(xx, xy, yy)`` entries.
+
+    ``m1``, ``m2`` have shape (2,) or (N, 2); returns ``m`` (N, 2) and ``P`` (N, 2, 2)
+    (or single items). Raises ``numpy.linalg.LinAlgError`` if ``P1 + P2`` is singular.
 
     Information form: a closed-form 2x2 inverse is its adjugate over its determinant,
     so its error is a common factor ``1 + delta`` (``|delta|`` about the condition
@@ -610,7 +685,7 @@ def split_ci_2x2_entries(m1, P1i, P1d, m2, P2i, P2d, omega):
 
     Notes
     -----
-    Information form (see ``_fuse_2x2``) with gains ``W1 = P A^-1``, ``W2 = P B^-1``;
+    Information form (see ``fuse_2x2``) with gains ``W1 = P A^-1``, ``W2 = P B^-1``;
     both parts are congruences, ``P_ind = W1 P1i W1^T + W2 P2i W2^T`` and
     ``P_dep = W1 (P1d / omega) W1^T + W2 (P2d / (1 - omega)) W2^T``: positive
     semi-definite by construction, each accurate on its own scale.

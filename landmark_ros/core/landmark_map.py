@@ -52,9 +52,9 @@ from typing import NamedTuple
 
 from landmark_ros.core._arrays import (inverse_2x2, mahalanobis_sq_2x2, power_of_4_scale,
                                        symmetric_2x2)
-from landmark_ros.core.gaussian import (chi2_threshold, covariance_intersection, fuse,
-                                        information, sci_omega_2x2, split_ci_2x2_entries,
-                                        split_covariance_intersection)
+from landmark_ros.core.gaussian import (chi2_threshold, ci_2x2, covariance_intersection,
+                                        fuse_2x2, information, sci_omega_2x2,
+                                        split_ci_2x2_entries, split_covariance_intersection)
 import numpy as np
 
 _TABLE_LIMIT = 1 << 20
@@ -159,7 +159,8 @@ class _Independent:
 
     def fuse(self, m, P_ind, P_dep, z, R_ind, R_dep):
         """Fuse estimates with observations row by row; return ``(m, P_ind, P_dep)``."""
-        m, P = fuse(m, P_ind + P_dep, z, R_ind + R_dep)
+        # The closed form behind gaussian.fuse, on entries (batches of (N, 2) here).
+        m, P = fuse_2x2(m, _entries(P_ind + P_dep), z, _entries(R_ind + R_dep))
         return m, P, np.zeros_like(P)
 
     def update(self, landmark_map, rows, codes, z, R_ind, R_dep):
@@ -203,7 +204,9 @@ class _CovarianceIntersection(_Independent):
 
     def fuse(self, m, P_ind, P_dep, z, R_ind, R_dep):
         """Fuse estimates with observations row by row; return ``(m, P_ind, P_dep)``."""
-        m, P = covariance_intersection(m, P_ind + P_dep, z, R_ind + R_dep)
+        P, R = P_ind + P_dep, R_ind + R_dep
+        fused = ci_2x2(m, _entries(P), z, _entries(R))   # the closed form, omega optimal
+        m, P = covariance_intersection(m, P, z, R) if fused is None else fused
         return m, np.zeros_like(P), P
 
     @staticmethod
@@ -740,6 +743,7 @@ class _SourceParts:
         self.Y = np.zeros((64, 3))            # (xx, xy, yy) of the information sum
         self.y = np.zeros((64, 2))
         self.Q = np.zeros((64, 4))            # (00, 01, 10, 11) of sum R_ind^-1 R_dep
+        self.omega = np.full((64, 4), 0.5)    # last split-CI weight per (row, fold step)
 
     def _pairs(self, rows, codes):
         """Return the slots of (row, code) pairs, creating the new ones."""
@@ -862,6 +866,16 @@ class _SourceParts:
         total = len(rows)
         fused_m, fused_i, fused_d = column(m, 0, total), column(P_ind, 0, total), column(
             P_dep, 0, total)
+        ordered_rows = rows[by_count]
+        need_rows, need_steps = int(rows.max()) + 1, width - 1
+        if need_rows > len(self.omega) or need_steps > self.omega.shape[1]:
+            rows_now, steps_now = self.omega.shape
+            grown = np.full((rows_now if need_rows <= rows_now else max(need_rows, 2 * rows_now),
+                             steps_now if need_steps <= steps_now else max(need_steps,
+                                                                           2 * steps_now)),
+                            0.5)
+            grown[:len(self.omega), :self.omega.shape[1]] = self.omega
+            self.omega = grown
         steps = (counts[:, None] > columns[1:]).sum(axis=0)
         for j in range(1, width):
             k = int(steps[j - 1])
@@ -870,7 +884,11 @@ class _SourceParts:
             first_d = tuple(x[:k] for x in fused_d)
             second_m, second_i, second_d = column(m, j, k), column(P_ind, j, k), column(
                 P_dep, j, k)
-            omega = sci_omega_2x2(first_i, first_d, second_i, second_d)
+            # The last weight of this landmark and step starts the search: the same
+            # history (row by row or in rounds) gives the same start, bit for bit.
+            hint = (ordered_rows[:k], j - 1)
+            omega = sci_omega_2x2(first_i, first_d, second_i, second_d, self.omega[hint])
+            self.omega[hint] = omega
             new_m, new_i, new_d = split_ci_2x2_entries(first_m, first_i, first_d, second_m,
                                                        second_i, second_d, omega)
             for fused, new in ((fused_m, new_m), (fused_i, new_i), (fused_d, new_d)):
