@@ -1,10 +1,11 @@
 """
 Benchmark the fuser: its pipeline object alone, then the node against a bare relay.
 
-Part 1, pipeline level, in this process, no ROS: for each fusion method a
-``pipeline.fuser.Fuser`` with one source, its map warmed through the fuser itself
-(100-row messages with two consistent observations of each of 1,000 landmarks, until
-all are confirmed), then fed 100-row messages of random landmarks: timed per message,
+Part 1, pipeline level, in this process, no ROS: for each fusion method a map is
+warmed through a ``pipeline.fuser.Fuser`` (source ``warmup``: 100-row messages with
+two consistent observations of each of 1,000 landmarks, until all are confirmed) and
+its records loaded into a ``Fuser`` with one other source, as the nodes of part 2
+load them; that fuser is fed 100-row messages of random landmarks: timed per message,
 ``Fuser.add_landmarks`` (row checks, queue) and ``Fuser.fuse_queued`` called every
 ``--fuse-every`` messages (about one ``update_period_s`` at the node's rates), its
 time divided by the messages it fused. The observations are realistic and
@@ -88,7 +89,9 @@ TARGET_RATIO = 0.8
 ROWS_PER_MESSAGE = 100
 WORLD_FRAME = FuserConfig().world_frame
 SOURCE = 'robot1'
-"""The one source of the pipeline part."""
+"""The one source fed in the pipeline part."""
+WARMUP_SOURCE = 'warmup'
+"""The source that built the warmed maps."""
 RELAY_OUTPUT_DEPTH = 10
 
 KINDS = ('relay', 'split_covariance_intersection', 'independent')
@@ -183,7 +186,7 @@ def warm_fuser(fusion, truth, seed):
     the gate gets more until it is confirmed.
     """
     rng = np.random.default_rng(seed)
-    fuser = Fuser(FuserConfig(fusion=fusion), [SOURCE])
+    fuser = Fuser(FuserConfig(fusion=fusion), [WARMUP_SOURCE])
     ids = np.tile(np.arange(LANDMARKS), 2)
     for _ in range(10):
         m, P, P_dep = observe(truth, ids, rng)
@@ -192,7 +195,7 @@ def warm_fuser(fusion, truth, seed):
         pool = {key: np.resize(value, (size,) + value.shape[1:])
                 for key, value in (('ids', ids), ('m', m), ('P', P), ('P_dep', P_dep))}
         for k, message in enumerate(messages_of(pool)):
-            fuser.add_landmarks(SOURCE, *message)
+            fuser.add_landmarks(WARMUP_SOURCE, *message)
             if k % 20 == 19:
                 fuser.fuse_queued()
         fuser.fuse_queued()
@@ -224,8 +227,10 @@ def pipeline(args, truth):
     per = args.fuse_every
     result = {}
     for method in FUSION_METHODS:
-        warmed = warm_fuser(method, truth, args.seed + 10)
-        records = warmed.map.to_records()
+        records = warm_fuser(method, truth, args.seed + 10).map.to_records()
+        # Loaded from the records into a fuser fed by another source, as the nodes are.
+        warmed = Fuser(FuserConfig(fusion=method), [SOURCE])
+        warmed.map.load_records(records)
         blocks = []
         for block in range(args.blocks + 1):
             fuser = copy.deepcopy(warmed)
