@@ -72,6 +72,7 @@ def observer_config(sim_config):
     Parameters
     ----------
     sim_config : landmark_ros.sim.simulation.SimConfig
+        The simulator's parameters: noise and bias standard deviations.
 
     Returns
     -------
