@@ -10,8 +10,10 @@ on this machine). It imports nothing outside the standard library at module leve
 ``summary.py`` uses it without ROS or numpy, ``bench_core.py`` without ROS; the
 ROS pieces import rclpy when called.
 
-Contents: machine description and report helpers (``cpu_model``, ``machine``,
-``machine_line``, ``verdict``, ``median_of``, ``profile_where``),
+Contents: the machine description every benchmark and the summary print (``machine``,
+``machine_line``, ``cpu_model``, ``git_commit``), report and timing helpers
+(``verdict``, ``median_of``, ``time_per_call``, ``profile_calls``, ``profile_where``,
+``package_of``),
 process measurements (``process_cpu_s``, ``vm_hwm_kb``), the node-process plumbing
 (``relay``, ``Server``, ``shutdown``) and the driver's pieces (``header``,
 ``wait_for_match``, ``take``, ``Target``).
@@ -21,6 +23,7 @@ import math
 import os
 import platform
 import statistics
+import subprocess
 import sys
 import time
 
@@ -45,22 +48,62 @@ def cpu_model():
 
 
 def machine():
-    """Describe the machine: CPU model, CPU count, platform, Python, numpy, rmw."""
-    import numpy as np
+    """
+    Describe the machine and the code: the one description every benchmark prints.
+
+    Returns
+    -------
+    dict
+        ``cpu`` (model name), ``cpu_count``, ``usable_cpus`` (this process's affinity),
+        ``platform``, ``python``, ``numpy`` ('?' without numpy), ``rmw`` (the loaded
+        rclpy's middleware, else ``RMW_IMPLEMENTATION``, else '?'), ``load`` (1-minute
+        load average) and ``commit`` (short hash, '+ uncommitted changes' when the
+        tracked files differ from it; '?' outside git).
+
+    """
     try:
-        from rclpy.utilities import get_rmw_implementation_identifier
-        rmw = get_rmw_implementation_identifier()
-    except (ImportError, RuntimeError):
-        rmw = os.environ.get('RMW_IMPLEMENTATION', '?')
-    return {'cpu': cpu_model(), 'cpu_count': os.cpu_count(),
-            'python': platform.python_version(), 'numpy': np.__version__, 'rmw': rmw}
+        import numpy
+        numpy_version = numpy.__version__
+    except ImportError:
+        numpy_version = '?'
+    rmw = os.environ.get('RMW_IMPLEMENTATION', '?')
+    if 'rclpy' in sys.modules:  # never import ROS just to describe the machine
+        try:
+            from rclpy.utilities import get_rmw_implementation_identifier
+            rmw = get_rmw_implementation_identifier()
+        except (ImportError, RuntimeError):
+            pass
+    usable = len(os.sched_getaffinity(0)) if hasattr(os, 'sched_getaffinity') else None
+    return {'cpu': cpu_model(), 'cpu_count': os.cpu_count(), 'usable_cpus': usable,
+            'platform': f'{platform.system()} {platform.machine()}',
+            'python': platform.python_version(), 'numpy': numpy_version, 'rmw': rmw,
+            'load': os.getloadavg()[0] if hasattr(os, 'getloadavg') else float('nan'),
+            'commit': git_commit()}
 
 
-def machine_line(host, domain_id, load_start, load_end):
-    """Return the report's machine line for ``machine()``, the domain and the load."""
-    return (f'machine: {host["cpu"]}; {host["cpu_count"]} CPUs; Python {host["python"]}; '
-            f'numpy {host["numpy"]}; {host["rmw"]}; domain {domain_id}; load average '
-            f'{load_start:.1f} at start, {load_end:.1f} at end')
+def git_commit():
+    """Return the short commit of this checkout, marked when tracked files changed."""
+    here = os.path.dirname(os.path.abspath(__file__))
+    try:
+        commit = subprocess.run(['git', 'rev-parse', '--short', 'HEAD'], cwd=here,
+                                capture_output=True, text=True, check=True,
+                                timeout=10).stdout.strip()
+        dirty = subprocess.run(['git', 'status', '--porcelain', '--untracked-files=no'],
+                               cwd=here, capture_output=True, text=True, check=True,
+                               timeout=10).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return '?'
+    return commit + (' + uncommitted changes' if dirty else '')
+
+
+def machine_line(host, domain_id=None, load_end=None):
+    """Return the report's machine line for ``machine()``, the ROS domain and the load."""
+    domain = '' if domain_id is None else f'; domain {domain_id}'
+    end = '' if load_end is None else f', {load_end:.1f} at end'
+    return (f'machine: {host["cpu"]}; {host["cpu_count"]} CPUs ({host["usable_cpus"]} '
+            f'usable); {host["platform"]}; Python {host["python"]}; numpy {host["numpy"]}; '
+            f'{host["rmw"]}{domain}; commit {host["commit"]}; load average '
+            f'{host["load"]:.1f} at start{end}')
 
 
 def verdict(ok):
@@ -81,11 +124,96 @@ def profile_where(key):
     filename, line, function = key
     if filename == '~':
         return function
-    for marker in ('/site-packages/', '/work/main/'):
+    for marker in ('/site-packages/', '/landmark_ros/'):
         if marker in filename:
             filename = filename.split(marker, 1)[1]
             break
     return f'{filename}:{line}({function})'
+
+
+def package_of(key):
+    """Return the package a ``pstats`` key's code belongs to (numpy's C calls apart)."""
+    filename, _, function = key
+    if filename == '~':
+        for package in ('rclpy', 'numpy'):
+            if package in function:
+                return f'{package} (C)'
+        return 'builtins'
+    if '/landmark_ros/' in filename:
+        return 'landmark_ros.' + filename.rsplit('/landmark_ros/', 1)[1][:-3].replace('/', '.')
+    if '/site-packages/' in filename:
+        return filename.split('/site-packages/', 1)[1].split('/', 1)[0]
+    return os.path.basename(filename)
+
+
+def profile_calls(function, calls, top):
+    """
+    Run ``function(i)`` for ``i`` in ``range(calls)`` under cProfile.
+
+    Returns
+    -------
+    functions : list of (where, tottime_us, cumtime_us, calls)
+        The ``top`` functions by own time, per call of ``function``.
+    packages : list of (package, tottime_us)
+        Own time per call of ``function`` by package, largest first.
+    total_us : float
+        Own time per call of ``function`` under the profiler.
+    calls_per_call : float
+        Function calls the profiler saw per call of ``function``.
+
+    """
+    import cProfile
+    import pstats
+    profiler = cProfile.Profile()
+    profiler.enable()
+    for i in range(calls):
+        function(i)
+    profiler.disable()
+    stats = pstats.Stats(profiler).stats
+    entries = sorted(stats.items(), key=lambda item: item[1][2], reverse=True)
+    functions = [(profile_where(key), tt / calls * 1e6, ct / calls * 1e6, nc / calls)
+                 for key, (_, nc, tt, ct, _) in entries[:top]]
+    packages = {}
+    for key, (_, _, tt, _, _) in stats.items():
+        packages[package_of(key)] = packages.get(package_of(key), 0.0) + tt / calls * 1e6
+    total = sum(packages.values())
+    return (functions, sorted(packages.items(), key=lambda item: -item[1]), total,
+            sum(nc for _, nc, _, _, _ in stats.values()) / calls)
+
+
+def time_per_call(function, calls, blocks, warmup=16):
+    """
+    Time ``function(i)`` over ``calls`` calls split into ``blocks``, garbage collector off.
+
+    Returns
+    -------
+    wall : list of float
+        Wall seconds per call of each block.
+    cpu : list of float
+        CPU seconds of this thread per call of each block: what waiting for a core
+        (other load on the machine) does not inflate.
+
+    """
+    import gc
+    for i in range(warmup):
+        function(i)
+    per_block = max(1, calls // blocks)
+    wall, cpu = [], []
+    enabled = gc.isenabled()
+    gc.disable()
+    try:
+        i = warmup
+        for _ in range(blocks):
+            start, cpu_start = time.perf_counter(), time.thread_time()
+            for _ in range(per_block):
+                function(i)
+                i += 1
+            cpu.append((time.thread_time() - cpu_start) / per_block)
+            wall.append((time.perf_counter() - start) / per_block)
+    finally:
+        if enabled:
+            gc.enable()
+    return wall, cpu
 
 
 # --- Process measurements. ----------------------------------------------------------

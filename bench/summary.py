@@ -7,13 +7,13 @@ Every benchmark prints a last, machine-readable line::
 
 This reads those lines from the given logs (or stdin), whatever benchmark printed
 them, and prints one table: core throughput and its ratio to the chapter-style loop,
-fusion throughput, node message rates next to the relay, replay speed-up over real
-time (any key naming a speed-up or a real-time factor, from any benchmark), peak
-memory, and the targets; keys of benchmarks it does not know are listed generically
-(throughputs, rates, ratios, speed-ups, memory). The machine (CPU model, cores,
-Python and numpy versions) heads the table. ``--markdown PATH`` also writes the table
-as markdown (``make bench`` writes ``bench/results.md``; its first line says it is
-generated).
+the pipeline objects' cost per message, node message rates next to the relay, replay
+speed-up over real time (any key naming a speed-up or a real-time factor, from any
+benchmark), peak memory, and the targets; keys of benchmarks it does not know are
+listed generically (throughputs, rates, ratios, speed-ups, memory). The machine
+(``_common.machine``: CPU model, cores, Python and numpy versions, commit) heads the
+table. ``--markdown PATH`` also writes the table as markdown (``make bench`` writes
+``bench/results.md``; its first line says it is generated).
 
 Usage: ``python bench/summary.py [--markdown PATH] [LOG ...]``.
 """
@@ -21,9 +21,7 @@ Usage: ``python bench/summary.py [--markdown PATH] [LOG ...]``.
 import argparse
 import datetime
 import os
-import platform
 import re
-import subprocess
 import sys
 
 import _common
@@ -70,32 +68,6 @@ def parse(lines):
     return results
 
 
-def machine():
-    """Return the machine: CPU model, cores, Python and numpy versions, load, commit."""
-    cpu = _common.cpu_model()
-    try:
-        import numpy
-        numpy_version = numpy.__version__
-    except ImportError:
-        numpy_version = '?'
-    commit = '?'
-    try:
-        here = os.path.dirname(os.path.abspath(__file__))
-        commit = subprocess.run(['git', 'rev-parse', '--short', 'HEAD'], cwd=here,
-                                capture_output=True, text=True, check=True,
-                                timeout=10).stdout.strip()
-        dirty = subprocess.run(['git', 'status', '--porcelain', '--untracked-files=no'],
-                               cwd=here, capture_output=True, text=True, check=True,
-                               timeout=10).stdout.strip()
-        commit += ' + uncommitted changes' if dirty else ''
-    except (OSError, subprocess.SubprocessError):
-        pass
-    return {'cpu': cpu, 'cores': os.cpu_count(), 'python': platform.python_version(),
-            'numpy': numpy_version, 'platform': f'{platform.system()} {platform.machine()}',
-            'load': os.getloadavg()[0] if hasattr(os, 'getloadavg') else float('nan'),
-            'commit': commit}
-
-
 def si(value, unit=''):
     """Format a number with a k/M/G prefix and three significant digits."""
     if not isinstance(value, float):
@@ -132,21 +104,22 @@ def rows_for(results):
                      f'{_num(core.get("shared_ratio"))}x the chapter-style loop '
                      f'({si(core.get("shared_loop_obs_per_s"), "obs/s")})', 'bench_core'))
     fuser = results.get('bench_fuser', {})
-    for short, name in FUSIONS:
-        key = f'core_{short}_best_obs_per_s'
-        if key in fuser:
-            batch = fuser.get(f'core_{short}_best_batch')
-            rows.append(('fusion', f'LandmarkMap.update, {name} (best batch: '
-                         f'{_num(batch, 6)} rows)', si(fuser[key], 'obs/s'),
-                         f'{_num(fuser.get(f"loop_ratio_{short}"))}x the textbook loop '
-                         f'({si(fuser.get(f"loop_{short}_obs_per_s"), "obs/s")})',
-                         'bench_fuser'))
-    if 'core_independent_cpu_obs_per_s' in fuser:
-        rows.append(('fusion', 'LandmarkMap.update, independent, by CPU time (best batch)',
-                     si(fuser['core_independent_cpu_obs_per_s'], 'obs/s'),
-                     'rows / thread CPU time: what other load does not inflate',
-                     'bench_fuser'))
     observer = results.get('bench_observer', {})
+    for rows_per_msg in (1, 10, 100):
+        key = f'pipeline_add_us_{rows_per_msg}'
+        if key in observer:
+            rows.append(('pipeline', f'Observer.add_observations, {rows_per_msg} rows/msg',
+                         f'{_num(observer[key])} us/msg', 'thread CPU time; of which place '
+                         f'{_num(observer.get(f"pipeline_place_us_{rows_per_msg}"))} us',
+                         'bench_observer'))
+    for short, name in FUSIONS:
+        key = f'pipeline_{short}_add_us'
+        if key in fuser:
+            rows.append(('pipeline', f'Fuser, {name}, 100 rows/msg',
+                         f'{_num(fuser[key] + fuser.get(f"pipeline_{short}_fuse_us", 0.0))} '
+                         'us/msg', f'thread CPU time: add_landmarks {_num(fuser[key])} us + '
+                         f'fuse_queued {_num(fuser.get(f"pipeline_{short}_fuse_us"))} us',
+                         'bench_fuser'))
     for rows_per_msg in (1, 10, 100):
         key = f'observer_msg_per_s_{rows_per_msg}'
         if key in observer:
@@ -155,7 +128,8 @@ def rows_for(results):
                          f'{_num(observer.get(f"ratio_{rows_per_msg}"))} x relay '
                          f'({si(observer.get(f"relay_msg_per_s_{rows_per_msg}"), "msg/s")}); '
                          f'CPU-time ratio relay/observer '
-                         f'{_num(observer.get(f"cpu_ratio_{rows_per_msg}"))}', 'bench_observer'))
+                         f'{_num(observer.get(f"cpu_ratio_{rows_per_msg}"))}',
+                         'bench_observer'))
     for short, name in FUSIONS:
         key = f'fuser_{short}_msg_per_s_100'
         if key in fuser:
@@ -167,7 +141,7 @@ def rows_for(results):
         if f'lag_{short}_ms' in fuser:
             rows.append(('node', f'landmark_fuser, {name}: fusion lag',
                          f'{_num(fuser[f"lag_{short}_ms"])} ms',
-                         'last input -> map updated (in the node); end to end to '
+                         'last input -> queues empty after a fusion (in the node); end to end to '
                          f'fused_landmarks {_num(fuser.get(f"e2e_lag_{short}_ms"))} ms',
                          'bench_fuser'))
     for name, values in results.items():
@@ -202,7 +176,7 @@ def render(results, host, missing, markdown):
     header = ('section', 'what', 'figure', 'context', 'from')
     rows = rows_for(results)
     when = datetime.datetime.now().strftime('%Y-%m-%d %H:%M')
-    machine_line = (f'{host["cpu"]}, {host["cores"]} cores, {host["platform"]}, Python '
+    machine_line = (f'{host["cpu"]}, {host["cpu_count"]} cores, {host["platform"]}, Python '
                     f'{host["python"]}, numpy {host["numpy"]}; commit {host["commit"]}; '
                     f'{when}; load average {host["load"]:.1f} when summarised')
     notes = [f'no RESULT line from {name}: see its log' for name in missing]
@@ -256,7 +230,7 @@ def main(argv=None):
             results.update(found)
     else:
         results = parse(sys.stdin)
-    host = machine()
+    host = _common.machine()
     sys.stdout.write(render(results, host, missing, markdown=False))
     if args.markdown:
         with open(args.markdown, 'w', encoding='utf-8') as stream:

@@ -2,15 +2,19 @@
 Monte Carlo consistency of the three fusion methods in the simulator (ROS-free).
 
 ``python -m landmark_ros.eval.montecarlo [--seeds 50] [--duration 20]`` runs the simulator
-(``landmark_ros.sim.simulation``) for many seeds, pushes every measurement through the code the
-nodes run (``observations.landmarks_from_rows`` at the pose the observer would
-interpolate, ``LandmarkMap.update`` in stamp order) and averages the NEES of the fused
-landmarks, per seed and over all seeds. A consistent estimator's average NEES is 2.
-Within one seed the landmarks share the robots' pose errors and biases, so their
-errors are correlated and the chi-square interval of ``2 K`` degrees of freedom (for
-``K`` independent landmarks, printed for reference) is too narrow; the verdict
-therefore treats the seeds as the independent samples: the mean of the per-seed
-average NEES and its 95 % confidence interval (1.96 standard errors).
+(``landmark_ros.sim.simulation``) for many seeds and drives the pipeline the nodes run
+with it: one ``pipeline.observer.Observer`` per robot (its noise parameters are the
+simulator's), fed with the poses and observation messages in the order and with the
+stamps the ``landmark_sim`` node publishes them, and one ``pipeline.fuser.Fuser`` per
+fusion method, fed with every observer's landmark batches and fused every
+``update_period_s`` of simulated time, as the ``landmark_fuser`` node's timer does.
+It then averages the NEES of the fused landmarks, per seed and over all seeds. A
+consistent estimator's average NEES is 2. Within one seed the landmarks share the
+robots' pose errors and biases, so their errors are correlated and the chi-square
+interval of ``2 K`` degrees of freedom (for ``K`` independent landmarks, printed for
+reference) is too narrow; the verdict therefore treats the seeds as the independent
+samples: the mean of the per-seed average NEES and its 95 % confidence interval (1.96
+standard errors).
 
 Two scenarios:
 
@@ -31,10 +35,11 @@ from dataclasses import replace
 import sys
 import time
 
-from landmark_ros.core.landmark_map import FUSION_METHODS, LandmarkMap
+from landmark_ros.core.landmark_map import FUSION_METHODS
 from landmark_ros.eval.metrics import anees_interval, evaluate
-from landmark_ros.pipeline.pose_buffer import interpolate
-from landmark_ros.pipeline.rows import landmarks_from_rows
+from landmark_ros.pipeline.config import FuserConfig, ObserverConfig
+from landmark_ros.pipeline.fuser import Fuser
+from landmark_ros.pipeline.observer import ObservationMessage, Observer
 from landmark_ros.sim import simulation
 import numpy as np
 
@@ -55,49 +60,105 @@ EXPECTED = {
 """What theory says of the pooled average NEES, per scenario and method."""
 
 
-def observations(sim):
+START_NS = 1_000_000_000
+"""Clock time of simulated time zero [ns]: the node stamps ``start + simulated time``,
+and the observer takes no zero stamp."""
+
+
+def observer_config(sim_config):
     """
-    Return every robot's landmarks as the observers would publish them, in stamp order.
+    Return the observers' parameters: the simulator's noise model, defaults otherwise.
+
+    Parameters
+    ----------
+    sim_config : landmark_ros.sim.simulation.SimConfig
+        The simulator's parameters: noise and bias standard deviations.
+
+    Returns
+    -------
+    ObserverConfig
+
+    """
+    return ObserverConfig(range_stddev=sim_config.range_stddev,
+                          bearing_stddev=sim_config.bearing_stddev,
+                          range_bias_stddev=sim_config.range_bias_stddev,
+                          bearing_bias_stddev=sim_config.bearing_bias_stddev)
+
+
+def fuse_simulation(sim, methods=FUSION_METHODS, gate_probability=0.999):
+    """
+    Run a simulation through one ``Observer`` per robot and one ``Fuser`` per method.
+
+    Poses and observation messages go to the observers in the order ``landmark_sim``
+    publishes them (by stamp; at equal progress an observation before the pose that
+    follows it; robots in turn), stamped ``START_NS`` plus the simulated time; the
+    observers' clock is the stamp of what they are given. Every landmark batch an
+    observer returns goes to every fuser at once; the fusers fuse what is queued
+    every ``update_period_s`` of simulated time and at the end.
 
     Parameters
     ----------
     sim : landmark_ros.sim.simulation.Simulation
-        A simulation with a finite ``duration_s``.
+        A simulation with a finite ``duration_s``; the last observation before it is
+        placed with the pose after it.
+    methods : sequence of str
+        Fusion methods.
+    gate_probability : float
+        The fusers' gate.
 
     Returns
     -------
-    ids : ndarray of int, shape (N,)
-    m, P, P_dep : ndarray, shapes (N, 2), (N, 2, 2), (N, 2, 2)
-    sources : list of str, length N
-    stamps : ndarray, shape (N,) [s]
+    fusers : dict
+        ``method -> Fuser`` after the last fusion.
+    observers : list of Observer
+        One per robot, with their counters.
 
     """
-    config = sim.config
-    R = np.diag([config.range_stddev ** 2, config.bearing_stddev ** 2])
-    R_bias = None
-    if config.range_bias_stddev or config.bearing_bias_stddev:
-        R_bias = np.diag([config.range_bias_stddev ** 2, config.bearing_bias_stddev ** 2])
-    rows = []
-    count = sim.observations_until(int(config.duration_s * 1e9))
-    for j in range(count):
-        for robot in range(sim.robots):
-            measured = sim.measure(robot, j)
-            if not len(measured.ids):
-                continue
-            # The two poses that bracket the stamp, interpolated as the observer does.
-            k = measured.stamp_ns // sim.pose_period_ns
-            t0, _, pose0, P0 = sim.reported_pose(robot, k)
-            t1, _, pose1, P1 = sim.reported_pose(robot, k + 1)
-            pose, P_pose = interpolate(pose0, P0, pose1, P1,
-                                       (measured.stamp_ns - t0) / (t1 - t0))
-            kept, m, P, P_dep, _ = landmarks_from_rows(
-                np.asarray(measured.ids), measured.z, R, pose, P_pose, None, R_bias)
-            rows.append((np.asarray(measured.ids)[kept], m, P, P_dep,
-                         f'/robot{robot + 1}/landmarks', measured.stamp_ns * 1e-9))
-    return (np.concatenate([r[0] for r in rows]), np.concatenate([r[1] for r in rows]),
-            np.concatenate([r[2] for r in rows]), np.concatenate([r[3] for r in rows]),
-            [r[4] for r in rows for _ in range(len(r[0]))],
-            np.concatenate([np.full(len(r[0]), r[5]) for r in rows]))
+    sources = [f'/robot{robot + 1}/landmarks' for robot in range(sim.robots)]
+    observers = [Observer(observer_config(sim.config)) for _ in range(sim.robots)]
+    fusers = {method: Fuser(FuserConfig(fusion=method, gate_probability=gate_probability,
+                                        min_observations=1), sources)
+              for method in methods}
+    period_ns = int(round(FuserConfig().update_period_s * 1e9))
+    observation_end = sim.observations_until(int(sim.config.duration_s * 1e9))
+    last_stamp = sim.observation_stamp_ns(observation_end - 1) if observation_end else 0
+    # Up to the first pose after the last observation, so that it is bracketed.
+    pose_end = sim.poses_until(last_stamp) + 1
+    next_pose = next_observation = 0
+    next_fusion_ns = START_NS + period_ns
+
+    def hand_over(robot, batches):
+        for batch in batches:
+            for fuser in fusers.values():
+                fuser.add_landmarks(sources[robot], batch.stamp_ns, batch.ids, batch.m,
+                                    batch.P, batch.P_dep, now_ns=now_ns)
+
+    while next_pose < pose_end or next_observation < observation_end:
+        pose_stamp = sim.pose_stamp_ns(next_pose)
+        if next_observation < observation_end and (
+                next_pose >= pose_end
+                or sim.observation_stamp_ns(next_observation) < pose_stamp):
+            now_ns = START_NS + sim.observation_stamp_ns(next_observation)
+            for robot, observer in enumerate(observers):
+                measured = sim.measure(robot, next_observation)
+                columns = {'id': measured.ids, 'range': measured.z[:, 0],
+                           'bearing': measured.z[:, 1]}
+                hand_over(robot, observer.add_observations(
+                    [ObservationMessage(START_NS + measured.stamp_ns, columns)], now_ns))
+            next_observation += 1
+        else:
+            now_ns = START_NS + pose_stamp
+            for robot, observer in enumerate(observers):
+                stamp, _, pose, P_pose = sim.reported_pose(robot, next_pose)
+                hand_over(robot, observer.add_pose(START_NS + stamp, pose, P_pose, now_ns))
+            next_pose += 1
+        while now_ns >= next_fusion_ns:
+            for fuser in fusers.values():
+                fuser.fuse_queued()
+            next_fusion_ns += period_ns
+    for fuser in fusers.values():
+        fuser.fuse_queued()
+    return fusers, observers
 
 
 def run_seed(config, methods=FUSION_METHODS, gate_probability=0.999):
@@ -111,22 +172,30 @@ def run_seed(config, methods=FUSION_METHODS, gate_probability=0.999):
     methods : sequence of str
         Fusion methods.
     gate_probability : float
-        The fuser's gate.
+        The fusers' gate.
 
     Returns
     -------
     dict
         ``method -> list of NEES`` of the fused landmarks.
 
+    Raises
+    ------
+    RuntimeError
+        If an observer rejected anything: the study would not be about what the
+        nodes publish.
+
     """
     sim = simulation.Simulation(config)
-    ids, m, P, P_dep, sources, stamps = observations(sim)
+    fusers, observers = fuse_simulation(sim, methods, gate_probability)
+    for robot, observer in enumerate(observers):
+        status = observer.status()
+        if status.level != 'ok':
+            raise RuntimeError(f'observer of robot{robot + 1}: {status.message}')
     truth = sim.world.truth()
     result = {}
-    for method in methods:
-        landmark_map = LandmarkMap(method, gate_probability, min_observations=1)
-        landmark_map.update(ids, m, P, P_dep, sources, stamps)
-        fused_ids, fused_m, fused_P, _, _ = landmark_map.snapshot()
+    for method, fuser in fusers.items():
+        fused_ids, fused_m, fused_P, _, _ = fuser.snapshot()
         landmarks, _ = evaluate(fused_ids, fused_m, fused_P, truth)
         result[method] = [r.nees for r in landmarks]
     return result
