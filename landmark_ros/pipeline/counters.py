@@ -63,8 +63,9 @@ class Counters:
         return self.counts[name]
 
 
-def status_values(counters: Mapping[str, int], extra: Optional[Mapping[str, Any]] = None
-                  ) -> List[Tuple[str, str]]:
+def status_values(
+        counters: Mapping[str, int], extra: Optional[Mapping[str, Any]] = None,
+) -> List[Tuple[str, str]]:
     """
     Return ``(key, value)`` string pairs for a diagnostics status, sorted by key.
 
