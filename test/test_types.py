@@ -29,9 +29,10 @@ REQUIRED = [
     'landmark_ros.pipeline.counters',
     'landmark_ros.pipeline.map_file',
     'landmark_ros.pipeline.pose_buffer',
-    # Not annotated yet: landmark_ros.core._arrays, landmark_ros.core.gaussian,
-    # landmark_ros.core.landmark_map, landmark_ros.pipeline.fuser,
-    # landmark_ros.pipeline.observer, landmark_ros.pipeline.rows.
+    # Not annotated yet: landmark_ros.core._arrays, landmark_ros.core.association,
+    # landmark_ros.core.gaussian, landmark_ros.core.landmark_map,
+    # landmark_ros.pipeline.fuser, landmark_ros.pipeline.observer,
+    # landmark_ros.pipeline.rows.
 ]
 
 
