@@ -9,11 +9,16 @@ k : number of standard deviations (Mahalanobis radius) of the contour.
 
 """
 
+from typing import Tuple, Union
+
 from landmark_ros.core._arrays import as_matrices, as_vectors
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
 
 
-def ellipse_axes(P, k=1.0):
+def ellipse_axes(P: ArrayLike, k: float = 1.0) -> Tuple[
+        Union[float, NDArray[np.float64]], Union[float, NDArray[np.float64]],
+        Union[float, NDArray[np.float64]]]:
     """
     Return the semi-axes and orientation of the k-sigma ellipse of ``P``.
 
@@ -43,7 +48,8 @@ def ellipse_axes(P, k=1.0):
     return major[()], minor[()], angle[()]
 
 
-def ellipse_points(mean, P, k=1.0, num_points=36):
+def ellipse_points(mean: ArrayLike, P: ArrayLike, k: float = 1.0,
+                   num_points: int = 36) -> NDArray[np.float64]:
     """
     Return points on the k-sigma contour ``(x - mean)^T P^-1 (x - mean) = k^2``.
 

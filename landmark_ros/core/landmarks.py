@@ -14,13 +14,18 @@ m : landmark in the world, shape (2,) or (N, 2); P_m its covariance.
 
 """
 
+from typing import Optional, Tuple, Union
+
 from landmark_ros.core import pose2, sensors
 from landmark_ros.core._arrays import (as_matrices, as_vectors, common_batch_shape, sandwich,
                                        symmetric_2x2, to_batch)
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
 
 
-def sensor_in_world(pose, P_pose, sensor_pose=None):
+def sensor_in_world(
+        pose: ArrayLike, P_pose: ArrayLike, sensor_pose: Optional[ArrayLike] = None,
+) -> Tuple[NDArray[np.float64], NDArray[np.float64]]:
     """
     Compose an exactly known sensor mounting into an uncertain robot pose.
 
@@ -50,7 +55,10 @@ def sensor_in_world(pose, P_pose, sensor_pose=None):
     return to_batch(shape, pose, 1), to_batch(shape, P_pose, 2)
 
 
-def polar_covariance(r, angle, R):
+def polar_covariance(
+        r: Union[float, NDArray[np.float64]], angle: Union[float, NDArray[np.float64]],
+        R: NDArray[np.float64],
+) -> NDArray[np.float64]:
     """
     Return the Cartesian covariance of a polar measurement ``(r, angle)``.
 
@@ -75,7 +83,9 @@ def polar_covariance(r, angle, R):
     return symmetric_2x2(*_polar_terms(cos, sin, r * cos, r * sin, R))
 
 
-def lever_arm_covariance(e, P_pose):
+def lever_arm_covariance(
+        e: NDArray[np.float64], P_pose: NDArray[np.float64],
+) -> NDArray[np.float64]:
     """
     Return the covariance a pose error gives a point rigidly attached to the robot.
 
@@ -153,7 +163,10 @@ def _checked(pose, P_pose, z, R, sensor_pose):
     return pose, P_pose, z, R, sensor_pose
 
 
-def landmark_to_world_parts(pose, P_pose, z, R, sensor_pose=None):
+def landmark_to_world_parts(
+        pose: ArrayLike, P_pose: ArrayLike, z: ArrayLike, R: ArrayLike,
+        sensor_pose: Optional[ArrayLike] = None,
+) -> Tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
     """
     Place an observed landmark in the world, keeping the two covariance terms apart.
 
@@ -195,7 +208,11 @@ def landmark_to_world_parts(pose, P_pose, z, R, sensor_pose=None):
             to_batch(shape, symmetric_2x2(*sensor_terms), 2))
 
 
-def landmark_to_world_dependent(pose, P_pose, z, R, R_bias=None, sensor_pose=None):
+def landmark_to_world_dependent(
+        pose: ArrayLike, P_pose: ArrayLike, z: ArrayLike, R: ArrayLike,
+        R_bias: Optional[ArrayLike] = None,
+        sensor_pose: Optional[ArrayLike] = None,
+) -> Tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
     """
     Place observed landmarks in the world with their covariance and its dependent part.
 
@@ -254,7 +271,10 @@ _BLOCK = 16384
 """Rows per block in ``landmark_to_world``: keeps the temporaries in the CPU cache."""
 
 
-def landmark_to_world(pose, P_pose, z, R, sensor_pose=None):
+def landmark_to_world(
+        pose: ArrayLike, P_pose: ArrayLike, z: ArrayLike, R: ArrayLike,
+        sensor_pose: Optional[ArrayLike] = None,
+) -> Tuple[NDArray[np.float64], NDArray[np.float64]]:
     """
     Place an observed landmark in the world with its covariance.
 
@@ -306,7 +326,9 @@ def landmark_to_world(pose, P_pose, z, R, sensor_pose=None):
     return m, P_m
 
 
-def relative_pose(p1, P1, p2, P2, method='between'):
+def relative_pose(
+        p1: ArrayLike, P1: ArrayLike, p2: ArrayLike, P2: ArrayLike, method: str = 'between',
+) -> Tuple[NDArray[np.float64], NDArray[np.float64]]:
     """
     Return the pose of robot 2 seen from robot 1, ``(-) p1 (+) p2``, with covariance.
 
@@ -353,7 +375,10 @@ def relative_pose(p1, P1, p2, P2, method='between'):
     return to_batch(shape, p12, 1), to_batch(shape, P12, 2)
 
 
-def predict_observation(pose, P_pose, m, P_m, sensor_pose=None):
+def predict_observation(
+        pose: ArrayLike, P_pose: ArrayLike, m: ArrayLike, P_m: ArrayLike,
+        sensor_pose: Optional[ArrayLike] = None,
+) -> Tuple[NDArray[np.float64], NDArray[np.float64]]:
     """
     Predict the range-bearing observation of an uncertain landmark.
 
@@ -393,7 +418,7 @@ def predict_observation(pose, P_pose, m, P_m, sensor_pose=None):
             to_batch(shape, sandwich(J_z_s, P_s) + sandwich(J_z_m, P_m), 2))
 
 
-def nees(m, P_m, m_true):
+def nees(m: ArrayLike, P_m: ArrayLike, m_true: ArrayLike) -> Union[float, NDArray[np.float64]]:
     """
     Return the normalised estimation error squared of estimates against truth.
 

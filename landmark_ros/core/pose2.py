@@ -12,15 +12,27 @@ m : ``pose (+) p``, the same point in the frame ``pose`` is given in.
 """
 
 import math
+from typing import overload, Tuple, Union
 
 from landmark_ros.core._arrays import as_vectors, batch_shape, matrix
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
 
 
 TWO_PI = 2.0 * math.pi
 
 
-def wrap_angle(angle):
+@overload
+def wrap_angle(angle: float) -> float:
+    ...
+
+
+@overload
+def wrap_angle(angle: Union[float, ArrayLike]) -> Union[float, NDArray[np.float64]]:
+    ...
+
+
+def wrap_angle(angle: Union[float, ArrayLike]) -> Union[float, NDArray[np.float64]]:
     """
     Wrap angles to ``[-pi, pi)``.
 
@@ -44,7 +56,7 @@ def wrap_angle(angle):
     return np.where(wrapped >= np.pi, wrapped - TWO_PI, wrapped)[()]
 
 
-def compose(a, b):
+def compose(a: ArrayLike, b: ArrayLike) -> NDArray[np.float64]:
     """
     Compose two poses: ``c = a (+) b``.
 
@@ -70,7 +82,8 @@ def compose(a, b):
     ], axis=-1)
 
 
-def compose_jacobians(a, b):
+def compose_jacobians(
+        a: ArrayLike, b: ArrayLike) -> Tuple[NDArray[np.float64], NDArray[np.float64]]:
     """
     Return the Jacobians of ``a (+) b``.
 
@@ -105,7 +118,7 @@ def compose_jacobians(a, b):
     return J_c_a, J_c_b
 
 
-def inverse(a):
+def inverse(a: ArrayLike) -> NDArray[np.float64]:
     """
     Invert a pose: ``(-) a``, so that ``a (+) ((-) a) = 0``.
 
@@ -125,7 +138,7 @@ def inverse(a):
     return np.stack([-x * cos - y * sin, x * sin - y * cos, wrap_angle(-theta)], axis=-1)
 
 
-def inverse_jacobian(a):
+def inverse_jacobian(a: ArrayLike) -> NDArray[np.float64]:
     """
     Return the Jacobian of ``(-) a`` with respect to ``a``.
 
@@ -149,7 +162,7 @@ def inverse_jacobian(a):
     ], batch_shape(a))
 
 
-def between(a, b):
+def between(a: ArrayLike, b: ArrayLike) -> NDArray[np.float64]:
     """
     Return ``(-) a (+) b``: the pose ``b`` seen from the pose ``a``.
 
@@ -176,7 +189,8 @@ def between(a, b):
     ], axis=-1)
 
 
-def between_jacobians(a, b):
+def between_jacobians(
+        a: ArrayLike, b: ArrayLike) -> Tuple[NDArray[np.float64], NDArray[np.float64]]:
     """
     Return the Jacobians of ``(-) a (+) b``.
 
@@ -211,7 +225,7 @@ def between_jacobians(a, b):
     return J_ab_a, J_ab_b
 
 
-def transform_point(pose, point):
+def transform_point(pose: ArrayLike, point: ArrayLike) -> NDArray[np.float64]:
     """
     Express a point given in the frame of ``pose`` in the outer frame.
 
@@ -236,7 +250,8 @@ def transform_point(pose, point):
     ], axis=-1)
 
 
-def transform_point_jacobians(pose, point):
+def transform_point_jacobians(
+        pose: ArrayLike, point: ArrayLike) -> Tuple[NDArray[np.float64], NDArray[np.float64]]:
     """
     Return the Jacobians of ``pose (+) point``.
 

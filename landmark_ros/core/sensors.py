@@ -14,16 +14,19 @@ observations have shape (1,) or (N, 1) so that every model is a vector model.
 
 """
 
+from typing import Tuple
+
 from landmark_ros.core._arrays import as_vectors, batch_shape, matrix
 from landmark_ros.core.pose2 import wrap_angle
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
 
 
 MIN_RANGE = 1e-6
 """Smallest range [m] the models accept: the bearing is undefined at zero range."""
 
 
-def check_range(r, name='range'):
+def check_range(r: ArrayLike, name: str = 'range') -> None:
     """
     Raise if any range is below ``MIN_RANGE`` (at or near zero, or negative).
 
@@ -50,7 +53,7 @@ def check_range(r, name='range'):
             f'{bad[0]}: {value!r}')
 
 
-def polar_to_cartesian(z):
+def polar_to_cartesian(z: ArrayLike) -> NDArray[np.float64]:
     """
     Convert ``(range, bearing)`` to ``(x, y)``.
 
@@ -74,7 +77,7 @@ def polar_to_cartesian(z):
     return np.stack([z[..., 0] * np.cos(z[..., 1]), z[..., 0] * np.sin(z[..., 1])], axis=-1)
 
 
-def polar_to_cartesian_jacobian(z):
+def polar_to_cartesian_jacobian(z: ArrayLike) -> NDArray[np.float64]:
     """
     Return the Jacobian of ``polar_to_cartesian``.
 
@@ -99,7 +102,7 @@ def polar_to_cartesian_jacobian(z):
     return matrix([[cos, -r * sin], [sin, r * cos]], batch_shape(z))
 
 
-def cartesian_to_polar(p):
+def cartesian_to_polar(p: ArrayLike) -> NDArray[np.float64]:
     """
     Convert ``(x, y)`` to ``(range, bearing)``.
 
@@ -124,7 +127,7 @@ def cartesian_to_polar(p):
     return np.stack([r, wrap_angle(np.arctan2(p[..., 1], p[..., 0]))], axis=-1)
 
 
-def cartesian_to_polar_jacobian(p):
+def cartesian_to_polar_jacobian(p: ArrayLike) -> NDArray[np.float64]:
     """
     Return the Jacobian of ``cartesian_to_polar``.
 
@@ -161,7 +164,7 @@ def _offsets(pose, m):
     return pose, dx, dy, r, r2, batch_shape(pose, m)
 
 
-def observe(pose, m):
+def observe(pose: ArrayLike, m: ArrayLike) -> NDArray[np.float64]:
     """
     Predict the range-bearing observation of ``m`` from ``pose``: ``z = h(pose, m)``.
 
@@ -186,7 +189,8 @@ def observe(pose, m):
     return np.stack([r, wrap_angle(np.arctan2(dy, dx) - pose[..., 2])], axis=-1)
 
 
-def observe_jacobians(pose, m):
+def observe_jacobians(
+        pose: ArrayLike, m: ArrayLike) -> Tuple[NDArray[np.float64], NDArray[np.float64]]:
     """
     Return the Jacobians of ``observe``.
 
@@ -214,7 +218,7 @@ def observe_jacobians(pose, m):
     return J_z_pose, J_z_m
 
 
-def observe_range(pose, m):
+def observe_range(pose: ArrayLike, m: ArrayLike) -> NDArray[np.float64]:
     """
     Predict a range-only observation: ``z = (range,)``.
 
@@ -238,7 +242,8 @@ def observe_range(pose, m):
     return observe(pose, m)[..., :1]
 
 
-def observe_range_jacobians(pose, m):
+def observe_range_jacobians(
+        pose: ArrayLike, m: ArrayLike) -> Tuple[NDArray[np.float64], NDArray[np.float64]]:
     """
     Return the Jacobians of ``observe_range``.
 
@@ -252,7 +257,7 @@ def observe_range_jacobians(pose, m):
     return J_z_pose[..., :1, :], J_z_m[..., :1, :]
 
 
-def observe_bearing(pose, m):
+def observe_bearing(pose: ArrayLike, m: ArrayLike) -> NDArray[np.float64]:
     """
     Predict a bearing-only observation: ``z = (bearing,)``.
 
@@ -276,7 +281,8 @@ def observe_bearing(pose, m):
     return observe(pose, m)[..., 1:]
 
 
-def observe_bearing_jacobians(pose, m):
+def observe_bearing_jacobians(
+        pose: ArrayLike, m: ArrayLike) -> Tuple[NDArray[np.float64], NDArray[np.float64]]:
     """
     Return the Jacobians of ``observe_bearing``.
 
@@ -290,7 +296,7 @@ def observe_bearing_jacobians(pose, m):
     return J_z_pose[..., 1:, :], J_z_m[..., 1:, :]
 
 
-def landmark_from_observation(pose, z):
+def landmark_from_observation(pose: ArrayLike, z: ArrayLike) -> NDArray[np.float64]:
     """
     Place the landmark seen as ``z`` from ``pose``: ``m = g(pose, z)``.
 
@@ -321,7 +327,8 @@ def landmark_from_observation(pose, z):
     ], axis=-1)
 
 
-def landmark_from_observation_jacobians(pose, z):
+def landmark_from_observation_jacobians(
+        pose: ArrayLike, z: ArrayLike) -> Tuple[NDArray[np.float64], NDArray[np.float64]]:
     """
     Return the Jacobians of ``landmark_from_observation``.
 

@@ -6,11 +6,14 @@ and its valid range; ``landmark_ros.ros.params`` declares them on a node from he
 so the dataclass is the single list of parameters and their defaults.
 """
 
-from dataclasses import dataclass, field, fields, MISSING
+from dataclasses import dataclass, Field, field, fields, MISSING
 import math
+from typing import Any, ClassVar, Dict, Mapping, Optional, Sequence, Type, TypeVar, Union
 
 
-def param(default, description, read_only=False, low=None, high=None):
+def param(default: Union[float, str, Sequence[Union[float, str]]], description: str,
+          read_only: bool = False, low: Optional[float] = None,
+          high: Optional[float] = None) -> Any:
     """
     Declare a config field with its parameter metadata.
 
@@ -32,10 +35,16 @@ def param(default, description, read_only=False, low=None, high=None):
     return field(default=default, metadata=metadata)
 
 
+_Config = TypeVar('_Config', bound='ConfigBase')
+
+
 class ConfigBase:
     """Validation and construction shared by the node configs."""
 
-    def __post_init__(self):
+    # Set by @dataclass on every subclass; declared so that fields() accepts self.
+    __dataclass_fields__: ClassVar[Dict[str, 'Field[Any]']]
+
+    def __post_init__(self) -> None:
         for spec in fields(self):
             value = _coerce(spec, getattr(self, spec.name))
             low, high = spec.metadata['low'], spec.metadata['high']
@@ -45,11 +54,11 @@ class ConfigBase:
             object.__setattr__(self, spec.name, value)
         self.check()
 
-    def check(self):
+    def check(self) -> None:
         """Check relations between fields; subclasses raise ValueError."""
 
     @classmethod
-    def from_values(cls, values):
+    def from_values(cls: Type[_Config], values: Mapping[str, Any]) -> _Config:
         """
         Build from a ``name -> value`` mapping, ignoring names that are not fields.
 
@@ -63,7 +72,7 @@ class ConfigBase:
         return cls(**{key: value for key, value in values.items() if key in names})
 
 
-def field_default(spec):
+def field_default(spec: 'Field[Any]') -> Any:
     """Return the default value of a dataclass field."""
     return spec.default if spec.default_factory is MISSING else spec.default_factory()
 
@@ -180,7 +189,7 @@ class ObserverConfig(ConfigBase):
         5.0, 'Shortest interval between two log lines about the same problem [s].',
         low=0.0, high=3600.0)
 
-    def check(self):
+    def check(self) -> None:
         """Check relations between fields."""
         if self.max_pose_gap_s > self.pose_buffer_s:
             raise ValueError('max_pose_gap_s must not exceed pose_buffer_s')
@@ -252,7 +261,7 @@ class FuserConfig(ConfigBase):
         5.0, 'Shortest interval between two log lines about the same problem [s].',
         low=0.0, high=3600.0)
 
-    def check(self):
+    def check(self) -> None:
         """Check relations between fields."""
         from landmark_ros.core.landmark_map import FUSION_METHODS
         if self.fusion not in FUSION_METHODS:
@@ -266,7 +275,7 @@ class FuserConfig(ConfigBase):
                              f'got {self.shard_index}')
 
 
-def markdown_table(config_class):
+def markdown_table(config_class: Type[ConfigBase]) -> str:
     """
     Return the parameters of a config class as a Markdown table (for the README).
 

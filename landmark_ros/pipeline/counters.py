@@ -3,7 +3,7 @@
 from collections import Counter
 from dataclasses import dataclass, field
 import time
-from typing import Any, Dict
+from typing import Any, Callable, Dict, List, Mapping, Optional, Tuple
 
 
 class Counters:
@@ -21,15 +21,16 @@ class Counters:
 
     """
 
-    def __init__(self, log, throttle_s=5.0, clock=time.monotonic):
-        self.counts = Counter()
+    def __init__(self, log: Callable[[str], Any], throttle_s: float = 5.0,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self.counts: Counter[str] = Counter()
         self._log = log
         self.throttle_s = throttle_s
         self._clock = clock
-        self._last_log = {}
-        self._unlogged = Counter()
+        self._last_log: Dict[str, float] = {}
+        self._unlogged: Counter[str] = Counter()
 
-    def add(self, name, count=1, detail=None):
+    def add(self, name: str, count: int = 1, detail: Optional[str] = None) -> None:
         """
         Count ``count`` events of kind ``name``; log ``detail`` if not throttled.
 
@@ -58,11 +59,13 @@ class Counters:
         more = f' ({skipped} more since the last report)' if skipped else ''
         self._log(f'{name} x{count}: {detail}{more}')
 
-    def __getitem__(self, name):
+    def __getitem__(self, name: str) -> int:
         return self.counts[name]
 
 
-def status_values(counters, extra=None):
+def status_values(
+        counters: Mapping[str, int], extra: Optional[Mapping[str, Any]] = None,
+) -> List[Tuple[str, str]]:
     """
     Return ``(key, value)`` string pairs for a diagnostics status, sorted by key.
 

@@ -10,6 +10,7 @@ import datetime
 import json
 import os
 import tempfile
+from typing import Any, Dict, List, Mapping, Optional, Sequence
 
 FORMAT = 'landmark_ros/map'
 VERSION = 1
@@ -19,7 +20,7 @@ class MapFileError(ValueError):
     """A map file that cannot be used: unreadable, corrupt, or of another version."""
 
 
-def save(path, records, world_frame, fusion):
+def save(path: str, records: Sequence[Mapping[str, Any]], world_frame: str, fusion: str) -> None:
     """
     Write the map to ``path`` atomically.
 
@@ -89,7 +90,7 @@ def _file_mode(path):
         return 0o666 & ~_umask()
 
 
-def remove_stale_temporaries(path):
+def remove_stale_temporaries(path: str) -> List[str]:
     """
     Delete the temporary files interrupted saves of ``path`` left behind.
 
@@ -108,7 +109,7 @@ def remove_stale_temporaries(path):
     """
     directory = os.path.dirname(os.path.abspath(path))
     prefix = '.' + os.path.basename(path) + '.'
-    removed = []
+    removed: List[str] = []
     if not os.path.isdir(directory):
         return removed
     for name in os.listdir(directory):
@@ -118,7 +119,7 @@ def remove_stale_temporaries(path):
     return removed
 
 
-def load(path, world_frame):
+def load(path: str, world_frame: str) -> Dict[str, Any]:
     """
     Read a map file written by ``save``.
 
@@ -161,7 +162,7 @@ def load(path, world_frame):
     return document
 
 
-def move_aside(path, now=None):
+def move_aside(path: str, now: Optional[datetime.datetime] = None) -> str:
     """
     Rename an unusable map file out of the way and return its new name.
 

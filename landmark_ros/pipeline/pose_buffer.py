@@ -6,9 +6,11 @@ Stamps are integer nanoseconds, so bracketing comparisons are exact.
 
 import bisect
 from dataclasses import dataclass
+from typing import List, Optional, Tuple
 
 from landmark_ros.core.pose2 import wrap_angle
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
 
 
 FOUND = 'found'
@@ -27,11 +29,15 @@ class Lookup:
     """
 
     status: str
-    pose: np.ndarray = None
-    P_pose: np.ndarray = None
+    pose: Optional[NDArray[np.float64]] = None
+    P_pose: Optional[NDArray[np.float64]] = None
 
 
-def interpolate(pose0, P0, pose1, P1, fraction):
+def interpolate(
+        pose0: NDArray[np.float64], P0: NDArray[np.float64],
+        pose1: NDArray[np.float64], P1: NDArray[np.float64],
+        fraction: float,
+) -> Tuple[NDArray[np.float64], NDArray[np.float64]]:
     """
     Interpolate between two poses: position linear, heading on the shortest arc.
 
@@ -74,32 +80,32 @@ class PoseBuffer:
 
     """
 
-    def __init__(self, duration_ns, max_gap_ns, max_size=10000):
+    def __init__(self, duration_ns: float, max_gap_ns: float, max_size: int = 10000) -> None:
         self.duration_ns = int(duration_ns)
         self.max_gap_ns = int(max_gap_ns)
         self.max_size = int(max_size)
         self.clear()
 
-    def clear(self):
+    def clear(self) -> None:
         """Forget every pose."""
-        self._stamps = []
-        self._poses = []
-        self._covariances = []
+        self._stamps: List[int] = []
+        self._poses: List[NDArray[np.float64]] = []
+        self._covariances: List[NDArray[np.float64]] = []
 
-    def __len__(self):
+    def __len__(self) -> int:
         return len(self._stamps)
 
     @property
-    def stamps_ns(self):
+    def stamps_ns(self) -> Tuple[int, ...]:
         """Return the stamps of the poses held [ns], oldest first."""
         return tuple(self._stamps)
 
     @property
-    def newest_ns(self):
+    def newest_ns(self) -> Optional[int]:
         """Stamp of the newest pose, or None when empty."""
         return self._stamps[-1] if self._stamps else None
 
-    def add(self, stamp_ns, pose, P_pose):
+    def add(self, stamp_ns: int, pose: ArrayLike, P_pose: ArrayLike) -> None:
         """
         Append a pose newer than every pose held.
 
@@ -128,7 +134,7 @@ class PoseBuffer:
         if cut > 0:
             del self._stamps[:cut], self._poses[:cut], self._covariances[:cut]
 
-    def lookup(self, stamp_ns, final=False):
+    def lookup(self, stamp_ns: int, final: bool = False) -> Lookup:
         """
         Return the pose at ``stamp_ns``.
 
