@@ -15,7 +15,10 @@ from pathlib import Path
 
 from landmark_ros.core.landmark_map import FUSION_METHODS
 from landmark_ros.core.pose2 import wrap_angle
-from landmark_ros.mrclam import cli as mrclam
+from landmark_ros.mrclam import offline
+from landmark_ros.mrclam.calibrate import calibrate
+from landmark_ros.mrclam.cli import main
+from landmark_ros.mrclam.config import load_config
 from landmark_ros.mrclam.data import interpolate_poses, load_dataset, read_table
 import numpy as np
 import pytest
@@ -223,7 +226,7 @@ def test_rows_are_in_global_time_order_and_split_into_clouds(clean_dataset):
 # Configuration ---------------------------------------------------------------------------
 
 def test_config_file_sections():
-    config = mrclam.load_config(CONFIG)
+    config = load_config(CONFIG)
     # The calibrated MRCLAM camera model (landmark_mrclam --calibrate on dataset 6).
     assert config.observer.range_stddev == 0.0223
     assert config.observer.range_stddev_per_m == 0.0491
@@ -239,20 +242,20 @@ def test_config_rejects_invalid_values(tmp_path):
     path = tmp_path / 'bad.yaml'
     path.write_text('/**/landmark_observer:\n  ros__parameters:\n    range_stddev: -1.0\n')
     with pytest.raises(ValueError, match='range_stddev'):
-        mrclam.load_config(path)
+        load_config(path)
 
 
 # Offline ---------------------------------------------------------------------------------
 
 def test_observer_per_cloud_equals_vectorised(noisy_dataset):
     dataset = load_dataset(noisy_dataset[0])
-    config = mrclam.load_config(CONFIG)
+    config = load_config(CONFIG)
     observer = type(config.observer).from_values(
         {'range_stddev': 0.05, 'range_stddev_per_m': 0.02, 'bearing_stddev': 0.01,
          'range_bias_stddev': 0.01, 'bearing_bias_stddev': 0.002})
     rows = dataset.rows()
-    vectorised = mrclam.observe(rows, observer, config.P_pose)
-    per_cloud = mrclam.observe(rows, observer, config.P_pose, per_message=True)
+    vectorised = offline.observe(rows, observer, config.P_pose)
+    per_cloud = offline.observe(rows, observer, config.P_pose, per_message=True)
     assert vectorised.kept.all()
     np.testing.assert_array_equal(vectorised.kept, per_cloud.kept)
     np.testing.assert_allclose(vectorised.m, per_cloud.m, rtol=0, atol=1e-12)
@@ -263,12 +266,12 @@ def test_observer_per_cloud_equals_vectorised(noisy_dataset):
 
 def test_fusion_in_chunks_equals_row_by_row(noisy_dataset):
     dataset = load_dataset(noisy_dataset[0])
-    config = mrclam.load_config(CONFIG)
-    observed = mrclam.observe(dataset.rows(), config.observer, config.P_pose)
+    config = load_config(CONFIG)
+    observed = offline.observe(dataset.rows(), config.observer, config.P_pose)
     for method in FUSION_METHODS:
         fuser = type(config.fuser).from_values({'fusion': method})
-        one, accepted_one, rejected_one = mrclam.fuse(observed, fuser, chunk=1)
-        many, accepted_many, rejected_many = mrclam.fuse(observed, fuser, chunk=100)
+        one, accepted_one, rejected_one = offline.fuse(observed, fuser, chunk=1)
+        many, accepted_many, rejected_many = offline.fuse(observed, fuser, chunk=100)
         assert accepted_one == accepted_many and rejected_one == rejected_many
         a, b = one.to_records(), many.to_records()
         assert [r['id'] for r in a] == [r['id'] for r in b]
@@ -283,7 +286,7 @@ def test_offline_noise_free_recovers_the_truth_and_writes_json(
         clean_dataset, tmp_path, capsys):
     directory, info = clean_dataset
     out = tmp_path / 'result.json'
-    assert mrclam.main([str(directory), '--config', str(CONFIG), '--json', str(out)]) == 0
+    assert main([str(directory), '--config', str(CONFIG), '--json', str(out)]) == 0
     printed = capsys.readouterr().out
     assert '== summary' in printed
     for method in FUSION_METHODS:
@@ -315,8 +318,8 @@ def test_offline_noise_free_recovers_the_truth_and_writes_json(
 def test_one_method_and_plot(noisy_dataset, tmp_path):
     pytest.importorskip('matplotlib')
     out, image = tmp_path / 'one.json', tmp_path / 'map.png'
-    assert mrclam.main([str(noisy_dataset[0]), '--fusion', 'independent',
-                        '--json', str(out), '--plot', str(image)]) == 0
+    assert main([str(noisy_dataset[0]), '--fusion', 'independent',
+                 '--json', str(out), '--plot', str(image)]) == 0
     document = json.loads(out.read_text())
     assert [entry['fusion'] for entry in document['summary']] == ['independent']
     assert document['summary'][0]['rmse_m'] < 0.1
@@ -324,7 +327,7 @@ def test_one_method_and_plot(noisy_dataset, tmp_path):
 
 
 def test_missing_dataset_is_an_error(tmp_path, capsys):
-    assert mrclam.main([str(tmp_path / 'nowhere')]) == 2
+    assert main([str(tmp_path / 'nowhere')]) == 2
     assert 'no MRCLAM dataset directory' in capsys.readouterr().err
 
 
@@ -341,7 +344,7 @@ def test_calibration_recovers_the_synthetic_sensor_model(tmp_path, capsys):
     # Five robots draw five biases: compare with what they drew, not with the prior.
     drawn_r, drawn_b = np.sqrt(np.mean(info['biases'] ** 2, axis=0))
     out = tmp_path / 'cal.json'
-    assert mrclam.main([str(tmp_path / 'cal'), '--calibrate', '--json', str(out)]) == 0
+    assert main([str(tmp_path / 'cal'), '--calibrate', '--json', str(out)]) == 0
     printed = capsys.readouterr().out
     assert 'suggested values:' in printed and 'range_stddev_per_m:' in printed
     cal = json.loads(out.read_text())['calibration']
@@ -357,7 +360,7 @@ def test_calibration_recovers_the_synthetic_sensor_model(tmp_path, capsys):
 def test_calibration_without_bias_finds_none(tmp_path):
     make_dataset(tmp_path / 'cal', robots=3, duration=40.0, noise=(0.05, 0.0, 0.02),
                  rng=np.random.default_rng(3), extras=False)
-    cal = mrclam.calibrate(load_dataset(tmp_path / 'cal'))
+    cal = calibrate(load_dataset(tmp_path / 'cal'))
     assert cal.range_stddev == pytest.approx(0.05, rel=0.15)
     assert cal.range_stddev_per_m < 0.01
     assert cal.bearing_stddev == pytest.approx(0.02, rel=0.1)
@@ -368,11 +371,11 @@ def test_calibration_without_bias_finds_none(tmp_path):
 
 @pytest.mark.skipif(not DATASET6.is_dir(), reason=f'no MRCLAM dataset at {DATASET6}')
 def test_dataset6_offline_fuses_all_15_landmarks():
-    config = mrclam.load_config(CONFIG)
+    config = load_config(CONFIG)
     dataset = load_dataset(DATASET6, config.pose_stddev)
     assert len(dataset.robots) == 5 and len(dataset.landmarks) == 15
     assert dataset.counts['unknown_barcode'] > 0 and dataset.counts['robot_sightings'] > 0
-    results, _ = mrclam.run_offline(dataset, config, FUSION_METHODS)
+    results, _ = offline.run_offline(dataset, config, FUSION_METHODS)
     for method, result in results.items():
         assert len(result.records) == 15, method
         assert result.summary.landmarks == 15
@@ -383,8 +386,8 @@ def test_dataset6_offline_fuses_all_15_landmarks():
 
 def test_through_nodes_agrees_with_offline(noisy_dataset, tmp_path):
     out = tmp_path / 'nodes.json'
-    code = mrclam.main([str(noisy_dataset[0]), '--through-nodes', '--no-progress',
-                        '--json', str(out)])
+    code = main([str(noisy_dataset[0]), '--through-nodes', '--no-progress',
+                 '--json', str(out)])
     document = json.loads(out.read_text())
     assert code == 0, document.get('agreement')
     assert document['mode'] == 'through_nodes'
