@@ -13,19 +13,26 @@ repository). Sightings, poses and ground truth come from ``landmark_ros.mrclam.d
 landmark sightings only, each with the ground-truth pose interpolated at its stamp and
 the covariance ``pose_stddev_*`` of the ``landmark_mrclam`` section of the config.
 
+The replay's modules, by role: ``config`` (the params file), ``data`` (the reader),
+``offline``, ``player`` (through the nodes), ``calibrate``, ``report`` (tables, JSON,
+plot); this one parses the command line.
+
 Modes
 -----
 offline (default)
-    Per robot, the rows go through ``observations.landmarks_from_rows`` (vectorised
-    over all rows of the robot with per-row poses: the same numbers as one call per
-    observation cloud), then through ``LandmarkMap.update`` in global time order
-    (ties by robot number; calls of ``FUSE_CHUNK`` rows, the same map as row by row),
-    ``source`` the robot's landmark topic ``/robotN/landmarks``, ``stamp`` the
-    measurement time: what ``landmark_observer`` and ``landmark_fuser`` compute. One
-    map per fusion method, all three unless ``--fusion`` names one.
+    ``landmark_ros.mrclam.offline``: the pipeline objects the nodes run, without ROS.
+    One ``pipeline.observer.Observer`` per robot gets, in global time order (ties by
+    robot number), the robot's pose at each measurement stamp, then that stamp's
+    observation message (integer nanosecond stamps, as the player publishes them);
+    one ``pipeline.fuser.Fuser`` per fusion method gets every landmark batch, source
+    the robot's landmark topic ``/robotN/landmarks``, and fuses its queue every chunk
+    (the same map as row by row). One map per fusion method, all three unless
+    ``--fusion`` names one.
 ``--through-nodes``
-    The same data over DDS (loopback only, private ROS_DOMAIN_ID 100-149 from the
-    process ID unless ``--domain-id``) through the real nodes, in processes started by
+    ``landmark_ros.mrclam.player`` (the only module of the replay that imports ROS,
+    loaded for this mode only): the same data over DDS (loopback only, private
+    ROS_DOMAIN_ID 100-149 from the process ID unless ``--domain-id``) through the real
+    nodes, in processes started by
     ``landmark_ros.demo.launcher``: one ``landmark_observer`` per robot (namespace
     ``robotN``) and one ``landmark_fuser`` per fusion method, all running at once on
     the same observer outputs (namespace ``/mrclam/METHOD``), all with
@@ -48,7 +55,7 @@ offline (default)
     the maps differ by millimetres to centimetres (covariance intersection).
 ``--calibrate``
     Estimate the sensor model from ground truth and print suggested YAML values
-    (``calibrate`` documents the procedure).
+    (``landmark_ros.mrclam.calibrate.calibrate`` documents the procedure).
 
 Output
 ------
@@ -146,10 +153,12 @@ def main(argv=None):
         return 0
     methods = [args.fusion] if args.fusion else list(FUSION_METHODS)
     t0 = time.monotonic()
-    offline, observed = run_offline(dataset, config, methods)
+    run = run_offline(dataset, config, methods)
+    offline = run.results
     offline_s = time.monotonic() - t0
-    if observed.reasons:
-        print(f'observer/fuser row checks rejected: {dict(observed.reasons)}')
+    problems = run.problems
+    if problems:
+        print(f'observer/fuser row checks rejected: {dict(problems)}')
     timing = {'load_s': load_s, 'offline_s': offline_s, 'duration_s': dataset.duration}
     document = {'mode': 'offline', 'dataset': dataset_dict(dataset),
                 'config': {'observer': config_values(config.observer),

@@ -1,162 +1,153 @@
 """
-The offline replay: the dataset through the observer and fuser code, no ROS (ROS-free).
+The offline replay: the dataset through the pipeline objects of the nodes (ROS-free).
 
-Per robot, the rows go through ``rows.landmarks_from_rows`` (vectorised over all rows
-of the robot with per-row poses: the same numbers as one call per observation cloud),
-then through ``LandmarkMap.update`` in global time order (ties by robot number; calls
-of ``FUSE_CHUNK`` rows, the same map as row by row). One map per fusion method.
+Per robot one ``pipeline.observer.Observer`` and per fusion method one
+``pipeline.fuser.Fuser``, built from the very YAML sections the nodes read
+(``ObserverConfig`` / ``FuserConfig.from_values``), are fed what the nodes receive in
+``--through-nodes``: for every observation message (one per robot and measurement
+stamp, ``Rows.messages``), in global time order with ties by robot number, the
+robot's pose at exactly that stamp (``add_pose``), then the message
+(``add_observations``); each ``LandmarkBatch`` the observer places goes to every fuser
+(``add_landmarks``, source ``/robotN/landmarks``) and the fusers fuse their queues
+every ``FUSE_CHUNK`` messages, or every ``max_queue_messages`` if fewer (``fuse_queued``:
+a batch gives the same map as its rows one by one). Time is integer nanoseconds
+(``Rows.stamps_ns``, the stamps the player publishes); float seconds appear only in the
+report.
 """
 
 from collections import Counter
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
+from typing import Dict, Iterator, List, Sequence, Tuple
 
-from landmark_ros.core.landmark_map import LandmarkMap
-from landmark_ros.mrclam.report import method_result
-from landmark_ros.pipeline.rows import (landmark_row_problems, landmarks_from_rows,
-                                        observation_noise)
-import numpy as np
+from landmark_ros.mrclam.report import method_result, MethodResult
+from landmark_ros.pipeline.fuser import Fuser
+from landmark_ros.pipeline.observer import (LandmarkBatch, ObservationMessage, Observer,
+                                            THROUGHPUT_COUNTERS)
+
+FUSE_CHUNK = 1024
+"""Messages the fusers queue before ``Fuser.fuse_queued`` (at most ``max_queue_messages``)."""
+
+FUSER_NOT_PROBLEMS = frozenset({'messages_in', 'observations_in', 'fused', 'gated_out'})
+"""Per-source fuser counters that are not row checks (gating is the fusion's result)."""
 
 
 @dataclass
-class Observed:
-    """The observer's output for every row of ``Dataset.rows``, in global time order."""
+class OfflineRun:
+    """What an offline replay leaves: the results and the pipeline objects that made them."""
 
-    rows: object
-    """The ``mrclam_data.Rows`` the results are for."""
-    kept: np.ndarray
-    """Rows that became valid landmarks (observer and fuser row checks), shape (N,)."""
-    m: np.ndarray
-    """World-frame positions, shape (N, 2) (NaN where not kept)."""
-    P: np.ndarray
-    """Total covariances, shape (N, 2, 2)."""
-    P_dep: np.ndarray
-    """Dependent parts, shape (N, 2, 2)."""
-    reasons: Counter = field(default_factory=Counter)
-    """Rows rejected by the observer and fuser checks, by reason."""
+    results: Dict[str, MethodResult]
+    """Fusion method -> its map against the ground truth, in run order."""
+    observers: List[Observer]
+    """One per robot, in the order of ``Dataset.robots``."""
+    fusers: Dict[str, Fuser]
+    """Fusion method -> its fuser."""
+    messages: int
+    """Observation messages replayed."""
+
+    @property
+    def problems(self) -> Counter:
+        """
+        Return the rows the observer and fuser checks rejected, by reason.
+
+        The observers' rejection counters plus the row checks of one fuser (every
+        fuser checks the same rows); gating is not a check, it is in the results.
+        """
+        problems = Counter()
+        for observer in self.observers:
+            problems.update({k: v for k, v in observer.counters.counts.items()
+                             if k not in THROUGHPUT_COUNTERS and v})
+        for fuser in list(self.fusers.values())[:1]:
+            for source in fuser.sources.values():
+                problems.update({k: v for k, v in source.counts.items()
+                                 if k not in FUSER_NOT_PROBLEMS and v})
+        return problems
 
 
-def observer_parameters(config):
+def observe(rows, observers: Sequence[Observer],
+            P_pose) -> Iterator[Tuple[int, LandmarkBatch]]:
     """
-    Return what ``landmark_observer`` derives from its parameters.
+    Feed every observation message to its robot's observer, in global time order.
 
-    Returns
-    -------
-    noise : tuple of float
-        ``range_variance``, ``bearing_variance``, ``range_variance_per_m2`` for
-        ``observation_noise``.
-    sensor_pose : ndarray, shape (3,), or None
-    R_bias : ndarray, shape (2, 2), or None
-
-    """
-    noise = (config.range_stddev ** 2, config.bearing_stddev ** 2,
-             config.range_stddev_per_m ** 2)
-    sensor_pose = np.array(config.sensor_pose)
-    R_bias = None
-    if config.range_bias_stddev or config.bearing_bias_stddev:
-        R_bias = np.diag([config.range_bias_stddev ** 2, config.bearing_bias_stddev ** 2])
-    return noise, (sensor_pose if sensor_pose.any() else None), R_bias
-
-
-def observe(rows, config, P_pose, per_message=False):
-    """
-    Turn sightings into world-frame landmarks as ``landmark_observer`` does.
+    Each message (``Rows.messages``: the rows of one robot at one stamp) follows the
+    robot's pose at exactly its stamp, as the player publishes them through the nodes.
 
     Parameters
     ----------
-    rows : mrclam_data.Rows
+    rows : landmark_ros.mrclam.data.Rows
         Sightings in global time order.
-    config : ObserverConfig
-        The observer's parameters.
+    observers : sequence of Observer
+        One per robot index of ``rows.robot``.
     P_pose : ndarray, shape (3, 3)
-        Covariance of every pose.
-    per_message : bool
-        Call the core once per observation cloud (as the node does with one cloud per
-        callback) instead of once per robot over all its rows; same results.
+        Covariance of every pose [m^2, m rad, rad^2].
+
+    Yields
+    ------
+    robot : int
+        Robot index.
+    batch : LandmarkBatch
+        What the observer placed (an empty batch when every row was rejected).
+
+    """
+    starts, ends = rows.messages()
+    stamps_ns = rows.stamps_ns
+    robots = rows.robot
+    for a, b in zip(starts.tolist(), ends.tolist()):
+        robot = int(robots[a])
+        stamp_ns = int(stamps_ns[a])
+        observer = observers[robot]
+        batches = observer.add_pose(stamp_ns, rows.poses[a], P_pose, now_ns=stamp_ns)
+        columns = {'id': rows.ids[a:b], 'range': rows.z[a:b, 0], 'bearing': rows.z[a:b, 1]}
+        batches += observer.add_observations([ObservationMessage(stamp_ns, columns)],
+                                             now_ns=stamp_ns)
+        for batch in batches:
+            yield robot, batch
+
+
+def run_offline(dataset, config, methods, chunk=FUSE_CHUNK) -> OfflineRun:
+    """
+    Replay a dataset through the pipeline objects, one fuser per method.
+
+    Parameters
+    ----------
+    dataset : landmark_ros.mrclam.data.Dataset
+        The loaded dataset.
+    config : landmark_ros.mrclam.config.ReplayConfig
+        Observer and fuser parameters (the fuser's ``fusion`` is replaced by each
+        method) and the pose covariance.
+    methods : sequence of str
+        Fusion methods (``core.landmark_map.FUSION_METHODS``).
+    chunk : int
+        Messages the fusers queue between two ``fuse_queued`` calls, capped at the
+        fuser's ``max_queue_messages`` so no queue overflows; the maps do not depend
+        on it.
 
     Returns
     -------
-    Observed
+    OfflineRun
 
     """
-    noise, sensor_pose, R_bias = observer_parameters(config)
-    count = len(rows)
-    kept = np.zeros(count, bool)
-    m, P, P_dep = np.full((count, 2), np.nan), np.zeros((count, 2, 2)), np.zeros((count, 2, 2))
-    reasons = Counter()
-    if per_message:
-        starts, ends = rows.messages()
-        groups = [np.arange(a, b) for a, b in zip(starts.tolist(), ends.tolist())]
-    else:
-        groups = [np.flatnonzero(rows.robot == r) for r in np.unique(rows.robot).tolist()]
-    for index in groups:
-        z = rows.z[index]
-        R = observation_noise({'range': z[:, 0]}, *noise)
-        pose = rows.poses[index[0]] if per_message else rows.poses[index]
-        ok, m_k, P_k, P_dep_k, why = landmarks_from_rows(
-            rows.ids[index], z, R, pose, P_pose, sensor_pose, R_bias)
-        reasons.update(why)
-        where = index[ok]
-        kept[where], m[where], P[where], P_dep[where] = True, m_k, P_k, P_dep_k
-    # What the fuser checks before queueing rows.
-    where = np.flatnonzero(kept)
-    valid, why = landmark_row_problems(rows.ids[where], m[where], P[where], P_dep[where])
-    reasons.update(why)
-    kept[where[~valid]] = False
-    return Observed(rows, kept, m, P, P_dep, reasons)
-
-
-FUSE_CHUNK = 1024
-"""Rows per ``LandmarkMap.update`` call offline."""
-
-
-def fuse(observed, fuser_config, chunk=FUSE_CHUNK):
-    """
-    Fuse observed rows in global time order with ``LandmarkMap``, as the fuser does.
-
-    The rows go in calls of ``chunk`` rows: a batch gives the same map as its rows one
-    by one (each landmark's rows stay in order), and the rows of known landmarks of a
-    batch are fused vectorised, in rounds of distinct landmarks. The fuser batches the
-    rows it has queued the same way, only in other sizes.
-
-    Returns
-    -------
-    landmark_map : LandmarkMap
-    accepted, rejected : collections.Counter
-        Observations fused and rejected, by source.
-
-    """
-    rows = observed.rows
-    landmark_map = LandmarkMap(fuser_config.fusion, fuser_config.gate_probability,
-                               fuser_config.min_observations,
-                               fuser_config.max_consecutive_rejections)
-    k = np.flatnonzero(observed.kept)
-    topics = np.array(rows.topics, dtype=str)
-    accepted, rejected = Counter(), Counter()
-    for start in range(0, len(k), max(1, int(chunk))):
-        part = k[start:start + chunk]
-        result = landmark_map.update(rows.ids[part], observed.m[part], observed.P[part],
-                                     observed.P_dep[part], topics[rows.robot[part]],
-                                     rows.times[part])
-        accepted.update(result.accepted)
-        rejected.update(result.rejected)
-    return landmark_map, accepted, rejected
-
-
-def run_offline(dataset, config, methods):
-    """
-    Run every method offline.
-
-    Returns
-    -------
-    results : dict
-        Fusion method -> MethodResult.
-    observed : Observed
-
-    """
-    observed = observe(dataset.rows(), config.observer, config.P_pose)
+    rows = dataset.rows()
+    observers = [Observer(config.observer) for _ in dataset.robots]
+    fusers = {method: Fuser(replace(config.fuser, fusion=method), rows.topics)
+              for method in methods}
+    limit = max(1, min(int(chunk), config.fuser.max_queue_messages))
+    queued = messages = 0
+    for robot, batch in observe(rows, observers, config.P_pose):
+        source = rows.topics[robot]
+        for fuser in fusers.values():
+            fuser.add_landmarks(source, batch.stamp_ns, batch.ids, batch.m, batch.P,
+                                batch.P_dep)
+        messages += 1
+        queued += 1
+        if queued >= limit:
+            for fuser in fusers.values():
+                fuser.fuse_queued()
+            queued = 0
     results = {}
-    for method in methods:
-        landmark_map, accepted, rejected = fuse(observed, replace(config.fuser, fusion=method))
-        results[method] = method_result(method, landmark_map.to_records(), dataset.landmarks,
-                                        sum(accepted.values()), sum(rejected.values()))
-    return results, observed
+    for method, fuser in fusers.items():
+        fuser.fuse_queued()
+        counts = [source.counts for source in fuser.sources.values()]
+        results[method] = method_result(method, fuser.map.to_records(), dataset.landmarks,
+                                        sum(c['fused'] for c in counts),
+                                        sum(c['gated_out'] for c in counts))
+    return OfflineRun(results, observers, fusers, messages)

@@ -20,14 +20,15 @@ import sys
 import tempfile
 import time
 
+from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from landmark_ros.demo.launcher import Launcher, ProcessExitedError
 from landmark_ros.mrclam.report import method_result
 from landmark_ros.pipeline import map_file
 from landmark_ros.pipeline.config import FuserConfig
-from landmark_ros.ros.conversions import seconds_to_ns, stamp_ns
-from landmark_ros.ros.schemas import make_header, observation_message, pose_message
+from landmark_ros.ros.conversions import stamp_ns
+from landmark_ros.ros.schemas import observation_message, pose_message
 from landmark_ros.ros.schemas import read_landmarks
 import numpy as np
 from rcl_interfaces.srv import GetParameters
@@ -37,7 +38,10 @@ from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallba
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
+from std_msgs.msg import Header
 from std_srvs.srv import Trigger
+
+NS_PER_S = 1_000_000_000
 
 
 def cpu_seconds(pids):
@@ -110,6 +114,43 @@ def fuser_arguments(method, topics, config_path, map_path):
                             map_file=str(map_path)).items():
         arguments += _param(name, value)
     return arguments
+
+
+def stamp_msg(stamp_ns):
+    """Return integer nanoseconds as a ``builtin_interfaces/Time``."""
+    sec, nanosec = divmod(int(stamp_ns), NS_PER_S)
+    return Time(sec=sec, nanosec=nanosec)
+
+
+def stamped_messages(stamp_ns, frame_id, pose, P_pose, ids, z):
+    """
+    Return a robot's pose and observation messages, both stamped ``stamp_ns``.
+
+    Parameters
+    ----------
+    stamp_ns : int
+        Stamp [ns].
+    frame_id : str
+        Frame of the observation cloud (the pose is in ``map``).
+    pose : ndarray, shape (3,)
+        Robot pose (x [m], y [m], theta [rad]).
+    P_pose : ndarray, shape (3, 3)
+        Its covariance.
+    ids : ndarray of int, shape (N,)
+        Landmark IDs.
+    z : ndarray, shape (N, 2)
+        Range [m] and bearing [rad] per row.
+
+    Returns
+    -------
+    pose : geometry_msgs.msg.PoseWithCovarianceStamped
+    observations : sensor_msgs.msg.PointCloud2
+
+    """
+    pose_msg = pose_message(0.0, pose, P_pose)
+    pose_msg.header.stamp = stamp_msg(stamp_ns)
+    cloud = observation_message(Header(stamp=stamp_msg(stamp_ns), frame_id=frame_id), ids, z)
+    return pose_msg, cloud
 
 
 def dependencies(rows, starts, ends):
@@ -195,15 +236,14 @@ class Player:
         self.robots = dataset.robots
         self.starts, self.ends = rows.messages()
         self.msg_robot = rows.robot[self.starts]
-        self.msg_times = rows.times[self.starts]
+        self.msg_stamps_ns = rows.stamps_ns[self.starts]
         self.requirements, self.local = dependencies(rows, self.starts, self.ends)
         self.totals = np.bincount(self.msg_robot, minlength=len(self.robots)).tolist()
         self.robot_clouds = [np.flatnonzero(self.msg_robot == r).tolist()
                              for r in range(len(self.robots))]
         self.expected_ns = [[] for _ in self.robots]
         for j in range(len(self.starts)):
-            self.expected_ns[self.msg_robot[j]].append(
-                seconds_to_ns(float(self.msg_times[j])))
+            self.expected_ns[self.msg_robot[j]].append(int(self.msg_stamps_ns[j]))
         reliable = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000,
                               reliability=ReliabilityPolicy.RELIABLE)
         latched = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
@@ -251,13 +291,13 @@ class Player:
         self._last_progress = time.monotonic()
         self._last_bar = 0.0
         self._last_decile = -1
-        self._probe_stamp = None
+        self._probe_stamp_ns = None
 
     # Callbacks -------------------------------------------------------------------------
 
     def _on_output(self, msg, index):
         stamp = stamp_ns(msg.header.stamp)
-        if self._probe_stamp is not None and stamp < self._data_start_ns:
+        if self._probe_stamp_ns is not None and stamp < self._data_start_ns:
             self.probes_out[index] += 1
             return
         k = self.out[index]
@@ -357,11 +397,11 @@ class Player:
         """Publish cloud ``j``: the robot's pose at its stamp, then the observations."""
         r = int(self.msg_robot[j])
         a, b = int(self.starts[j]), int(self.ends[j])
-        stamp = float(self.msg_times[j])
-        self.pose_pubs[r].publish(pose_message(stamp, self.rows.poses[a], self.config.P_pose))
-        self.obs_pubs[r].publish(observation_message(
-            make_header(stamp, f'{self.robots[r].name}/camera'), self.rows.ids[a:b],
-            self.rows.z[a:b]))
+        pose, cloud = stamped_messages(self.msg_stamps_ns[j], f'{self.robots[r].name}/camera',
+                                       self.rows.poses[a], self.config.P_pose,
+                                       self.rows.ids[a:b], self.rows.z[a:b])
+        self.pose_pubs[r].publish(pose)
+        self.obs_pubs[r].publish(cloud)
         self.sent[r] += 1
         self.sent_total += 1
 
@@ -423,9 +463,9 @@ class Player:
 
     def probe(self, timeout_s=60.0):
         """Send empty clouds until every fuser has one from every robot."""
-        t0 = float(self.rows.times[0]) if len(self.rows) else 0.0
-        self._data_start_ns = seconds_to_ns(t0 - 1.0)
-        self._probe_stamp = t0 - 100.0
+        t0_ns = int(self.msg_stamps_ns[0]) if len(self.rows) else 200 * NS_PER_S
+        self._data_start_ns = t0_ns - NS_PER_S
+        self._probe_stamp_ns = t0_ns - 100 * NS_PER_S
         deadline = time.monotonic() + timeout_s
 
         def seen():
@@ -439,14 +479,14 @@ class Player:
         while not seen():
             if time.monotonic() > deadline:
                 raise ReplayError('the fusers never received the probe clouds')
-            self._probe_stamp += 0.01
+            self._probe_stamp_ns += NS_PER_S // 100
             for r, robot in enumerate(self.robots):
-                pose = robot.poses[0] if len(robot.poses) else np.zeros(3)
-                self.pose_pubs[r].publish(pose_message(self._probe_stamp, pose,
-                                                       self.config.P_pose))
-                self.obs_pubs[r].publish(observation_message(
-                    make_header(self._probe_stamp, f'{robot.name}/camera'), np.zeros(0, np.int64),
-                    np.zeros((0, 2))))
+                pose, cloud = stamped_messages(
+                    self._probe_stamp_ns, f'{robot.name}/camera',
+                    robot.poses[0] if len(robot.poses) else np.zeros(3), self.config.P_pose,
+                    np.zeros(0, np.int64), np.zeros((0, 2)))
+                self.pose_pubs[r].publish(pose)
+                self.obs_pubs[r].publish(cloud)
                 self.probes_sent[r] += 1
             try:
                 self.spin_until(seen, 1.0, 'probes')
@@ -507,8 +547,8 @@ class Player:
         self._last_bar = now
         self._last_decile = decile
         elapsed = now - self._t_play
-        dataset_s = float(self.msg_times[min(done, total) - 1] - self.msg_times[0]) \
-            if done and total else 0.0
+        dataset_s = (int(self.msg_stamps_ns[min(done, total) - 1] - self.msg_stamps_ns[0])
+                     / NS_PER_S if done and total else 0.0)
         speed = dataset_s / elapsed if elapsed > 0 else 0.0
         width = 30
         filled = int(width * done / max(total, 1))
