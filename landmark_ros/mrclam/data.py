@@ -74,6 +74,35 @@ def read_table(path, columns):
     return table
 
 
+def seconds_to_stamps_ns(seconds):
+    """
+    Return Unix times as the integer nanoseconds of the message stamps that carry them.
+
+    ``sec = floor(t)``, ``nanosec = round((t - sec) 1e9)`` (half to even), carried into
+    ``sec`` at 1e9: the stamps ``landmark_ros.ros.conversions.set_stamp`` writes, so the
+    offline replay and the messages of ``--through-nodes`` hold the same stamps.
+
+    Parameters
+    ----------
+    seconds : array_like, shape (N,)
+        Times [s], finite and non-negative.
+
+    Returns
+    -------
+    ndarray of int64, shape (N,)
+        Stamps [ns].
+
+    """
+    seconds = np.asarray(seconds, dtype=np.float64)
+    sec = np.floor(seconds)
+    nanosec = np.rint((seconds - sec) * 1e9).astype(np.int64)
+    sec = sec.astype(np.int64)
+    carry = nanosec >= 1_000_000_000
+    sec[carry] += 1
+    nanosec[carry] -= 1_000_000_000
+    return sec * 1_000_000_000 + nanosec
+
+
 def interpolate_poses(gt_times, gt_poses, times):
     """
     Interpolate ground-truth poses at ``times``.
@@ -221,6 +250,11 @@ class Rows:
 
     def __len__(self):
         return len(self.times)
+
+    @property
+    def stamps_ns(self):
+        """Return the stamps as message stamps [ns] (``seconds_to_stamps_ns``), shape (N,)."""
+        return seconds_to_stamps_ns(self.times)
 
     def messages(self):
         """

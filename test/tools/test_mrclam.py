@@ -15,8 +15,15 @@ from pathlib import Path
 
 from landmark_ros.core.landmark_map import FUSION_METHODS
 from landmark_ros.core.pose2 import wrap_angle
-from landmark_ros.mrclam import cli as mrclam
-from landmark_ros.mrclam.data import interpolate_poses, load_dataset, read_table
+from landmark_ros.mrclam import offline
+from landmark_ros.mrclam.calibrate import calibrate
+from landmark_ros.mrclam.cli import main
+from landmark_ros.mrclam.config import load_config
+from landmark_ros.mrclam.data import (interpolate_poses, load_dataset, read_table,
+                                      seconds_to_stamps_ns)
+from landmark_ros.pipeline.observer import Observer
+from landmark_ros.pipeline.rows import landmarks_from_rows, observation_noise
+from landmark_ros.ros.conversions import seconds_to_ns
 import numpy as np
 import pytest
 
@@ -223,7 +230,7 @@ def test_rows_are_in_global_time_order_and_split_into_clouds(clean_dataset):
 # Configuration ---------------------------------------------------------------------------
 
 def test_config_file_sections():
-    config = mrclam.load_config(CONFIG)
+    config = load_config(CONFIG)
     # The calibrated MRCLAM camera model (landmark_mrclam --calibrate on dataset 6).
     assert config.observer.range_stddev == 0.0223
     assert config.observer.range_stddev_per_m == 0.0491
@@ -239,51 +246,76 @@ def test_config_rejects_invalid_values(tmp_path):
     path = tmp_path / 'bad.yaml'
     path.write_text('/**/landmark_observer:\n  ros__parameters:\n    range_stddev: -1.0\n')
     with pytest.raises(ValueError, match='range_stddev'):
-        mrclam.load_config(path)
+        load_config(path)
 
 
 # Offline ---------------------------------------------------------------------------------
 
-def test_observer_per_cloud_equals_vectorised(noisy_dataset):
+def test_stamps_are_the_nanoseconds_the_player_publishes(clean_dataset):
+    rows = load_dataset(clean_dataset[0]).rows()
+    times = np.concatenate([rows.times, [0.0, 0.9999999999, 1.5, 2.0000000004, 1e9 + 0.25]])
+    expected = [seconds_to_ns(float(t)) for t in times]
+    assert seconds_to_stamps_ns(times).tolist() == expected
+    assert rows.stamps_ns.dtype == np.int64
+    assert rows.stamps_ns.tolist() == expected[:len(rows)]
+
+
+def test_offline_observers_equal_the_vectorised_core(noisy_dataset):
     dataset = load_dataset(noisy_dataset[0])
-    config = mrclam.load_config(CONFIG)
-    observer = type(config.observer).from_values(
+    config = load_config(CONFIG)
+    observer_config = type(config.observer).from_values(
         {'range_stddev': 0.05, 'range_stddev_per_m': 0.02, 'bearing_stddev': 0.01,
          'range_bias_stddev': 0.01, 'bearing_bias_stddev': 0.002})
     rows = dataset.rows()
-    vectorised = mrclam.observe(rows, observer, config.P_pose)
-    per_cloud = mrclam.observe(rows, observer, config.P_pose, per_message=True)
-    assert vectorised.kept.all()
-    np.testing.assert_array_equal(vectorised.kept, per_cloud.kept)
-    np.testing.assert_allclose(vectorised.m, per_cloud.m, rtol=0, atol=1e-12)
-    np.testing.assert_allclose(vectorised.P, per_cloud.P, rtol=1e-12, atol=1e-18)
-    np.testing.assert_allclose(vectorised.P_dep, per_cloud.P_dep, rtol=1e-12, atol=1e-18)
-    assert np.all(vectorised.P_dep[:, 0, 0] > 0.0)
+    observers = [Observer(observer_config) for _ in dataset.robots]
+    batches = list(offline.observe(rows, observers, config.P_pose))
+    starts, _ = rows.messages()
+    # One batch per message, in global time order, with the message's stamp and robot.
+    assert [robot for robot, _ in batches] == rows.robot[starts].tolist()
+    assert [b.stamp_ns for _, b in batches] == rows.stamps_ns[starts].tolist()
+    # The reference: one core call over all rows with per-row poses.
+    R = observation_noise({'range': rows.z[:, 0]}, 0.05 ** 2, 0.01 ** 2, 0.02 ** 2)
+    kept, m, P, P_dep, reasons = landmarks_from_rows(
+        rows.ids, rows.z, R, rows.poses, config.P_pose, None,
+        np.diag([0.01 ** 2, 0.002 ** 2]))
+    assert kept.all() and not reasons
+    np.testing.assert_array_equal(np.concatenate([b.ids for _, b in batches]), rows.ids)
+    np.testing.assert_allclose(np.concatenate([b.m for _, b in batches]), m, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(np.concatenate([b.P for _, b in batches]), P, rtol=1e-12,
+                               atol=1e-18)
+    np.testing.assert_allclose(np.concatenate([b.P_dep for _, b in batches]), P_dep,
+                               rtol=1e-12, atol=1e-18)
+    assert np.all(P_dep[:, 0, 0] > 0.0)
+    for observer in observers:
+        assert observer.counters['landmarks_out'] == observer.counters['observations_in'] > 0
 
 
 def test_fusion_in_chunks_equals_row_by_row(noisy_dataset):
     dataset = load_dataset(noisy_dataset[0])
-    config = mrclam.load_config(CONFIG)
-    observed = mrclam.observe(dataset.rows(), config.observer, config.P_pose)
+    config = load_config(CONFIG)
+    one = offline.run_offline(dataset, config, FUSION_METHODS, chunk=1)
+    many = offline.run_offline(dataset, config, FUSION_METHODS, chunk=37)
+    assert one.messages == many.messages == len(dataset.rows().messages()[0])
+    assert not one.problems and not many.problems
     for method in FUSION_METHODS:
-        fuser = type(config.fuser).from_values({'fusion': method})
-        one, accepted_one, rejected_one = mrclam.fuse(observed, fuser, chunk=1)
-        many, accepted_many, rejected_many = mrclam.fuse(observed, fuser, chunk=100)
-        assert accepted_one == accepted_many and rejected_one == rejected_many
-        a, b = one.to_records(), many.to_records()
+        x_result, y_result = one.results[method], many.results[method]
+        assert x_result.observations_used == y_result.observations_used
+        assert x_result.observations_rejected == y_result.observations_rejected
+        a, b = x_result.records, y_result.records
         assert [r['id'] for r in a] == [r['id'] for r in b]
         for x, y in zip(a, b):
             np.testing.assert_allclose(x['mean'], y['mean'], rtol=0, atol=1e-12)
             np.testing.assert_allclose(x['covariance'], y['covariance'], rtol=1e-10, atol=0)
             assert x['observations'] == y['observations']
             assert x['rejections'] == y['rejections']
+            assert x['last_stamp_ns'] == y['last_stamp_ns']
 
 
 def test_offline_noise_free_recovers_the_truth_and_writes_json(
         clean_dataset, tmp_path, capsys):
     directory, info = clean_dataset
     out = tmp_path / 'result.json'
-    assert mrclam.main([str(directory), '--config', str(CONFIG), '--json', str(out)]) == 0
+    assert main([str(directory), '--config', str(CONFIG), '--json', str(out)]) == 0
     printed = capsys.readouterr().out
     assert '== summary' in printed
     for method in FUSION_METHODS:
@@ -315,8 +347,8 @@ def test_offline_noise_free_recovers_the_truth_and_writes_json(
 def test_one_method_and_plot(noisy_dataset, tmp_path):
     pytest.importorskip('matplotlib')
     out, image = tmp_path / 'one.json', tmp_path / 'map.png'
-    assert mrclam.main([str(noisy_dataset[0]), '--fusion', 'independent',
-                        '--json', str(out), '--plot', str(image)]) == 0
+    assert main([str(noisy_dataset[0]), '--fusion', 'independent',
+                 '--json', str(out), '--plot', str(image)]) == 0
     document = json.loads(out.read_text())
     assert [entry['fusion'] for entry in document['summary']] == ['independent']
     assert document['summary'][0]['rmse_m'] < 0.1
@@ -324,7 +356,7 @@ def test_one_method_and_plot(noisy_dataset, tmp_path):
 
 
 def test_missing_dataset_is_an_error(tmp_path, capsys):
-    assert mrclam.main([str(tmp_path / 'nowhere')]) == 2
+    assert main([str(tmp_path / 'nowhere')]) == 2
     assert 'no MRCLAM dataset directory' in capsys.readouterr().err
 
 
@@ -341,7 +373,7 @@ def test_calibration_recovers_the_synthetic_sensor_model(tmp_path, capsys):
     # Five robots draw five biases: compare with what they drew, not with the prior.
     drawn_r, drawn_b = np.sqrt(np.mean(info['biases'] ** 2, axis=0))
     out = tmp_path / 'cal.json'
-    assert mrclam.main([str(tmp_path / 'cal'), '--calibrate', '--json', str(out)]) == 0
+    assert main([str(tmp_path / 'cal'), '--calibrate', '--json', str(out)]) == 0
     printed = capsys.readouterr().out
     assert 'suggested values:' in printed and 'range_stddev_per_m:' in printed
     cal = json.loads(out.read_text())['calibration']
@@ -357,7 +389,7 @@ def test_calibration_recovers_the_synthetic_sensor_model(tmp_path, capsys):
 def test_calibration_without_bias_finds_none(tmp_path):
     make_dataset(tmp_path / 'cal', robots=3, duration=40.0, noise=(0.05, 0.0, 0.02),
                  rng=np.random.default_rng(3), extras=False)
-    cal = mrclam.calibrate(load_dataset(tmp_path / 'cal'))
+    cal = calibrate(load_dataset(tmp_path / 'cal'))
     assert cal.range_stddev == pytest.approx(0.05, rel=0.15)
     assert cal.range_stddev_per_m < 0.01
     assert cal.bearing_stddev == pytest.approx(0.02, rel=0.1)
@@ -368,23 +400,25 @@ def test_calibration_without_bias_finds_none(tmp_path):
 
 @pytest.mark.skipif(not DATASET6.is_dir(), reason=f'no MRCLAM dataset at {DATASET6}')
 def test_dataset6_offline_fuses_all_15_landmarks():
-    config = mrclam.load_config(CONFIG)
+    config = load_config(CONFIG)
     dataset = load_dataset(DATASET6, config.pose_stddev)
     assert len(dataset.robots) == 5 and len(dataset.landmarks) == 15
     assert dataset.counts['unknown_barcode'] > 0 and dataset.counts['robot_sightings'] > 0
-    results, _ = mrclam.run_offline(dataset, config, FUSION_METHODS)
-    for method, result in results.items():
+    run = offline.run_offline(dataset, config, FUSION_METHODS)
+    stamps_ns = set(dataset.rows().stamps_ns.tolist())
+    for method, result in run.results.items():
         assert len(result.records) == 15, method
         assert result.summary.landmarks == 15
         assert result.summary.rmse_m < 0.2, method
+        assert all(r['last_stamp_ns'] in stamps_ns for r in result.records), method
 
 
 # Through the nodes -----------------------------------------------------------------------
 
 def test_through_nodes_agrees_with_offline(noisy_dataset, tmp_path):
     out = tmp_path / 'nodes.json'
-    code = mrclam.main([str(noisy_dataset[0]), '--through-nodes', '--no-progress',
-                        '--json', str(out)])
+    code = main([str(noisy_dataset[0]), '--through-nodes', '--no-progress',
+                 '--json', str(out)])
     document = json.loads(out.read_text())
     assert code == 0, document.get('agreement')
     assert document['mode'] == 'through_nodes'

@@ -1,0 +1,313 @@
+"""
+The camera model of a MRCLAM dataset, estimated from its ground truth (ROS-free).
+
+``calibrate`` documents the procedure: range and bearing errors of every landmark
+sighting against the ground truth, per-robot median errors for the bias (the dependent
+part of the observer's covariance), and the Gaussian that holds the central 99 % of the
+residuals for the independent noise, with a range-dependent range noise
+``sigma_r(r)^2 = a^2 + (k r)^2``. ``landmark_mrclam --calibrate`` prints it with
+``format_calibration`` and suggests the ``config/mrclam.yaml`` values.
+"""
+
+from dataclasses import asdict, dataclass
+import math
+
+from landmark_ros.core.pose2 import wrap_angle
+from landmark_ros.eval import metrics as evaluation
+import numpy as np
+
+MAD_TO_SIGMA = 1.4826
+"""Median absolute deviation to standard deviation, for Gaussian data."""
+
+
+def robust_sigma(values):
+    """Return 1.4826 times the median absolute deviation from the median (NaN if empty)."""
+    values = np.asarray(values, dtype=np.float64)
+    if not len(values):
+        return float('nan')
+    return float(MAD_TO_SIGMA * np.median(np.abs(values - np.median(values))))
+
+
+CENTRAL_MASS = 0.99
+"""Share of the residuals a Gaussian noise model must contain (``calibrate``)."""
+
+
+def central_sigma(values, mass=CENTRAL_MASS):
+    """
+    Return the standard deviation of the Gaussian whose central ``mass`` matches.
+
+    ``quantile(|e - median(e)|, mass) / z`` with ``z`` the two-sided Gaussian quantile
+    of ``mass`` (2.576 for 0.99): the Gaussian that holds the same share of the errors.
+    """
+    values = np.asarray(values, dtype=np.float64)
+    if not len(values):
+        return float('nan')
+    z = math.sqrt(2.0) * evaluation.erfinv(mass)
+    return float(np.quantile(np.abs(values - np.median(values)), mass) / z)
+
+
+def _fit_range_model(r, sigma, counts):
+    """
+    Fit ``sigma^2 = a^2 + (k r)^2`` to binned spreads; return ``(a, k)``.
+
+    Weighted least squares on the variances, with ``a^2, k^2 >= 0``: a variance
+    estimated from ``n`` errors has a standard deviation proportional to
+    ``sigma^2 / sqrt(n)``, so the weights are ``n / sigma^4`` (relative errors count,
+    and the short ranges are not drowned by the long ones).
+    """
+    r2, s2 = np.asarray(r, dtype=float) ** 2, np.asarray(sigma, dtype=float) ** 2
+    w = np.asarray(counts, dtype=float) / np.maximum(s2, 1e-300) ** 2
+    sw = np.sqrt(w)
+    A = np.stack([np.ones_like(r2), r2], axis=1) * sw[:, None]
+    (a2, k2), *_ = np.linalg.lstsq(A, s2 * sw, rcond=None)
+    if a2 < 0.0:
+        a2, k2 = 0.0, float(np.sum(w * s2 * r2) / np.sum(w * r2 * r2))
+    if k2 < 0.0:
+        a2, k2 = float(np.sum(w * s2) / np.sum(w)), 0.0
+    return math.sqrt(max(a2, 0.0)), math.sqrt(max(k2, 0.0))
+
+
+@dataclass
+class Calibration:
+    """Sensor model estimated from ground truth (``calibrate``)."""
+
+    count: int
+    overall: dict
+    """Raw errors: per quantity (range, bearing) n, mean, std, median, robust_sd, tail."""
+    robots: list
+    """Per robot: name, n, range and bearing median error."""
+    pairs: int
+    """Robot-landmark pairs with enough sightings for the bias and residuals."""
+    range_bins: list
+    """Per range bin: low, high, median range, n, robust sd of residuals, model sd."""
+    range_stddev: float
+    range_stddev_per_m: float
+    bearing_stddev: float
+    range_bias_stddev: float
+    bearing_bias_stddev: float
+    pair_range_bias_rms: float
+    pair_bearing_bias_rms: float
+    residual_tails: dict
+    """Fraction of residuals beyond 3 model standard deviations, per quantity."""
+
+    def to_dict(self):
+        """Return plain values for JSON."""
+        return asdict(self)
+
+    def suggested_yaml(self):
+        """Return the observer lines to put in ``config/mrclam.yaml``."""
+        return ('/**/landmark_observer:\n  ros__parameters:\n'
+                f'    range_stddev: {self.range_stddev:.4f}\n'
+                f'    range_stddev_per_m: {self.range_stddev_per_m:.4f}\n'
+                f'    bearing_stddev: {self.bearing_stddev:.4f}\n'
+                f'    range_bias_stddev: {self.range_bias_stddev:.4f}\n'
+                f'    bearing_bias_stddev: {self.bearing_bias_stddev:.4f}')
+
+
+def measurement_errors(dataset):
+    """
+    Return every sighting of a landmark with a true position, with its errors.
+
+    Returns
+    -------
+    dict of ndarray
+        ``robot`` (index), ``id``, ``range``, ``range_error``, ``bearing_error``
+        (measured minus true, bearing wrapped), one entry per sighting.
+
+    """
+    columns = {key: [] for key in ('robot', 'id', 'range', 'range_error', 'bearing_error')}
+    for index, robot in enumerate(dataset.robots):
+        known = np.array([i in dataset.landmarks for i in robot.ids.tolist()], dtype=bool)
+        if not known.any():
+            continue
+        truth = np.array([dataset.landmarks[i] for i in robot.ids[known].tolist()])
+        pose, z = robot.poses[known], robot.z[known]
+        d = truth - pose[:, :2]
+        columns['robot'].append(np.full(len(z), index))
+        columns['id'].append(robot.ids[known])
+        columns['range'].append(z[:, 0])
+        columns['range_error'].append(z[:, 0] - np.hypot(d[:, 0], d[:, 1]))
+        columns['bearing_error'].append(wrap_angle(
+            z[:, 1] - (np.arctan2(d[:, 1], d[:, 0]) - pose[:, 2])))
+    return {key: (np.concatenate(value) if value else np.empty(0))
+            for key, value in columns.items()}
+
+
+def _weighted_bias(medians, counts, noise_variance):
+    """Return the RMS bias: mean of median^2 minus the median's own variance, weighted."""
+    medians, counts = np.asarray(medians), np.asarray(counts, dtype=np.float64)
+    if not len(medians):
+        return 0.0
+    excess = medians ** 2 - (math.pi / 2.0) * np.asarray(noise_variance) / counts
+    return math.sqrt(max(0.0, float(np.sum(counts * excess) / np.sum(counts))))
+
+
+def calibrate(dataset, min_pair=10, bins=10):
+    """
+    Estimate the observer's sensor model from ground truth.
+
+    Procedure:
+
+    1. Errors. For every landmark sighting kept by the reader (barcode of a landmark,
+       stamp within the robot's ground truth), the true range and bearing follow from
+       the ground-truth pose interpolated at the measurement stamp (``mrclam_data``:
+       position linear, heading on the shortest arc) and the true landmark position:
+       ``range_error = r - |m - p|``, ``bearing_error = wrap(b - (atan2(m - p) - theta))``.
+    2. Overall statistics of the raw errors, per quantity: mean, plain standard
+       deviation, median, robust standard deviation ``1.4826 * median(|e - median(e)|)``
+       (the MAD, which outliers barely move) and the tail: the fraction of errors more
+       than 3 robust standard deviations from the median (0.27 % for Gaussian errors).
+    3. Bias model. The median error of every robot: an error shared by all sightings
+       of a robot (camera mounting and calibration) does not average out when its
+       sightings are fused, so these medians measure the bias the observer's
+       ``*_bias_stddev`` (the dependent part) must cover. The medians of every
+       robot-landmark pair with at least ``min_pair`` sightings are printed too: their
+       spread is larger, but most of it depends on the viewing geometry and averages
+       out over a robot's passes.
+    4. Independent noise. Residuals: each error minus its robot's median. They have
+       heavy tails (step 6), so the noise is the Gaussian that holds the same central
+       ``CENTRAL_MASS`` (99 %) of the residuals, ``quantile(|res|, 0.99) / 2.576``
+       (``central_sigma``): a fit to the core alone (the MAD) would make the moderate
+       tail look like outliers to the fuser's gate; the far 1 % is left to the gate.
+       Range residuals are split into ``bins`` bins of equal counts by range; per bin
+       that standard deviation at the median range of the bin; then a least-squares
+       fit of ``sigma_r(r)^2 = a^2 + (k r)^2`` over the bins (weights ``n / sigma^4``:
+       relative errors of the bin variances; ``a^2, k^2 >= 0``) gives
+       ``range_stddev = a`` and ``range_stddev_per_m = k``. ``bearing_stddev`` is the
+       same standard deviation of all bearing residuals.
+    5. Bias standard deviations: the root mean square of the robot medians, weighted
+       by sightings, less the variance of a median of ``n`` noisy errors,
+       ``(pi / 2) sigma^2 / n`` with ``sigma`` from step 4: ``range_bias_stddev`` and
+       ``bearing_bias_stddev``. The same over the pair medians is printed for
+       comparison.
+    6. Tails: the fraction of residuals beyond 3 model standard deviations
+       (``sigma_r(r)``, ``bearing_stddev``); well above 0.27 % means heavy tails,
+       which the gate of the fuser (``gate_probability``) has to reject.
+
+    Parameters
+    ----------
+    dataset : mrclam_data.Dataset
+        Loaded dataset with ground truth.
+    min_pair : int
+        Sightings a robot-landmark pair needs for steps 3-5.
+    bins : int
+        Range bins of step 4.
+
+    Returns
+    -------
+    Calibration
+
+    Raises
+    ------
+    ValueError
+        If there are too few sightings.
+
+    """
+    e = measurement_errors(dataset)
+    count = len(e['range'])
+    if count < max(2 * bins, min_pair):
+        raise ValueError(f'{count} sightings of known landmarks: too few to calibrate')
+    overall = {}
+    for name in ('range', 'bearing'):
+        err = e[f'{name}_error']
+        sd = robust_sigma(err)
+        overall[name] = {'n': count, 'mean': float(np.mean(err)), 'std': float(np.std(err)),
+                         'median': float(np.median(err)), 'robust_sd': sd,
+                         'tail_3sd': float(np.mean(np.abs(err - np.median(err)) > 3 * sd))}
+    robots = []
+    robot_medians = []
+    for index, robot in enumerate(dataset.robots):
+        mine = e['robot'] == index
+        if not mine.any():
+            continue
+        medians = (float(np.median(e['range_error'][mine])),
+                   float(np.median(e['bearing_error'][mine])))
+        robots.append({'robot': robot.name, 'n': int(mine.sum()),
+                       'range_median': medians[0], 'bearing_median': medians[1]})
+        robot_medians.append((medians, int(mine.sum())))
+    # Pairs: robot-landmark combinations with enough sightings.
+    pair_key = e['robot'].astype(np.int64) * (int(e['id'].max()) + 1) + e['id'].astype(np.int64)
+    keys, inverse, sizes = np.unique(pair_key, return_inverse=True, return_counts=True)
+    pair_range_median = np.array([np.median(e['range_error'][inverse == p])
+                                  for p in range(len(keys))])
+    pair_bearing_median = np.array([np.median(e['bearing_error'][inverse == p])
+                                    for p in range(len(keys))])
+    big = sizes >= min_pair
+    if not big.any():
+        raise ValueError(f'no robot-landmark pair has {min_pair} sightings')
+    robot_median_r = np.zeros(len(dataset.robots))
+    robot_median_b = np.zeros(len(dataset.robots))
+    for index in np.unique(e['robot']).astype(int):
+        mine = e['robot'] == index
+        robot_median_r[index] = np.median(e['range_error'][mine])
+        robot_median_b[index] = np.median(e['bearing_error'][mine])
+    robot_index = e['robot'].astype(int)
+    res_r = e['range_error'] - robot_median_r[robot_index]
+    res_b = e['bearing_error'] - robot_median_b[robot_index]
+    ranges = e['range']
+    # Range noise against range: central spread per bin of equal counts, then the fit.
+    order = np.argsort(ranges, kind='stable')
+    range_bins = []
+    for chunk in np.array_split(order, min(bins, max(1, len(order) // 10))):
+        if not len(chunk):
+            continue
+        range_bins.append({'low': float(ranges[chunk].min()), 'high': float(ranges[chunk].max()),
+                           'range': float(np.median(ranges[chunk])), 'n': int(len(chunk)),
+                           'robust_sd': central_sigma(res_r[chunk])})
+    a, k = _fit_range_model([b['range'] for b in range_bins],
+                            [b['robust_sd'] for b in range_bins], [b['n'] for b in range_bins])
+    for b in range_bins:
+        b['model_sd'] = math.sqrt(a * a + (k * b['range']) ** 2)
+    sigma_b = central_sigma(res_b)
+    # Biases: robot medians (the model) and pair medians (for comparison), less the
+    # variance of a median of noisy errors.
+    mean_noise_r = float(np.mean(a * a + (k * e['range']) ** 2))
+    range_bias = _weighted_bias([m[0] for m, _ in robot_medians],
+                                [n for _, n in robot_medians],
+                                np.full(len(robot_medians), mean_noise_r))
+    bearing_bias = _weighted_bias([m[1] for m, _ in robot_medians],
+                                  [n for _, n in robot_medians],
+                                  np.full(len(robot_medians), sigma_b ** 2))
+    pair_noise_r = np.array([np.mean(a * a + (k * e['range'][inverse == p]) ** 2)
+                             for p in np.flatnonzero(big)])
+    pair_range = _weighted_bias(pair_range_median[big], sizes[big], pair_noise_r)
+    pair_bearing = _weighted_bias(pair_bearing_median[big], sizes[big],
+                                  np.full(int(big.sum()), sigma_b ** 2))
+    model_r = np.sqrt(a * a + (k * ranges) ** 2)
+    tails = {'range': float(np.mean(np.abs(res_r) > 3.0 * model_r)),
+             'bearing': float(np.mean(np.abs(res_b) > 3.0 * sigma_b))}
+    return Calibration(count, overall, robots, int(big.sum()), range_bins, a, k, sigma_b,
+                       range_bias, bearing_bias, pair_range, pair_bearing, tails)
+
+
+def format_calibration(cal):
+    """Return the calibration printout."""
+    lines = [f'== calibration from {cal.count} landmark sightings against ground truth',
+             f"{'error':<8} {'mean':>9} {'std':>9} {'median':>9} {'robust sd':>10} "
+             f"{'> 3 rsd':>8}"]
+    for name, unit in (('range', 'm'), ('bearing', 'rad')):
+        o = cal.overall[name]
+        lines.append(f'{name:<8} {o["mean"]:9.4f} {o["std"]:9.4f} {o["median"]:9.4f} '
+                     f'{o["robust_sd"]:10.4f} {100 * o["tail_3sd"]:7.2f}%   [{unit}]')
+    lines.append('per robot median error:')
+    for r in cal.robots:
+        lines.append(f'  {r["robot"]:<8} n {r["n"]:6d}  range {r["range_median"]:+8.4f} m  '
+                     f'bearing {r["bearing_median"]:+8.4f} rad')
+    lines.append('range residual spread (error minus its robot median; sd of the Gaussian '
+                 f'holding the central {100 * CENTRAL_MASS:.0f} %) against range:')
+    lines.append(f"  {'range [m]':>15} {'median':>7} {'n':>6} {'central sd':>10} {'model':>8}")
+    for b in cal.range_bins:
+        lines.append(f'  {b["low"]:6.2f} - {b["high"]:6.2f} {b["range"]:7.2f} {b["n"]:6d} '
+                     f'{b["robust_sd"]:10.4f} {b["model_sd"]:8.4f}')
+    lines.append(f'fit sigma_r(r)^2 = a^2 + (k r)^2: a = {cal.range_stddev:.4f} m, '
+                 f'k = {cal.range_stddev_per_m:.4f} m/m; bearing sd {cal.bearing_stddev:.4f} '
+                 'rad')
+    lines.append(f'bias (RMS of robot medians, less their noise): range '
+                 f'{cal.range_bias_stddev:.4f} m, bearing {cal.bearing_bias_stddev:.4f} rad; '
+                 f'of the {cal.pairs} robot-landmark pair medians, for comparison: range '
+                 f'{cal.pair_range_bias_rms:.4f} m, bearing {cal.pair_bearing_bias_rms:.4f} rad')
+    lines.append(f'residuals beyond 3 model sd: range {100 * cal.residual_tails["range"]:.2f}%, '
+                 f'bearing {100 * cal.residual_tails["bearing"]:.2f}% (Gaussian: 0.27%)')
+    lines.append('suggested values:')
+    lines.append(cal.suggested_yaml())
+    return '\n'.join(lines)

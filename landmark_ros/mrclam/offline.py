@@ -1,0 +1,153 @@
+"""
+The offline replay: the dataset through the pipeline objects of the nodes (ROS-free).
+
+Per robot one ``pipeline.observer.Observer`` and per fusion method one
+``pipeline.fuser.Fuser``, built from the very YAML sections the nodes read
+(``ObserverConfig`` / ``FuserConfig.from_values``), are fed what the nodes receive in
+``--through-nodes``: for every observation message (one per robot and measurement
+stamp, ``Rows.messages``), in global time order with ties by robot number, the
+robot's pose at exactly that stamp (``add_pose``), then the message
+(``add_observations``); each ``LandmarkBatch`` the observer places goes to every fuser
+(``add_landmarks``, source ``/robotN/landmarks``) and the fusers fuse their queues
+every ``FUSE_CHUNK`` messages, or every ``max_queue_messages`` if fewer (``fuse_queued``:
+a batch gives the same map as its rows one by one). Time is integer nanoseconds
+(``Rows.stamps_ns``, the stamps the player publishes); float seconds appear only in the
+report.
+"""
+
+from collections import Counter
+from dataclasses import dataclass, replace
+from typing import Dict, Iterator, List, Sequence, Tuple
+
+from landmark_ros.mrclam.report import method_result, MethodResult
+from landmark_ros.pipeline.fuser import Fuser
+from landmark_ros.pipeline.observer import (LandmarkBatch, ObservationMessage, Observer,
+                                            THROUGHPUT_COUNTERS)
+
+FUSE_CHUNK = 1024
+"""Messages the fusers queue before ``Fuser.fuse_queued`` (at most ``max_queue_messages``)."""
+
+FUSER_NOT_PROBLEMS = frozenset({'messages_in', 'observations_in', 'fused', 'gated_out'})
+"""Per-source fuser counters that are not row checks (gating is the fusion's result)."""
+
+
+@dataclass
+class OfflineRun:
+    """What an offline replay leaves: the results and the pipeline objects that made them."""
+
+    results: Dict[str, MethodResult]
+    """Fusion method -> its map against the ground truth, in run order."""
+    observers: List[Observer]
+    """One per robot, in the order of ``Dataset.robots``."""
+    fusers: Dict[str, Fuser]
+    """Fusion method -> its fuser."""
+    messages: int
+    """Observation messages replayed."""
+
+    @property
+    def problems(self) -> Counter:
+        """
+        Return the rows the observer and fuser checks rejected, by reason.
+
+        The observers' rejection counters plus the row checks of one fuser (every
+        fuser checks the same rows); gating is not a check, it is in the results.
+        """
+        problems = Counter()
+        for observer in self.observers:
+            problems.update({k: v for k, v in observer.counters.counts.items()
+                             if k not in THROUGHPUT_COUNTERS and v})
+        for fuser in list(self.fusers.values())[:1]:
+            for source in fuser.sources.values():
+                problems.update({k: v for k, v in source.counts.items()
+                                 if k not in FUSER_NOT_PROBLEMS and v})
+        return problems
+
+
+def observe(rows, observers: Sequence[Observer],
+            P_pose) -> Iterator[Tuple[int, LandmarkBatch]]:
+    """
+    Feed every observation message to its robot's observer, in global time order.
+
+    Each message (``Rows.messages``: the rows of one robot at one stamp) follows the
+    robot's pose at exactly its stamp, as the player publishes them through the nodes.
+
+    Parameters
+    ----------
+    rows : landmark_ros.mrclam.data.Rows
+        Sightings in global time order.
+    observers : sequence of Observer
+        One per robot index of ``rows.robot``.
+    P_pose : ndarray, shape (3, 3)
+        Covariance of every pose [m^2, m rad, rad^2].
+
+    Yields
+    ------
+    robot : int
+        Robot index.
+    batch : LandmarkBatch
+        What the observer placed (an empty batch when every row was rejected).
+
+    """
+    starts, ends = rows.messages()
+    stamps_ns = rows.stamps_ns
+    robots = rows.robot
+    for a, b in zip(starts.tolist(), ends.tolist()):
+        robot = int(robots[a])
+        stamp_ns = int(stamps_ns[a])
+        observer = observers[robot]
+        batches = observer.add_pose(stamp_ns, rows.poses[a], P_pose, now_ns=stamp_ns)
+        columns = {'id': rows.ids[a:b], 'range': rows.z[a:b, 0], 'bearing': rows.z[a:b, 1]}
+        batches += observer.add_observations([ObservationMessage(stamp_ns, columns)],
+                                             now_ns=stamp_ns)
+        for batch in batches:
+            yield robot, batch
+
+
+def run_offline(dataset, config, methods, chunk=FUSE_CHUNK) -> OfflineRun:
+    """
+    Replay a dataset through the pipeline objects, one fuser per method.
+
+    Parameters
+    ----------
+    dataset : landmark_ros.mrclam.data.Dataset
+        The loaded dataset.
+    config : landmark_ros.mrclam.config.ReplayConfig
+        Observer and fuser parameters (the fuser's ``fusion`` is replaced by each
+        method) and the pose covariance.
+    methods : sequence of str
+        Fusion methods (``core.landmark_map.FUSION_METHODS``).
+    chunk : int
+        Messages the fusers queue between two ``fuse_queued`` calls, capped at the
+        fuser's ``max_queue_messages`` so no queue overflows; the maps do not depend
+        on it.
+
+    Returns
+    -------
+    OfflineRun
+
+    """
+    rows = dataset.rows()
+    observers = [Observer(config.observer) for _ in dataset.robots]
+    fusers = {method: Fuser(replace(config.fuser, fusion=method), rows.topics)
+              for method in methods}
+    limit = max(1, min(int(chunk), config.fuser.max_queue_messages))
+    queued = messages = 0
+    for robot, batch in observe(rows, observers, config.P_pose):
+        source = rows.topics[robot]
+        for fuser in fusers.values():
+            fuser.add_landmarks(source, batch.stamp_ns, batch.ids, batch.m, batch.P,
+                                batch.P_dep)
+        messages += 1
+        queued += 1
+        if queued >= limit:
+            for fuser in fusers.values():
+                fuser.fuse_queued()
+            queued = 0
+    results = {}
+    for method, fuser in fusers.items():
+        fuser.fuse_queued()
+        counts = [source.counts for source in fuser.sources.values()]
+        results[method] = method_result(method, fuser.map.to_records(), dataset.landmarks,
+                                        sum(c['fused'] for c in counts),
+                                        sum(c['gated_out'] for c in counts))
+    return OfflineRun(results, observers, fusers, messages)

@@ -1,0 +1,722 @@
+"""
+The replay through the real nodes, over DDS (the only ROS module of ``mrclam``).
+
+``run_through_nodes`` starts one ``landmark_observer`` per robot and one
+``landmark_fuser`` per fusion method as processes (``landmark_ros.demo.launcher``) in
+a private ROS domain on the loopback interface, with ``--params-file`` the replay's
+config plus the transport overrides ``OBSERVER_TRANSPORT`` and ``FUSER_TRANSPORT``.
+``Player`` publishes the dataset into them in global time order with flow control
+(``dependencies``: the order of each landmark's rows at every fuser is the offline
+one), then reads each fuser's saved map and diagnostics. ``landmark_ros.mrclam.cli``
+imports this module only for ``--through-nodes``.
+"""
+
+from collections import Counter
+from dataclasses import fields
+import os
+from pathlib import Path
+import shutil
+import sys
+import tempfile
+import time
+
+from builtin_interfaces.msg import Time
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseWithCovarianceStamped
+from landmark_ros.demo.launcher import Launcher, ProcessExitedError
+from landmark_ros.mrclam.report import method_result
+from landmark_ros.pipeline import map_file
+from landmark_ros.pipeline.config import FuserConfig
+from landmark_ros.ros.conversions import stamp_ns
+from landmark_ros.ros.schemas import observation_message, pose_message
+from landmark_ros.ros.schemas import read_landmarks
+import numpy as np
+from rcl_interfaces.srv import GetParameters
+import rclpy
+from rclpy.context import Context
+from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import PointCloud2
+from std_msgs.msg import Header
+from std_srvs.srv import Trigger
+
+NS_PER_S = 1_000_000_000
+
+
+def cpu_seconds(pids):
+    """Return the CPU time (user + system) of running processes, from /proc (Linux)."""
+    ticks = os.sysconf('SC_CLK_TCK') if hasattr(os, 'sysconf') else 100
+    result = {}
+    for name, pid in pids.items():
+        try:
+            with open(f'/proc/{pid}/stat') as stream:
+                parts = stream.read().rsplit(')', 1)[1].split()
+            result[name] = (int(parts[11]) + int(parts[12])) / ticks
+        except (OSError, IndexError, ValueError):
+            pass
+    return result
+
+
+OBSERVER_TRANSPORT = {
+    'input_depth': 1000, 'output_depth': 1000, 'max_pending': 1000,
+    'pose_buffer_s': 3600.0, 'max_wait_s': 30.0, 'marker_rate_hz': 0.0,
+    'diagnostics_period_s': 1.0,
+}
+"""Observer parameters the replay sets on top of the config file (transport only)."""
+
+OBSERVER_WINDOW = 8
+"""Observation clouds in flight per observer (sent, no ``landmarks`` output yet)."""
+
+FUSER_WINDOW = 64
+"""Clouds per robot sent but not yet known to be taken by every fuser."""
+
+FUSER_BATCH = FUSER_WINDOW if 'max_batch_messages' in {
+    spec.name for spec in fields(FuserConfig)} else 1
+"""Clouds of one source a fuser callback takes at most (its ``max_batch_messages``)."""
+
+FUSER_TRANSPORT = {
+    'update_period_s': 0.05, 'publish_rate_hz': 5.0, 'max_queue_messages': 100000,
+    'input_depth': 1000, 'diagnostics_period_s': 0.25, 'source_timeout_s': 86400.0,
+    'autosave_period_s': 0.0,
+}
+"""Fuser parameters the replay sets on top of the config file (besides topics, method)."""
+if FUSER_BATCH > 1:
+    FUSER_TRANSPORT['max_batch_messages'] = FUSER_BATCH
+
+
+def _param(name, value):
+    if isinstance(value, bool):
+        text = 'true' if value else 'false'
+    elif isinstance(value, (list, tuple)):
+        text = '[' + ', '.join(f"'{v}'" for v in value) + ']'
+    else:
+        text = str(value)
+    return ['-p', f'{name}:={text}']
+
+
+def observer_arguments(robot, config_path):
+    """Return the ROS arguments of a robot's observer process."""
+    ns = f'/{robot.name}'
+    arguments = ['-r', f'__ns:={ns}', '--params-file', str(config_path)]
+    for name, value in OBSERVER_TRANSPORT.items():
+        arguments += _param(name, value)
+    for topic in ('pose', 'observations'):
+        arguments += _param(f'qos_overrides.{ns}/{topic}.subscription.reliability',
+                            'reliable')
+    return arguments
+
+
+def fuser_arguments(method, topics, config_path, map_path):
+    """Return the ROS arguments of one fuser process."""
+    arguments = ['-r', f'__ns:=/mrclam/{method}', '--params-file', str(config_path)]
+    for name, value in dict(FUSER_TRANSPORT, input_topics=list(topics), fusion=method,
+                            map_file=str(map_path)).items():
+        arguments += _param(name, value)
+    return arguments
+
+
+def stamp_msg(stamp_ns):
+    """Return integer nanoseconds as a ``builtin_interfaces/Time``."""
+    sec, nanosec = divmod(int(stamp_ns), NS_PER_S)
+    return Time(sec=sec, nanosec=nanosec)
+
+
+def stamped_messages(stamp_ns, frame_id, pose, P_pose, ids, z):
+    """
+    Return a robot's pose and observation messages, both stamped ``stamp_ns``.
+
+    Parameters
+    ----------
+    stamp_ns : int
+        Stamp [ns].
+    frame_id : str
+        Frame of the observation cloud (the pose is in ``map``).
+    pose : ndarray, shape (3,)
+        Robot pose (x [m], y [m], theta [rad]).
+    P_pose : ndarray, shape (3, 3)
+        Its covariance.
+    ids : ndarray of int, shape (N,)
+        Landmark IDs.
+    z : ndarray, shape (N, 2)
+        Range [m] and bearing [rad] per row.
+
+    Returns
+    -------
+    pose : geometry_msgs.msg.PoseWithCovarianceStamped
+    observations : sensor_msgs.msg.PointCloud2
+
+    """
+    pose_msg = pose_message(0.0, pose, P_pose)
+    pose_msg.header.stamp = stamp_msg(stamp_ns)
+    cloud = observation_message(Header(stamp=stamp_msg(stamp_ns), frame_id=frame_id), ids, z)
+    return pose_msg, cloud
+
+
+def dependencies(rows, starts, ends):
+    """
+    Return, per cloud, the clouds of other robots it must follow at the fuser.
+
+    For each landmark of cloud ``j``, the last earlier cloud with that landmark: when
+    it is another robot's, ``j`` must reach the fuser after it. Earlier clouds with
+    the landmark need no entry: that cloud itself followed them (the clouds of one
+    robot stay in order by themselves).
+
+    Returns
+    -------
+    requirements : list of tuple of (int, int)
+        Per cloud, ``(robot, local)`` pairs: the cloud ``local`` (index among the
+        clouds of robot index ``robot``) must be taken by the fusers first; one pair
+        per robot, the latest.
+    local : ndarray of int, shape (K,)
+        Index of each cloud among its robot's clouds.
+
+    """
+    count = len(starts)
+    msg_robot = rows.robot[starts].tolist()
+    local = np.zeros(count, np.int64)
+    seen = Counter()
+    last = {}
+    requirements = []
+    ids = rows.ids.tolist()
+    for j in range(count):
+        r = msg_robot[j]
+        local[j] = seen[r]
+        seen[r] += 1
+        need = {}
+        for landmark in set(ids[starts[j]:ends[j]]):
+            i = last.get(landmark, -1)
+            if i >= 0 and msg_robot[i] != r:
+                need[msg_robot[i]] = max(need.get(msg_robot[i], -1), int(local[i]))
+            last[landmark] = j
+        requirements.append(tuple(sorted(need.items())))
+    return requirements, local
+
+
+class ReplayError(RuntimeError):
+    """The replay through the nodes failed (process exit, stall, lost message)."""
+
+
+class Player:
+    """
+    Publish the dataset into the nodes in time order, with flow control.
+
+    Poses. Each observer receives its robot's pose at exactly the stamp of the next
+    cloud, then the cloud, both reliable, so it uses that very pose (no interpolation)
+    and publishes one ``landmarks`` cloud per observation cloud, in order.
+
+    Order at the fusers. A fuser takes one robot's clouds in order (one reliable
+    writer), but across robots in the order its executor sees them, not the order
+    they were sent. The map only depends on the order of the rows of each landmark
+    (``LandmarkMap`` treats landmarks apart), so a cloud waits until every fuser has
+    taken the last cloud of another robot with one of its landmarks
+    (``dependencies``); robots whose clouds wait for nothing go on meanwhile, in
+    time order. To know that a cloud was taken, the player waits for its
+    ``landmarks`` output (it subscribes too: the output reached the fusers when it
+    reached the player), then runs a barrier: rounds of an empty ``get_parameters``
+    request to every fuser, one round after the other. In each pass, an executor
+    serves every subscription with data (the fuser's callback takes up to
+    ``FUSER_BATCH`` waiting clouds of that source) before the services, so a round
+    guarantees that many more clouds of every robot taken.
+
+    Flow control. At most ``OBSERVER_WINDOW`` clouds per robot wait for their
+    ``landmarks`` output and at most ``FUSER_WINDOW`` are not known to be taken by
+    the fusers (a barrier then runs), far below every queue depth, so nothing is
+    dropped. Discovery: the player waits for matched publishers, subscriptions and
+    services, then sends empty probe clouds until the diagnostics of every fuser
+    count one from every robot, so every link carries data before the first cloud.
+    """
+
+    def __init__(self, node, executor, dataset, rows, config, methods, launcher,
+                 progress=True, stall_timeout_s=60.0):
+        self.node, self.executor = node, executor
+        self.dataset, self.rows, self.config = dataset, rows, config
+        self.methods, self.launcher = list(methods), launcher
+        self.progress, self.stall_timeout_s = progress, stall_timeout_s
+        self.robots = dataset.robots
+        self.starts, self.ends = rows.messages()
+        self.msg_robot = rows.robot[self.starts]
+        self.msg_stamps_ns = rows.stamps_ns[self.starts]
+        self.requirements, self.local = dependencies(rows, self.starts, self.ends)
+        self.totals = np.bincount(self.msg_robot, minlength=len(self.robots)).tolist()
+        self.robot_clouds = [np.flatnonzero(self.msg_robot == r).tolist()
+                             for r in range(len(self.robots))]
+        self.expected_ns = [[] for _ in self.robots]
+        for j in range(len(self.starts)):
+            self.expected_ns[self.msg_robot[j]].append(int(self.msg_stamps_ns[j]))
+        reliable = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000,
+                              reliability=ReliabilityPolicy.RELIABLE)
+        latched = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
+                             reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        # No QoS event handlers: each is a waitable the executor polls on every wake-up.
+        quiet_pub = {'event_callbacks': PublisherEventCallbacks(use_default_callbacks=False)}
+        quiet_sub = {'event_callbacks': SubscriptionEventCallbacks(
+            use_default_callbacks=False)}
+        self.pose_pubs, self.obs_pubs, self.out_subs = [], [], []
+        for index, robot in enumerate(self.robots):
+            self.pose_pubs.append(node.create_publisher(
+                PoseWithCovarianceStamped, f'/{robot.name}/pose', reliable, **quiet_pub))
+            self.obs_pubs.append(node.create_publisher(
+                PointCloud2, f'/{robot.name}/observations', reliable, **quiet_pub))
+            self.out_subs.append(node.create_subscription(
+                PointCloud2, robot.landmarks_topic,
+                lambda msg, index=index: self._on_output(msg, index), reliable, **quiet_sub))
+        self.fused = {}
+        self.fused_subs, self.barrier_clients, self.save_clients = [], [], []
+        for method in self.methods:
+            ns = f'/mrclam/{method}'
+            self.fused_subs.append(node.create_subscription(
+                PointCloud2, f'{ns}/fused_landmarks',
+                lambda msg, method=method: self.fused.__setitem__(method, msg), latched,
+                **quiet_sub))
+            self.barrier_clients.append(node.create_client(
+                GetParameters, f'{ns}/landmark_fuser/get_parameters'))
+            self.save_clients.append(node.create_client(Trigger, f'{ns}/landmark_fuser/save'))
+        self.diagnostics = {}
+        node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diagnostics,
+                                 QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE),
+                                 **quiet_sub)
+        count = len(self.robots)
+        self.sent = [0] * count
+        self.out = [0] * count
+        self.taken = [0] * count
+        self.probes_sent = [0] * count
+        self.probes_out = [0] * count
+        self.rows_out = 0
+        self.sent_total = 0
+        self.barrier = None
+        self.barriers = 0
+        self.barrier_rounds = 0
+        self._last_progress = time.monotonic()
+        self._last_bar = 0.0
+        self._last_decile = -1
+        self._probe_stamp_ns = None
+
+    # Callbacks -------------------------------------------------------------------------
+
+    def _on_output(self, msg, index):
+        stamp = stamp_ns(msg.header.stamp)
+        if self._probe_stamp_ns is not None and stamp < self._data_start_ns:
+            self.probes_out[index] += 1
+            return
+        k = self.out[index]
+        expected = self.expected_ns[index][k] if k < len(self.expected_ns[index]) else None
+        if stamp != expected:
+            raise ReplayError(f'{self.robots[index].name}: landmarks output stamped {stamp} '
+                              f'ns, expected {expected} ns (cloud {k}): a cloud was lost')
+        self.out[index] += 1
+        self.rows_out += msg.width * msg.height
+        self._last_progress = time.monotonic()
+
+    def _on_diagnostics(self, msg):
+        stamp = stamp_ns(msg.header.stamp)
+        for status in msg.status:
+            self.diagnostics[status.name] = (stamp, {kv.key: kv.value for kv in status.values},
+                                             status.message)
+
+    # Helpers ---------------------------------------------------------------------------
+
+    def spin(self, timeout_s=0.05):
+        """Run one callback (or wait up to ``timeout_s``)."""
+        self.executor.spin_once(timeout_sec=timeout_s)
+
+    def spin_until(self, predicate, timeout_s, what):
+        """Spin until ``predicate()``; raise ReplayError after ``timeout_s``."""
+        deadline = time.monotonic() + timeout_s
+        last_check = 0.0
+        while not predicate():
+            now = time.monotonic()
+            if now > deadline:
+                raise ReplayError(f'timed out after {timeout_s:.0f} s waiting for {what}')
+            if now - last_check > 0.5:
+                self.launcher.check()
+                last_check = now
+            self.spin(0.05)
+
+    def fuser_name(self, method):
+        """Return the fully qualified name of a method's fuser."""
+        return f'/mrclam/{method}/landmark_fuser'
+
+    def fuser_sources(self, method, newer_than_ns=None):
+        """Return ``topic -> values`` of a fuser's latest diagnostics, or None."""
+        name = self.fuser_name(method)
+        main = self.diagnostics.get(name)
+        if main is None or (newer_than_ns is not None and main[0] <= newer_than_ns):
+            return None
+        sources = {}
+        for robot in self.robots:
+            entry = self.diagnostics.get(f'{name}: {robot.landmarks_topic}')
+            if entry is None or entry[0] != main[0]:
+                return None
+            sources[robot.landmarks_topic] = entry[1]
+        return sources
+
+    # Barrier ---------------------------------------------------------------------------
+
+    def start_barrier(self, clouds):
+        """
+        Start a barrier over the outputs received so far.
+
+        When it completes, each fuser has taken at least ``clouds`` more of the
+        covered clouds of every robot (all of them if fewer were left): one round per
+        ``FUSER_BATCH`` clouds, as each pass of a fuser's executor takes up to that
+        many waiting clouds of every source.
+        """
+        rounds = max(1, -(-clouds // FUSER_BATCH))
+        self.barrier = {'cover': list(self.out), 'rounds': rounds, 'left': rounds,
+                        'pending': 0}
+        self.barriers += 1
+        self._barrier_round()
+
+    def _barrier_round(self):
+        barrier = self.barrier
+        barrier['pending'] = len(self.barrier_clients)
+        self.barrier_rounds += 1
+        for client in self.barrier_clients:
+            request = GetParameters.Request(names=[])
+            client.call_async(request).add_done_callback(self._barrier_reply)
+
+    def _barrier_reply(self, future):
+        barrier = self.barrier
+        barrier['pending'] -= 1
+        if barrier['pending']:
+            return
+        barrier['left'] -= 1
+        if barrier['left'] > 0:
+            self._barrier_round()
+            return
+        covered = barrier['rounds'] * FUSER_BATCH
+        self.taken = [max(t, min(c, t + covered)) for t, c in zip(self.taken, barrier['cover'])]
+        self.barrier = None
+        self._last_progress = time.monotonic()
+
+    # Sending ---------------------------------------------------------------------------
+
+    def send(self, j):
+        """Publish cloud ``j``: the robot's pose at its stamp, then the observations."""
+        r = int(self.msg_robot[j])
+        a, b = int(self.starts[j]), int(self.ends[j])
+        pose, cloud = stamped_messages(self.msg_stamps_ns[j], f'{self.robots[r].name}/camera',
+                                       self.rows.poses[a], self.config.P_pose,
+                                       self.rows.ids[a:b], self.rows.z[a:b])
+        self.pose_pubs[r].publish(pose)
+        self.obs_pubs[r].publish(cloud)
+        self.sent[r] += 1
+        self.sent_total += 1
+
+    def pump(self):
+        """
+        Send every cloud that may go now; return how many clouds a barrier must cover.
+
+        A robot's next cloud may go when fewer than ``OBSERVER_WINDOW`` of its clouds
+        wait for their output, fewer than ``FUSER_WINDOW`` are not known to be taken
+        by the fusers, and the clouds it must follow (``dependencies``) are taken.
+        Robots go in the order of their next clouds in time; a blocked robot does
+        not hold the others up.
+
+        Returns
+        -------
+        int
+            Clouds per robot a barrier must cover to unblock a robot whose blocking
+            clouds are back from their observers (0: nothing a barrier can unblock).
+
+        """
+        clouds = 0
+        progress = True
+        while progress:
+            progress = False
+            order = sorted((self.robot_clouds[r][self.sent[r]], r)
+                           for r in range(len(self.robots)) if self.sent[r] < self.totals[r])
+            for j, r in order:
+                if self.sent[r] - self.out[r] >= OBSERVER_WINDOW:
+                    continue
+                if self.sent[r] - self.taken[r] >= FUSER_WINDOW:
+                    if self.out[r] > self.taken[r]:
+                        clouds = max(clouds, self.out[r] - self.taken[r])
+                    continue
+                blocked = False
+                for a, local in self.requirements[j]:
+                    if self.taken[a] <= local:
+                        blocked = True
+                        if self.out[a] > local:
+                            clouds = max(clouds, local + 1 - self.taken[a])
+                if blocked:
+                    continue
+                self.send(j)
+                progress = True
+                self._last_progress = time.monotonic()
+        return clouds
+
+    # Phases ----------------------------------------------------------------------------
+
+    def connect(self, timeout_s=120.0):
+        """Wait for every publisher, subscription and service to be matched."""
+        def matched():
+            return (all(p.get_subscription_count() > 0 for p in self.pose_pubs + self.obs_pubs)
+                    and all(s.get_publisher_count() > 0 for s in self.out_subs + self.fused_subs)
+                    and all(c.service_is_ready() for c in self.barrier_clients
+                            + self.save_clients)
+                    and all(self.node.count_subscribers(r.landmarks_topic) >= 1 + len(
+                        self.methods) for r in self.robots))
+        self.spin_until(matched, timeout_s, 'the nodes to start and match')
+
+    def probe(self, timeout_s=60.0):
+        """Send empty clouds until every fuser has one from every robot."""
+        t0_ns = int(self.msg_stamps_ns[0]) if len(self.rows) else 200 * NS_PER_S
+        self._data_start_ns = t0_ns - NS_PER_S
+        self._probe_stamp_ns = t0_ns - 100 * NS_PER_S
+        deadline = time.monotonic() + timeout_s
+
+        def seen():
+            for method in self.methods:
+                sources = self.fuser_sources(method)
+                if sources is None or any(int(v.get('messages_in', 0)) < 1
+                                          for v in sources.values()):
+                    return False
+            return True
+
+        while not seen():
+            if time.monotonic() > deadline:
+                raise ReplayError('the fusers never received the probe clouds')
+            self._probe_stamp_ns += NS_PER_S // 100
+            for r, robot in enumerate(self.robots):
+                pose, cloud = stamped_messages(
+                    self._probe_stamp_ns, f'{robot.name}/camera',
+                    robot.poses[0] if len(robot.poses) else np.zeros(3), self.config.P_pose,
+                    np.zeros(0, np.int64), np.zeros((0, 2)))
+                self.pose_pubs[r].publish(pose)
+                self.obs_pubs[r].publish(cloud)
+                self.probes_sent[r] += 1
+            try:
+                self.spin_until(seen, 1.0, 'probes')
+            except ReplayError:
+                pass
+        # Every probe the observers published reaches the fusers before the first real
+        # cloud; the barrier makes sure the fusers have taken them all.
+        try:
+            self.spin_until(lambda: self.probes_out == self.probes_sent, 2.0, 'probe outputs')
+        except ReplayError:
+            pass
+        self.start_barrier(max(self.probes_sent) + 2)
+        self.spin_until(lambda: self.barrier is None, 30.0, 'the probe barrier')
+        self.taken = [0] * len(self.robots)
+
+    def play(self):
+        """Send every cloud with flow control; return when every fuser took them all."""
+        total = len(self.starts)
+        last_check = 0.0
+        while True:
+            clouds = self.pump()
+            if self.barrier is None:
+                if self.sent_total == total and self.out == self.sent:
+                    if self.taken == self.out:
+                        break
+                    clouds = max(o - t for o, t in zip(self.out, self.taken))
+                if clouds:
+                    self.start_barrier(clouds)
+            self.show_progress()
+            now = time.monotonic()
+            if now - self._last_progress > self.stall_timeout_s:
+                raise ReplayError(f'no progress for {self.stall_timeout_s:.0f} s: sent '
+                                  f'{self.sent}, outputs {self.out}, taken {self.taken}')
+            if now - last_check > 1.0:
+                self.launcher.check()
+                last_check = now
+            self.spin(0.05)
+        self.show_progress(final=True)
+
+    def show_progress(self, final=False):
+        """
+        Show the progress on stderr.
+
+        A bar redrawn about 5 times a second on a terminal; otherwise a line at every
+        10 % (logs and pipes get no carriage returns).
+        """
+        if not self.progress:
+            return
+        now = time.monotonic()
+        total = len(self.starts)
+        done = sum(self.out)
+        tty = sys.stderr.isatty()
+        decile = 10 * done // max(total, 1)
+        if tty and not final and now - self._last_bar < 0.2:
+            return
+        if not tty and decile <= self._last_decile:
+            return
+        self._last_bar = now
+        self._last_decile = decile
+        elapsed = now - self._t_play
+        dataset_s = (int(self.msg_stamps_ns[min(done, total) - 1] - self.msg_stamps_ns[0])
+                     / NS_PER_S if done and total else 0.0)
+        speed = dataset_s / elapsed if elapsed > 0 else 0.0
+        width = 30
+        filled = int(width * done / max(total, 1))
+        line = (f'[{"#" * filled}{"." * (width - filled)}] {done}/{total} clouds, '
+                f'{dataset_s:6.1f} s of data in {elapsed:5.1f} s ({speed:5.1f}x real time), '
+                f'{self.barriers} barriers')
+        if tty:
+            sys.stderr.write('\r' + line + ('\n' if final else ''))
+        else:
+            sys.stderr.write(line + '\n')
+        sys.stderr.flush()
+
+    def finish(self, timeout_s=60.0):
+        """
+        Wait for the fused maps: diagnostics after the last take, then ``~/save``.
+
+        Returns
+        -------
+        dict
+            Method -> ``{'sources': topic -> diagnostics values, 'saved': bool}``.
+
+        """
+        after = time.time_ns()
+        for method in self.methods:
+            def fused(method=method):
+                sources = self.fuser_sources(method, newer_than_ns=after)
+                return sources is not None and all(
+                    v.get('queued_messages') == '0' for v in sources.values())
+            self.spin_until(fused, timeout_s, f'the {method} fuser to fuse its queue')
+        final = {}
+        for method, client in zip(self.methods, self.save_clients):
+            future = client.call_async(Trigger.Request())
+            self.spin_until(future.done, timeout_s, f'the {method} fuser to save its map')
+            response = future.result()
+            if not response.success:
+                raise ReplayError(f'{method} fuser could not save its map: {response.message}')
+            final[method] = {'sources': self.fuser_sources(method)}
+        # Observer diagnostics after the last output, for the report.
+        self.spin_until(lambda: all(
+            self.diagnostics.get(f'/{r.name}/landmark_observer', (0,))[0] > after
+            for r in self.robots), timeout_s, 'the observer diagnostics')
+        return final
+
+    def run(self):
+        """Connect, probe, play and finish; return the fusers' final diagnostics."""
+        self.connect()
+        self.probe()
+        self._t_play = time.monotonic()
+        self.play()
+        self.play_wall_s = time.monotonic() - self._t_play
+        return self.finish()
+
+
+def domain_id_for(pid=None):
+    """Return the private ROS_DOMAIN_ID of a replay: 100 to 149, from the process ID."""
+    return 100 + (os.getpid() if pid is None else pid) % 50
+
+
+def run_through_nodes(dataset, config, methods, progress=True, keep_logs=False, out=print,
+                      domain_id=None):
+    """
+    Replay the dataset through the real nodes; return the results per method.
+
+    The nodes run as processes of ``landmark_ros.demo.launcher.Launcher`` (stopped with
+    SIGINT, then SIGTERM and SIGKILL, whatever happens) in a private ROS domain on the
+    loopback interface; this process joins it with its own context.
+
+    Returns
+    -------
+    results : dict
+        Method -> MethodResult: each fuser's saved map (``~/save``), with the
+        per-landmark rejections; its ``fused_landmarks`` must equal it.
+    info : dict
+        Timing, message counts, CPU time per process and the node diagnostics.
+
+    """
+    t_start = time.monotonic()
+    domain = domain_id_for() if domain_id is None else int(domain_id)
+    os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+    work = Path(tempfile.mkdtemp(prefix='landmark_mrclam_'))
+    rows = dataset.rows()
+    topics = [robot.landmarks_topic for robot in dataset.robots]
+    config_path = Path(config.path).resolve()
+    context = Context()
+    node = executor = None
+    ok = False
+    out(f'through the nodes: ROS_DOMAIN_ID={domain}, loopback only; logs in {work}')
+    out(f'  observers {", ".join(r.name for r in dataset.robots)}: --params-file {config_path}'
+        f' + {OBSERVER_TRANSPORT} + reliable pose/observations')
+    out(f'  fusers /mrclam/<method>: --params-file {config_path} + {FUSER_TRANSPORT}')
+    launcher = Launcher(work, domain_id=domain)
+    try:
+        for robot in dataset.robots:
+            launcher.start_module(f'observer_{robot.name}', 'landmark_ros.nodes.observer',
+                                  observer_arguments(robot, config_path))
+        map_paths = {}
+        for method in methods:
+            map_paths[method] = work / f'{method}.json'
+            launcher.start_module(f'fuser_{method}', 'landmark_ros.nodes.fuser',
+                                  fuser_arguments(method, topics, config_path,
+                                                  map_paths[method]))
+        rclpy.init(args=['landmark_mrclam'], context=context, domain_id=domain)
+        node = rclpy.create_node('landmark_mrclam_player', context=context,
+                                 start_parameter_services=False)
+        executor = SingleThreadedExecutor(context=context)
+        executor.add_node(node)
+        player = Player(node, executor, dataset, rows, config, methods, launcher, progress)
+        t_connect = time.monotonic()
+        cpu_player = time.process_time()
+        try:
+            final = player.run()
+        except ProcessExitedError as error:
+            raise ReplayError(str(error)) from error
+        cpu = cpu_seconds({name: p.pid for name, p in launcher.processes.items()})
+        cpu['player'] = time.process_time() - cpu_player
+        results = {}
+        mismatch = {}
+        for method in methods:
+            document = map_file.load(map_paths[method], config.fuser.world_frame)
+            records = sorted(document['landmarks'], key=lambda r: r['id'])
+
+            def cloud_matches(method=method, records=records):
+                msg = player.fused.get(method)
+                if msg is None:
+                    return False
+                cloud = read_landmarks(msg)
+                return (cloud.ids.tolist() == [r['id'] for r in records]
+                        and np.array_equal(cloud.m, np.array(
+                            [r['mean'] for r in records]).reshape(-1, 2))
+                        and np.array_equal(cloud.P, np.array(
+                            [r['covariance'] for r in records]).reshape(-1, 2, 2))
+                        and cloud.observations.tolist() == [r['observations'] for r in records])
+            try:
+                player.spin_until(cloud_matches, 10.0, f'{method} fused_landmarks')
+            except ReplayError:
+                mismatch[method] = 'fused_landmarks never matched the saved map'
+            sources = final[method]['sources']
+            used = sum(int(v.get('fused', 0)) for v in sources.values())
+            rejected = sum(int(v.get('gated_out', 0)) for v in sources.values())
+            results[method] = method_result(method, records, dataset.landmarks, used, rejected)
+        observers = {r.name: player.diagnostics[f'/{r.name}/landmark_observer'][1]
+                     for r in dataset.robots}
+        info = {
+            'wall_s': time.monotonic() - t_start,
+            'startup_s': t_connect - t_start,
+            'play_wall_s': player.play_wall_s,
+            'speedup': dataset.duration / player.play_wall_s if player.play_wall_s else None,
+            'clouds': int(len(player.starts)), 'rows': int(len(rows)),
+            'rows_out': int(player.rows_out),
+            'barriers': player.barriers, 'barrier_rounds': player.barrier_rounds,
+            'probes': list(player.probes_sent),
+            'fusers': {m: final[m]['sources'] for m in methods},
+            'observers': observers, 'cloud_mismatch': mismatch,
+            'cpu_s': {name: round(value, 2) for name, value in cpu.items()},
+        }
+        ok = True
+        return results, info
+    finally:
+        if executor is not None:
+            executor.shutdown()
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown(context=context)
+        codes = launcher.stop()
+        bad = {name: code for name, code in codes.items() if code != 0}
+        if bad:
+            out(f'processes exited with {bad}')
+        if ok and not keep_logs and not bad:
+            shutil.rmtree(work, ignore_errors=True)
+        else:
+            out(f'logs kept in {work}')
