@@ -19,8 +19,10 @@ setup(
     # Only plain-PyPI runtime deps here. The ROS 2 packages (rclpy, *_msgs,
     # std_srvs) are declared in package.xml and come from apt/rosdep on a ROS
     # machine or from requirements-ros.txt in the dev venv; listing them here
-    # would pull a second rclpy into an apt-installed Jazzy.
-    install_requires=['numpy', 'scipy'],
+    # would pull a second rclpy into an apt-installed Jazzy. landmark_bag reads and
+    # writes bags with rosbags and shows progress with tqdm (pinned as in
+    # requirements-dev.txt: a new rosbags may change the bag format it writes).
+    install_requires=['numpy', 'scipy', 'pyyaml', 'rosbags==0.11.9', 'tqdm==4.70.1'],
     extras_require={
         'plot': ['matplotlib'],
     },
@@ -41,6 +43,7 @@ setup(
             'landmark_fuser = landmark_ros.nodes.fuser:main',
             'landmark_sim = landmark_ros.nodes.sim:main',
             'landmark_mrclam = landmark_ros.mrclam.cli:main',
+            'landmark_bag = landmark_ros.bag.cli:main',
         ],
     },
 )

@@ -13,6 +13,7 @@ import pytest
 # lib/landmark_ros/. Add a node's name here when adding it to setup.py: the
 # test below fails if the two lists differ.
 EXPECTED_EXECUTABLES = [
+    'landmark_bag',
     'landmark_fuser',
     'landmark_mrclam',
     'landmark_observer',

@@ -1,0 +1,416 @@
+"""
+A recorded bag through the pipeline, offline, on bag time: what the nodes would publish.
+
+Per robot one ``Observer`` (the ``landmark_observer`` of namespace ``/<robot>``) takes
+``/<robot>/pose`` (or ``/<robot>/odometry`` with ``pose_type: odometry``) and
+``/<robot>/observations``; one ``Fuser`` (``/landmark_fuser``) takes their landmarks,
+source ``/<robot>/landmarks``. Messages go in in bag order (the order a recorder
+received them); the nodes' timers run on bag time (as with ``use_sim_time`` and
+``ros2 bag play --clock``), each at its configured period from the first message on:
+the fuser's batch update (``update_period_s``), its map (``publish_rate_hz``, only when
+changed), its updates and markers (``updates_rate_hz``), the observers' waiting
+observations (``max_wait_s``) and every node's ``/diagnostics``. After the last message
+the clock runs on long enough for every waiting observation, batch and map to come out.
+
+The output bag holds ``/<robot>/landmarks`` (one cloud per placed observation message,
+at the bag time of the input that placed it), ``/fused_landmarks``,
+``/fused_landmark_updates``, ``/fused_markers`` and ``/diagnostics`` (one array per
+period with the status of every node due).
+"""
+
+from dataclasses import dataclass, field, replace
+import math
+import re
+import time
+from typing import Callable, Dict, List, Optional
+
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseWithCovarianceStamped
+from landmark_ros.bag.params import load_config
+from landmark_ros.bag.storage import BagError, BagOutput, msgtype, one_line, open_bag
+from landmark_ros.bag.storage import read_message
+from landmark_ros.pipeline.config import FuserConfig, ObserverConfig
+from landmark_ros.pipeline.fuser import Fuser
+from landmark_ros.pipeline.observer import ObservationMessage, Observer
+from landmark_ros.ros import diagnostics
+from landmark_ros.ros.cloud import CloudError, read_columns
+from landmark_ros.ros.conversions import InputError, pose_from_msg, pose_from_odometry
+from landmark_ros.ros.conversions import stamp_ns
+from landmark_ros.ros.markers import landmark_markers
+from landmark_ros.ros.schemas import landmark_message, OBSERVATION_FIELDS, read_landmarks
+from nav_msgs.msg import Odometry
+from rosbags.rosbag2 import ReaderError
+from sensor_msgs.msg import PointCloud2
+from std_msgs.msg import Header
+from visualization_msgs.msg import MarkerArray
+
+GROUND_TRUTH_TOPIC = '/ground_truth_landmarks'
+OBSERVATIONS_TOPIC = re.compile(r'^/(.+)/observations$')
+FUSER_NAME = '/landmark_fuser'
+OUTPUT_TOPICS = {
+    '/fused_landmarks': (PointCloud2, True),
+    '/fused_landmark_updates': (PointCloud2, False),
+    '/fused_markers': (MarkerArray, True),
+    '/diagnostics': (DiagnosticArray, False),
+}
+"""Output topics of the fuser and the diagnostics: message class, latched."""
+
+
+@dataclass
+class Task:
+    """A node timer on bag time."""
+
+    period_ns: int
+    run: Callable[[int], None]
+    idle: Callable[[], bool] = lambda: False
+    """True when a run now would do nothing: the schedule may skip ahead."""
+    due_ns: int = 0
+
+
+@dataclass
+class Result:
+    """What ``process_bag`` did."""
+
+    robots: List[str]
+    fuser: Fuser
+    observers: Dict[str, Observer]
+    truth: Optional[dict]
+    """``id -> (x, y)`` of the last ``/ground_truth_landmarks`` message, or None."""
+    messages_in: int = 0
+    counts: Dict[str, int] = field(default_factory=dict)
+    """Messages written per output topic."""
+    bag_duration_s: float = 0.0
+    wall_s: float = 0.0
+    cpu_s: float = 0.0
+
+    @property
+    def speedup(self):
+        """Return bag time per wall-clock time (x real time)."""
+        return self.bag_duration_s / self.wall_s if self.wall_s > 0.0 else math.inf
+
+
+def find_robots(topics):
+    """Return the names ``<name>`` of the topics ``/<name>/observations``, sorted."""
+    return sorted(match.group(1) for match in map(OBSERVATIONS_TOPIC.match, topics) if match)
+
+
+def _check_topic(topics, topic, message_class):
+    expected = msgtype(message_class)
+    if topic not in topics:
+        raise BagError(f'the bag has no topic {topic} ({expected})')
+    found = topics[topic].msgtype
+    if found != expected:
+        raise BagError(f'topic {topic} has message type {found or "(mixed)"}, '
+                       f'expected {expected}')
+
+
+class BagPipeline:
+    """
+    The observers and the fuser of a team, driven by bag messages on bag time.
+
+    Parameters
+    ----------
+    robots : sequence of str
+        Robot names (namespaces without the leading slash).
+    document : dict or None
+        A ROS parameter file (``params.read_document``); None gives the defaults.
+    out : BagOutput
+        Where the outputs go; topics are registered here.
+
+    Raises
+    ------
+    ValueError
+        If a parameter value is invalid.
+
+    """
+
+    def __init__(self, robots, document, out):
+        self.robots = list(robots)
+        self.out = out
+        self.observers = {
+            robot: Observer(load_config(ObserverConfig, document,
+                                        f'/{robot}/landmark_observer'))
+            for robot in self.robots}
+        fuser_config = load_config(FuserConfig, document, FUSER_NAME)
+        # The sources are the robots of the bag, whatever input_topics the file lists.
+        topics = tuple(f'/{robot}/landmarks' for robot in self.robots)
+        self.fuser = Fuser(replace(fuser_config, input_topics=topics), topics)
+        for topic in topics:
+            out.add_topic(topic, PointCloud2)
+        for topic, (message_class, latched) in OUTPUT_TOPICS.items():
+            out.add_topic(topic, message_class, latched, depth=1 if latched else 10)
+        self.truth = None
+        self._markers_stale = True
+        self.tasks = self._tasks()
+        self._statuses = []
+        self._statuses_ns = 0
+
+    def input_topics(self):
+        """Return ``topic -> (message class, handler)`` of every input the pipeline reads."""
+        handlers = {}
+        for robot, observer in self.observers.items():
+            if observer.config.pose_type == 'odometry':
+                handlers[f'/{robot}/odometry'] = (Odometry, self._odometry_handler(robot))
+            else:
+                handlers[f'/{robot}/pose'] = (PoseWithCovarianceStamped,
+                                              self._pose_handler(robot))
+            handlers[f'/{robot}/observations'] = (PointCloud2, self._observation_handler(robot))
+        return handlers
+
+    # Timers -----------------------------------------------------------------------------
+
+    def _tasks(self):
+        fuser = self.fuser.config
+        tasks = [
+            Task(_ns(fuser.update_period_s), lambda now: self.fuser.fuse_queued(),
+                 lambda: not self.fuser.queued_messages()),
+            Task(_ns(1.0 / fuser.publish_rate_hz), self.publish_map,
+                 lambda: not self.fuser.map_changed),
+            Task(_ns(1.0 / fuser.updates_rate_hz), self.publish_updates),
+            Task(_ns(fuser.diagnostics_period_s), self.fuser_diagnostics),
+        ]
+        for robot, observer in self.observers.items():
+            tasks.append(Task(_ns(max(observer.config.max_wait_s / 2.0, 0.01)),
+                              lambda now, robot=robot: self.drain(robot, now),
+                              lambda observer=observer: not observer.pending))
+            tasks.append(Task(_ns(observer.config.diagnostics_period_s),
+                              lambda now, robot=robot: self.observer_diagnostics(robot, now)))
+        return tasks
+
+    def start(self, now_ns):
+        """Start the timers at bag time ``now_ns``."""
+        for task in self.tasks:
+            task.due_ns = now_ns + task.period_ns
+
+    def advance(self, now_ns):
+        """Run every timer due up to bag time ``now_ns``, in time order."""
+        while True:
+            task = min(self.tasks, key=lambda t: t.due_ns)
+            if self._statuses and task.due_ns > self._statuses_ns:
+                self._flush_diagnostics()
+            if task.due_ns > now_ns:
+                break
+            if task.idle():
+                # Nothing to do until an input comes: skip to the first due time > now.
+                task.due_ns += ((now_ns - task.due_ns) // task.period_ns + 1) * task.period_ns
+                continue
+            task.run(task.due_ns)
+            task.due_ns += task.period_ns
+
+    def settle_s(self):
+        """Return how long the clock runs after the last message [s]."""
+        fuser = self.fuser.config
+        wait = max([o.config.max_wait_s for o in self.observers.values()] + [0.0])
+        return (wait + fuser.update_period_s + 1.0 / fuser.publish_rate_hz
+                + 1.0 / fuser.updates_rate_hz + 0.01)
+
+    # Inputs ------------------------------------------------------------------------------
+
+    def _pose_handler(self, robot):
+        observer = self.observers[robot]
+
+        def handle(msg, now_ns):
+            try:
+                pose, P_pose = pose_from_msg(msg, observer.config.world_frame)
+            except InputError as error:
+                observer.reject(error.reason, 1, error.detail)
+                return
+            self.publish_landmarks(robot, observer.add_pose(stamp_ns(msg.header.stamp), pose,
+                                                            P_pose, now_ns), now_ns)
+        return handle
+
+    def _odometry_handler(self, robot):
+        observer = self.observers[robot]
+
+        def handle(msg, now_ns):
+            try:
+                pose, P_pose = pose_from_odometry(msg, observer.config.world_frame,
+                                                  observer.config.base_frame)
+            except InputError as error:
+                observer.reject(error.reason, 1, error.detail)
+                return
+            self.publish_landmarks(robot, observer.add_pose(stamp_ns(msg.header.stamp), pose,
+                                                            P_pose, now_ns), now_ns)
+        return handle
+
+    def _observation_handler(self, robot):
+        observer = self.observers[robot]
+
+        def handle(msg, now_ns):
+            try:
+                columns = read_columns(msg, OBSERVATION_FIELDS)
+            except CloudError as error:
+                observer.reject('observation_messages_in')
+                observer.reject(error.reason, 1, f'observation message dropped: {error}')
+                return
+            message = ObservationMessage(stamp_ns(msg.header.stamp), columns,
+                                         msg.header.frame_id, msg.header)
+            self.publish_landmarks(robot, observer.add_observations([message], now_ns), now_ns)
+        return handle
+
+    def ground_truth(self, msg, now_ns):
+        """Keep the true landmark positions of a ``/ground_truth_landmarks`` cloud."""
+        try:
+            rows = read_landmarks(msg)
+        except CloudError as error:
+            raise BagError(f'{GROUND_TRUTH_TOPIC}: not a landmarks cloud ({error})') from error
+        self.truth = {int(i): (float(x), float(y)) for i, (x, y) in zip(rows.ids, rows.m)}
+
+    # Outputs -----------------------------------------------------------------------------
+
+    def drain(self, robot, now_ns):
+        """Expire the waiting observations of one robot (its observer's tick)."""
+        self.publish_landmarks(robot, self.observers[robot].drain(now_ns), now_ns)
+
+    def publish_landmarks(self, robot, batches, now_ns):
+        """Write one landmarks cloud per batch and hand its rows to the fuser."""
+        world_frame = self.observers[robot].config.world_frame
+        topic = f'/{robot}/landmarks'
+        for batch in batches:
+            header = batch.token
+            header.frame_id = world_frame
+            self.out.write(topic, now_ns, landmark_message(header, batch.ids, batch.m,
+                                                           batch.P, batch.P_dep))
+            self.fuser.add_landmarks(topic, batch.stamp_ns, batch.ids, batch.m, batch.P,
+                                     batch.P_dep, world_frame, now_ns)
+
+    def _header(self, now_ns):
+        header = Header(frame_id=self.fuser.config.world_frame)
+        header.stamp.sec, header.stamp.nanosec = divmod(int(now_ns), 1_000_000_000)
+        return header
+
+    def publish_map(self, now_ns):
+        """Write the full map if it changed (the fuser's ``publish_rate_hz`` timer)."""
+        if not self.fuser.map_changed:
+            return
+        ids, m, P, P_dep, observations = self.fuser.snapshot()
+        self.out.write('/fused_landmarks', now_ns, landmark_message(
+            self._header(now_ns), ids, m, P, P_dep, observations))
+
+    def publish_updates(self, now_ns):
+        """Write the landmarks changed since last time and their markers (all at first)."""
+        ids, m, P, P_dep, observations = self.fuser.take_updates()
+        header = self._header(now_ns)
+        if len(ids):
+            self.out.write('/fused_landmark_updates', now_ns,
+                           landmark_message(header, ids, m, P, P_dep, observations))
+        if self._markers_stale:
+            ids, m, P, _, _ = self.fuser.map.snapshot()
+            self._markers_stale = False
+        if len(ids):
+            self.out.write('/fused_markers', now_ns, landmark_markers(
+                header, ids, m, P, self.fuser.config.marker_sigma, rgb=(1.0, 0.5, 0.0)))
+
+    def fuser_diagnostics(self, now_ns):
+        """Queue the fuser's statuses for the ``/diagnostics`` array of this time."""
+        self._statuses += [diagnostics.to_msg(status, FUSER_NAME, '/')
+                           for status in self.fuser.statuses(now_ns)]
+        self._statuses_ns = now_ns
+
+    def observer_diagnostics(self, robot, now_ns):
+        """Queue one observer's status for the ``/diagnostics`` array of this time."""
+        self._statuses.append(diagnostics.to_msg(self.observers[robot].status(),
+                                                 f'/{robot}/landmark_observer', f'/{robot}'))
+        self._statuses_ns = now_ns
+
+    def _flush_diagnostics(self):
+        """Write the statuses due at one bag time as one array."""
+        array = DiagnosticArray(header=self._header(self._statuses_ns), status=self._statuses)
+        self.out.write('/diagnostics', self._statuses_ns, array)
+        self._statuses = []
+
+
+def _messages(reader, connections, path):
+    """Yield the reader's messages; a read error becomes a one-line BagError."""
+    iterator = iter(reader.messages(connections=connections))
+    count = 0
+    while True:
+        try:
+            item = next(iterator)
+        except StopIteration:
+            return
+        except (ReaderError, OSError, ValueError, KeyError, IndexError, EOFError) as error:
+            raise BagError(f'{path}: cannot read the bag after {count} messages '
+                           f'({one_line(error)}): truncated or corrupt?') from error
+        count += 1
+        yield item
+
+
+def _ns(seconds):
+    return max(1, int(round(seconds * 1e9)))
+
+
+def process_bag(input_path, output_path, document=None, robots=None, progress=None):
+    """
+    Run a recorded bag through the observers and the fuser; write what they publish.
+
+    Parameters
+    ----------
+    input_path : str or Path
+        A rosbag2 (directory, ``.mcap`` or ``.db3``) with ``/<robot>/pose`` (or
+        ``/<robot>/odometry``) and ``/<robot>/observations`` per robot, optionally
+        ``/ground_truth_landmarks``.
+    output_path : str or Path
+        The output bag directory (MCAP) to create; written atomically.
+    document : dict, optional
+        A ROS parameter file (``params.read_document``): sections ``landmark_observer``
+        (per robot: ``/<robot>/landmark_observer``) and ``landmark_fuser``.
+    robots : sequence of str, optional
+        Robot names; by default every ``<name>`` with a topic ``/<name>/observations``.
+    progress : callable, optional
+        ``progress(messages_done, messages_total)``, called now and then.
+
+    Returns
+    -------
+    Result
+
+    Raises
+    ------
+    BagError
+        If the bag cannot be read (missing, truncated, not a bag), lacks a topic the
+        robots need, holds one of another message type, or has no robot at all; no
+        output is left behind.
+    ValueError
+        If a parameter value is invalid.
+
+    """
+    started, cpu_started = time.monotonic(), time.process_time()
+    reader = open_bag(input_path)
+    try:
+        topics = reader.topics
+        names = list(robots) if robots else find_robots(topics)
+        if not names:
+            raise BagError(f'{input_path}: no topic /<robot>/observations: no robot to run')
+        with BagOutput(output_path) as out:
+            pipeline = BagPipeline(names, document, out)
+            inputs = pipeline.input_topics()
+            for topic, (message_class, _) in inputs.items():
+                _check_topic(topics, topic, message_class)
+            if GROUND_TRUTH_TOPIC in topics:
+                _check_topic(topics, GROUND_TRUTH_TOPIC, PointCloud2)
+                inputs[GROUND_TRUTH_TOPIC] = (PointCloud2, pipeline.ground_truth)
+            connections = [c for c in reader.connections if c.topic in inputs]
+            total = sum(c.msgcount for c in connections)
+            done = 0
+            first = last = None
+            for connection, time_ns, raw in _messages(reader, connections, input_path):
+                if first is None:
+                    first = time_ns
+                    pipeline.start(time_ns)
+                last = time_ns
+                pipeline.advance(time_ns)
+                message_class, handle = inputs[connection.topic]
+                handle(read_message(raw, message_class, connection.topic), time_ns)
+                done += 1
+                if progress is not None and not done % 256:
+                    progress(done, total)
+            if first is not None:
+                pipeline.advance(last + _ns(pipeline.settle_s()))
+            if progress is not None:
+                progress(done, total)
+    finally:
+        reader.close()
+    duration = 0.0 if first is None else (last - first) * 1e-9
+    return Result(names, pipeline.fuser, pipeline.observers, pipeline.truth, done,
+                  dict(out.counts), duration, time.monotonic() - started,
+                  time.process_time() - cpu_started)
