@@ -846,8 +846,9 @@ def initialise(views, params=InitialiseParams()):
 
     Every closed-form candidate of ``geometry`` is refined by weighted nonlinear
     least squares (``scipy.optimize.least_squares``, trust-region reflective,
-    weights ``1 / R_eff`` evaluated at the start and once more at the first solution;
-    a robust ``loss`` changes the point, not the covariance). The best solution
+    weights ``1 / R_eff`` at the candidate; a robust ``loss`` changes the point, not
+    the covariance); each distinct minimum is then fitted again with the weights
+    evaluated there. The best solution
     wins unless a distinct one (Mahalanobis distance above 1 under the best's
     covariance) has a cost within ``ambiguity_chi2`` (two circles meet twice). The
     covariance is the inverse of the information of the normal equations,
