@@ -799,8 +799,13 @@ class _Solution:
     lin: Linearisation
 
 
-def _refine(views, m0, params):
-    """Weighted nonlinear least squares from ``m0`` (weights re-evaluated once)."""
+def _refine(views, m0, params, reweight):
+    """
+    Weighted nonlinear least squares from ``m0``, weights ``1 / R_eff`` at ``m0``.
+
+    With ``reweight`` the weights are evaluated again at the solution and the fit
+    repeated from there (tighter tolerances); ``None`` if a step lands on a sensor.
+    """
     def fun(m, w):
         return residuals(views, m) * w
 
@@ -809,11 +814,11 @@ def _refine(views, m0, params):
 
     m = np.asarray(m0, dtype=np.float64)
     try:
-        for _ in range(2):
+        for tol in ((1e-10, 1e-14) if reweight else (1e-10,)):
             w = 1.0 / np.sqrt(linearise(views, m).R_eff)
             fit = least_squares(fun, m, jac, args=(w,), method='trf', loss=params.loss,
-                                f_scale=params.f_scale, x_scale='jac', xtol=1e-14,
-                                ftol=1e-14, gtol=1e-14, max_nfev=200)
+                                f_scale=params.f_scale, x_scale='jac', xtol=tol, ftol=tol,
+                                gtol=tol, max_nfev=200)
             m = fit.x
         lin = linearise(views, m)
     except ValueError:  # a step landed on a sensor
@@ -826,14 +831,24 @@ def _refine(views, m0, params):
     return _Solution(m, cost, 0.5 * (information + information.T), lin)
 
 
+def _distinct(solutions):
+    """Keep the first of solutions closer than 1e-3 sigma to each other (sorted by cost)."""
+    kept = []
+    for solution in sorted(solutions, key=lambda s: s.cost):
+        if all((d := solution.m - k.m) @ k.information @ d > 1e-6 for k in kept):
+            kept.append(solution)
+    return kept
+
+
 def initialise(views, params=InitialiseParams()):
     """
     Place a landmark from its views, or say why it must wait for more.
 
     Every closed-form candidate of ``geometry`` is refined by weighted nonlinear
     least squares (``scipy.optimize.least_squares``, trust-region reflective,
-    weights ``1 / R_eff`` evaluated at the start and once more at the first solution;
-    a robust ``loss`` changes the point, not the covariance). The best solution
+    weights ``1 / R_eff`` at the candidate; a robust ``loss`` changes the point, not
+    the covariance); each distinct minimum is then fitted again with the weights
+    evaluated there. The best solution
     wins unless a distinct one (Mahalanobis distance above 1 under the best's
     covariance) has a cost within ``ambiguity_chi2`` (two circles meet twice). The
     covariance is the inverse of the information of the normal equations,
@@ -872,7 +887,10 @@ def initialise(views, params=InitialiseParams()):
 
     if geo.reason != OK:
         return wait(geo.reason)
-    solutions = [s for s in (_refine(views, m0, params) for m0 in geo.candidates)
+    # A coarse fit from every candidate, then the distinct minima refined again.
+    solutions = _distinct(s for s in (_refine(views, m0, params, False)
+                                      for m0 in geo.candidates) if s is not None)
+    solutions = [s for s in (_refine(views, s.m, params, True) for s in solutions)
                  if s is not None]
     if not solutions:
         return wait('no_convergence')
