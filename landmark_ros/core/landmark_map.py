@@ -190,7 +190,7 @@ class _Independent:
         """Return what ``restore`` needs to undo an update of ``rows`` (nothing here)."""
         return None
 
-    def restore(self, state):
+    def restore(self, state, first_new_row):
         """Undo an update from a ``checkpoint`` (nothing here)."""
 
     def load(self, landmark_map, row, record, m, P_ind, P_dep):
@@ -260,9 +260,9 @@ class _SplitCovarianceIntersection(_Independent):
         """Return the pair index and the sums of the pairs of ``rows``."""
         return self.parts.checkpoint(rows)
 
-    def restore(self, state):
+    def restore(self, state, first_new_row):
         """Put the pair index and the saved sums back."""
-        self.parts.restore(state)
+        self.parts.restore(state, first_new_row)
 
 
 _STRATEGIES = {cls.name: cls for cls in (
@@ -484,7 +484,7 @@ class LandmarkMap:
         for name in self._source_names[len(checkpoint['sources']):]:
             del self._source_codes[name]
         self._source_names[:] = checkpoint['sources']
-        self._method.restore(checkpoint['method'])
+        self._method.restore(checkpoint['method'], count)
         if self._count != count:
             self._count = count
             for landmark_id in added_ids:
@@ -803,16 +803,22 @@ class _SourceParts:
         hi = np.searchsorted(self.keys, (rows + 1) << _SOURCE_BITS)
         slots = self.slots[np.concatenate([np.arange(a, b) for a, b in zip(lo, hi)])
                            .astype(np.int64)] if len(rows) else np.empty(0, np.int64)
+        touched = rows[rows < len(self.omega)]
         return (self.keys.copy(), self.slots.copy(), self.count, slots,
-                self.Y[slots].copy(), self.y[slots].copy(), self.Q[slots].copy())
+                self.Y[slots].copy(), self.y[slots].copy(), self.Q[slots].copy(),
+                touched, self.omega[touched].copy(), self.omega.shape)
 
-    def restore(self, state):
-        """Undo every change since ``checkpoint`` (new pairs and new sums)."""
-        keys, slots_of_keys, count, slots, Y, y, Q = state
+    def restore(self, state, first_new_row):
+        """Undo every change since ``checkpoint``; rows from ``first_new_row`` are new."""
+        keys, slots_of_keys, count, slots, Y, y, Q, touched, omega, shape = state
         for sums in (self.Y, self.y, self.Q):     # new slots are taken as zero sums
             sums[count:self.count] = 0.0
         self.keys, self.slots, self.count = keys, slots_of_keys, count
         self.Y[slots], self.y[slots], self.Q[slots] = Y, y, Q
+        # The warm starts of the omega search: rows and steps added since are new again.
+        self.omega[touched, :shape[1]] = omega
+        self.omega[min(shape[0], first_new_row):] = 0.5
+        self.omega[:, shape[1]:] = 0.5
 
     def clear(self, row):
         """Forget the sources of one landmark."""

@@ -21,11 +21,12 @@ from landmark_ros.bag.export import export_dataset, pose_stddev_from_config
 from landmark_ros.bag.params import key_pattern, load_config, node_parameters, read_document
 from landmark_ros.bag.process import process_bag
 from landmark_ros.bag.storage import BagError, BagOutput, open_bag, typestore
-from landmark_ros.mrclam import cli as mrclam
+from landmark_ros.mrclam.config import load_config as load_replay_config
 from landmark_ros.mrclam.data import load_dataset
+from landmark_ros.mrclam.offline import run_offline
 from landmark_ros.pipeline.config import FuserConfig, ObserverConfig
 from landmark_ros.ros.cloud import read_columns
-from landmark_ros.ros.conversions import pose_from_msg, seconds_to_ns, stamp_ns
+from landmark_ros.ros.conversions import pose_from_msg, stamp_ns
 from landmark_ros.ros.schemas import OBSERVATION_FIELDS, read_landmarks
 import numpy as np
 import pytest
@@ -61,22 +62,10 @@ def read_bag(path):
 
 
 def offline_records(directory, config_path=CONFIG, dataset=None):
-    """
-    Return the offline replay's split-CI map (``landmark_mrclam``'s ``MethodResult``).
-
-    The replay's own ``observe`` and ``fuse``, with the rows' stamps in integer
-    nanoseconds: ``run_offline`` still hands the core float seconds, which
-    ``LandmarkMap.update`` refuses since stamps became nanoseconds.
-    """
-    config = mrclam.load_config(config_path)
+    """Return the offline replay's split-CI map (``landmark_mrclam``'s ``MethodResult``)."""
+    config = load_replay_config(config_path)
     dataset = dataset if dataset is not None else load_dataset(directory, config.pose_stddev)
-    observed = mrclam.observe(dataset.rows(), config.observer, config.P_pose)
-    observed.rows = replace(observed.rows, times=np.array(
-        [seconds_to_ns(float(t)) for t in observed.rows.times], dtype=np.int64))
-    landmark_map, accepted, rejected = mrclam.fuse(observed, replace(config.fuser,
-                                                                     fusion=SPLIT_CI))
-    return mrclam.method_result(SPLIT_CI, landmark_map.to_records(), dataset.landmarks,
-                                sum(accepted.values()), sum(rejected.values()))
+    return run_offline(dataset, config, [SPLIT_CI]).results[SPLIT_CI]
 
 
 def assert_same_map(records, expected, atol=1e-9):
@@ -354,14 +343,14 @@ def test_shipped_config_files_load():
     assert node_parameters(document, '/robot2/landmark_observer') == {'range_stddev': 2.0}
     assert load_config(ObserverConfig, document, '/robot1/landmark_observer').range_stddev == 1.0
     assert load_config(FuserConfig, None, '/landmark_fuser') == FuserConfig()
-    assert pose_stddev_from_config(CONFIG) == mrclam.load_config(CONFIG).pose_stddev
+    assert pose_stddev_from_config(CONFIG) == load_replay_config(CONFIG).pose_stddev
 
 
 # Real data ---------------------------------------------------------------------------------
 
 @pytest.mark.skipif(not DATASET6.is_dir(), reason=f'no MRCLAM dataset at {DATASET6}')
 def test_dataset6_first_minutes_give_the_replay_map(tmp_path):
-    config = mrclam.load_config(CONFIG)
+    config = load_replay_config(CONFIG)
     full = load_dataset(DATASET6, config.pose_stddev)
     end = full.time_span[0] + 120.0
     dataset = replace(full, robots=[
