@@ -618,6 +618,48 @@ class LandmarkMap:
         self._buffers.pop(row, None)
         return cluster
 
+    def known(self, ids):
+        """
+        Return whether the map has had rows of each ID (confirmed, tentative or forgotten).
+
+        Parameters
+        ----------
+        ids : array_like of int, shape (N,)
+            Landmark IDs.
+
+        Returns
+        -------
+        ndarray of bool, shape (N,)
+
+        """
+        return self._lookup(np.asarray(ids, dtype=np.int64).reshape(-1)) >= 0
+
+    def forget(self, ids):
+        """
+        Drop the buffered observations of unconfirmed IDs (confirmed ones are kept).
+
+        The IDs stay known (``known``), with no observation: a later row of one of them
+        starts it again from scratch.
+
+        Parameters
+        ----------
+        ids : array_like of int, shape (N,)
+            Landmark IDs; unknown ones are ignored.
+
+        Returns
+        -------
+        int
+            The unconfirmed IDs whose observations were dropped.
+
+        """
+        rows = self._lookup(np.unique(np.asarray(ids, dtype=np.int64)))
+        rows = rows[rows >= 0]
+        rows = rows[~self.confirmed[rows]]
+        for row in rows.tolist():
+            self._buffers.pop(row, None)
+        self.first_stamp_ns[rows] = _NO_STAMP
+        return len(rows)
+
     # Output --------------------------------------------------------------------
 
     def snapshot(self, ids=None):

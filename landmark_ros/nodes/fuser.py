@@ -21,7 +21,7 @@ from landmark_ros.ros.conversions import stamp_ns
 from landmark_ros.ros.markers import delete_all, landmark_markers
 from landmark_ros.ros.params import declare_config, keep_in_sync
 from landmark_ros.ros.qos import LATCHED  # noqa: F401 (the map outputs' QoS, re-exported)
-from landmark_ros.ros.schemas import landmark_message, read_landmarks
+from landmark_ros.ros.schemas import landmark_message, read_landmark_cloud
 from landmark_ros.ros.subscriptions import take_waiting
 import numpy as np
 from rclpy.node import Node
@@ -109,13 +109,14 @@ class LandmarkFuser(Node):
         for cloud in [msg] + take_waiting(self._subscriptions_by_topic[topic], PointCloud2,
                                           self.config.max_batch_messages - 1):
             try:
-                rows = read_landmarks(cloud)
+                rows, extras = read_landmark_cloud(cloud)
             except CloudError as error:
                 self.fuser.reject(source, 'messages_in')
                 self.fuser.reject(source, error.reason, 1, f'message dropped: {error}')
                 continue
             self.fuser.add_landmarks(source, stamp_ns(cloud.header.stamp), rows.ids, rows.m,
-                                     rows.P, rows.P_dep, cloud.header.frame_id, now)
+                                     rows.P, rows.P_dep, cloud.header.frame_id, now,
+                                     extras.classes, extras.scan)
 
     def fuse_queued(self):
         """Fuse every queued row, in arrival order, in one batch."""
@@ -131,7 +132,8 @@ class LandmarkFuser(Node):
         if not self.fuser.map_changed:
             return
         ids, m, P, P_dep, observations = self.fuser.snapshot()
-        self.map_pub.publish(landmark_message(self._header(), ids, m, P, P_dep, observations))
+        self.map_pub.publish(landmark_message(self._header(), ids, m, P, P_dep, observations,
+                                              classes=self.fuser.classes_of(ids)))
 
     def publish_updates(self):
         """
@@ -144,7 +146,8 @@ class LandmarkFuser(Node):
         ids, m, P, P_dep, observations = self.fuser.take_updates()
         header = self._header()
         if len(ids):
-            self.updates_pub.publish(landmark_message(header, ids, m, P, P_dep, observations))
+            self.updates_pub.publish(landmark_message(header, ids, m, P, P_dep, observations,
+                                                      classes=self.fuser.classes_of(ids)))
         subscribers = self.marker_pub.get_subscription_count()
         joined, self._marker_subscribers = subscribers > self._marker_subscribers, subscribers
         if not subscribers:

@@ -187,7 +187,8 @@ class LandmarkObserver(Node):
             header = batch.token  # the received message's own header, reused
             header.frame_id = self.config.world_frame
             self.landmark_pub.publish(landmark_message(
-                header, batch.ids, batch.m, batch.P, batch.P_dep, out=self._landmark_msg))
+                header, batch.ids, batch.m, batch.P, batch.P_dep, out=self._landmark_msg,
+                classes=batch.classes, scan=batch.scan))
             if markers:
                 for i, landmark_id in enumerate(batch.ids.tolist()):
                     self._latest_markers[landmark_id] = (header, batch.m[i], batch.P[i])

@@ -260,10 +260,31 @@ class FuserConfig(ConfigBase):
     log_throttle_s: float = param(
         5.0, 'Shortest interval between two log lines about the same problem [s].',
         low=0.0, high=3600.0)
+    association: str = param(
+        'jcbb', 'Data association of rows without an ID: nearest_neighbour, '
+        'global_nearest_neighbour or jcbb (joint compatibility, Neira and Tardos 2001).')
+    association_gate_probability: float = param(
+        0.999, 'Probability of the chi-square gates of the data association.',
+        low=0.5, high=0.999999)
+    first_new_id: int = param(
+        1000000000, 'Smallest ID given to a landmark found without an ID; IDs are never '
+        'reused.', read_only=True, low=0, high=4294967294)
+    tentative_timeout_s: float = param(
+        30.0, 'A track started by a row without an ID and not confirmed within this time '
+        '(of observation stamps) is deleted [s].', low=0.0, high=86400.0)
+    ambiguous_rows: str = param(
+        'skip', 'Rows without an ID that the association could pair with several landmarks: '
+        "'skip' drops them, 'assign' uses the chosen pairing.")
 
     def check(self) -> None:
         """Check relations between fields."""
         from landmark_ros.core.landmark_map import FUSION_METHODS
+        methods = ('nearest_neighbour', 'global_nearest_neighbour', 'jcbb')
+        if self.association not in methods:
+            raise ValueError(f'association must be one of {methods}, got {self.association!r}')
+        if self.ambiguous_rows not in ('skip', 'assign'):
+            raise ValueError(f"ambiguous_rows must be 'skip' or 'assign', got "
+                             f'{self.ambiguous_rows!r}')
         if self.fusion not in FUSION_METHODS:
             raise ValueError(f'fusion must be one of {FUSION_METHODS}, got {self.fusion!r}')
         if not self.input_topics or not all(self.input_topics):

@@ -17,7 +17,8 @@ from landmark_ros.core.landmark_map import LandmarkMap, UpdateResult
 from landmark_ros.pipeline import map_file
 from landmark_ros.pipeline.config import FuserConfig
 from landmark_ros.pipeline.counters import Counters, Status
-from landmark_ros.pipeline.rows import landmark_row_problems, MAX_ID
+from landmark_ros.pipeline.rows import landmark_row_problems, MAX_LABEL_ID, UNKNOWN_ID
+from landmark_ros.pipeline.tracks import Scan, Tracker
 import numpy as np
 from numpy.typing import NDArray
 
@@ -46,6 +47,9 @@ class _Queued:
     P: NDArray[np.float64]
     P_dep: NDArray[np.float64]
     stamp_ns: int
+    classes: Optional[NDArray[np.int64]] = None
+    scan: Optional[Scan] = None
+    unlabelled: bool = False
 
 
 @dataclass
@@ -96,11 +100,14 @@ class Fuser:
         self.unsaved = False
         """Whether the map changed since the last save."""
         self._updated: List[NDArray[np.int64]] = []
+        self.tracker = Tracker(config)
+        """Association of the rows without an ID (``pipeline.tracks``)."""
 
     def reconfigure(self, config: FuserConfig) -> None:
         """Apply new parameters (those that may change at run time)."""
         self.config = config
         self.counters.throttle_s = config.log_throttle_s
+        self.tracker.config = config
 
     def reject(self, source: str, reason: str, count: int = 1,
                detail: Optional[str] = None) -> None:
@@ -113,7 +120,8 @@ class Fuser:
     def add_landmarks(self, source: str, stamp_ns: int, ids: NDArray[Any],
                       m: NDArray[np.float64], P: NDArray[np.float64],
                       P_dep: NDArray[np.float64], frame_id: Optional[str] = None,
-                      now_ns: Optional[int] = None) -> int:
+                      now_ns: Optional[int] = None, classes: Optional[NDArray[Any]] = None,
+                      scan: Optional[Scan] = None) -> int:
         """
         Check the rows of one landmark message and queue the valid ones.
 
@@ -135,6 +143,11 @@ class Fuser:
             The message's frame, checked against ``world_frame``; None skips the check.
         now_ns : int, optional
             Arrival time [ns], for the stale-source check.
+        classes : ndarray of int, shape (N,), optional
+            Landmark classes (0 when absent).
+        scan : Scan, optional
+            The message's robot pose terms, for the association of rows whose ID is
+            ``UNKNOWN_ID`` (without it they are associated as independent rows).
 
         Returns
         -------
@@ -154,8 +167,11 @@ class Fuser:
         ids = np.asarray(ids)
         state.counts['observations_in'] += len(ids)
         valid, reasons = landmark_row_problems(ids, m, P, P_dep)
+        unlabelled = ids == UNKNOWN_ID
         if self.config.shard_count > 1:
-            other = valid & (ids % self.config.shard_count != self.config.shard_index)
+            # Rows without an ID go to shard 0.
+            other = valid & np.where(unlabelled, self.config.shard_index != 0,
+                                     ids % self.config.shard_count != self.config.shard_index)
             if other.any():
                 state.counts['other_shard'] += int(other.sum())
                 valid &= ~other
@@ -168,10 +184,14 @@ class Fuser:
             self.reject(source, 'queue_overflow', len(dropped.ids),
                         f'more than {self.config.max_queue_messages} messages waiting: '
                         'dropped the oldest')
+        if classes is not None:
+            classes = np.asarray(classes, np.int64)
         if not valid.all():
             ids, m, P, P_dep = ids[valid], m[valid], P[valid], P_dep[valid]
+            unlabelled = unlabelled[valid]
+            classes = None if classes is None else classes[valid]
         state.queue.append(_Queued(next(self._sequence), ids.astype(np.int64), m, P, P_dep,
-                                   int(stamp_ns)))
+                                   int(stamp_ns), classes, scan, bool(unlabelled.any())))
         return int(valid.sum())
 
     def queued_messages(self) -> int:
@@ -195,6 +215,48 @@ class Fuser:
         if not items:
             return None
         items.sort(key=lambda entry: entry[0].sequence)
+        for item, _ in items:
+            if item.classes is not None and item.classes.any():
+                self.tracker.note_classes(item.ids, item.classes)
+        if not any(item.unlabelled for item, _ in items):
+            return self._apply(items)
+        # Rows without an ID: message by message, each associated with the map as the
+        # messages before it left it; labelled messages in between go in one batch.
+        results, group = [], []
+        for item, name in items:
+            if not item.unlabelled:
+                group.append((item, name))
+                continue
+            if group:
+                results.append(self._apply(group))
+                group = []
+            results.append(self._apply([(self._associate(item, name), name)]))
+            self.tracker.after_update(results[-1], self._counts_of())
+        if group:
+            results.append(self._apply(group))
+        newest = max(item.stamp_ns for item, _ in items)
+        self.tracker.expire(self.map, newest, self._counts_of())
+        return _combine(results)
+
+    def _counts_of(self) -> Dict[str, Counter]:
+        return {name: state.counts for name, state in self.sources.items()}
+
+    def _associate(self, item: _Queued, name: str) -> _Queued:
+        """Return ``item`` with the IDs of its unlabelled rows given (ambiguous dropped)."""
+        unlabelled = item.ids == UNKNOWN_ID
+        classes = item.classes
+        if classes is None:
+            classes = np.zeros(len(item.ids), np.int64)
+        ids = item.ids.copy()
+        ids[unlabelled] = self.tracker.associate(
+            self.map, name, item.m[unlabelled], item.P[unlabelled], classes[unlabelled],
+            item.scan, item.stamp_ns, self.sources[name].counts)
+        keep = ids >= 0
+        return _Queued(item.sequence, ids[keep], item.m[keep], item.P[keep], item.P_dep[keep],
+                       item.stamp_ns, classes[keep], item.scan, False)
+
+    def _apply(self, items) -> UpdateResult:
+        """Fuse queued messages (labelled rows only) in one ``LandmarkMap.update``."""
         lengths = [len(item.ids) for item, _ in items]
         result = self.map.update(
             np.concatenate([item.ids for item, _ in items]),
@@ -218,6 +280,7 @@ class Fuser:
         if result.changed:
             self.map_changed = self.unsaved = True
             self._updated.append(result.changed_ids)
+            self.tracker.dirty = True
         return result
 
     # Output --------------------------------------------------------------------
@@ -226,6 +289,10 @@ class Fuser:
         """Return the confirmed map (``LandmarkMap.snapshot``); clears ``map_changed``."""
         self.map_changed = False
         return self.map.snapshot()
+
+    def classes_of(self, ids: NDArray[np.int64]) -> NDArray[np.int64]:
+        """Return the class of each landmark ID, shape (K,) (0 when none was given)."""
+        return self.tracker.class_of(ids)
 
     def take_updates(self):
         """
@@ -246,6 +313,7 @@ class Fuser:
         """Clear the map and the queues; return how many landmarks were cleared."""
         count = len(self.map)
         self.map.reset()
+        self.tracker.reset()
         for state in self.sources.values():
             state.queue.clear()
         self._updated = []
@@ -301,8 +369,11 @@ class Fuser:
     def save(self) -> bool:
         """Write ``map_file`` atomically; return whether it worked."""
         try:
-            map_file.save(self.config.map_file, self.map.to_records(),
-                          self.config.world_frame, self.config.fusion)
+            records = self.map.to_records()
+            for record in records:
+                record['class'] = self.tracker.classes.get(record['id'], 0)
+            map_file.save(self.config.map_file, records, self.config.world_frame,
+                          self.config.fusion, next_id=self.tracker.next_id)
         except (OSError, ValueError) as error:
             self.counters.add('save_failed', 1, f'cannot save {self.config.map_file}: {error}')
             return False
@@ -320,7 +391,17 @@ class Fuser:
         try:
             document = map_file.load(path, self.config.world_frame)
             check_records(document['landmarks'])
+            next_id = document.get('next_id', self.config.first_new_id)
+            if isinstance(next_id, bool) or not isinstance(next_id, int) or not (
+                    0 <= next_id <= MAX_LABEL_ID + 1):
+                raise ValueError(f'next_id {next_id!r} is not an integer in '
+                                 f'[0, {MAX_LABEL_ID + 1}]')
             self.map.load_records(document['landmarks'])
+            self.tracker.reset()
+            self.tracker.next_id = max(next_id, self.config.first_new_id)
+            for record in document['landmarks']:
+                if record.get('class', 0):
+                    self.tracker.classes[record['id']] = record['class']
         except FileNotFoundError:
             self.logger.info(f'no map file {path} yet: starting with an empty map')
             return
@@ -365,8 +446,11 @@ def check_records(records: Sequence[Dict[str, Any]]) -> None:
     for i, record in enumerate(records):
         try:
             raw = record['id']
-            if isinstance(raw, bool) or not isinstance(raw, int) or not 0 <= raw <= MAX_ID:
-                raise ValueError(f'id {raw!r} is not an integer in [0, {MAX_ID}]')
+            if isinstance(raw, bool) or not isinstance(raw, int) or not 0 <= raw <= MAX_LABEL_ID:
+                raise ValueError(f'id {raw!r} is not an integer in [0, {MAX_LABEL_ID}]')
+            landmark_class = record.get('class', 0)
+            if isinstance(landmark_class, bool) or not isinstance(landmark_class, int):
+                raise ValueError(f'class {landmark_class!r} is not an integer')
             ids[i] = raw
             m[i] = np.array(record['mean'], dtype=np.float64).reshape(2)
             P[i] = np.array(record['covariance'], dtype=np.float64).reshape(2, 2)
@@ -380,3 +464,17 @@ def check_records(records: Sequence[Dict[str, Any]]) -> None:
         _, reasons = landmark_row_problems(ids[one], m[one], P[one], P_dep[one])
         raise ValueError(f'landmark record {bad} (id {int(ids[bad])}): rejected as '
                          f"{', '.join(sorted(reasons))}")
+
+
+def _combine(results: Sequence[UpdateResult]) -> UpdateResult:
+    """Return one ``UpdateResult`` for several updates made one after the other."""
+    total = UpdateResult()
+    for result in results:
+        total.accepted.update(result.accepted)
+        total.rejected.update(result.rejected)
+        total.confirmed += result.confirmed
+        total.reinitialised += result.reinitialised
+    changed = [result.changed_ids for result in results if len(result.changed_ids)]
+    if changed:
+        total.changed_ids = np.unique(np.concatenate(changed))
+    return total

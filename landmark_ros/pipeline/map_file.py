@@ -20,7 +20,8 @@ class MapFileError(ValueError):
     """A map file that cannot be used: unreadable, corrupt, or of another version."""
 
 
-def save(path: str, records: Sequence[Mapping[str, Any]], world_frame: str, fusion: str) -> None:
+def save(path: str, records: Sequence[Mapping[str, Any]], world_frame: str, fusion: str,
+         next_id: Optional[int] = None) -> None:
     """
     Write the map to ``path`` atomically.
 
@@ -34,6 +35,9 @@ def save(path: str, records: Sequence[Mapping[str, Any]], world_frame: str, fusi
         Frame of the landmark positions.
     fusion : str
         Fusion method that made the map.
+    next_id : int, optional
+        The next landmark ID the fuser allocates to landmarks found without an ID
+        (kept so that an ID is never given twice, across restarts); omitted when None.
 
     """
     document = {
@@ -44,6 +48,8 @@ def save(path: str, records: Sequence[Mapping[str, Any]], world_frame: str, fusi
         'fusion': fusion,
         'landmarks': records,
     }
+    if next_id is not None:
+        document['next_id'] = int(next_id)
     directory = os.path.dirname(os.path.abspath(path))
     handle, temporary = tempfile.mkstemp(prefix='.' + os.path.basename(path) + '.',
                                          suffix='.tmp', dir=directory)

@@ -12,14 +12,15 @@ than every pose waits for the next pose, up to ``max_wait_s``, in arrival order.
 """
 
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Callable, Dict, List, Optional, Sequence
 
 from landmark_ros.core.gaussian import COVARIANCE_PROBLEMS, covariance_status
 from landmark_ros.pipeline import pose_buffer
 from landmark_ros.pipeline.config import ObserverConfig
 from landmark_ros.pipeline.counters import Counters, Status
-from landmark_ros.pipeline.rows import landmarks_from_rows, observation_noise
+from landmark_ros.pipeline.rows import landmarks_from_rows, observation_noise, UNKNOWN_ID
+from landmark_ros.pipeline.tracks import Scan
 import numpy as np
 from numpy.typing import NDArray
 
@@ -38,7 +39,8 @@ class ObservationMessage:
     stamp_ns : int
         Acquisition time [ns].
     columns : dict of str to ndarray, shape (N,)
-        ``id``, ``range`` [m], ``bearing`` [rad] and the optional noise fields.
+        ``range`` [m], ``bearing`` [rad], optional ``id`` (absent: every row is
+        unlabelled, ``UNKNOWN_ID``), ``class`` and the noise fields.
     frame_id : str or None
         The message's frame, checked against ``sensor_frame``; None skips the check.
     token : object
@@ -77,6 +79,12 @@ class LandmarkBatch:
         Their dependent parts (pose and bias terms) [m^2].
     token : object
         The message's ``token``.
+    classes : ndarray of int64, shape (K,), optional
+        Landmark classes; None when the message had no ``class`` and no row
+        without an ID (all 0).
+    scan : Scan, optional
+        The robot pose terms the fuser's association needs; only when some row has
+        no ID (``UNKNOWN_ID``).
 
     """
 
@@ -86,6 +94,8 @@ class LandmarkBatch:
     P: NDArray[np.float64]
     P_dep: NDArray[np.float64]
     token: Any = None
+    classes: Optional[NDArray[np.int64]] = None
+    scan: Optional[Scan] = None
 
 
 class Observer:
@@ -340,7 +350,7 @@ class Observer:
 
         """
         counts = [item.rows for item, _, _ in ready]
-        columns = [item.columns for item, _, _ in ready]
+        columns = [_with_ids(item.columns) for item, _, _ in ready]
         noise = [self.noise(c) for c in columns]
         if len(ready) == 1:
             ids = np.asarray(columns[0]['id'])
@@ -368,13 +378,33 @@ class Observer:
             ends = np.cumsum(np.bincount(np.repeat(np.arange(len(ready)), counts)[kept],
                                          minlength=len(ready))).tolist()
         batches = []
-        start = 0
-        for (item, _, _), end in zip(ready, ends):
-            batches.append(LandmarkBatch(item.stamp_ns, ids[start:end], m[start:end],
-                                         P_m[start:end], P_dep[start:end], item.token))
-            start = end
+        start = row = 0
+        for (item, pose_k, P_pose_k), c, count, end in zip(ready, columns, counts, ends):
+            batch = LandmarkBatch(item.stamp_ns, ids[start:end], m[start:end],
+                                  P_m[start:end], P_dep[start:end], item.token)
+            unlabelled = bool((batch.ids == UNKNOWN_ID).any())
+            if unlabelled or 'class' in c:
+                classes = np.zeros(end - start, np.int64)
+                if 'class' in c:
+                    classes = np.asarray(c['class'], np.int64)[kept[row:row + count]]
+                batch = replace(batch, classes=classes, scan=self._scan(
+                    pose_k, P_pose_k) if unlabelled else None)
+            batches.append(batch)
+            start, row = end, row + count
         self.counters.add('landmarks_out', len(ids))
         return batches
+
+    def _scan(self, pose: NDArray[np.float64], P_pose: NDArray[np.float64]) -> Scan:
+        """Return the pose (and bias) terms of a message's joint covariance."""
+        pose = np.asarray(pose, np.float64)
+        if self._R_bias is None:
+            return Scan(pose[:2].copy(), np.asarray(P_pose, np.float64).copy())
+        sensor = np.zeros(3) if self._sensor_pose is None else self._sensor_pose
+        c, s = np.cos(pose[2]), np.sin(pose[2])
+        sensor_xy = pose[:2] + np.array([c * sensor[0] - s * sensor[1],
+                                         s * sensor[0] + c * sensor[1]])
+        return Scan(pose[:2].copy(), np.asarray(P_pose, np.float64).copy(),
+                    self._R_bias.copy(), sensor_xy)
 
     # Status --------------------------------------------------------------------------
 
@@ -401,3 +431,10 @@ class Observer:
             level, message = 'warn', 'no pose received yet'
         extra = {'pose_buffer_size': len(self.poses), 'pending_messages': len(self.pending)}
         return Status(level, message, counts, extra)
+
+
+def _with_ids(columns: Dict[str, NDArray[Any]]) -> Dict[str, NDArray[Any]]:
+    """Return the columns with an ``id`` column (``UNKNOWN_ID`` when the message has none)."""
+    if 'id' in columns:
+        return columns
+    return {**columns, 'id': np.full(len(columns['range']), UNKNOWN_ID, np.int64)}

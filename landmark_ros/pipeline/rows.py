@@ -12,6 +12,13 @@ import numpy as np
 
 
 MAX_ID = 2 ** 32 - 1
+"""Largest ID a row may carry (the UINT32 range); it is ``UNKNOWN_ID``."""
+
+UNKNOWN_ID = MAX_ID
+"""The ID of a row without one (4294967295): the fuser associates it by position."""
+
+MAX_LABEL_ID = UNKNOWN_ID - 1
+"""Largest ID of a landmark (a labelled row, a map record, an allocated ID)."""
 
 
 NOISE_FIELDS = ('range_variance', 'bearing_variance', 'range_bearing_covariance')

@@ -1,8 +1,9 @@
 """
 The PointCloud2 schemas of the package's topics, with writers and readers.
 
-``observations`` (into ``landmark_observer``): ``id`` (any integer type), ``range``
-[m], ``bearing`` [rad] (FLOAT32 or FLOAT64), optional ``range_variance``,
+``observations`` (into ``landmark_observer``): ``id`` (any integer type; absent or
+``UNKNOWN_ID`` = 4294967295: a row without an ID), ``range`` [m], ``bearing`` [rad]
+(FLOAT32 or FLOAT64), optional ``class`` (any integer type), ``range_variance``,
 ``bearing_variance``, ``range_bearing_covariance``.
 
 ``landmarks`` (observer out, fuser in): ``id`` UINT32, ``x``, ``y``, ``z``,
@@ -11,13 +12,20 @@ FLOAT64, little-endian, in this order. ``cov_*`` is the total covariance, ``cov_
 its dependent part (pose and bias: correlated between observations); readers
 accept clouds without ``cov_dep_*`` (dependent part zero).
 
-``fused_landmarks`` (fuser out): the landmark fields then ``observations`` UINT32.
+``landmarks`` gains ``class`` UINT32 when the message had a ``class`` or a row without
+an ID, and the ``SCAN_FIELDS`` (per row, the same for all rows of the message: robot
+position and pose covariance) when it had a row without an ID, plus ``BIAS_FIELDS``
+when the observer models a sensor bias. Readers take each group all or none.
+
+``fused_landmarks`` (fuser out): the landmark fields then ``observations`` UINT32 and
+``class`` UINT32.
 """
 
 from typing import NamedTuple
 
 
 from geometry_msgs.msg import PoseWithCovarianceStamped
+from landmark_ros.pipeline.tracks import Scan
 from landmark_ros.ros.cloud import CloudError, CloudWriter, FieldSpec, INTEGER_TYPES
 from landmark_ros.ros.cloud import read_columns
 from landmark_ros.ros.cloud import REAL_TYPES
@@ -26,9 +34,10 @@ import numpy as np
 from std_msgs.msg import Header
 
 OBSERVATION_FIELDS = (
-    FieldSpec('id', INTEGER_TYPES),
+    FieldSpec('id', INTEGER_TYPES, required=False),
     FieldSpec('range', REAL_TYPES),
     FieldSpec('bearing', REAL_TYPES),
+    FieldSpec('class', INTEGER_TYPES, required=False),
     FieldSpec('range_variance', REAL_TYPES, required=False),
     FieldSpec('bearing_variance', REAL_TYPES, required=False),
     FieldSpec('range_bearing_covariance', REAL_TYPES, required=False),
@@ -38,12 +47,18 @@ LANDMARK_SCHEMA = (
     ('cov_xx', np.float64), ('cov_xy', np.float64), ('cov_yy', np.float64),
     ('cov_dep_xx', np.float64), ('cov_dep_xy', np.float64), ('cov_dep_yy', np.float64),
 )
-FUSED_SCHEMA = LANDMARK_SCHEMA + (('observations', np.uint32),)
+FUSED_SCHEMA = LANDMARK_SCHEMA + (('observations', np.uint32), ('class', np.uint32))
 DEPENDENT_FIELDS = ('cov_dep_xx', 'cov_dep_xy', 'cov_dep_yy')
+SCAN_FIELDS = ('robot_x', 'robot_y', 'pose_cov_xx', 'pose_cov_xy', 'pose_cov_xt',
+               'pose_cov_yy', 'pose_cov_yt', 'pose_cov_tt')
+"""Robot position [m] and (x, y, theta) pose covariance of a message with unlabelled rows."""
+BIAS_FIELDS = ('bias_cov_rr', 'bias_cov_rb', 'bias_cov_bb', 'sensor_x', 'sensor_y')
+"""Sensor bias covariance (range [m^2], bearing [rad^2]) and sensor position [m]."""
 LANDMARK_FIELDS = tuple(
-    FieldSpec(name, INTEGER_TYPES if name in ('id', 'observations') else REAL_TYPES,
-              required=name not in DEPENDENT_FIELDS + ('observations',))
-    for name, _ in FUSED_SCHEMA)
+    FieldSpec(name, INTEGER_TYPES if name in ('id', 'observations', 'class') else REAL_TYPES,
+              required=name not in DEPENDENT_FIELDS + ('observations', 'class'))
+    for name, _ in FUSED_SCHEMA) + tuple(
+    FieldSpec(name, REAL_TYPES, required=False) for name in SCAN_FIELDS + BIAS_FIELDS)
 
 _OBSERVATION_WRITER = CloudWriter((('id', np.uint32), ('range', np.float64),
                                    ('bearing', np.float64)))
@@ -53,6 +68,11 @@ _OBSERVATION_NOISE_WRITER = CloudWriter((
     ('range_bearing_covariance', np.float64)))
 LANDMARK_WRITER = CloudWriter(LANDMARK_SCHEMA)
 FUSED_WRITER = CloudWriter(FUSED_SCHEMA)
+_CLASS_WRITER = CloudWriter(LANDMARK_SCHEMA + (('class', np.uint32),))
+_SCAN_WRITER = CloudWriter(LANDMARK_SCHEMA + (('class', np.uint32),) + tuple(
+    (name, np.float64) for name in SCAN_FIELDS))
+_BIAS_WRITER = CloudWriter(LANDMARK_SCHEMA + (('class', np.uint32),) + tuple(
+    (name, np.float64) for name in SCAN_FIELDS + BIAS_FIELDS))
 
 
 class Landmarks(NamedTuple):
@@ -68,6 +88,15 @@ class Landmarks(NamedTuple):
     """Dependent parts, shape (N, 2, 2); zero when the cloud has none."""
     observations: np.ndarray
     """Observations fused per landmark, int64, shape (N,); one when absent."""
+
+
+class LandmarkExtras(NamedTuple):
+    """The optional groups of a ``landmarks`` cloud beyond ``Landmarks``."""
+
+    classes: np.ndarray
+    """Landmark classes, int64, shape (N,); zero when absent."""
+    scan: object
+    """``pipeline.tracks.Scan`` of the message (from its first row); None when absent."""
 
 
 def make_header(stamp_s, frame_id):
@@ -135,7 +164,8 @@ def observation_message(header, ids, z, R=None):
     return writer.message(header, rows)
 
 
-def landmark_message(header, ids, m, P_m, P_dep=None, observations=None, out=None):
+def landmark_message(header, ids, m, P_m, P_dep=None, observations=None, out=None,
+                     classes=None, scan=None):
     """
     Return a ``landmarks`` cloud, or a ``fused_landmarks`` one with ``observations``.
 
@@ -155,6 +185,11 @@ def landmark_message(header, ids, m, P_m, P_dep=None, observations=None, out=Non
         Observations fused per landmark; given, the cloud has the fused schema.
     out : sensor_msgs.msg.PointCloud2, optional
         A message to fill instead of a new one.
+    classes : array_like of int, shape (N,), optional
+        Landmark classes; given (or with ``observations``), the cloud has ``class``.
+    scan : landmark_ros.pipeline.tracks.Scan, optional
+        Robot pose terms of the message, written to every row (``SCAN_FIELDS``, and
+        ``BIAS_FIELDS`` when it has a bias); not with ``observations``.
 
     Returns
     -------
@@ -163,7 +198,12 @@ def landmark_message(header, ids, m, P_m, P_dep=None, observations=None, out=Non
     """
     m = np.asarray(m, dtype=np.float64).reshape(-1, 2)
     P_m = np.asarray(P_m, dtype=np.float64).reshape(-1, 2, 2)
-    writer = LANDMARK_WRITER if observations is None else FUSED_WRITER
+    if observations is not None:
+        writer = FUSED_WRITER
+    elif scan is not None:
+        writer = _SCAN_WRITER if scan.R_bias is None else _BIAS_WRITER
+    else:
+        writer = LANDMARK_WRITER if classes is None else _CLASS_WRITER
     rows = writer.rows(len(m))
     rows['id'] = np.asarray(ids).reshape(-1)
     rows['x'], rows['y'] = m[:, 0], m[:, 1]
@@ -174,6 +214,17 @@ def landmark_message(header, ids, m, P_m, P_dep=None, observations=None, out=Non
         rows['cov_dep_yy'] = P_dep[:, 1, 1]
     if observations is not None:
         rows['observations'] = np.asarray(observations).reshape(-1)
+    if classes is not None:
+        rows['class'] = np.asarray(classes).reshape(-1)
+    if scan is not None:
+        rows['robot_x'], rows['robot_y'] = scan.robot_xy
+        P = scan.P_pose
+        rows['pose_cov_xx'], rows['pose_cov_xy'], rows['pose_cov_xt'] = P[0]
+        rows['pose_cov_yy'], rows['pose_cov_yt'], rows['pose_cov_tt'] = P[1, 1], P[1, 2], P[2, 2]
+        if scan.R_bias is not None:
+            rows['bias_cov_rr'], rows['bias_cov_rb'] = scan.R_bias[0]
+            rows['bias_cov_bb'] = scan.R_bias[1, 1]
+            rows['sensor_x'], rows['sensor_y'] = scan.sensor_xy
     return writer.message(header, rows, out)
 
 
@@ -193,19 +244,49 @@ def read_landmarks(msg):
     Raises
     ------
     landmark_ros.ros.cloud.CloudError
+        As ``read_landmark_cloud``.
+
+    """
+    return read_landmark_cloud(msg)[0]
+
+
+def read_landmark_cloud(msg):
+    """
+    Return the rows of a ``landmarks`` or ``fused_landmarks`` cloud and its optional groups.
+
+    Parameters
+    ----------
+    msg : sensor_msgs.msg.PointCloud2
+        The message to read.
+
+    Returns
+    -------
+    Landmarks
+    LandmarkExtras
+
+    Raises
+    ------
+    landmark_ros.ros.cloud.CloudError
         If a field is missing, of the wrong type, or the data length is wrong
         (``missing_field``, ``unsupported_field_type``, ``data_length_mismatch``), or
-        only part of the ``cov_dep_*`` group is present (``partial_field_group``).
+        only part of the ``cov_dep_*`` group, of ``SCAN_FIELDS`` or of ``BIAS_FIELDS``
+        is present, or ``BIAS_FIELDS`` without ``SCAN_FIELDS`` (``partial_field_group``).
 
     """
     columns = read_columns(msg, LANDMARK_FIELDS)
     count = len(columns['x'])
-    present = [name for name in DEPENDENT_FIELDS if name in columns]
-    if present and len(present) != len(DEPENDENT_FIELDS):
-        missing = [name for name in DEPENDENT_FIELDS if name not in columns]
-        raise CloudError('partial_field_group',
-                         f'{present} without {missing}: the dependent covariance needs all '
-                         'three fields or none')
+    for group, what in ((DEPENDENT_FIELDS, 'the dependent covariance'),
+                        (SCAN_FIELDS, 'the robot pose terms'),
+                        (BIAS_FIELDS, 'the sensor bias terms')):
+        present = [name for name in group if name in columns]
+        if present and len(present) != len(group):
+            missing = [name for name in group if name not in columns]
+            raise CloudError('partial_field_group',
+                             f'{present} without {missing}: {what} need all '
+                             f'{len(group)} fields or none')
+    if BIAS_FIELDS[0] in columns and SCAN_FIELDS[0] not in columns:
+        raise CloudError('partial_field_group', 'sensor bias fields without the robot pose '
+                         'fields')
 
     def matrices(xx, xy, yy):
         P = np.zeros((count, 2, 2))
@@ -214,7 +295,25 @@ def read_landmarks(msg):
             P[:, 0, 1] = P[:, 1, 0] = columns[xy]
         return P
 
-    return Landmarks(columns['id'], np.stack([columns['x'], columns['y']], axis=1),
-                     matrices('cov_xx', 'cov_xy', 'cov_yy'),
-                     matrices(*DEPENDENT_FIELDS),
-                     columns.get('observations', np.ones(count, np.int64)))
+    return (Landmarks(columns['id'], np.stack([columns['x'], columns['y']], axis=1),
+                      matrices('cov_xx', 'cov_xy', 'cov_yy'),
+                      matrices(*DEPENDENT_FIELDS),
+                      columns.get('observations', np.ones(count, np.int64))),
+            LandmarkExtras(columns.get('class', np.zeros(count, np.int64)), _scan(columns)))
+
+
+def _scan(columns):
+    """Return the ``Scan`` of a landmark cloud's first row, None without the fields."""
+    if SCAN_FIELDS[0] not in columns or not len(columns[SCAN_FIELDS[0]]):
+        return None
+    v = {name: float(columns[name][0]) for name in SCAN_FIELDS + BIAS_FIELDS
+         if name in columns}
+    P_pose = np.array([[v['pose_cov_xx'], v['pose_cov_xy'], v['pose_cov_xt']],
+                       [v['pose_cov_xy'], v['pose_cov_yy'], v['pose_cov_yt']],
+                       [v['pose_cov_xt'], v['pose_cov_yt'], v['pose_cov_tt']]])
+    R_bias = sensor_xy = None
+    if 'bias_cov_rr' in v:
+        R_bias = np.array([[v['bias_cov_rr'], v['bias_cov_rb']],
+                           [v['bias_cov_rb'], v['bias_cov_bb']]])
+        sensor_xy = np.array([v['sensor_x'], v['sensor_y']])
+    return Scan(np.array([v['robot_x'], v['robot_y']]), P_pose, R_bias, sensor_xy)

@@ -27,8 +27,10 @@ from landmark_ros.nodes.fuser import LandmarkFuser
 from landmark_ros.nodes.observer import LandmarkObserver
 from landmark_ros.pipeline import map_file
 from landmark_ros.pipeline.config import FuserConfig
+from landmark_ros.pipeline.rows import UNKNOWN_ID
 from landmark_ros.ros.qos import LATCHED
-from landmark_ros.ros.schemas import landmark_message, observation_message, read_landmarks
+from landmark_ros.ros.schemas import (landmark_message, observation_message, read_landmark_cloud,
+                                      read_landmarks)
 import numpy as np
 import pytest
 from rclpy.parameter import Parameter
@@ -252,13 +254,13 @@ class ObserverRig:
         assert wait_for_match(env, [self.pose_pub, self.obs_pub], [self.output.subscription],
                               DEADLINE_S)
 
-    def observe(self, stamp, pose, P_pose, z):
+    def observe(self, stamp, pose, P_pose, z, landmark_id=7):
         """Send a pose and one observation of landmark 7; return the landmark cloud out."""
         count = self.node.counters['poses_in']
         self.pose_pub.publish(pose_message(stamp, pose, P_pose))
         assert self.env.spin_until(lambda: self.node.counters['poses_in'] > count)
         count = len(self.output.messages)
-        self.obs_pub.publish(observation_message(header(stamp, 'laser'), [7], [z]))
+        self.obs_pub.publish(observation_message(header(stamp, 'laser'), [landmark_id], [z]))
         assert self.env.spin_until(lambda: len(self.output.messages) > count)
         return decode(self.output.messages[-1])
 
@@ -307,6 +309,29 @@ def test_textbook_case5_through_two_observers_and_the_fuser(env, fusion):
     for topic in topics:
         assert rig.counts(topic)['fused'] == 1 and rig.counts(topic)['observations_in'] == 1
     assert rig.node.fuser.counters['landmarks_confirmed'] == 1
+
+
+def test_textbook_case5_without_ids_over_dds_gives_one_new_landmark(env):
+    topics = ('robot1/landmarks', 'robot2/landmarks')
+    rig = FuserRig(env, topics)
+    observers = [ObserverRig(env, rig.tester, f'{rig.ns}/{ns}') for ns in ('robot1', 'robot2')]
+    assert env.spin_until(lambda: all(o.node.landmark_pub.get_subscription_count() >= 2
+                                      for o in observers), DEADLINE_S)
+    for observer, topic, (pose, P_pose, z) in zip(
+            observers, topics, [(POSE1, POSE1_COV, Z1), (POSE2, POSE2_COV, Z2)]):
+        observer.observe(10.0, pose, P_pose, z, landmark_id=UNKNOWN_ID)
+        cloud = read_landmark_cloud(observer.output.messages[-1])[1]
+        np.testing.assert_array_equal(cloud.scan.robot_xy, pose[:2])
+        np.testing.assert_array_equal(cloud.scan.P_pose, P_pose)
+        source = rig.node.sources[topic]
+        assert env.spin_until(lambda: source.counts['messages_in'] == 1 and not source.queue,
+                              DEADLINE_S), f'{topic} never reached the fuser'
+    first = FuserConfig().first_new_id
+    rows = rig.wait_map(lambda rows: rows.ids.tolist() == [first])
+    assert_rows(rows, [(first, M_CASE5, P_CASE5, ZERO2, 2)], atol=1e-8)
+    assert read_landmark_cloud(rig.maps.messages[-1])[1].classes.tolist() == [0]
+    assert rig.counts(topics[0])['new_tentative'] == 1
+    assert rig.counts(topics[1])['associated'] == 1
 
 
 @pytest.mark.parametrize('bias', [(0.0, 0.0), (0.3, 0.1)])

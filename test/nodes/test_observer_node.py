@@ -706,7 +706,6 @@ def _short_row_step(msg):
 
 
 BAD_MESSAGES = {
-    'no_id': ('missing_field', without('id')),
     'no_range': ('missing_field', without('range')),
     'no_bearing': ('missing_field', without('bearing')),
     'id_float32': ('unsupported_field_type', retyped('id', np.float32)),

@@ -1,0 +1,217 @@
+"""Tests of landmarks without IDs: pipeline.tracks through Observer and Fuser, without ROS."""
+
+import json
+
+from landmark_ros.pipeline.config import FuserConfig, ObserverConfig
+from landmark_ros.pipeline.fuser import Fuser
+from landmark_ros.pipeline.observer import ObservationMessage, Observer
+from landmark_ros.pipeline.rows import UNKNOWN_ID
+from landmark_ros.pipeline.tracks import Scan
+import numpy as np
+import pytest
+
+S = 1_000_000_000
+SOURCES = ['/robot1/landmarks', '/robot2/landmarks']
+FIRST = FuserConfig().first_new_id
+
+# The textbook exercise, case 5 (as in test/nodes/test_fuser_node.py).
+POSE1, POSE1_COV, Z1 = np.array([1.0, 2.0, 0.5]), np.diag([0.08, 0.6, 0.02]), np.array([4.0, 0.7])
+POSE2, POSE2_COV, Z2 = np.array([6.0, 4.0, 2.1]), np.diag([0.20, 0.09, 0.03]), np.array([4.0, 0.3])
+M_CASE5 = np.array([2.58757252, 6.15534036])
+P_CASE5 = np.array([[0.37966125, 0.07773125], [0.07773125, 0.36999739]])
+
+
+def observe(observer, stamp_ns, pose, P_pose, z, ids=None, classes=None):
+    """Return the one LandmarkBatch an observer places from a pose and an observation."""
+    observer.add_pose(stamp_ns, pose, P_pose)
+    z = np.atleast_2d(z)
+    columns = {'range': z[:, 0], 'bearing': z[:, 1]}
+    if ids is not None:
+        columns['id'] = np.asarray(ids, np.int64)
+    if classes is not None:
+        columns['class'] = np.asarray(classes, np.int64)
+    (batch,) = observer.add_observations([ObservationMessage(stamp_ns, columns)], stamp_ns)
+    return batch
+
+
+def feed(fuser, source, batch):
+    """Queue an observer's batch in the fuser, as the nodes do."""
+    return fuser.add_landmarks(source, batch.stamp_ns, batch.ids, batch.m, batch.P,
+                               batch.P_dep, classes=batch.classes, scan=batch.scan)
+
+
+@pytest.mark.parametrize('ids', [None, [UNKNOWN_ID]])
+def test_textbook_case5_without_ids_gives_the_labelled_landmark(ids):
+    maps = []
+    for labelled in (True, False):
+        fuser = Fuser(FuserConfig(fusion='independent'), SOURCES)
+        config = ObserverConfig(range_stddev=0.5, bearing_stddev=0.2)
+        for source, (pose, P_pose, z) in zip(SOURCES, [(POSE1, POSE1_COV, Z1),
+                                                       (POSE2, POSE2_COV, Z2)]):
+            batch = observe(Observer(config), 10 * S, pose, P_pose, z,
+                            ids=[7] if labelled else ids)
+            if not labelled:
+                assert batch.ids.tolist() == [UNKNOWN_ID] and batch.scan is not None
+                np.testing.assert_array_equal(batch.scan.robot_xy, pose[:2])
+                np.testing.assert_array_equal(batch.scan.P_pose, P_pose)
+            else:
+                assert batch.scan is None and batch.classes is None
+            feed(fuser, source, batch)
+            fuser.fuse_queued()
+        maps.append(fuser.snapshot())
+    (ids7, m7, P7, _, n7), (ids_new, m, P, _, n) = maps
+    assert ids7.tolist() == [7] and ids_new.tolist() == [FIRST]
+    np.testing.assert_allclose(m[0], M_CASE5, rtol=0, atol=1e-8)
+    np.testing.assert_allclose(P[0], P_CASE5, rtol=0, atol=1e-8)
+    np.testing.assert_array_equal(m, m7)
+    np.testing.assert_array_equal(P, P7)
+    counts = [fuser.sources[s].counts for s in SOURCES]
+    assert counts[0]['new_tentative'] == 1 and counts[1]['associated'] == 1
+    assert counts[0]['confirmed'] == 1
+
+
+def scan_rows(truth, robot_xy, P_pose, R_noise, rng, offset=(0.0, 0.0)):
+    """Return world rows of ``truth`` seen from ``robot_xy``, total covariances and Scan."""
+    truth = np.asarray(truth, np.float64)
+    e = truth - robot_xy
+    J = np.zeros((len(truth), 2, 3))
+    J[:, 0, 0] = J[:, 1, 1] = 1.0
+    J[:, 0, 2], J[:, 1, 2] = -e[:, 1], e[:, 0]
+    P_pose_part = J @ P_pose @ J.transpose(0, 2, 1)
+    noise = rng.multivariate_normal(np.zeros(2), R_noise, len(truth))
+    m = truth + noise + np.asarray(offset)
+    R = P_pose_part + R_noise
+    return m, R, P_pose_part, Scan(np.asarray(robot_xy, np.float64), P_pose)
+
+
+def test_two_landmarks_three_sigma_apart_stay_two(rng):
+    sigma = 0.05
+    truth = np.array([[0.0, 0.0], [3 * sigma, 0.0]])
+    fuser = Fuser(FuserConfig(), SOURCES[:1])
+    for k in range(40):
+        m, R, R_dep, scan = scan_rows(truth, (0.0, -4.0), np.diag([1e-6, 1e-6, 1e-8]),
+                                      sigma ** 2 * np.eye(2), rng)
+        fuser.add_landmarks(SOURCES[0], (k + 1) * S, np.full(2, UNKNOWN_ID), m, R, R_dep,
+                            scan=scan)
+        fuser.fuse_queued()
+    ids, m, P, _, observations = fuser.snapshot()
+    assert len(ids) == 2
+    order = np.argsort(m[:, 0])
+    np.testing.assert_allclose(m[order], truth, atol=3 * sigma)
+    assert observations.sum() >= 40
+
+
+def test_clutter_is_never_confirmed_and_its_tracks_expire(rng):
+    fuser = Fuser(FuserConfig(tentative_timeout_s=5.0), SOURCES[:1])
+    for k in range(100):
+        m = rng.uniform(-200.0, 200.0, (1, 2))
+        R = np.broadcast_to(0.01 * np.eye(2), (1, 2, 2)).copy()
+        fuser.add_landmarks(SOURCES[0], (k + 1) * S, [UNKNOWN_ID], m, R, 0.5 * R,
+                            scan=Scan(np.zeros(2), np.zeros((3, 3))))
+        fuser.fuse_queued()
+    counts = fuser.sources[SOURCES[0]].counts
+    assert len(fuser.map) == 0
+    assert counts['new_tentative'] == 100 and counts['confirmed'] == 0
+    assert counts['deleted'] >= 90
+    assert len(fuser.tracker.tentative) <= 6
+
+
+@pytest.mark.parametrize('association', ['jcbb', 'nearest_neighbour'])
+def test_joint_compatibility_pairs_rows_shifted_by_a_shared_pose_error(association, rng):
+    fuser = Fuser(FuserConfig(association=association, ambiguous_rows='assign'), SOURCES)
+    truth = np.array([[0.0, 0.0], [1.0, 0.0]])
+    tight = np.broadcast_to(1e-4 * np.eye(2), (2, 2, 2)).copy()
+    for k in range(2):
+        fuser.add_landmarks(SOURCES[0], (k + 1) * S, [1, 2], truth, tight, 0 * tight)
+    fuser.fuse_queued()
+    assert fuser.snapshot().ids.tolist() == [1, 2]
+    # Robot 2's x error of 0.6 m shifts both rows; its pose covariance says so.
+    P_pose = np.diag([0.25, 1e-4, 0.0])
+    m, R, R_dep, scan = scan_rows(truth, (0.5, -3.0), P_pose, 4e-4 * np.eye(2),
+                                  np.random.default_rng(3), offset=(0.6, 0.0))
+    fuser.add_landmarks(SOURCES[1], 3 * S, np.full(2, UNKNOWN_ID), m, R, R_dep, scan=scan)
+    fuser.fuse_queued()
+    observations = dict(zip(*[a.tolist() for a in fuser.snapshot()[::4]]))
+    if association == 'jcbb':
+        assert observations == {1: 3, 2: 3}
+    else:  # nearest neighbour takes the closer landmark 2 for both rows
+        assert observations == {1: 2, 2: 4}
+    assert fuser.sources[SOURCES[1]].counts['associated'] == 2
+
+
+def test_ambiguous_rows_are_skipped_by_default(rng):
+    fuser = Fuser(FuserConfig(association='nearest_neighbour'), SOURCES)
+    tight = np.broadcast_to(1e-2 * np.eye(2), (2, 2, 2)).copy()
+    for k in range(2):
+        fuser.add_landmarks(SOURCES[0], (k + 1) * S, [1, 2],
+                            np.array([[0.0, 0.0], [0.2, 0.0]]), tight, 0 * tight)
+    fuser.add_landmarks(SOURCES[1], 3 * S, [UNKNOWN_ID], np.array([[0.1, 0.0]]), tight[:1],
+                        0 * tight[:1])
+    fuser.fuse_queued()
+    counts = fuser.sources[SOURCES[1]].counts
+    assert counts['ambiguous'] == 1 and counts['associated'] == 0
+    assert counts['new_tentative'] == 0
+    assert fuser.snapshot().observations.tolist() == [2, 2]
+
+
+def test_classes_keep_landmarks_apart_and_are_published(rng):
+    fuser = Fuser(FuserConfig(), SOURCES[:1])
+    C = np.broadcast_to(1e-2 * np.eye(2), (2, 2, 2)).copy()
+    for k in range(3):
+        fuser.add_landmarks(SOURCES[0], (k + 1) * S, np.full(2, UNKNOWN_ID),
+                            np.array([[0.0, 0.0], [0.01, 0.0]]), C, 0 * C, classes=[3, 5],
+                            scan=Scan(np.zeros(2), np.zeros((3, 3))))
+        fuser.fuse_queued()
+    ids = fuser.snapshot().ids
+    assert ids.tolist() == [FIRST, FIRST + 1]
+    assert fuser.classes_of(ids).tolist() == [3, 5]
+
+
+def test_allocated_ids_persist_across_a_restart_and_never_collide(tmp_path, rng):
+    path = str(tmp_path / 'map.json')
+    config = FuserConfig(map_file=path, first_new_id=100)
+    fuser = Fuser(config, SOURCES[:1])
+    C = np.broadcast_to(1e-2 * np.eye(2), (1, 2, 2)).copy()
+    # A labelled landmark already holds 100: the allocator skips it.
+    fuser.add_landmarks(SOURCES[0], S, [100], np.array([[50.0, 50.0]]), C, 0 * C)
+    for k in range(2):
+        fuser.add_landmarks(SOURCES[0], (k + 2) * S, [UNKNOWN_ID], np.array([[0.0, 0.0]]), C,
+                            0 * C, classes=[4])
+    fuser.add_landmarks(SOURCES[0], 5 * S, [UNKNOWN_ID], np.array([[9.0, 9.0]]), C, 0 * C)
+    fuser.fuse_queued()
+    assert fuser.snapshot().ids.tolist() == [101]
+    assert fuser.save()
+    document = json.load(open(path))
+    assert document['next_id'] == 103 and document['version'] == 1
+    assert [r['class'] for r in document['landmarks']] == [4]
+
+    restarted = Fuser(config, SOURCES[:1])
+    restarted.load()
+    assert restarted.tracker.next_id == 103
+    assert restarted.classes_of(np.array([101])).tolist() == [4]
+    for k in range(2):
+        restarted.add_landmarks(SOURCES[0], (k + 10) * S, [UNKNOWN_ID],
+                                np.array([[-7.0, 3.0]]), C, 0 * C)
+    # Of class 4, like landmark 101: associated with it.
+    restarted.add_landmarks(SOURCES[0], 12 * S, [UNKNOWN_ID], np.array([[0.01, 0.0]]), C, 0 * C,
+                            classes=[4])
+    restarted.fuse_queued()
+    ids, _, _, _, observations = restarted.snapshot()
+    assert ids.tolist() == [101, 103] and observations.tolist() == [3, 2]
+
+
+def test_labelled_rows_with_classes_fuse_exactly_as_before(rng):
+    plain, classed = (Fuser(FuserConfig(), SOURCES) for _ in range(2))
+    for k in range(8):
+        ids = np.arange(5)
+        m = np.column_stack([ids, 2.0 * ids]) + rng.normal(0, 0.05, (5, 2))
+        P = np.broadcast_to(np.diag([0.04, 0.09]), (5, 2, 2)).copy()
+        plain.add_landmarks(SOURCES[k % 2], (k + 1) * S, ids, m, P, 0.25 * P)
+        classed.add_landmarks(SOURCES[k % 2], (k + 1) * S, ids, m, P, 0.25 * P,
+                              classes=ids % 2)
+    plain.fuse_queued()
+    classed.fuse_queued()
+    for a, b in zip(plain.snapshot(), classed.snapshot(), strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert classed.classes_of(np.arange(5)).tolist() == [0, 1, 0, 1, 0]
+    assert not plain.tracker.tentative
