@@ -19,15 +19,19 @@ from collections import Counter
 from dataclasses import dataclass, replace
 from typing import Dict, Iterator, List, Sequence, Tuple
 
+from landmark_ros.eval.metrics import evaluate_association
 from landmark_ros.mrclam.report import method_result, MethodResult
 from landmark_ros.pipeline.fuser import Fuser
 from landmark_ros.pipeline.observer import (LandmarkBatch, ObservationMessage, Observer,
                                             THROUGHPUT_COUNTERS)
+from landmark_ros.pipeline.tracks import ASSOCIATION_COUNTERS
+import numpy as np
 
 FUSE_CHUNK = 1024
 """Messages the fusers queue before ``Fuser.fuse_queued`` (at most ``max_queue_messages``)."""
 
-FUSER_NOT_PROBLEMS = frozenset({'messages_in', 'observations_in', 'fused', 'gated_out'})
+FUSER_NOT_PROBLEMS = frozenset({'messages_in', 'observations_in', 'fused', 'gated_out',
+                                *ASSOCIATION_COUNTERS})
 """Per-source fuser counters that are not row checks (gating is the fusion's result)."""
 
 
@@ -63,8 +67,8 @@ class OfflineRun:
         return problems
 
 
-def observe(rows, observers: Sequence[Observer],
-            P_pose) -> Iterator[Tuple[int, LandmarkBatch]]:
+def observe(rows, observers: Sequence[Observer], P_pose,
+            hide_ids: bool = False) -> Iterator[Tuple[int, LandmarkBatch]]:
     """
     Feed every observation message to its robot's observer, in global time order.
 
@@ -79,6 +83,9 @@ def observe(rows, observers: Sequence[Observer],
         One per robot index of ``rows.robot``.
     P_pose : ndarray, shape (3, 3)
         Covariance of every pose [m^2, m rad, rad^2].
+    hide_ids : bool
+        Send the messages without their ``id`` column (landmarks without IDs); each
+        batch's ``token`` is then the slice ``(a, b)`` of its rows in ``rows``.
 
     Yields
     ------
@@ -97,13 +104,15 @@ def observe(rows, observers: Sequence[Observer],
         observer = observers[robot]
         batches = observer.add_pose(stamp_ns, rows.poses[a], P_pose, now_ns=stamp_ns)
         columns = {'id': rows.ids[a:b], 'range': rows.z[a:b, 0], 'bearing': rows.z[a:b, 1]}
-        batches += observer.add_observations([ObservationMessage(stamp_ns, columns)],
-                                             now_ns=stamp_ns)
+        if hide_ids:
+            del columns['id']
+        batches += observer.add_observations(
+            [ObservationMessage(stamp_ns, columns, token=(a, b))], now_ns=stamp_ns)
         for batch in batches:
             yield robot, batch
 
 
-def run_offline(dataset, config, methods, chunk=FUSE_CHUNK) -> OfflineRun:
+def run_offline(dataset, config, methods, chunk=FUSE_CHUNK, hide_ids=False) -> OfflineRun:
     """
     Replay a dataset through the pipeline objects, one fuser per method.
 
@@ -120,6 +129,10 @@ def run_offline(dataset, config, methods, chunk=FUSE_CHUNK) -> OfflineRun:
         Messages the fusers queue between two ``fuse_queued`` calls, capped at the
         fuser's ``max_queue_messages`` so no queue overflows; the maps do not depend
         on it.
+    hide_ids : bool
+        Strip the IDs before the observers: the fusers associate the sightings, and
+        each result gets its ``association`` (``eval.metrics.evaluate_association``);
+        matched tracks take their true landmark's ID in the records.
 
     Returns
     -------
@@ -132,11 +145,18 @@ def run_offline(dataset, config, methods, chunk=FUSE_CHUNK) -> OfflineRun:
               for method in methods}
     limit = max(1, min(int(chunk), config.fuser.max_queue_messages))
     queued = messages = 0
-    for robot, batch in observe(rows, observers, config.P_pose):
+    sightings: Dict[str, list] = {method: [] for method in methods}
+    for fuser in fusers.values():
+        fuser.association_log = [] if hide_ids else None
+    for robot, batch in observe(rows, observers, config.P_pose, hide_ids):
         source = rows.topics[robot]
-        for fuser in fusers.values():
-            fuser.add_landmarks(source, batch.stamp_ns, batch.ids, batch.m, batch.P,
-                                batch.P_dep)
+        for method, fuser in fusers.items():
+            added = fuser.add_landmarks(source, batch.stamp_ns, batch.ids, batch.m, batch.P,
+                                        batch.P_dep, classes=batch.classes, scan=batch.scan)
+            if hide_ids and added:
+                a, b = batch.token
+                whole = added == b - a
+                sightings[method].append((rows.ids[a:b], batch.m, batch.P) if whole else None)
         messages += 1
         queued += 1
         if queued >= limit:
@@ -147,7 +167,29 @@ def run_offline(dataset, config, methods, chunk=FUSE_CHUNK) -> OfflineRun:
     for method, fuser in fusers.items():
         fuser.fuse_queued()
         counts = [source.counts for source in fuser.sources.values()]
-        results[method] = method_result(method, fuser.map.to_records(), dataset.landmarks,
+        records = fuser.map.to_records()
+        association = None
+        if hide_ids:
+            association = _association(fuser, sightings[method], dataset.landmarks)
+            for record in records:
+                record['id'] = association.track_to_true.get(record['id'], record['id'])
+        results[method] = method_result(method, records, dataset.landmarks,
                                         sum(c['fused'] for c in counts),
                                         sum(c['gated_out'] for c in counts))
+        results[method].association = association
     return OfflineRun(results, observers, fusers, messages)
+
+
+def _association(fuser, sightings, truth):
+    """Score a fuser's association log against the true IDs of the sightings."""
+    log = fuser.association_log
+    if len(log) != len(sightings):
+        raise RuntimeError(f'{len(log)} associated messages for {len(sightings)} queued')
+    parts = [(entry[2], *sighting) for entry, sighting in zip(log, sightings)
+             if sighting is not None]
+    assigned = np.concatenate([p[0] for p in parts]) if parts else np.zeros(0, np.int64)
+    true_ids = np.concatenate([p[1] for p in parts]) if parts else np.zeros(0, np.int64)
+    z = np.concatenate([p[2] for p in parts]) if parts else np.zeros((0, 2))
+    R = np.concatenate([p[3] for p in parts]) if parts else np.zeros((0, 2, 2))
+    ids, m = fuser.snapshot()[:2]
+    return evaluate_association(assigned, true_ids, z, R, ids, m, truth)

@@ -33,6 +33,8 @@ class MethodResult:
     """Observations fused (accepted) over the run."""
     observations_rejected: int
     """Observations gated out or left out of a confirmation."""
+    association: object = None
+    """``eval.metrics.AssociationSummary`` of a run without IDs (``--hide-ids``), else None."""
 
     def to_dict(self):
         """Return the JSON summary entry, with the landmarks inside."""
@@ -55,6 +57,7 @@ class MethodResult:
                 'landmarks_fused': len(self.records),
                 'observations_used': int(self.observations_used),
                 'observations_rejected': int(self.observations_rejected),
+                **({} if self.association is None else self.association.to_dict()),
                 'landmarks': landmarks}
 
 
@@ -101,6 +104,23 @@ def report(results):
             f'{result.observations_rejected} rejected'))
     parts.append('== summary\n' + summary_table(results))
     return '\n\n'.join(parts)
+
+
+def format_association(results):
+    """Return the association scores of runs without IDs and their confusions."""
+    lines = [f"{'fusion':<30} {'accuracy':>8} {'oracle':>8} {'tracks':>6} {'true':>5} "
+             f"{'GOSPA [m]':>9}"]
+    for result in results.values():
+        a = result.association
+        if a is None:
+            continue
+        lines.append(f'{result.fusion:<30} {100 * a.association_accuracy:7.2f}% '
+                     f'{100 * a.oracle_accuracy:7.2f}% {a.tracks_confirmed:6d} '
+                     f'{a.true_landmarks:5d} {a.gospa_m:9.3f}')
+        wrong = sorted(a.confusion.items(), key=lambda item: -item[1])[:8]
+        lines.append('  most confused (true -> went to, -1 = no matched track): ' + ', '.join(
+            f'{t}->{w}: {n}' for (t, w), n in wrong))
+    return '== association (IDs hidden)\n' + '\n'.join(lines)
 
 
 def dataset_report(dataset):

@@ -102,6 +102,9 @@ class Fuser:
         self._updated: List[NDArray[np.int64]] = []
         self.tracker = Tracker(config)
         """Association of the rows without an ID (``pipeline.tracks``)."""
+        self.association_log: Optional[List[tuple]] = None
+        """Set to a list to record, per message with rows without an ID, in fuse order,
+        ``(source, stamp_ns, ids)``: the ID each such row got (-1: dropped as ambiguous)."""
 
     def reconfigure(self, config: FuserConfig) -> None:
         """Apply new parameters (those that may change at run time)."""
@@ -251,6 +254,8 @@ class Fuser:
         ids[unlabelled] = self.tracker.associate(
             self.map, name, item.m[unlabelled], item.P[unlabelled], classes[unlabelled],
             item.scan, item.stamp_ns, self.sources[name].counts)
+        if self.association_log is not None:
+            self.association_log.append((name, item.stamp_ns, ids[unlabelled].copy()))
         keep = ids >= 0
         return _Queued(item.sequence, ids[keep], item.m[keep], item.P[keep], item.P_dep[keep],
                        item.stamp_ns, classes[keep], item.scan, False)
