@@ -196,6 +196,9 @@ class _Independent:
     def load(self, landmark_map, row, record, m, P_ind, P_dep):
         """Restore method state of one landmark (none)."""
 
+    def retire(self, rows):
+        """Forget the method state of landmarks taken out of the map (none)."""
+
 
 class _CovarianceIntersection(_Independent):
     """Covariance intersection; the estimate is held as dependent (``P_ind = 0``)."""
@@ -263,6 +266,11 @@ class _SplitCovarianceIntersection(_Independent):
     def restore(self, state, first_new_row):
         """Put the pair index and the saved sums back."""
         self.parts.restore(state, first_new_row)
+
+    def retire(self, rows):
+        """Forget the per-source sums of landmarks taken out of the map."""
+        for row in np.asarray(rows).tolist():
+            self.parts.clear(row)
 
 
 _STRATEGIES = {cls.name: cls for cls in (
@@ -658,6 +666,36 @@ class LandmarkMap:
         for row in rows.tolist():
             self._buffers.pop(row, None)
         self.first_stamp_ns[rows] = _NO_STAMP
+        return len(rows)
+
+    def retire(self, ids):
+        """
+        Take confirmed landmarks out of the map (a duplicate merged into another one).
+
+        They leave the snapshot and the records; their IDs stay known (``known``). An
+        observation of one of them later starts it again as a new ID would.
+
+        Parameters
+        ----------
+        ids : array_like of int, shape (N,)
+            Landmark IDs; unknown and unconfirmed ones are ignored.
+
+        Returns
+        -------
+        int
+            The landmarks taken out.
+
+        """
+        rows = self._lookup(np.unique(np.asarray(ids, dtype=np.int64)))
+        rows = rows[rows >= 0]
+        rows = rows[self.confirmed[rows]]
+        self.confirmed[rows] = False
+        self.observations[rows] = 0
+        self.consecutive[rows] = 0
+        self.first_stamp_ns[rows] = _NO_STAMP
+        for row in rows.tolist():
+            self._buffers.pop(row, None)
+        self._method.retire(rows)
         return len(rows)
 
     # Output --------------------------------------------------------------------

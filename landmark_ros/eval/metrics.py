@@ -343,8 +343,8 @@ def evaluate_association(assigned_ids, true_ids, z, R, track_ids, track_m, truth
     true_m = np.array([truth[i] for i in true_list], np.float64).reshape(-1, 2)
     track_ids = np.asarray(track_ids, np.int64)
     match = match_tracks(track_m, true_m, max_distance_m)
-    track_to_true = {int(t): int(true_list[j]) for t, j in zip(track_ids.tolist(),
-                                                                match.tolist()) if j >= 0}
+    pairs = zip(track_ids.tolist(), match.tolist())
+    track_to_true = {int(t): int(true_list[j]) for t, j in pairs if j >= 0}
     assigned_ids = np.asarray(assigned_ids, np.int64)
     true_ids = np.asarray(true_ids, np.int64)
     went_to = np.array([track_to_true.get(i, -1) for i in assigned_ids.tolist()], np.int64)

@@ -185,8 +185,8 @@ def _association(fuser, sightings, truth):
     log = fuser.association_log
     if len(log) != len(sightings):
         raise RuntimeError(f'{len(log)} associated messages for {len(sightings)} queued')
-    parts = [(entry[2], *sighting) for entry, sighting in zip(log, sightings)
-             if sighting is not None]
+    parts = [(np.array([fuser.tracker.resolve(i) for i in entry[2].tolist()], np.int64),
+              *sighting) for entry, sighting in zip(log, sightings) if sighting is not None]
     assigned = np.concatenate([p[0] for p in parts]) if parts else np.zeros(0, np.int64)
     true_ids = np.concatenate([p[1] for p in parts]) if parts else np.zeros(0, np.int64)
     z = np.concatenate([p[2] for p in parts]) if parts else np.zeros((0, 2))

@@ -273,8 +273,8 @@ class FuserConfig(ConfigBase):
         30.0, 'A track started by a row without an ID and not confirmed within this time '
         '(of observation stamps) is deleted [s].', low=0.0, high=86400.0)
     ambiguous_rows: str = param(
-        'skip', 'Rows without an ID that the association could pair with several landmarks: '
-        "'skip' drops them, 'assign' uses the chosen pairing.")
+        'assign', 'Rows without an ID that the association could pair with several '
+        "landmarks: 'assign' uses the chosen pairing, 'skip' drops them.")
 
     def check(self) -> None:
         """Check relations between fields."""

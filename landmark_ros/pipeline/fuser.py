@@ -239,6 +239,8 @@ class Fuser:
             results.append(self._apply(group))
         newest = max(item.stamp_ns for item, _ in items)
         self.tracker.expire(self.map, newest, self._counts_of())
+        if self.tracker.merge(self.map, self.sources[items[-1][1]].counts):
+            self.map_changed = self.unsaved = True
         return _combine(results)
 
     def _counts_of(self) -> Dict[str, Counter]:

@@ -22,11 +22,12 @@ C_z : their joint covariance, shape (2N, 2N) [m^2] (``association.scan_covarianc
 
 from collections import Counter
 from dataclasses import dataclass
-from typing import Dict, List, Optional
+from typing import Dict, List, Optional, Set, Tuple
 
 from landmark_ros.core.association import (candidates, global_nearest_neighbour, jcbb,
                                            LandmarkIndex, nearest_neighbour,
                                            scan_covariance)
+from landmark_ros.core.gaussian import chi2_threshold
 from landmark_ros.core.landmark_map import LandmarkMap, UpdateResult
 from landmark_ros.pipeline.config import FuserConfig
 from landmark_ros.pipeline.rows import MAX_LABEL_ID, UNKNOWN_ID
@@ -96,12 +97,21 @@ class Tracker:
         self.dirty = True
         """Whether the index must be rebuilt before the next association."""
         self._index: Optional[LandmarkIndex] = None
-        self._index_ids = np.empty(0, np.int64)
+        self._indices: List[tuple] = []
+        self.owned: Set[int] = set()
+        """IDs this tracker allocated (only these are ever merged)."""
+        self.together: Set[Tuple[int, int]] = set()
+        """Pairs of owned IDs that rows of one message went to: never merged."""
+        self.merged_into: Dict[int, int] = {}
+        """A merged (retired) ID -> the ID it was merged into."""
 
     def reset(self) -> None:
         """Forget the tracks and classes; the allocator goes on (IDs are never reused)."""
         self.classes.clear()
         self.tentative.clear()
+        self.owned.clear()
+        self.together.clear()
+        self.merged_into.clear()
         self.dirty = True
 
     def class_of(self, ids: NDArray[np.int64]) -> NDArray[np.int64]:
@@ -133,22 +143,19 @@ class Tracker:
             raise ValueError('no landmark ID left to allocate')
         landmark_id = self.next_id
         self.next_id += 1
+        self.owned.add(landmark_id)
         return landmark_id
 
     def _rebuild(self, landmark_map: LandmarkMap) -> None:
         snapshot = landmark_map.snapshot()
-        ids = [snapshot.ids]
-        m, P = [snapshot.m], [snapshot.P]
-        classes = [self.class_of(snapshot.ids)]
-        if self.tentative:
-            tracks = list(self.tentative.items())
-            ids.append(np.array([i for i, _ in tracks], np.int64))
-            m.append(np.array([t.m for _, t in tracks]).reshape(-1, 2))
-            P.append(np.array([t.P for _, t in tracks]).reshape(-1, 2, 2))
-            classes.append(np.array([t.landmark_class for _, t in tracks], np.int64))
-        self._index_ids = np.concatenate(ids)
-        self._index = LandmarkIndex(np.concatenate(m), np.concatenate(P),
-                                    np.concatenate(classes))
+        tracks = list(self.tentative.items())
+        tentative_ids = np.array([i for i, _ in tracks], np.int64)
+        self._indices = [
+            (LandmarkIndex(snapshot.m, snapshot.P, self.class_of(snapshot.ids)), snapshot.ids),
+            (LandmarkIndex(np.array([t.m for _, t in tracks]).reshape(-1, 2),
+                           np.array([t.P for _, t in tracks]).reshape(-1, 2, 2),
+                           np.array([t.landmark_class for _, t in tracks], np.int64)),
+             tentative_ids)]
         self.dirty = False
 
     def associate(self, landmark_map: LandmarkMap, source: str, z: NDArray[np.float64],
@@ -156,6 +163,10 @@ class Tracker:
                   stamp_ns: int, counts: Counter) -> NDArray[np.int64]:
         """
         Give the unlabelled rows of one message landmark IDs.
+
+        The rows are associated with the confirmed landmarks first; those left unpaired
+        (not those dropped as ambiguous) then with the tentative tracks, by the same
+        method; the rest start tentative tracks.
 
         Parameters
         ----------
@@ -184,9 +195,100 @@ class Tracker:
         """
         if self.dirty or self._index is None:
             self._rebuild(landmark_map)
-        index = self._index
-        probability = self.config.association_gate_probability
-        cands = candidates(index, z, R, classes, probability)
+            self._index = self._indices[0][0]
+        ids = np.full(len(z), -1, np.int64)
+        skipped = np.zeros(len(z), bool)
+        for index, index_ids in self._indices:
+            rows = np.flatnonzero((ids < 0) & ~skipped)
+            if not len(rows) or not len(index):
+                continue
+            paired, ambiguous = self._pair(index, z[rows], R[rows], classes[rows], scan,
+                                           counts)
+            ids[rows[paired >= 0]] = index_ids[paired[paired >= 0]]
+            skipped[rows[ambiguous]] = True
+        assigned = ids >= 0
+        counts['associated'] += int(assigned.sum())
+        for i in np.flatnonzero(assigned).tolist():
+            track = self.tentative.get(int(ids[i]))
+            if track is not None:
+                track.m, track.P = z[i].copy(), R[i].copy()
+                self.dirty = True
+        for i in np.flatnonzero(~assigned & ~skipped).tolist():
+            landmark_id = self.allocate(landmark_map)
+            ids[i] = landmark_id
+            landmark_class = int(classes[i])
+            if landmark_class:
+                self.classes[landmark_id] = landmark_class
+            self.tentative[landmark_id] = _Track(z[i].copy(), R[i].copy(), landmark_class,
+                                                 int(stamp_ns), source)
+            counts['new_tentative'] += 1
+            self.dirty = True
+        seen = sorted({i for i in ids.tolist() if i in self.owned})
+        for k, a in enumerate(seen):
+            self.together.update((a, b) for b in seen[k + 1:])
+        return ids
+
+    def merge(self, landmark_map: LandmarkMap, counts: Counter) -> List[Tuple[int, int]]:
+        """
+        Merge confirmed tracks of one class that became compatible and never met.
+
+        Two confirmed landmarks this tracker allocated, of the same class, whose means
+        pass the gate ``d2 <= chi2_threshold(2, association_gate_probability)`` with
+        ``S = P_a + P_b`` and that no message saw together, are one landmark: the one
+        with fewer observations is taken out of the map (``LandmarkMap.retire``) and
+        its ID recorded in ``merged_into``; its observations are not moved over.
+
+        Parameters
+        ----------
+        landmark_map : LandmarkMap
+            The map.
+        counts : collections.Counter
+            Counters where ``merged`` is counted.
+
+        Returns
+        -------
+        list of (int, int)
+            ``(retired ID, kept ID)`` pairs.
+
+        """
+        snapshot = landmark_map.snapshot()
+        mine = np.isin(snapshot.ids, np.fromiter(self.owned, np.int64, len(self.owned)))
+        if mine.sum() < 2:
+            return []
+        ids, m, P = snapshot.ids[mine], snapshot.m[mine], snapshot.P[mine]
+        observations = snapshot.observations[mine]
+        index = LandmarkIndex(m, P, self.class_of(ids))
+        cands = candidates(index, m, P, self.class_of(ids),
+                           self.config.association_gate_probability)
+        threshold = chi2_threshold(2, self.config.association_gate_probability)
+        merged, retired = [], set()
+        for a, b, d2 in zip(cands.rows.tolist(), cands.landmarks.tolist(), cands.d2.tolist()):
+            if a >= b or a in retired or b in retired or d2 > threshold:
+                continue
+            pair = (int(ids[a]), int(ids[b]))
+            if pair in self.together:
+                continue
+            keep, drop = (a, b) if observations[a] >= observations[b] else (b, a)
+            retired.add(drop)
+            merged.append((int(ids[drop]), int(ids[keep])))
+        if merged:
+            landmark_map.retire(np.array([drop for drop, _ in merged], np.int64))
+            for drop, keep in merged:
+                self.merged_into[drop] = keep
+                self.owned.discard(drop)
+            counts['merged'] += len(merged)
+            self.dirty = True
+        return merged
+
+    def resolve(self, landmark_id: int) -> int:
+        """Return the ID a landmark ended up as, following merges."""
+        while landmark_id in self.merged_into:
+            landmark_id = self.merged_into[landmark_id]
+        return landmark_id
+
+    def _pair(self, index, z, R, classes, scan, counts):
+        """Return each row's landmark in ``index`` (-1 none) and the rows skipped."""
+        cands = candidates(index, z, R, classes, self.config.association_gate_probability)
         method = self.config.association
         if method == 'nearest_neighbour':
             result = nearest_neighbour(cands)
@@ -205,35 +307,15 @@ class Tracker:
             result = jcbb(cands, index, z, C_z)
             if result.fallback:
                 counts['jcbb_fallback'] += 1
-        ids = np.full(len(z), -1, np.int64)
-        assigned = result.assignment >= 0
-        ids[assigned] = self._index_ids[result.assignment[assigned]]
-        ambiguous = _open_ambiguity(cands, result)
-        if len(ambiguous):
-            counts['ambiguous'] += len(ambiguous)
+        paired = np.array(result.assignment, np.int64)
+        ambiguous = np.zeros(len(z), bool)
+        open_rows = _open_ambiguity(cands, result)
+        if len(open_rows):
+            counts['ambiguous'] += len(open_rows)
             if self.config.ambiguous_rows == 'skip':
-                ids[ambiguous] = -1
-                assigned[ambiguous] = False
-        counts['associated'] += int(assigned.sum())
-        for i in np.flatnonzero(assigned).tolist():
-            track = self.tentative.get(int(ids[i]))
-            if track is not None:
-                track.m, track.P = z[i].copy(), R[i].copy()
-                self.dirty = True
-        skipped = np.zeros(len(z), bool)
-        if self.config.ambiguous_rows == 'skip':
-            skipped[ambiguous] = True
-        for i in np.flatnonzero(~assigned & ~skipped).tolist():
-            landmark_id = self.allocate(landmark_map)
-            ids[i] = landmark_id
-            landmark_class = int(classes[i])
-            if landmark_class:
-                self.classes[landmark_id] = landmark_class
-            self.tentative[landmark_id] = _Track(z[i].copy(), R[i].copy(), landmark_class,
-                                                 int(stamp_ns), source)
-            counts['new_tentative'] += 1
-            self.dirty = True
-        return ids
+                paired[open_rows] = -1
+                ambiguous[open_rows] = True
+        return paired, ambiguous
 
     def after_update(self, result: UpdateResult,
                      counts_of: Dict[str, Counter]) -> None:

@@ -118,7 +118,7 @@ def test_clutter_is_never_confirmed_and_its_tracks_expire(rng):
 
 @pytest.mark.parametrize('association', ['jcbb', 'nearest_neighbour'])
 def test_joint_compatibility_pairs_rows_shifted_by_a_shared_pose_error(association, rng):
-    fuser = Fuser(FuserConfig(association=association, ambiguous_rows='assign'), SOURCES)
+    fuser = Fuser(FuserConfig(association=association), SOURCES)
     truth = np.array([[0.0, 0.0], [1.0, 0.0]])
     tight = np.broadcast_to(1e-4 * np.eye(2), (2, 2, 2)).copy()
     for k in range(2):
@@ -139,8 +139,8 @@ def test_joint_compatibility_pairs_rows_shifted_by_a_shared_pose_error(associati
     assert fuser.sources[SOURCES[1]].counts['associated'] == 2
 
 
-def test_ambiguous_rows_are_skipped_by_default(rng):
-    fuser = Fuser(FuserConfig(association='nearest_neighbour'), SOURCES)
+def test_ambiguous_rows_are_skipped_on_request(rng):
+    fuser = Fuser(FuserConfig(association='nearest_neighbour', ambiguous_rows='skip'), SOURCES)
     tight = np.broadcast_to(1e-2 * np.eye(2), (2, 2, 2)).copy()
     for k in range(2):
         fuser.add_landmarks(SOURCES[0], (k + 1) * S, [1, 2],
@@ -215,3 +215,21 @@ def test_labelled_rows_with_classes_fuse_exactly_as_before(rng):
         np.testing.assert_array_equal(a, b)
     assert classed.classes_of(np.arange(5)).tolist() == [0, 1, 0, 1, 0]
     assert not plain.tracker.tentative
+
+
+@pytest.mark.parametrize('met', [False, True])
+def test_compatible_tracks_that_never_met_are_merged(met):
+    fuser = Fuser(FuserConfig(), SOURCES[:1])
+    tracker, C = fuser.tracker, np.broadcast_to(0.01 * np.eye(2), (3, 2, 2)).copy()
+    a, b = tracker.allocate(fuser.map), tracker.allocate(fuser.map)
+    fuser.map.update([a, a, a], np.array([[0.0, 0.0]] * 3), C, 0 * C, 'r', S)
+    fuser.map.update([b, b], np.array([[0.05, 0.0]] * 2), C[:2], 0 * C[:2], 'r', S)
+    if met:
+        tracker.together.add((a, b))
+    counts = fuser.sources[SOURCES[0]].counts
+    merged = tracker.merge(fuser.map, counts)
+    if met:
+        assert merged == [] and fuser.snapshot().ids.tolist() == [a, b]
+    else:
+        assert merged == [(b, a)] and counts['merged'] == 1
+        assert fuser.snapshot().ids.tolist() == [a] and tracker.resolve(b) == a
