@@ -127,7 +127,9 @@ def parse_args(argv=None):
                         'landmark_bag and stop (OUT must not exist)')
     parser.add_argument('--json', type=Path, default=None, help='write the results as JSON')
     parser.add_argument('--plot', type=Path, default=None, help='draw the maps (PNG, PDF...)')
-    parser.add_argument('--no-progress', action='store_true', help='no progress bar')
+    parser.add_argument('--no-progress', action='store_true',
+                        help='no progress bar for --through-nodes (default: a tqdm bar on '
+                        'stderr when it is a terminal)')
     parser.add_argument('--keep-logs', action='store_true',
                         help='keep the node logs of --through-nodes')
     parser.add_argument('--domain-id', type=int, default=None,
@@ -201,7 +203,7 @@ def main(argv=None):
         try:
             results, info = run_through_nodes(
                 dataset, config, methods,
-                progress=not args.no_progress, keep_logs=args.keep_logs,
+                progress=False if args.no_progress else None, keep_logs=args.keep_logs,
                 domain_id=args.domain_id)
         except RuntimeError as error:  # ReplayError too
             print(f'landmark_mrclam: {error}', file=sys.stderr)
