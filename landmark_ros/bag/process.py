@@ -269,10 +269,12 @@ class BagPipeline:
         for batch in batches:
             header = batch.token
             header.frame_id = world_frame
-            self.out.write(topic, now_ns, landmark_message(header, batch.ids, batch.m,
-                                                           batch.P, batch.P_dep))
+            self.out.write(topic, now_ns, landmark_message(
+                header, batch.ids, batch.m, batch.P, batch.P_dep, classes=batch.classes,
+                scan=batch.scan))
             self.fuser.add_landmarks(topic, batch.stamp_ns, batch.ids, batch.m, batch.P,
-                                     batch.P_dep, world_frame, now_ns)
+                                     batch.P_dep, world_frame, now_ns, batch.classes,
+                                     batch.scan)
 
     def _header(self, now_ns):
         header = Header(frame_id=self.fuser.config.world_frame)

@@ -96,8 +96,8 @@ class Tracker:
         """Tentative tracks started by unlabelled rows, by ID."""
         self.dirty = True
         """Whether the index must be rebuilt before the next association."""
-        self._index: Optional[LandmarkIndex] = None
         self._indices: List[tuple] = []
+        """``(LandmarkIndex, IDs)`` of the confirmed landmarks, then of the tentative tracks."""
         self.owned: Set[int] = set()
         """IDs this tracker allocated (only these are ever merged)."""
         self.together: Set[Tuple[int, int]] = set()
@@ -193,9 +193,8 @@ class Tracker:
             The ID of each row; -1 for a row dropped as ambiguous.
 
         """
-        if self.dirty or self._index is None:
+        if self.dirty or not self._indices:
             self._rebuild(landmark_map)
-            self._index = self._indices[0][0]
         ids = np.full(len(z), -1, np.int64)
         skipped = np.zeros(len(z), bool)
         for index, index_ids in self._indices:
