@@ -22,6 +22,7 @@ import sys
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
+from landmark_ros.pipeline.rows import UNKNOWN_ID
 from landmark_ros.ros import diagnostics, qos, runner
 from landmark_ros.ros.conversions import planar_pose_covariance, set_planar_pose
 from landmark_ros.ros.params import declare_config
@@ -169,10 +170,14 @@ class LandmarkSim(Node):
         for robot, pub in enumerate(self.observation_pubs):
             measurement = self.sim.measure(robot, j)
             header = self._header(measurement.stamp_ns, f'{self.names[robot]}/sensor')
-            pub.publish(observation_message(header, measurement.ids, measurement.z))
-            if len(measurement.ids):
-                self.counts[np.searchsorted(self.sim.world.ids, measurement.ids)] += 1
-                self.robot_counts[robot] += len(measurement.ids)
+            ids = measurement.ids
+            pub.publish(observation_message(
+                header, np.full(len(ids), UNKNOWN_ID) if self.sim.config.no_ids else ids,
+                measurement.z))
+            ids = ids[ids != UNKNOWN_ID]  # clutter is no landmark
+            if len(ids):
+                self.counts[np.searchsorted(self.sim.world.ids, ids)] += 1
+                self.robot_counts[robot] += len(ids)
                 self._truth_dirty = True
         self.messages['observation_messages_out'] += len(self.observation_pubs)
 

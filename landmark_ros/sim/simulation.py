@@ -31,12 +31,13 @@ import math
 from landmark_ros.core import pose2
 from landmark_ros.core.sensors import MIN_RANGE
 from landmark_ros.pipeline.config import ConfigBase, param
+from landmark_ros.pipeline.rows import UNKNOWN_ID
 import numpy as np
 
 MAX_ID = 2 ** 32 - 1
 """Largest landmark ID the ``landmarks`` schema (UINT32) can carry."""
 
-_WORLD, _PATH, _BIAS, _POSE, _NOISE = range(5)
+_WORLD, _PATH, _BIAS, _POSE, _NOISE, _DETECTION, _CLUTTER = range(7)
 """Stream numbers of the random draws (part of each draw's seed)."""
 
 
@@ -86,6 +87,16 @@ class SimConfig(ConfigBase):
         low=0.0, high=1000.0)
     pose_yaw_stddev: float = param(0.01, 'Standard deviation of the reported heading [rad].',
                                    read_only=True, low=0.0, high=math.pi)
+    detection_probability: float = param(
+        1.0, 'Probability that a visible landmark is measured.', read_only=True,
+        low=0.0, high=1.0)
+    clutter_rate: float = param(
+        0.0, 'Mean number of false measurements per observation message (Poisson), '
+        'uniform over the field of view and the range interval; their ID is '
+        'UNKNOWN_ID.', read_only=True, low=0.0, high=1000.0)
+    no_ids: bool = param(
+        False, 'Publish every observation without its landmark ID (UNKNOWN_ID).',
+        read_only=True)
     duration_s: float = param(0.0, 'Simulated time to run; 0 runs forever [s].',
                               read_only=True, low=0.0, high=1e9)
     time_scale: float = param(1.0, 'Simulated seconds per wall-clock second.',
@@ -562,7 +573,10 @@ class Simulation:
 
         Landmarks within ``[min_range, max_range]`` and the field of view of the true
         pose are measured: true range and bearing plus the robot's bias plus white
-        noise (bearing wrapped to ``[-pi, pi)``), in ID order.
+        noise (bearing wrapped to ``[-pi, pi)``), in ID order; each is kept with
+        probability ``detection_probability``, and a Poisson number (mean
+        ``clutter_rate``) of false measurements with ID ``UNKNOWN_ID`` follow, uniform
+        over the range interval and the field of view (the defaults draw nothing).
 
         Parameters
         ----------
@@ -587,7 +601,20 @@ class Simulation:
         z[:, 1] = pose2.wrap_angle(z[:, 1])
         # A bias or noise draw can push a close landmark's range below the minimum.
         z[:, 0] = np.maximum(z[:, 0], MIN_RANGE)
-        return Measurement(stamp, true, self.world.ids[mask], z, z_true)
+        ids = self.world.ids[mask]
+        if config.detection_probability < 1.0:
+            kept = rng(config.seed, _DETECTION, robot, j).random(len(z)) < (
+                config.detection_probability)
+            ids, z, z_true = ids[kept], z[kept], z_true[kept]
+        if config.clutter_rate > 0.0:
+            draw = rng(config.seed, _CLUTTER, robot, j)
+            count = draw.poisson(config.clutter_rate)
+            clutter = np.column_stack([
+                draw.uniform(max(config.min_range, MIN_RANGE), config.max_range, count),
+                draw.uniform(-0.5 * config.fov, 0.5 * config.fov, count)])
+            ids = np.concatenate([ids, np.full(count, UNKNOWN_ID, np.int64)])
+            z, z_true = np.concatenate([z, clutter]), np.concatenate([z_true, clutter])
+        return Measurement(stamp, true, ids, z, z_true)
 
     def visible_ids(self, robot, t):
         """Return the IDs a robot measures at time ``t`` [s] (without noise)."""
