@@ -18,10 +18,12 @@ from landmark_ros.pipeline import map_file
 from landmark_ros.pipeline.config import FuserConfig
 from landmark_ros.pipeline.counters import Counters, Status
 from landmark_ros.pipeline.rows import landmark_row_problems, MAX_ID
+from landmark_ros.pipeline.views import (constraint_row_problems, NOT_PROBLEMS as VIEW_COUNTS,
+                                         PartialViews, views_from_columns)
 import numpy as np
 from numpy.typing import NDArray
 
-NOT_PROBLEMS = frozenset({'landmarks_confirmed', 'saves', 'other_shard'})
+NOT_PROBLEMS = frozenset({'landmarks_confirmed', 'saves', 'other_shard'}) | VIEW_COUNTS
 """Fuser counters that do not make its status a warning (a re-initialisation does)."""
 
 
@@ -71,6 +73,9 @@ class Fuser:
     logger : object, optional
         With ``info``, ``warning`` and ``error`` methods taking one string (an rclpy
         logger or a ``logging.Logger``).
+    constraint_sources : sequence of str
+        The sources of partial views (``add_constraints``; the nodes use the resolved
+        ``constraint_topics``); none by default.
 
     Raises
     ------
@@ -80,7 +85,8 @@ class Fuser:
     """
 
     def __init__(self, config: FuserConfig, sources: Sequence[str],
-                 logger: Any = None) -> None:
+                 logger: Any = None, constraint_sources: Sequence[str] = ()) -> None:
+        sources = list(sources) + list(constraint_sources)
         if len(set(sources)) != len(sources):
             raise ValueError(f'input_topics name one topic twice once resolved: {list(sources)}')
         self.config = config
@@ -96,6 +102,8 @@ class Fuser:
         self.unsaved = False
         """Whether the map changed since the last save."""
         self._updated: List[NDArray[np.int64]] = []
+        self.views = PartialViews(self.map, config.min_triangulation_angle_deg,
+                                  config.max_views_per_landmark, config.gate_probability)
 
     def reconfigure(self, config: FuserConfig) -> None:
         """Apply new parameters (those that may change at run time)."""
@@ -174,6 +182,75 @@ class Fuser:
                                    int(stamp_ns)))
         return int(valid.sum())
 
+    def add_constraints(self, source: str, stamp_ns: int, columns: Dict[str, NDArray[Any]],
+                        frame_id: Optional[str] = None, now_ns: Optional[int] = None) -> int:
+        """
+        Check the rows of one constraint message (partial views) and queue the valid ones.
+
+        Parameters
+        ----------
+        source : str
+            One of the constraint sources.
+        stamp_ns : int
+            The message stamp [ns].
+        columns : dict of str to ndarray, shape (N,)
+            ``views.CONSTRAINT_COLUMNS``.
+        frame_id : str, optional
+            The message's frame, checked against ``world_frame``; None skips the check.
+        now_ns : int, optional
+            Arrival time [ns], for the stale-source check.
+
+        Returns
+        -------
+        int
+            The rows queued.
+
+        """
+        state = self.sources[source]
+        if now_ns is not None:
+            state.last_message_ns = now_ns
+        state.counts['messages_in'] += 1
+        if frame_id is not None and frame_id != self.config.world_frame:
+            self.reject(source, 'wrong_frame', 1,
+                        f"constraints in frame '{frame_id}', expected "
+                        f"'{self.config.world_frame}': message dropped")
+            return 0
+        ids = np.asarray(columns['id'])
+        state.counts['constraints_in'] += len(ids)
+        valid, reasons = constraint_row_problems(columns)
+        if self.config.shard_count > 1:
+            other = valid & (ids % self.config.shard_count != self.config.shard_index)
+            if other.any():
+                state.counts['other_shard'] += int(other.sum())
+                valid &= ~other
+        for reason, count in reasons.items():
+            self.reject(source, reason, count, f'{count} of {len(valid)} constraint rows '
+                        'rejected')
+        if not valid.any():
+            return 0
+        if not valid.all():
+            columns = {name: np.asarray(values)[valid] for name, values in columns.items()}
+        self.views.add(source, stamp_ns, np.asarray(columns['id']).astype(np.int64),
+                       views_from_columns(columns), np.asarray(columns['view_group']))
+        return int(valid.sum())
+
+    def _fuse_views(self) -> None:
+        """Take the queued views: buffer, initialise or update landmarks (``views``)."""
+        if not self.views.queue:
+            return
+        result = self.views.fuse()
+        for name, counts in result.counts.items():
+            for reason, count in counts.items():
+                if reason in ('views_gated', 'views_too_close', 'views_dropped'):
+                    self.reject(name, reason, count)
+                else:
+                    self.sources[name].counts[reason] += count
+                    if reason == 'landmarks_initialised':
+                        self.counters.add(reason, count)
+        if result.changed_ids:
+            self.map_changed = self.unsaved = True
+            self._updated.append(np.unique(np.array(result.changed_ids, np.int64)))
+
     def queued_messages(self) -> int:
         """Return the number of messages waiting in all queues."""
         return sum(len(state.queue) for state in self.sources.values())
@@ -188,6 +265,7 @@ class Fuser:
             What the update did; None when nothing was queued.
 
         """
+        self._fuse_views()
         items = []
         for state in self.sources.values():
             items += [(item, state.name) for item in state.queue]
@@ -246,6 +324,7 @@ class Fuser:
         """Clear the map and the queues; return how many landmarks were cleared."""
         count = len(self.map)
         self.map.reset()
+        self.views.reset()
         for state in self.sources.values():
             state.queue.clear()
         self._updated = []

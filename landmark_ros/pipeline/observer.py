@@ -12,7 +12,7 @@ than every pose waits for the next pose, up to ``max_wait_s``, in arrival order.
 """
 
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 from typing import Any, Callable, Dict, List, Optional, Sequence
 
 from landmark_ros.core.gaussian import COVARIANCE_PROBLEMS, covariance_status
@@ -20,11 +20,14 @@ from landmark_ros.pipeline import pose_buffer
 from landmark_ros.pipeline.config import ObserverConfig
 from landmark_ros.pipeline.counters import Counters, Status
 from landmark_ros.pipeline.rows import landmarks_from_rows, observation_noise
+from landmark_ros.pipeline.views import (Constraints, constraints_from_rows, no_constraints,
+                                         split_partial)
 import numpy as np
 from numpy.typing import NDArray
 
 THROUGHPUT_COUNTERS = frozenset(
-    {'poses_in', 'observation_messages_in', 'observations_in', 'landmarks_out'})
+    {'poses_in', 'observation_messages_in', 'observations_in', 'landmarks_out',
+     'partial_rows', 'constraints_out'})
 """Counters that are not problems; every other counter names a rejection reason."""
 
 
@@ -38,7 +41,9 @@ class ObservationMessage:
     stamp_ns : int
         Acquisition time [ns].
     columns : dict of str to ndarray, shape (N,)
-        ``id``, ``range`` [m], ``bearing`` [rad] and the optional noise fields.
+        ``id``, ``range`` [m], ``bearing`` [rad] and the optional noise fields. Without
+        ``bearing`` the rows are range-only, without ``range`` bearing-only; a row
+        with one of the two NaN is partial (``views.split_partial``).
     frame_id : str or None
         The message's frame, checked against ``sensor_frame``; None skips the check.
     token : object
@@ -56,7 +61,7 @@ class ObservationMessage:
     @property
     def rows(self) -> int:
         """Return the number of rows."""
-        return len(self.columns['range'])
+        return len(self.columns['id'])
 
 
 @dataclass(frozen=True)
@@ -77,6 +82,9 @@ class LandmarkBatch:
         Their dependent parts (pose and bias terms) [m^2].
     token : object
         The message's ``token``.
+    constraints : views.Constraints
+        The message's partial rows (range-only, bearing-only) as views in the world;
+        empty when it had none.
 
     """
 
@@ -86,6 +94,7 @@ class LandmarkBatch:
     P: NDArray[np.float64]
     P_dep: NDArray[np.float64]
     token: Any = None
+    constraints: Constraints = field(default_factory=no_constraints)
 
 
 class Observer:
@@ -117,6 +126,7 @@ class Observer:
         self.pending: deque = deque()
         self._superseded_ns: Optional[tuple] = None
         self._reported: Dict[str, int] = {}
+        self._view_group = 0
         self.reconfigure(config)
 
     def reconfigure(self, config: ObserverConfig) -> None:
@@ -339,6 +349,7 @@ class Observer:
             One per message, in order.
 
         """
+        ready, constraints = self._partial(ready)
         counts = [item.rows for item, _, _ in ready]
         columns = [item.columns for item, _, _ in ready]
         noise = [self.noise(c) for c in columns]
@@ -371,10 +382,36 @@ class Observer:
         start = 0
         for (item, _, _), end in zip(ready, ends):
             batches.append(LandmarkBatch(item.stamp_ns, ids[start:end], m[start:end],
-                                         P_m[start:end], P_dep[start:end], item.token))
+                                         P_m[start:end], P_dep[start:end], item.token,
+                                         constraints.get(id(item), no_constraints())))
             start = end
         self.counters.add('landmarks_out', len(ids))
         return batches
+
+    def _partial(self, ready: Sequence[tuple]) -> tuple:
+        """Take the partial rows out of messages; return the rest and their constraints."""
+        out, constraints = [], {}
+        for item, pose, P_pose in ready:
+            self._view_group = (self._view_group + 1) % (1 << 32)
+            columns, partial = split_partial(item.columns)
+            if partial.any():
+                rows = {name: np.asarray(values)[partial] for name, values in columns.items()}
+                found, reasons = constraints_from_rows(
+                    rows, self.noise(rows), pose, P_pose, self._sensor_pose, self._R_bias,
+                    self._view_group)
+                self.counters.add('partial_rows', int(partial.sum()))
+                for reason, count in reasons.items():
+                    self.counters.add(reason, count, f'{count} of {int(partial.sum())} '
+                                      'partial rows rejected')
+                self.counters.add('constraints_out', len(found))
+                columns = {name: np.asarray(values)[~partial]
+                           for name, values in columns.items()}
+                item = replace(item, columns=columns)
+                constraints[id(item)] = found
+            elif columns is not item.columns:
+                item = replace(item, columns=columns)
+            out.append((item, pose, P_pose))
+        return out, constraints
 
     # Status --------------------------------------------------------------------------
 
