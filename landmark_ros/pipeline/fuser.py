@@ -58,6 +58,8 @@ class Source:
     queue: deque = field(default_factory=deque)
     counts: Counter = field(default_factory=Counter)
     last_message_ns: Optional[int] = None
+    optional: bool = False
+    """A constraint source: not stale before its first message (rb-only teams)."""
 
 
 class Fuser:
@@ -94,7 +96,8 @@ class Fuser:
         self.counters = Counters(self.logger.warning, config.log_throttle_s)
         self.map = LandmarkMap(config.fusion, config.gate_probability,
                                config.min_observations, config.max_consecutive_rejections)
-        self.sources: Dict[str, Source] = {name: Source(name) for name in sources}
+        self.sources: Dict[str, Source] = {
+            name: Source(name, optional=name in constraint_sources) for name in sources}
         self._sequence = itertools.count()
         self._reported: Dict[str, int] = {}
         self.map_changed = False
@@ -103,7 +106,8 @@ class Fuser:
         """Whether the map changed since the last save."""
         self._updated: List[NDArray[np.int64]] = []
         self.views = PartialViews(self.map, config.min_triangulation_angle_deg,
-                                  config.max_views_per_landmark, config.gate_probability)
+                                  config.max_views_per_landmark, config.gate_probability,
+                                  config.max_consecutive_rejections)
 
     def reconfigure(self, config: FuserConfig) -> None:
         """Apply new parameters (those that may change at run time)."""
@@ -245,7 +249,7 @@ class Fuser:
                     self.reject(name, reason, count)
                 else:
                     self.sources[name].counts[reason] += count
-                    if reason == 'landmarks_initialised':
+                    if reason in ('landmarks_initialised', 'landmarks_reinitialised'):
                         self.counters.add(reason, count)
         if result.changed_ids:
             self.map_changed = self.unsaved = True
@@ -352,7 +356,8 @@ class Fuser:
         for state in self.sources.values():
             age = None if state.last_message_ns is None else (
                 now_ns - state.last_message_ns) * 1e-9
-            is_stale = age is None or age > self.config.source_timeout_s
+            is_stale = (not state.optional) if age is None else (
+                age > self.config.source_timeout_s)
             if is_stale:
                 stale.append(state.name)
             extra = {'age_s': 'never' if age is None else f'{age:.3f}',

@@ -26,9 +26,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 THROUGHPUT_COUNTERS = frozenset(
-    {'poses_in', 'observation_messages_in', 'observations_in', 'landmarks_out',
-     'partial_rows', 'constraints_out'})
+    {'poses_in', 'observation_messages_in', 'observations_in', 'landmarks_out'})
 """Counters that are not problems; every other counter names a rejection reason."""
+
+NOT_PROBLEMS = THROUGHPUT_COUNTERS | {'partial_rows', 'constraints_out'}
+"""``THROUGHPUT_COUNTERS`` and those of the partial rows (counted once there are any)."""
 
 
 @dataclass
@@ -428,7 +430,7 @@ class Observer:
         """
         counts = dict(self.counters.counts)
         problems = {key: value - self._reported.get(key, 0) for key, value in counts.items()
-                    if key not in THROUGHPUT_COUNTERS and value > self._reported.get(key, 0)}
+                    if key not in NOT_PROBLEMS and value > self._reported.get(key, 0)}
         self._reported = counts
         level, message = 'ok', 'ok'
         if problems:

@@ -288,6 +288,11 @@ class PartialViews:
         ``views_dropped``).
     gate_probability : float
         Probability of the 1-dof chi-square gate of the updates.
+    max_consecutive_rejections : int
+        Views of a placed landmark gated in a row after which it is placed again from
+        its recent views (``max_views`` of them, gated or not), counted
+        ``landmarks_reinitialised``: a range-only landmark placed on the mirror side of
+        a straight robot path, or a moved one.
 
     Notes
     -----
@@ -299,19 +304,25 @@ class PartialViews:
     """
 
     def __init__(self, landmark_map, min_triangulation_angle_deg: float = 5.0,
-                 max_views: int = 50, gate_probability: float = 0.999) -> None:
+                 max_views: int = 50, gate_probability: float = 0.999,
+                 max_consecutive_rejections: int = 5) -> None:
         self.map = landmark_map
         self.params = InitialiseParams(min_triangulation_angle_deg=min_triangulation_angle_deg)
         self.max_views = int(max_views)
         self.gate_probability = gate_probability
+        self.max_consecutive_rejections = int(max_consecutive_rejections)
         self.queue: deque = deque()
         self.waiting: Dict[int, deque] = {}
+        self.recent: Dict[int, deque] = {}
+        self.streak: Counter = Counter()
         self.wait_reasons: Counter = Counter()
 
     def reset(self) -> None:
         """Forget the queued and waiting views."""
         self.queue.clear()
         self.waiting.clear()
+        self.recent.clear()
+        self.streak.clear()
 
     def add(self, source: str, stamp_ns: int, ids: NDArray[np.int64], views: Views,
             groups: NDArray[np.int64]) -> None:
@@ -345,8 +356,21 @@ class PartialViews:
                     if stale:  # range-bearing rows confirmed it first
                         count['views_superseded'] += len(stale)
                     m, P, P_dep = estimate
+                    recent = self.recent.setdefault(landmark_id, deque(maxlen=self.max_views))
+                    recent.append(_View(source, stamp_ns, int(groups[k]), view))
                     result = update(m, P, view, P_dep, method, self.gate_probability)
                     status = int(result.status[0])
+                    self.streak[landmark_id] = self.streak[landmark_id] + 1 if (
+                        status == GATED) else 0
+                    if self.streak[landmark_id] >= self.max_consecutive_rejections:
+                        self.streak[landmark_id] = 0
+                        placed = initialise(Views.concatenate(b.views for b in recent),
+                                            self.params)
+                        if placed.ok:
+                            self.map.set_estimate(landmark_id, placed.m, placed.P_m,
+                                                  placed.P_m_dep, VIEW_SOURCE, stamp_ns, 0)
+                            count['landmarks_reinitialised'] += 1
+                            changed.append(landmark_id)
                     if status == UPDATED:
                         self.map.set_estimate(landmark_id, result.m[0], result.P_m[0],
                                               result.P_m_dep[0], VIEW_SOURCE, stamp_ns, 1)
@@ -372,6 +396,6 @@ class PartialViews:
                 for b in buffer:
                     counts.setdefault(b.source, Counter())['views_fused'] += 1
                 count['landmarks_initialised'] += 1
-                del self.waiting[landmark_id]
+                self.recent[landmark_id] = self.waiting.pop(landmark_id)
                 changed.append(landmark_id)
         return ViewResult(changed, counts)

@@ -280,3 +280,19 @@ def test_nees_of_views_through_the_fuser(kind):
     low, high = chi2.ppf([0.0005, 0.9995], 2 * count) / count
     assert low <= anees <= high, anees
     assert chi2_threshold(2, 0.999) > np.median(nees)
+
+
+def test_a_landmark_gated_again_and_again_is_placed_again_from_its_recent_views():
+    old, new = np.array([3.0, 4.0]), np.array([5.0, 1.0])
+    f = fuser(max_views_per_landmark=5, max_consecutive_rejections=5)
+    for k, s in enumerate(([0.0, 0.0, 0.0], [6.0, 0.0, 0.0])):
+        f.add_constraints(VIEWS[k], (k + 1) * S, columns(7, BEARING, bearing_to(s, old), s))
+    f.fuse_queued()
+    np.testing.assert_allclose(f.snapshot().m[0], old, atol=1e-9)
+    for k, s in enumerate(([0.0, 0.0, 0.0], [9.0, 0.0, 0.0], [0.0, 6.0, 0.0],
+                           [9.0, 6.0, 1.0], [2.0, -3.0, 0.0])):
+        f.add_constraints(VIEWS[0], (k + 3) * S, columns(7, BEARING, bearing_to(s, new), s))
+    f.fuse_queued()
+    assert f.sources[VIEWS[0]].counts['views_gated'] == 5
+    assert f.counters['landmarks_reinitialised'] == 1
+    np.testing.assert_allclose(f.snapshot().m[0], new, atol=1e-9)
