@@ -29,6 +29,7 @@ from landmark_ros.core._arrays import (as_matrices, as_vectors, common_batch_sha
                                        matrix_scale, power_of_4_scale, solve, symmetric_2x2,
                                        symmetrise, to_batch, transpose)
 import numpy as np
+from scipy import special
 
 
 COVARIANCE_OK = 0
@@ -778,7 +779,7 @@ def chi2_survival(x, dof):
     """
     Return ``P(X > x)`` for a chi-square variable ``X`` with integer ``dof``.
 
-    Uses the closed forms for integer degrees of freedom (no scipy).
+    ``scipy.special.chdtrc`` (the regularised upper incomplete gamma function).
 
     Parameters
     ----------
@@ -790,28 +791,20 @@ def chi2_survival(x, dof):
     Returns
     -------
     float
+        1.0 for ``x <= 0``.
 
     """
     if x <= 0.0:
         return 1.0
-    half = 0.5 * x
-    if dof % 2 == 0:
-        term, total = 1.0, 1.0
-        for i in range(1, dof // 2):
-            term *= half / i
-            total += term
-        return math.exp(-half) * total
-    term, total = 1.0, 1.0
-    for i in range(1, (dof - 1) // 2):
-        term *= x / (2 * i + 1)
-        total += term
-    tail = math.sqrt(2.0 * x / math.pi) * math.exp(-half) * total if dof > 1 else 0.0
-    return math.erfc(math.sqrt(half)) + tail
+    return float(special.chdtrc(dof, x))
 
 
 def chi2_threshold(dof, probability):
     """
     Return the chi-square quantile: ``P(X <= threshold) = probability``.
+
+    ``scipy.special.chdtri`` on the upper tail ``1 - probability``, the inverse of
+    ``chi2_survival``.
 
     Parameters
     ----------
@@ -835,20 +828,7 @@ def chi2_threshold(dof, probability):
         raise ValueError(f'dof must be an integer from 1 to 100, got {dof!r}')
     if not 0.0 < probability < 1.0:
         raise ValueError(f'probability must lie in (0, 1), got {probability!r}')
-    dof = int(dof)
-    tail = 1.0 - probability
-    lo, hi = 0.0, float(dof)
-    while chi2_survival(hi, dof) > tail:
-        lo, hi = hi, 2.0 * hi
-    for _ in range(200):
-        mid = 0.5 * (lo + hi)
-        if mid in (lo, hi):
-            break
-        if chi2_survival(mid, dof) > tail:
-            lo = mid
-        else:
-            hi = mid
-    return 0.5 * (lo + hi)
+    return float(special.chdtri(int(dof), 1.0 - probability))
 
 
 def covariance_status(P, rtol=1e-9):

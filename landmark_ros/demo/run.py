@@ -41,6 +41,7 @@ from landmark_ros.ros.cloud import CloudError
 from landmark_ros.ros.conversions import InputError, pose_from_msg, stamp_ns
 from landmark_ros.ros.schemas import read_landmarks
 from landmark_ros.sim.simulation import SimConfig
+from tqdm import tqdm
 
 DOMAIN_RANGE = (150, 200)
 """The demo picks its ROS_DOMAIN_ID in [150, 200), by PID, skipping busy ones."""
@@ -80,6 +81,9 @@ def parse_args(argv=None):
     parser.add_argument('--domain-id', type=int, default=None,
                         help='ROS_DOMAIN_ID of the run (default: a free one in 150..199)')
     parser.add_argument('--no-plot', action='store_true', help='do not draw the plot')
+    parser.add_argument('--no-progress', action='store_true',
+                        help='no progress bar (default: a tqdm bar on stderr when it is a '
+                        'terminal)')
     args = parser.parse_args(argv)
     if args.robots < 1 or args.landmarks < 1:
         parser.error('--robots and --landmarks must be at least 1')
@@ -401,50 +405,47 @@ class RunError(RuntimeError):
     """The run itself failed (not the evaluation)."""
 
 
-class Progress:
-    """One status line, rewritten in place on a terminal, every few seconds otherwise."""
+def progress_bar(duration_s, progress=None):
+    """
+    Return the run's tqdm bar on stderr, counting simulated seconds.
 
-    def __init__(self, stream=sys.stdout):
-        self.stream = stream
-        self.tty = stream.isatty()
-        self.last = 0.0
-        self.width = 0
+    Parameters
+    ----------
+    duration_s : float
+        Simulated time of the run [s].
+    progress : bool or None
+        None: a bar only when stderr is a terminal (nothing in logs and pipes);
+        True: always; False: never (``--no-progress``).
 
-    def show(self, text, force=False):
-        """Show ``text`` (rate-limited)."""
-        now = time.monotonic()
-        if not force and now - self.last < (0.25 if self.tty else 2.0):
-            return
-        self.last = now
-        if self.tty:
-            self.stream.write('\r' + text.ljust(self.width))
-            self.width = len(text)
-        else:
-            self.stream.write(text + '\n')
-        self.stream.flush()
-
-    def done(self):
-        """End the line."""
-        if self.tty and self.width:
-            self.stream.write('\n')
-            self.stream.flush()
-            self.width = 0
+    """
+    return tqdm(total=duration_s, desc='sim', unit='s', file=sys.stderr,
+                disable=None if progress is None else not progress, dynamic_ncols=True,
+                mininterval=0.25, miniters=0,
+                bar_format='{desc} {n:.1f}/{total:g} s |{bar}| {elapsed}<{remaining}{postfix}')
 
 
-def progress_text(monitor, duration):
-    """Return the progress line."""
+def progress_text(monitor):
+    """Return what the bar shows after the simulated time."""
     seen = fused = 0
     if monitor.truth is not None:
         seen = int((monitor.truth.observations > 0).sum())
     if monitor.fused is not None:
         fused = len(monitor.fused.ids)
     fused_observations = 0 if monitor.fused is None else int(monitor.fused.observations.sum())
-    return (f'sim {monitor.sim_time_s():5.1f} / {duration:.1f} s | observations '
-            f"{monitor.sim.get('observations_out', '0')} | landmarks seen {seen}, fused "
-            f'{fused} ({fused_observations} observations) | rejected {monitor.rejected()}')
+    return (f"observations {monitor.sim.get('observations_out', '0')} | landmarks seen "
+            f'{seen}, fused {fused} ({fused_observations} observations) | rejected '
+            f'{monitor.rejected()}')
 
 
-def wait_until(monitor, launcher, predicate, timeout_s, what, progress=None, duration=None):
+def show_progress(bar, monitor):
+    """Move the bar to the simulated time (tqdm limits the redraws)."""
+    if bar.disable:
+        return
+    bar.set_postfix_str(progress_text(monitor), refresh=False)
+    bar.update(min(monitor.sim_time_s(), bar.total) - bar.n)
+
+
+def wait_until(monitor, launcher, predicate, timeout_s, what, progress=None):
     """Spin until ``predicate()``; raise RunError after ``timeout_s``."""
     deadline = time.monotonic() + timeout_s
     while not predicate():
@@ -453,7 +454,7 @@ def wait_until(monitor, launcher, predicate, timeout_s, what, progress=None, dur
         monitor.spin(0.05)
         launcher.check()
         if progress is not None:
-            progress.show(progress_text(monitor, duration))
+            show_progress(progress, monitor)
 
 
 def drive(config, launcher, monitor, params_path, progress):
@@ -468,15 +469,15 @@ def drive(config, launcher, monitor, params_path, progress):
     launcher.start_module('sim', 'landmark_ros.nodes.sim', ros_args)
     wall = config.duration_s / config.time_scale
     wait_until(monitor, launcher, lambda: monitor.sim_finished, 2.0 * wall + 60.0,
-               'the simulation to finish', progress, config.duration_s)
+               'the simulation to finish', progress)
     try:
         wait_until(monitor, launcher, monitor.drained, 15.0,
-                   'the last observations to be fused', progress, config.duration_s)
+                   'the last observations to be fused', progress)
         drained = True
     except RunError:
         drained = False
-    progress.show(progress_text(monitor, config.duration_s), force=True)
-    progress.done()
+    show_progress(progress, monitor)
+    progress.close()
     return drained
 
 
@@ -588,7 +589,7 @@ def run(args, started=None):
         map_path.unlink()  # the fuser would start from it
     params_path = log_dir / 'params.yaml'
     write_params_file(params_path, node_parameters(config, args.fusion, map_path))
-    progress = Progress()
+    progress = progress_bar(config.duration_s, False if args.no_progress else None)
     removed_shm = []
     monitor = None
     try:
@@ -614,15 +615,15 @@ def run(args, started=None):
             removed_shm += launcher.removed_shm
         unclean = [f'{name} (exit {code})' for name, code in codes.items() if code != 0]
     except ProcessExitedError as error:
-        progress.done()
+        progress.close()
         print(f'demo failed: {error}', file=sys.stderr)
         return 2
     except RunError as error:
-        progress.done()
+        progress.close()
         print(f'demo failed: {error}; the process logs are in {log_dir}', file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        progress.done()
+        progress.close()
         print('demo interrupted: every process was stopped', file=sys.stderr)
         return 130
     finally:

@@ -10,8 +10,9 @@ freedom, which gives the interval an honest average NEES falls into.
 from dataclasses import dataclass
 import math
 
-from landmark_ros.core.gaussian import chi2_threshold, mahalanobis_sq
+from landmark_ros.core.gaussian import mahalanobis_sq
 import numpy as np
+from scipy import special
 
 
 @dataclass(frozen=True)
@@ -47,8 +48,8 @@ def chi2_quantile(dof, probability):
     """
     Return a chi-square quantile for any number of degrees of freedom.
 
-    Exact (``chi2_threshold``) up to 100 degrees of freedom, the Wilson-Hilferty
-    approximation beyond (relative error below 1e-3 there).
+    ``scipy.special.chdtri`` on the upper tail, as ``chi2_threshold`` (which also
+    checks its arguments and stops at 100 degrees of freedom).
 
     Parameters
     ----------
@@ -62,22 +63,7 @@ def chi2_quantile(dof, probability):
     float
 
     """
-    if dof <= 100:
-        return chi2_threshold(dof, probability)
-    z = math.sqrt(2.0) * erfinv(2.0 * probability - 1.0)
-    a = 2.0 / (9.0 * dof)
-    return dof * (1.0 - a + z * math.sqrt(a)) ** 3
-
-
-def erfinv(y):
-    """Return the inverse error function (Newton on ``math.erf``; |y| < 1 - 1e-12)."""
-    x = 0.0
-    for _ in range(100):
-        step = (math.erf(x) - y) / (2.0 / math.sqrt(math.pi) * math.exp(-x * x))
-        x -= step
-        if abs(step) < 1e-15:
-            break
-    return x
+    return float(special.chdtri(dof, 1.0 - probability))
 
 
 def anees_interval(landmarks, dof=2, probability=0.95):

@@ -13,8 +13,8 @@ from dataclasses import asdict, dataclass
 import math
 
 from landmark_ros.core.pose2 import wrap_angle
-from landmark_ros.eval import metrics as evaluation
 import numpy as np
+from scipy import special
 
 MAD_TO_SIGMA = 1.4826
 """Median absolute deviation to standard deviation, for Gaussian data."""
@@ -42,7 +42,7 @@ def central_sigma(values, mass=CENTRAL_MASS):
     values = np.asarray(values, dtype=np.float64)
     if not len(values):
         return float('nan')
-    z = math.sqrt(2.0) * evaluation.erfinv(mass)
+    z = math.sqrt(2.0) * float(special.erfinv(mass))
     return float(np.quantile(np.abs(values - np.median(values)), mass) / z)
 
 

@@ -7,6 +7,7 @@ the same code as the nodes, then the fused maps against the true landmark positi
     landmark_mrclam [DATASET] [--config config/mrclam.yaml] [--fusion METHOD]
                     [--through-nodes [--no-progress] [--keep-logs] [--domain-id N]]
                     [--sensor rb|range|bearing] [--json FILE] [--plot FILE] [--calibrate]
+                    [--export-bag OUT]
 
 ``DATASET`` is a MRCLAM directory (default: ``shared/data/mrclam/dataset6`` beside the
 repository). Sightings, poses and ground truth come from ``landmark_ros.mrclam.data``:
@@ -60,6 +61,12 @@ offline (default)
 ``--calibrate``
     Estimate the sensor model from ground truth and print suggested YAML values
     (``landmark_ros.mrclam.calibrate.calibrate`` documents the procedure).
+``--export-bag OUT``
+    Write the dataset as a rosbag2 (MCAP) directory ``OUT`` for ``landmark_bag`` or
+    ``ros2 bag play`` and stop (no replay): ``landmark_ros.bag.export.export_dataset``
+    with the config's ``pose_stddev``, imported for this mode only (it uses the ROS
+    message classes). ``OUT`` must not exist; a bag error prints one line and exits
+    with code 2.
 
 Output
 ------
@@ -124,15 +131,39 @@ def parse_args(argv=None):
                         'processes')
     parser.add_argument('--calibrate', action='store_true',
                         help='estimate the sensor model from ground truth and print it')
+    parser.add_argument('--export-bag', type=Path, default=None, metavar='OUT',
+                        help='write the dataset as a rosbag2 (MCAP) directory OUT for '
+                        'landmark_bag and stop (OUT must not exist)')
     parser.add_argument('--json', type=Path, default=None, help='write the results as JSON')
     parser.add_argument('--plot', type=Path, default=None, help='draw the maps (PNG, PDF...)')
-    parser.add_argument('--no-progress', action='store_true', help='no progress bar')
+    parser.add_argument('--no-progress', action='store_true',
+                        help='no progress bar for --through-nodes (default: a tqdm bar on '
+                        'stderr when it is a terminal)')
     parser.add_argument('--keep-logs', action='store_true',
                         help='keep the node logs of --through-nodes')
     parser.add_argument('--domain-id', type=int, default=None,
                         help='ROS_DOMAIN_ID of --through-nodes (default: 100-149 from the '
                         'process ID)')
     return parser.parse_args(argv)
+
+
+def export_bag(dataset, config, path):
+    """Write the dataset as a bag for ``landmark_bag``; return the exit code."""
+    # ROS message classes, imported for this mode only (as the player).
+    from landmark_ros.bag.export import export_dataset
+    from landmark_ros.bag.storage import BagError
+    try:
+        counts = export_dataset(dataset, config.pose_stddev, path)
+    except BagError as error:
+        print(f'landmark_mrclam: {error}', file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print('landmark_mrclam: interrupted: no bag written', file=sys.stderr)
+        return 130
+    total = sum(counts.values())
+    print(f'wrote {path}: {total} messages on {len(counts)} topics '
+          f'(then: landmark_bag {path} -o OUTPUT --config {config.path})')
+    return 0
 
 
 def main(argv=None):
@@ -148,6 +179,8 @@ def main(argv=None):
         return 2
     print(dataset_report(dataset))
     print(f'config {config.path}; loaded in {load_s:.2f} s')
+    if args.export_bag is not None:
+        return export_bag(dataset, config, args.export_bag)
     if args.calibrate:
         try:
             calibration = calibrate(dataset)
@@ -183,7 +216,7 @@ def main(argv=None):
         try:
             results, info = run_through_nodes(
                 dataset, config, methods,
-                progress=not args.no_progress, keep_logs=args.keep_logs,
+                progress=False if args.no_progress else None, keep_logs=args.keep_logs,
                 domain_id=args.domain_id)
         except RuntimeError as error:  # ReplayError too
             print(f'landmark_mrclam: {error}', file=sys.stderr)

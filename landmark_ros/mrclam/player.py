@@ -40,6 +40,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header
 from std_srvs.srv import Trigger
+from tqdm import tqdm
 
 NS_PER_S = 1_000_000_000
 
@@ -228,7 +229,7 @@ class Player:
     """
 
     def __init__(self, node, executor, dataset, rows, config, methods, launcher,
-                 progress=True, stall_timeout_s=60.0):
+                 progress=None, stall_timeout_s=60.0):
         self.node, self.executor = node, executor
         self.dataset, self.rows, self.config = dataset, rows, config
         self.methods, self.launcher = list(methods), launcher
@@ -289,8 +290,7 @@ class Player:
         self.barriers = 0
         self.barrier_rounds = 0
         self._last_progress = time.monotonic()
-        self._last_bar = 0.0
-        self._last_decile = -1
+        self._bar = None
         self._probe_stamp_ns = None
 
     # Callbacks -------------------------------------------------------------------------
@@ -524,42 +524,21 @@ class Player:
                 self.launcher.check()
                 last_check = now
             self.spin(0.05)
-        self.show_progress(final=True)
+        self.show_progress()
 
-    def show_progress(self, final=False):
-        """
-        Show the progress on stderr.
-
-        A bar redrawn about 5 times a second on a terminal; otherwise a line at every
-        10 % (logs and pipes get no carriage returns).
-        """
-        if not self.progress:
+    def show_progress(self):
+        """Update the progress bar: clouds through the observers, data time, speed."""
+        bar = self._bar
+        if bar is None or bar.disable:
             return
-        now = time.monotonic()
-        total = len(self.starts)
         done = sum(self.out)
-        tty = sys.stderr.isatty()
-        decile = 10 * done // max(total, 1)
-        if tty and not final and now - self._last_bar < 0.2:
-            return
-        if not tty and decile <= self._last_decile:
-            return
-        self._last_bar = now
-        self._last_decile = decile
-        elapsed = now - self._t_play
-        dataset_s = (int(self.msg_stamps_ns[min(done, total) - 1] - self.msg_stamps_ns[0])
-                     / NS_PER_S if done and total else 0.0)
+        elapsed = time.monotonic() - self._t_play
+        dataset_s = (int(self.msg_stamps_ns[min(done, bar.total) - 1] - self.msg_stamps_ns[0])
+                     / NS_PER_S if done and bar.total else 0.0)
         speed = dataset_s / elapsed if elapsed > 0 else 0.0
-        width = 30
-        filled = int(width * done / max(total, 1))
-        line = (f'[{"#" * filled}{"." * (width - filled)}] {done}/{total} clouds, '
-                f'{dataset_s:6.1f} s of data in {elapsed:5.1f} s ({speed:5.1f}x real time), '
-                f'{self.barriers} barriers')
-        if tty:
-            sys.stderr.write('\r' + line + ('\n' if final else ''))
-        else:
-            sys.stderr.write(line + '\n')
-        sys.stderr.flush()
+        bar.set_postfix_str(f'{dataset_s:.1f} s of data, {speed:.1f}x real time, '
+                            f'{self.barriers} barriers', refresh=False)
+        bar.update(done - bar.n)
 
     def finish(self, timeout_s=60.0):
         """
@@ -597,9 +576,31 @@ class Player:
         self.connect()
         self.probe()
         self._t_play = time.monotonic()
-        self.play()
+        self._bar = progress_bar(len(self.starts), self.progress)
+        try:
+            self.play()
+        finally:
+            self._bar.close()
         self.play_wall_s = time.monotonic() - self._t_play
         return self.finish()
+
+
+def progress_bar(total, progress=None):
+    """
+    Return the replay's tqdm bar on stderr, counting observation clouds.
+
+    Parameters
+    ----------
+    total : int
+        Clouds to play.
+    progress : bool or None
+        None: a bar only when stderr is a terminal (nothing in logs and pipes);
+        True: always; False: never (``--no-progress``).
+
+    """
+    return tqdm(total=total, desc='replay', unit='cloud', file=sys.stderr,
+                disable=None if progress is None else not progress, dynamic_ncols=True,
+                mininterval=0.2, miniters=0)
 
 
 def domain_id_for(pid=None):
@@ -607,14 +608,15 @@ def domain_id_for(pid=None):
     return 100 + (os.getpid() if pid is None else pid) % 50
 
 
-def run_through_nodes(dataset, config, methods, progress=True, keep_logs=False, out=print,
+def run_through_nodes(dataset, config, methods, progress=None, keep_logs=False, out=print,
                       domain_id=None):
     """
     Replay the dataset through the real nodes; return the results per method.
 
     The nodes run as processes of ``landmark_ros.demo.launcher.Launcher`` (stopped with
     SIGINT, then SIGTERM and SIGKILL, whatever happens) in a private ROS domain on the
-    loopback interface; this process joins it with its own context.
+    loopback interface; this process joins it with its own context. ``progress``
+    chooses the progress bar as in ``progress_bar`` (None: only on a terminal).
 
     Returns
     -------

@@ -175,7 +175,10 @@ def landmarks_from_rows(ids, z, R, pose, P_pose, sensor_pose=None, R_bias=None):
         P_pose = P_pose[kept] if P_pose.ndim == 3 else P_pose
     with np.errstate(over='ignore', invalid='ignore'):  # huge ranges: caught below
         m, P_m, P_dep = landmark_to_world_dependent(pose, P_pose, z, R, R_bias, sensor_pose)
-        finite = np.isfinite(m.sum(axis=1) + P_m.sum(axis=(1, 2)) + P_dep.sum(axis=(1, 2)))
+        if np.isfinite(m).all() and np.isfinite(P_m).all() and np.isfinite(P_dep).all():
+            finite = np.ones(len(m), bool)
+        else:
+            finite = np.isfinite(m.sum(axis=1) + P_m.sum(axis=(1, 2)) + P_dep.sum(axis=(1, 2)))
     # Only covariances the core handles leave the observer (core.gaussian's range).
     status = range_status(P_m, finite)
     good = finite & (status == 0)

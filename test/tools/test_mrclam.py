@@ -355,6 +355,34 @@ def test_one_method_and_plot(noisy_dataset, tmp_path):
     assert image.stat().st_size > 10000
 
 
+def test_export_bag_then_landmark_bag_gives_the_replay_map(noisy_dataset, tmp_path, capsys):
+    # The README's path: landmark_mrclam --export-bag, then landmark_bag on the bag.
+    from landmark_ros.bag import cli as bag_cli
+    directory = noisy_dataset[0]
+    bag, fused = tmp_path / 'dataset_bag', tmp_path / 'fused'
+    assert main([str(directory), '--export-bag', str(bag)]) == 0
+    printed = capsys.readouterr().out
+    assert f'wrote {bag}:' in printed
+    assert '== summary' not in printed  # the export stops before any replay
+    assert list(bag.glob('*.mcap'))
+    replay, processed = tmp_path / 'replay.json', tmp_path / 'bag.json'
+    assert main([str(directory), '--fusion', 'split_covariance_intersection',
+                 '--json', str(replay)]) == 0
+    assert bag_cli.main([str(bag), '-o', str(fused), '--config', str(CONFIG), '--json',
+                         str(processed), '--no-progress']) == 0
+    expected = json.loads(replay.read_text())['summary'][0]
+    entry = json.loads(processed.read_text())['summary'][0]
+    assert [lm['id'] for lm in entry['landmarks']] == [lm['id'] for lm in expected['landmarks']]
+    for key in ('rmse_m', 'anees'):
+        assert entry[key] == pytest.approx(expected[key], rel=1e-9, abs=1e-12)
+    # An existing output: one line on stderr, exit code 2, the bag left as it was.
+    before = sorted(p.name for p in bag.iterdir())
+    assert main([str(directory), '--export-bag', str(bag)]) == 2
+    error = capsys.readouterr().err
+    assert error.startswith('landmark_mrclam: ') and error.count('\n') == 1, error
+    assert sorted(p.name for p in bag.iterdir()) == before
+
+
 def test_missing_dataset_is_an_error(tmp_path, capsys):
     assert main([str(tmp_path / 'nowhere')]) == 2
     assert 'no MRCLAM dataset directory' in capsys.readouterr().err
