@@ -5,7 +5,10 @@ The ``landmark_fuser`` node, the MRCLAM replay, the Monte Carlo study and the
 benchmarks all drive this one object. Rows are checked (``rows.landmark_row_problems``)
 and queued per source in bounded queues; ``fuse_queued`` fuses everything queued, in
 arrival order, with one ``LandmarkMap.update`` (a batch gives the map its rows would
-give one by one). Time is integer nanoseconds throughout.
+give one by one). Partial views (range-only, bearing-only rows of the constraint sources,
+``add_constraints``) are checked by ``views.constraint_row_problems`` and handled by
+``views.PartialViews`` on the same map, before the queued landmark rows of the same
+``fuse_queued``. Time is integer nanoseconds throughout.
 """
 
 from collections import Counter, deque
@@ -261,7 +264,7 @@ class Fuser:
 
     def fuse_queued(self) -> Optional[UpdateResult]:
         """
-        Fuse every queued row, in arrival order, in one batch.
+        Fuse every queued row, in arrival order, in one batch (the queued views first).
 
         Returns
         -------
