@@ -697,6 +697,76 @@ class LandmarkMap:
             self._buffers.pop(row, None)
         self._method.retire(rows)
         return len(rows)
+    # Estimates from elsewhere -------------------------------------------------------
+
+    def estimate(self, landmark_id):
+        """
+        Return the estimate of a confirmed landmark, or None.
+
+        Returns
+        -------
+        m : ndarray, shape (2,) [m]
+        P : ndarray, shape (2, 2) [m^2]
+            Total covariance.
+        P_dep : ndarray, shape (2, 2) [m^2]
+            Its dependent part.
+
+        """
+        row = self._row.get(int(landmark_id))
+        if row is None or not self.confirmed[row]:
+            return None
+        return (self.mean[row].copy(), self.cov_ind[row] + self.cov_dep[row],
+                self.cov_dep[row].copy())
+
+    def set_estimate(self, landmark_id, m, P, P_dep, source, stamp_ns=0, observations=1):
+        """
+        Insert or replace a confirmed landmark's estimate computed outside the map.
+
+        For partial views (``core.partial``): the estimate is held the way the fusion
+        method holds one (``independent``: all independent; covariance intersection:
+        all dependent). With split CI the landmark's per-source sums are collapsed
+        into one synthetic source ``source`` holding the estimate: later range-bearing
+        rows of other sources fold with it by split CI, but what each earlier source
+        contributed is no longer told apart. Any waiting observations of the landmark
+        are dropped.
+
+        Parameters
+        ----------
+        landmark_id : int
+            The landmark's ID.
+        m : array_like, shape (2,) [m]
+            Its position.
+        P : array_like, shape (2, 2) [m^2]
+            Total covariance, positive definite.
+        P_dep : array_like, shape (2, 2) [m^2]
+            Its dependent part.
+        source : str
+            Source name the estimate is booked under.
+        stamp_ns : int
+            Stamp of the newest view in it [ns].
+        observations : int
+            Views the estimate adds to the landmark's count.
+
+        """
+        m = np.asarray(m, dtype=np.float64).reshape(2)
+        P = np.asarray(P, dtype=np.float64).reshape(2, 2)
+        P_dep = np.asarray(P_dep, dtype=np.float64).reshape(2, 2)
+        code = self.source_code(source)
+        row = int(self._rows_of(np.array([landmark_id], np.int64))[0])
+        mean, P_ind, P_dep = self._method.held(m, P - P_dep, P_dep)
+        if isinstance(self._method, _SplitCovarianceIntersection):
+            self._method.parts.clear(row)
+            self._method.parts.add(np.array([row], np.int64), np.array([code], np.int64),
+                                   mean[None], P_ind[None], P_dep[None])
+        self.mean[row], self.cov_ind[row], self.cov_dep[row] = mean, P_ind, P_dep
+        self.confirmed[row] = True
+        self.observations[row] += int(observations)
+        self.consecutive[row] = 0
+        if self.first_stamp_ns[row] == _NO_STAMP:
+            self.first_stamp_ns[row] = int(stamp_ns)
+        self.last_stamp_ns[row] = max(int(self.last_stamp_ns[row]), int(stamp_ns))
+        self._seen(source)[row] = True
+        self._buffers.pop(row, None)
 
     # Output --------------------------------------------------------------------
 

@@ -6,8 +6,8 @@ the same code as the nodes, then the fused maps against the true landmark positi
 
     landmark_mrclam [DATASET] [--config config/mrclam.yaml] [--fusion METHOD]
                     [--through-nodes [--no-progress] [--keep-logs] [--domain-id N]]
-                    [--json FILE] [--plot FILE] [--calibrate] [--export-bag OUT]
-                    [--hide-ids]
+                    [--sensor rb|range|bearing] [--json FILE] [--plot FILE] [--calibrate]
+                    [--export-bag OUT] [--hide-ids]
 
 ``DATASET`` is a MRCLAM directory (default: ``shared/data/mrclam/dataset6`` beside the
 repository). Sightings, poses and ground truth come from ``landmark_ros.mrclam.data``:
@@ -54,6 +54,10 @@ offline (default)
     through a quaternion: about 1e-16 rad; on dataset6 the means agree to 3e-15 m).
     Without the barrier the fusers see some rows of a landmark in another order, and
     the maps differ by millimetres to centimetres (covariance intersection).
+``--sensor range`` / ``--sensor bearing``
+    The offline replay with the bearings (ranges) dropped: each observer turns the
+    range-only (bearing-only) rows into ``landmark_constraints`` and the fusers place
+    the landmarks from those views (``pipeline.views``). Offline only so far.
 ``--hide-ids``
     Landmarks without IDs: the observation messages go without their ``id`` field,
     the fusers associate the sightings (``pipeline.tracks``, parameter
@@ -85,7 +89,8 @@ with its 95 % interval, then a summary table, one row per method.
      "dataset": {"path", "robots", "duration_s", "counts": {...}},
      "config": {"observer": {...}, "fuser": {...}, "pose_stddev": [x, y, yaw]},
      "summary": [                      # one entry per fusion method, in run order
-        {"fusion", "rmse_m", "anees", "anees_interval": [low, high], "consistent",
+        {"fusion", "sensor", "landmarks_initialised",
+         "rmse_m", "anees", "anees_interval": [low, high], "consistent",
          "landmarks_fused", "observations_used", "observations_rejected",
          "landmarks": [                # the method's landmarks, inside its entry
             {"id", "x", "y", "cov": [[xx, xy], [xy, yy]], "error_m", "nees",
@@ -110,7 +115,7 @@ from landmark_ros.core.landmark_map import FUSION_METHODS
 from landmark_ros.mrclam.calibrate import calibrate, format_calibration
 from landmark_ros.mrclam.config import config_values, default_dataset_path, load_config
 from landmark_ros.mrclam.data import load_dataset
-from landmark_ros.mrclam.offline import run_offline
+from landmark_ros.mrclam.offline import run_offline, SENSORS
 from landmark_ros.mrclam.report import (agreement, dataset_dict, dataset_report,
                                         format_agreement, format_association,
                                         format_node_info, plot, report, write_json)
@@ -128,6 +133,9 @@ def parse_args(argv=None):
                         help='ROS params file (default: config/mrclam.yaml)')
     parser.add_argument('--fusion', choices=FUSION_METHODS, default=None,
                         help='one fusion method (default: all three)')
+    parser.add_argument('--sensor', choices=SENSORS, default='rb',
+                        help='rb: range and bearing; range: bearings dropped (range-only '
+                        'views); bearing: ranges dropped (bearing-only views)')
     parser.add_argument('--through-nodes', action='store_true',
                         help='replay over DDS through landmark_observer and landmark_fuser '
                         'processes')
@@ -201,8 +209,12 @@ def main(argv=None):
         print('landmark_mrclam: --hide-ids works offline only for now', file=sys.stderr)
         return 2
     methods = [args.fusion] if args.fusion else list(FUSION_METHODS)
+    if args.through_nodes and args.sensor != 'rb':
+        print('landmark_mrclam: --sensor range/bearing runs offline only for now',
+              file=sys.stderr)
+        return 2
     t0 = time.monotonic()
-    run = run_offline(dataset, config, methods, hide_ids=args.hide_ids)
+    run = run_offline(dataset, config, methods, sensor=args.sensor, hide_ids=args.hide_ids)
     offline = run.results
     offline_s = time.monotonic() - t0
     problems = run.problems

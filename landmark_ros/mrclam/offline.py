@@ -13,6 +13,10 @@ every ``FUSE_CHUNK`` messages, or every ``max_queue_messages`` if fewer (``fuse_
 a batch gives the same map as its rows one by one). Time is integer nanoseconds
 (``Rows.stamps_ns``, the stamps the player publishes); float seconds appear only in the
 report.
+
+``sensor`` keeps both columns (``rb``) or drops one: ``range`` sends range-only rows,
+``bearing`` bearing-only rows; the observers turn them into constraints (partial
+views), which go to every fuser's constraint source ``/robotN/landmark_constraints``.
 """
 
 from collections import Counter
@@ -22,8 +26,8 @@ from typing import Dict, Iterator, List, Sequence, Tuple
 from landmark_ros.eval.metrics import evaluate_association
 from landmark_ros.mrclam.report import method_result, MethodResult
 from landmark_ros.pipeline.fuser import Fuser
-from landmark_ros.pipeline.observer import (LandmarkBatch, ObservationMessage, Observer,
-                                            THROUGHPUT_COUNTERS)
+from landmark_ros.pipeline.observer import (LandmarkBatch, NOT_PROBLEMS, ObservationMessage,
+                                            Observer)
 from landmark_ros.pipeline.tracks import ASSOCIATION_COUNTERS
 import numpy as np
 
@@ -31,7 +35,12 @@ FUSE_CHUNK = 1024
 """Messages the fusers queue before ``Fuser.fuse_queued`` (at most ``max_queue_messages``)."""
 
 FUSER_NOT_PROBLEMS = frozenset({'messages_in', 'observations_in', 'fused', 'gated_out',
-                                *ASSOCIATION_COUNTERS})
+                                'constraints_in', 'views_fused', 'views_gated',
+                                'landmarks_initialised', 'views_superseded',
+                                'landmarks_reinitialised', *ASSOCIATION_COUNTERS})
+
+SENSORS = ('rb', 'range', 'bearing')
+"""Values of ``sensor``: the columns of each observation message kept."""
 """Per-source fuser counters that are not row checks (gating is the fusion's result)."""
 
 
@@ -59,7 +68,7 @@ class OfflineRun:
         problems = Counter()
         for observer in self.observers:
             problems.update({k: v for k, v in observer.counters.counts.items()
-                             if k not in THROUGHPUT_COUNTERS and v})
+                             if k not in NOT_PROBLEMS and v})
         for fuser in list(self.fusers.values())[:1]:
             for source in fuser.sources.values():
                 problems.update({k: v for k, v in source.counts.items()
@@ -68,7 +77,7 @@ class OfflineRun:
 
 
 def observe(rows, observers: Sequence[Observer], P_pose,
-            hide_ids: bool = False) -> Iterator[Tuple[int, LandmarkBatch]]:
+            sensor: str = 'rb', hide_ids: bool = False) -> Iterator[Tuple[int, LandmarkBatch]]:
     """
     Feed every observation message to its robot's observer, in global time order.
 
@@ -83,6 +92,8 @@ def observe(rows, observers: Sequence[Observer], P_pose,
         One per robot index of ``rows.robot``.
     P_pose : ndarray, shape (3, 3)
         Covariance of every pose [m^2, m rad, rad^2].
+    sensor : str
+        One of ``SENSORS``: ``range`` drops the bearings, ``bearing`` the ranges.
     hide_ids : bool
         Send the messages without their ``id`` column (landmarks without IDs); each
         batch's ``token`` is then the slice ``(a, b)`` of its rows in ``rows``.
@@ -104,6 +115,8 @@ def observe(rows, observers: Sequence[Observer], P_pose,
         observer = observers[robot]
         batches = observer.add_pose(stamp_ns, rows.poses[a], P_pose, now_ns=stamp_ns)
         columns = {'id': rows.ids[a:b], 'range': rows.z[a:b, 0], 'bearing': rows.z[a:b, 1]}
+        if sensor != 'rb':
+            del columns['bearing' if sensor == 'range' else 'range']
         if hide_ids:
             del columns['id']
         batches += observer.add_observations(
@@ -112,7 +125,8 @@ def observe(rows, observers: Sequence[Observer], P_pose,
             yield robot, batch
 
 
-def run_offline(dataset, config, methods, chunk=FUSE_CHUNK, hide_ids=False) -> OfflineRun:
+def run_offline(dataset, config, methods, chunk=FUSE_CHUNK, sensor='rb',
+                hide_ids=False) -> OfflineRun:
     """
     Replay a dataset through the pipeline objects, one fuser per method.
 
@@ -129,6 +143,8 @@ def run_offline(dataset, config, methods, chunk=FUSE_CHUNK, hide_ids=False) -> O
         Messages the fusers queue between two ``fuse_queued`` calls, capped at the
         fuser's ``max_queue_messages`` so no queue overflows; the maps do not depend
         on it.
+    sensor : str
+        One of ``SENSORS``.
     hide_ids : bool
         Strip the IDs before the observers: the fusers associate the sightings, and
         each result gets its ``association`` (``eval.metrics.evaluate_association``);
@@ -141,22 +157,33 @@ def run_offline(dataset, config, methods, chunk=FUSE_CHUNK, hide_ids=False) -> O
     """
     rows = dataset.rows()
     observers = [Observer(config.observer) for _ in dataset.robots]
-    fusers = {method: Fuser(replace(config.fuser, fusion=method), rows.topics)
+    if sensor not in SENSORS:
+        raise ValueError(f'sensor must be one of {SENSORS}, got {sensor!r}')
+    constraint_topics = [topic.rsplit('/', 1)[0] + '/landmark_constraints'
+                         for topic in rows.topics]
+    fusers = {method: Fuser(replace(config.fuser, fusion=method), rows.topics,
+                            constraint_sources=constraint_topics)
               for method in methods}
     limit = max(1, min(int(chunk), config.fuser.max_queue_messages))
     queued = messages = 0
     sightings: Dict[str, list] = {method: [] for method in methods}
     for fuser in fusers.values():
         fuser.association_log = [] if hide_ids else None
-    for robot, batch in observe(rows, observers, config.P_pose, hide_ids):
+    for robot, batch in observe(rows, observers, config.P_pose, sensor, hide_ids):
         source = rows.topics[robot]
         for method, fuser in fusers.items():
-            added = fuser.add_landmarks(source, batch.stamp_ns, batch.ids, batch.m, batch.P,
-                                        batch.P_dep, classes=batch.classes, scan=batch.scan)
-            if hide_ids and added:
-                a, b = batch.token
-                whole = added == b - a
-                sightings[method].append((rows.ids[a:b], batch.m, batch.P) if whole else None)
+            if len(batch.ids) or sensor == 'rb':
+                added = fuser.add_landmarks(source, batch.stamp_ns, batch.ids, batch.m,
+                                            batch.P, batch.P_dep, classes=batch.classes,
+                                            scan=batch.scan)
+                if hide_ids and added:
+                    a, b = batch.token
+                    whole = added == b - a
+                    sightings[method].append(
+                        (rows.ids[a:b], batch.m, batch.P) if whole else None)
+            if len(batch.constraints):
+                fuser.add_constraints(constraint_topics[robot], batch.stamp_ns,
+                                      batch.constraints.columns())
         messages += 1
         queued += 1
         if queued >= limit:
@@ -173,10 +200,13 @@ def run_offline(dataset, config, methods, chunk=FUSE_CHUNK, hide_ids=False) -> O
             association = _association(fuser, sightings[method], dataset.landmarks)
             for record in records:
                 record['id'] = association.track_to_true.get(record['id'], record['id'])
-        results[method] = method_result(method, records, dataset.landmarks,
-                                        sum(c['fused'] for c in counts),
-                                        sum(c['gated_out'] for c in counts))
-        results[method].association = association
+        result = method_result(method, records, dataset.landmarks,
+                               sum(c['fused'] + c['views_fused'] for c in counts),
+                               sum(c['gated_out'] + c['views_gated'] for c in counts))
+        result.sensor = sensor
+        result.landmarks_initialised = sum(c['landmarks_initialised'] for c in counts)
+        result.association = association
+        results[method] = result
     return OfflineRun(results, observers, fusers, messages)
 
 

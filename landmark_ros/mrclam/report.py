@@ -33,6 +33,10 @@ class MethodResult:
     """Observations fused (accepted) over the run."""
     observations_rejected: int
     """Observations gated out or left out of a confirmation."""
+    sensor: str = 'rb'
+    """Which columns the replay kept: ``rb`` (range-bearing), ``range`` or ``bearing``."""
+    landmarks_initialised: int = 0
+    """Landmarks placed from partial views (``pipeline.views``)."""
     association: object = None
     """``eval.metrics.AssociationSummary`` of a run without IDs (``--hide-ids``), else None."""
 
@@ -50,7 +54,9 @@ class MethodResult:
                 'observations': int(record['observations']),
                 'rejections': int(record.get('rejections', 0))})
         low, high = self.summary.anees_interval
-        return {'fusion': self.fusion, 'rmse_m': _number(self.summary.rmse_m),
+        return {'fusion': self.fusion, 'sensor': self.sensor,
+                'landmarks_initialised': int(self.landmarks_initialised),
+                'rmse_m': _number(self.summary.rmse_m),
                 'anees': _number(self.summary.anees),
                 'anees_interval': [_number(low), _number(high)],
                 'consistent': bool(self.summary.consistent),

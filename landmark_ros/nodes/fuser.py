@@ -3,7 +3,8 @@ landmark_fuser: the landmark observations of several robots in, one fused map ou
 
 Subscribes every topic of ``input_topics`` (landmark clouds, one source each),
 queues their rows and fuses them by landmark ID in batches with
-``landmark_ros.pipeline.fuser.Fuser``. Publishes the confirmed map on
+``landmark_ros.pipeline.fuser.Fuser``; every topic of ``constraint_topics`` (partial
+views: range-only and bearing-only, one source each) too. Publishes the confirmed map on
 ``fused_landmarks`` (transient local: late subscribers get it), the landmarks changed
 since the last update on ``fused_landmark_updates``, RViz markers on
 ``fused_markers`` and ``/diagnostics``; services ``~/reset`` and ``~/save``. With
@@ -21,7 +22,7 @@ from landmark_ros.ros.conversions import stamp_ns
 from landmark_ros.ros.markers import delete_all, landmark_markers
 from landmark_ros.ros.params import declare_config, keep_in_sync
 from landmark_ros.ros.qos import LATCHED  # noqa: F401 (the map outputs' QoS, re-exported)
-from landmark_ros.ros.schemas import landmark_message, read_landmark_cloud
+from landmark_ros.ros.schemas import landmark_message, read_constraints, read_landmark_cloud
 from landmark_ros.ros.subscriptions import take_waiting
 import numpy as np
 from rclpy.node import Node
@@ -60,7 +61,17 @@ class LandmarkFuser(Node):
                 qos.reliable_input(config.input_depth), qos_overriding_options=overrides)
         self._source_of = {topic: subscription.topic_name
                            for topic, subscription in self._subscriptions_by_topic.items()}
-        self.fuser = Fuser(config, list(self._source_of.values()), self.get_logger())
+        self._constraint_subs = {}
+        for topic in (topic for topic in config.constraint_topics if topic):
+            self._constraint_subs[topic] = self.create_subscription(
+                PointCloud2, topic, self._guard(
+                    lambda msg, topic=topic: self.on_constraints(msg, topic),
+                    'constraints callback'),
+                qos.reliable_input(config.input_depth), qos_overriding_options=overrides)
+        self._constraint_source_of = {topic: subscription.topic_name
+                                      for topic, subscription in self._constraint_subs.items()}
+        self.fuser = Fuser(config, list(self._source_of.values()), self.get_logger(),
+                           list(self._constraint_source_of.values()))
         keep_in_sync(self, lambda: self.fuser.config, self._apply_config)
         self._markers_stale = True
         self.fuser.load()
@@ -117,6 +128,21 @@ class LandmarkFuser(Node):
             self.fuser.add_landmarks(source, stamp_ns(cloud.header.stamp), rows.ids, rows.m,
                                      rows.P, rows.P_dep, cloud.header.frame_id, now,
                                      extras.classes, extras.scan)
+
+    def on_constraints(self, msg, topic):
+        """Decode constraint clouds (this one and those waiting) and queue their views."""
+        source = self._constraint_source_of[topic]
+        now = self.get_clock().now().nanoseconds
+        for cloud in [msg] + take_waiting(self._constraint_subs[topic], PointCloud2,
+                                          self.config.max_batch_messages - 1):
+            try:
+                columns = read_constraints(cloud)
+            except CloudError as error:
+                self.fuser.reject(source, 'messages_in')
+                self.fuser.reject(source, error.reason, 1, f'message dropped: {error}')
+                continue
+            self.fuser.add_constraints(source, stamp_ns(cloud.header.stamp), columns,
+                                       cloud.header.frame_id, now)
 
     def fuse_queued(self):
         """Fuse every queued row, in arrival order, in one batch."""

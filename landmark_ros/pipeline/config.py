@@ -207,6 +207,15 @@ class FuserConfig(ConfigBase):
     input_topics: tuple = param(
         ('landmarks',), 'Landmark topics to fuse, one per robot (each one source).',
         read_only=True)
+    constraint_topics: tuple = param(
+        ('landmark_constraints',), 'Topics of partial views (range-only, bearing-only '
+        "rows), one per robot (each one source); [''] disables.", read_only=True)
+    min_triangulation_angle_deg: float = param(
+        5.0, 'Smallest angle two bearing rays must cross at before the views of a '
+        'landmark may place it [deg].', read_only=True, low=0.0, high=90.0)
+    max_views_per_landmark: int = param(
+        50, 'Views kept per landmark waiting to be placed; the oldest is dropped beyond.',
+        read_only=True, low=2, high=100000)
     fusion: str = param(
         'split_covariance_intersection',
         'independent, covariance_intersection or split_covariance_intersection.',
@@ -291,6 +300,10 @@ class FuserConfig(ConfigBase):
             raise ValueError('input_topics must list at least one topic name')
         if len(set(self.input_topics)) != len(self.input_topics):
             raise ValueError('input_topics must not repeat a topic')
+        topics = [topic for topic in self.constraint_topics if topic]
+        if len(set(topics)) != len(topics) or set(topics) & set(self.input_topics):
+            raise ValueError('constraint_topics must not repeat a topic nor name an input '
+                             'topic')
         if self.shard_index >= self.shard_count:
             raise ValueError(f'shard_index must be below shard_count ({self.shard_count}), '
                              f'got {self.shard_index}')

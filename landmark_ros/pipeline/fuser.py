@@ -5,7 +5,10 @@ The ``landmark_fuser`` node, the MRCLAM replay, the Monte Carlo study and the
 benchmarks all drive this one object. Rows are checked (``rows.landmark_row_problems``)
 and queued per source in bounded queues; ``fuse_queued`` fuses everything queued, in
 arrival order, with one ``LandmarkMap.update`` (a batch gives the map its rows would
-give one by one). Time is integer nanoseconds throughout.
+give one by one). Partial views (range-only, bearing-only rows of the constraint sources,
+``add_constraints``) are checked by ``views.constraint_row_problems`` and handled by
+``views.PartialViews`` on the same map, before the queued landmark rows of the same
+``fuse_queued``. Time is integer nanoseconds throughout.
 """
 
 from collections import Counter, deque
@@ -19,10 +22,12 @@ from landmark_ros.pipeline.config import FuserConfig
 from landmark_ros.pipeline.counters import Counters, Status
 from landmark_ros.pipeline.rows import landmark_row_problems, MAX_LABEL_ID, UNKNOWN_ID
 from landmark_ros.pipeline.tracks import Scan, Tracker
+from landmark_ros.pipeline.views import (constraint_row_problems, NOT_PROBLEMS as VIEW_COUNTS,
+                                         PartialViews, views_from_columns)
 import numpy as np
 from numpy.typing import NDArray
 
-NOT_PROBLEMS = frozenset({'landmarks_confirmed', 'saves', 'other_shard'})
+NOT_PROBLEMS = frozenset({'landmarks_confirmed', 'saves', 'other_shard'}) | VIEW_COUNTS
 """Fuser counters that do not make its status a warning (a re-initialisation does)."""
 
 
@@ -60,6 +65,8 @@ class Source:
     queue: deque = field(default_factory=deque)
     counts: Counter = field(default_factory=Counter)
     last_message_ns: Optional[int] = None
+    optional: bool = False
+    """A constraint source: not stale before its first message (rb-only teams)."""
 
 
 class Fuser:
@@ -75,6 +82,9 @@ class Fuser:
     logger : object, optional
         With ``info``, ``warning`` and ``error`` methods taking one string (an rclpy
         logger or a ``logging.Logger``).
+    constraint_sources : sequence of str
+        The sources of partial views (``add_constraints``; the nodes use the resolved
+        ``constraint_topics``); none by default.
 
     Raises
     ------
@@ -84,7 +94,8 @@ class Fuser:
     """
 
     def __init__(self, config: FuserConfig, sources: Sequence[str],
-                 logger: Any = None) -> None:
+                 logger: Any = None, constraint_sources: Sequence[str] = ()) -> None:
+        sources = list(sources) + list(constraint_sources)
         if len(set(sources)) != len(sources):
             raise ValueError(f'input_topics name one topic twice once resolved: {list(sources)}')
         self.config = config
@@ -92,7 +103,8 @@ class Fuser:
         self.counters = Counters(self.logger.warning, config.log_throttle_s)
         self.map = LandmarkMap(config.fusion, config.gate_probability,
                                config.min_observations, config.max_consecutive_rejections)
-        self.sources: Dict[str, Source] = {name: Source(name) for name in sources}
+        self.sources: Dict[str, Source] = {
+            name: Source(name, optional=name in constraint_sources) for name in sources}
         self._sequence = itertools.count()
         self._reported: Dict[str, int] = {}
         self.map_changed = False
@@ -105,6 +117,9 @@ class Fuser:
         self.association_log: Optional[List[tuple]] = None
         """Set to a list to record, per message with rows without an ID, in fuse order,
         ``(source, stamp_ns, ids)``: the ID each such row got (-1: dropped as ambiguous)."""
+        self.views = PartialViews(self.map, config.min_triangulation_angle_deg,
+                                  config.max_views_per_landmark, config.gate_probability,
+                                  config.max_consecutive_rejections)
 
     def reconfigure(self, config: FuserConfig) -> None:
         """Apply new parameters (those that may change at run time)."""
@@ -197,13 +212,82 @@ class Fuser:
                                    int(stamp_ns), classes, scan, bool(unlabelled.any())))
         return int(valid.sum())
 
+    def add_constraints(self, source: str, stamp_ns: int, columns: Dict[str, NDArray[Any]],
+                        frame_id: Optional[str] = None, now_ns: Optional[int] = None) -> int:
+        """
+        Check the rows of one constraint message (partial views) and queue the valid ones.
+
+        Parameters
+        ----------
+        source : str
+            One of the constraint sources.
+        stamp_ns : int
+            The message stamp [ns].
+        columns : dict of str to ndarray, shape (N,)
+            ``views.CONSTRAINT_COLUMNS``.
+        frame_id : str, optional
+            The message's frame, checked against ``world_frame``; None skips the check.
+        now_ns : int, optional
+            Arrival time [ns], for the stale-source check.
+
+        Returns
+        -------
+        int
+            The rows queued.
+
+        """
+        state = self.sources[source]
+        if now_ns is not None:
+            state.last_message_ns = now_ns
+        state.counts['messages_in'] += 1
+        if frame_id is not None and frame_id != self.config.world_frame:
+            self.reject(source, 'wrong_frame', 1,
+                        f"constraints in frame '{frame_id}', expected "
+                        f"'{self.config.world_frame}': message dropped")
+            return 0
+        ids = np.asarray(columns['id'])
+        state.counts['constraints_in'] += len(ids)
+        valid, reasons = constraint_row_problems(columns)
+        if self.config.shard_count > 1:
+            other = valid & (ids % self.config.shard_count != self.config.shard_index)
+            if other.any():
+                state.counts['other_shard'] += int(other.sum())
+                valid &= ~other
+        for reason, count in reasons.items():
+            self.reject(source, reason, count, f'{count} of {len(valid)} constraint rows '
+                        'rejected')
+        if not valid.any():
+            return 0
+        if not valid.all():
+            columns = {name: np.asarray(values)[valid] for name, values in columns.items()}
+        self.views.add(source, stamp_ns, np.asarray(columns['id']).astype(np.int64),
+                       views_from_columns(columns), np.asarray(columns['view_group']))
+        return int(valid.sum())
+
+    def _fuse_views(self) -> None:
+        """Take the queued views: buffer, initialise or update landmarks (``views``)."""
+        if not self.views.queue:
+            return
+        result = self.views.fuse()
+        for name, counts in result.counts.items():
+            for reason, count in counts.items():
+                if reason in ('views_gated', 'views_too_close', 'views_dropped'):
+                    self.reject(name, reason, count)
+                else:
+                    self.sources[name].counts[reason] += count
+                    if reason in ('landmarks_initialised', 'landmarks_reinitialised'):
+                        self.counters.add(reason, count)
+        if result.changed_ids:
+            self.map_changed = self.unsaved = True
+            self._updated.append(np.unique(np.array(result.changed_ids, np.int64)))
+
     def queued_messages(self) -> int:
         """Return the number of messages waiting in all queues."""
         return sum(len(state.queue) for state in self.sources.values())
 
     def fuse_queued(self) -> Optional[UpdateResult]:
         """
-        Fuse every queued row, in arrival order, in one batch.
+        Fuse every queued row, in arrival order, in one batch (the queued views first).
 
         Returns
         -------
@@ -211,6 +295,7 @@ class Fuser:
             What the update did; None when nothing was queued.
 
         """
+        self._fuse_views()
         items = []
         for state in self.sources.values():
             items += [(item, state.name) for item in state.queue]
@@ -321,6 +406,7 @@ class Fuser:
         count = len(self.map)
         self.map.reset()
         self.tracker.reset()
+        self.views.reset()
         for state in self.sources.values():
             state.queue.clear()
         self._updated = []
@@ -348,7 +434,8 @@ class Fuser:
         for state in self.sources.values():
             age = None if state.last_message_ns is None else (
                 now_ns - state.last_message_ns) * 1e-9
-            is_stale = age is None or age > self.config.source_timeout_s
+            is_stale = (not state.optional) if age is None else (
+                age > self.config.source_timeout_s)
             if is_stale:
                 stale.append(state.name)
             extra = {'age_s': 'never' if age is None else f'{age:.3f}',

@@ -12,7 +12,7 @@ than every pose waits for the next pose, up to ``max_wait_s``, in arrival order.
 """
 
 from collections import deque
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Any, Callable, Dict, List, Optional, Sequence
 
 from landmark_ros.core.gaussian import COVARIANCE_PROBLEMS, covariance_status
@@ -21,12 +21,17 @@ from landmark_ros.pipeline.config import ObserverConfig
 from landmark_ros.pipeline.counters import Counters, Status
 from landmark_ros.pipeline.rows import landmarks_from_rows, observation_noise, UNKNOWN_ID
 from landmark_ros.pipeline.tracks import Scan
+from landmark_ros.pipeline.views import (Constraints, constraints_from_rows, no_constraints,
+                                         split_partial)
 import numpy as np
 from numpy.typing import NDArray
 
 THROUGHPUT_COUNTERS = frozenset(
     {'poses_in', 'observation_messages_in', 'observations_in', 'landmarks_out'})
 """Counters that are not problems; every other counter names a rejection reason."""
+
+NOT_PROBLEMS = THROUGHPUT_COUNTERS | {'partial_rows', 'constraints_out'}
+"""``THROUGHPUT_COUNTERS`` and those of the partial rows (counted once there are any)."""
 
 
 @dataclass
@@ -40,7 +45,9 @@ class ObservationMessage:
         Acquisition time [ns].
     columns : dict of str to ndarray, shape (N,)
         ``range`` [m], ``bearing`` [rad], optional ``id`` (absent: every row is
-        unlabelled, ``UNKNOWN_ID``), ``class`` and the noise fields.
+        unlabelled, ``UNKNOWN_ID``), ``class`` and the noise fields. Without
+        ``bearing`` the rows are range-only, without ``range`` bearing-only; a row
+        with one of the two NaN is partial (``views.split_partial``).
     frame_id : str or None
         The message's frame, checked against ``sensor_frame``; None skips the check.
     token : object
@@ -58,7 +65,7 @@ class ObservationMessage:
     @property
     def rows(self) -> int:
         """Return the number of rows."""
-        return len(self.columns['range'])
+        return len(next(iter(self.columns.values())))
 
 
 @dataclass(frozen=True)
@@ -79,6 +86,9 @@ class LandmarkBatch:
         Their dependent parts (pose and bias terms) [m^2].
     token : object
         The message's ``token``.
+    constraints : views.Constraints
+        The message's partial rows (range-only, bearing-only) as views in the world;
+        empty when it had none.
     classes : ndarray of int64, shape (K,), optional
         Landmark classes; None when the message had no ``class`` and no row
         without an ID (all 0).
@@ -94,6 +104,7 @@ class LandmarkBatch:
     P: NDArray[np.float64]
     P_dep: NDArray[np.float64]
     token: Any = None
+    constraints: Constraints = field(default_factory=no_constraints)
     classes: Optional[NDArray[np.int64]] = None
     scan: Optional[Scan] = None
 
@@ -127,6 +138,7 @@ class Observer:
         self.pending: deque = deque()
         self._superseded_ns: Optional[tuple] = None
         self._reported: Dict[str, int] = {}
+        self._view_group = 0
         self.reconfigure(config)
 
     def reconfigure(self, config: ObserverConfig) -> None:
@@ -349,8 +361,11 @@ class Observer:
             One per message, in order.
 
         """
+        ready = [(replace(item, columns=_with_ids(item.columns)), pose, P_pose)
+                 for item, pose, P_pose in ready]
+        ready, constraints = self._partial(ready)
         counts = [item.rows for item, _, _ in ready]
-        columns = [_with_ids(item.columns) for item, _, _ in ready]
+        columns = [item.columns for item, _, _ in ready]
         noise = [self.noise(c) for c in columns]
         if len(ready) == 1:
             ids = np.asarray(columns[0]['id'])
@@ -381,7 +396,8 @@ class Observer:
         start = row = 0
         for (item, pose_k, P_pose_k), c, count, end in zip(ready, columns, counts, ends):
             batch = LandmarkBatch(item.stamp_ns, ids[start:end], m[start:end],
-                                  P_m[start:end], P_dep[start:end], item.token)
+                                  P_m[start:end], P_dep[start:end], item.token,
+                                  constraints.get(id(item), no_constraints()))
             unlabelled = bool((batch.ids == UNKNOWN_ID).any())
             if unlabelled or 'class' in c:
                 classes = np.zeros(end - start, np.int64)
@@ -393,6 +409,31 @@ class Observer:
             start, row = end, row + count
         self.counters.add('landmarks_out', len(ids))
         return batches
+
+    def _partial(self, ready: Sequence[tuple]) -> tuple:
+        """Take the partial rows out of messages; return the rest and their constraints."""
+        out, constraints = [], {}
+        for item, pose, P_pose in ready:
+            self._view_group = (self._view_group + 1) % (1 << 32)
+            columns, partial = split_partial(item.columns)
+            if partial.any():
+                rows = {name: np.asarray(values)[partial] for name, values in columns.items()}
+                found, reasons = constraints_from_rows(
+                    rows, self.noise(rows), pose, P_pose, self._sensor_pose, self._R_bias,
+                    self._view_group)
+                self.counters.add('partial_rows', int(partial.sum()))
+                for reason, count in reasons.items():
+                    self.counters.add(reason, count, f'{count} of {int(partial.sum())} '
+                                      'partial rows rejected')
+                self.counters.add('constraints_out', len(found))
+                columns = {name: np.asarray(values)[~partial]
+                           for name, values in columns.items()}
+                item = replace(item, columns=columns)
+                constraints[id(item)] = found
+            elif columns is not item.columns:
+                item = replace(item, columns=columns)
+            out.append((item, pose, P_pose))
+        return out, constraints
 
     def _scan(self, pose: NDArray[np.float64], P_pose: NDArray[np.float64]) -> Scan:
         """Return the pose (and bias) terms of a message's joint covariance."""
@@ -421,7 +462,7 @@ class Observer:
         """
         counts = dict(self.counters.counts)
         problems = {key: value - self._reported.get(key, 0) for key, value in counts.items()
-                    if key not in THROUGHPUT_COUNTERS and value > self._reported.get(key, 0)}
+                    if key not in NOT_PROBLEMS and value > self._reported.get(key, 0)}
         self._reported = counts
         level, message = 'ok', 'ok'
         if problems:
@@ -437,4 +478,5 @@ def _with_ids(columns: Dict[str, NDArray[Any]]) -> Dict[str, NDArray[Any]]:
     """Return the columns with an ``id`` column (``UNKNOWN_ID`` when the message has none)."""
     if 'id' in columns:
         return columns
-    return {**columns, 'id': np.full(len(columns['range']), UNKNOWN_ID, np.int64)}
+    count = len(next(iter(columns.values())))
+    return {**columns, 'id': np.full(count, UNKNOWN_ID, np.int64)}

@@ -12,6 +12,14 @@ FLOAT64, little-endian, in this order. ``cov_*`` is the total covariance, ``cov_
 its dependent part (pose and bias: correlated between observations); readers
 accept clouds without ``cov_dep_*`` (dependent part zero).
 
+``fused_landmarks`` (fuser out): the landmark fields then ``observations`` UINT32.
+
+``landmark_constraints`` (observer out, fuser in; partial views, see
+``pipeline.views``): ``id`` UINT32, ``kind`` UINT8 (0 range, 1 bearing), ``value``
+[m or rad], ``variance``, ``variance_dep`` (independent noise and bias variances),
+``sensor_x``, ``sensor_y``, ``sensor_theta`` (sensor pose in the world),
+``sensor_cov_xx``, ``_xy``, ``_xt``, ``_yy``, ``_yt``, ``_tt`` (its covariance) FLOAT64,
+``view_group`` UINT32, little-endian, in this order.
 ``landmarks`` gains ``class`` UINT32 when the message had a ``class`` or a row without
 an ID, and the ``SCAN_FIELDS`` (per row, the same for all rows of the message: robot
 position and pose covariance) when it had a row without an ID, plus ``BIAS_FIELDS``
@@ -26,6 +34,7 @@ from typing import NamedTuple
 
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from landmark_ros.pipeline.tracks import Scan
+from landmark_ros.pipeline.views import CONSTRAINT_COLUMNS
 from landmark_ros.ros.cloud import CloudError, CloudWriter, FieldSpec, INTEGER_TYPES
 from landmark_ros.ros.cloud import read_columns
 from landmark_ros.ros.cloud import REAL_TYPES
@@ -35,8 +44,8 @@ from std_msgs.msg import Header
 
 OBSERVATION_FIELDS = (
     FieldSpec('id', INTEGER_TYPES, required=False),
-    FieldSpec('range', REAL_TYPES),
-    FieldSpec('bearing', REAL_TYPES),
+    FieldSpec('range', REAL_TYPES, required=False),
+    FieldSpec('bearing', REAL_TYPES, required=False),
     FieldSpec('class', INTEGER_TYPES, required=False),
     FieldSpec('range_variance', REAL_TYPES, required=False),
     FieldSpec('bearing_variance', REAL_TYPES, required=False),
@@ -66,6 +75,13 @@ _OBSERVATION_NOISE_WRITER = CloudWriter((
     ('id', np.uint32), ('range', np.float64), ('bearing', np.float64),
     ('range_variance', np.float64), ('bearing_variance', np.float64),
     ('range_bearing_covariance', np.float64)))
+CONSTRAINT_SCHEMA = tuple(
+    (name, np.uint32 if name in ('id', 'view_group') else np.uint8 if name == 'kind'
+     else np.float64) for name in CONSTRAINT_COLUMNS)
+CONSTRAINT_FIELDS = tuple(
+    FieldSpec(name, INTEGER_TYPES if dtype is not np.float64 else REAL_TYPES)
+    for name, dtype in CONSTRAINT_SCHEMA)
+CONSTRAINT_WRITER = CloudWriter(CONSTRAINT_SCHEMA)
 LANDMARK_WRITER = CloudWriter(LANDMARK_SCHEMA)
 FUSED_WRITER = CloudWriter(FUSED_SCHEMA)
 _CLASS_WRITER = CloudWriter(LANDMARK_SCHEMA + (('class', np.uint32),))
@@ -317,3 +333,40 @@ def _scan(columns):
                            [v['bias_cov_rb'], v['bias_cov_bb']]])
         sensor_xy = np.array([v['sensor_x'], v['sensor_y']])
     return Scan(np.array([v['robot_x'], v['robot_y']]), P_pose, R_bias, sensor_xy)
+
+
+def constraint_message(header, columns, out=None):
+    """
+    Return a ``landmark_constraints`` cloud.
+
+    Parameters
+    ----------
+    header : std_msgs.msg.Header
+        Stamp and world frame.
+    columns : dict of str to ndarray, shape (N,)
+        ``pipeline.views.CONSTRAINT_COLUMNS`` (``Constraints.columns``).
+    out : sensor_msgs.msg.PointCloud2, optional
+        A message to fill instead of a new one.
+
+    Returns
+    -------
+    sensor_msgs.msg.PointCloud2
+
+    """
+    rows = CONSTRAINT_WRITER.rows(len(columns['id']))
+    for name in CONSTRAINT_COLUMNS:
+        rows[name] = columns[name]
+    return CONSTRAINT_WRITER.message(header, rows, out)
+
+
+def read_constraints(msg):
+    """
+    Return the columns of a ``landmark_constraints`` cloud.
+
+    Raises
+    ------
+    landmark_ros.ros.cloud.CloudError
+        If a field is missing, of the wrong type, or the data length is wrong.
+
+    """
+    return read_columns(msg, CONSTRAINT_FIELDS)

@@ -91,7 +91,7 @@ def test_bad_rows_are_rejected_and_good_rows_of_the_message_placed():
     observer = Observer(CONFIG)
     observer.add_pose(10 * S, POSE, P_POSE)
     batch, = observer.add_observations([message(10 * S, [1, 2, -3, 4], [
-        [4.0, 0.7], [np.nan, 0.1], [2.0, 0.1], [0.0, 0.2]])])
+        [4.0, 0.7], [np.inf, 0.1], [2.0, 0.1], [0.0, 0.2]])])
     np.testing.assert_array_equal(batch.ids, [1])
     assert problems(observer) == {'observation_nonfinite': 1, 'invalid_id': 1,
                                   'range_not_positive': 1}

@@ -1,0 +1,298 @@
+"""Tests of pipeline.views: partial rows in the Observer, views in the Fuser (no ROS)."""
+
+import math
+
+from landmark_ros.core.gaussian import chi2_threshold
+from landmark_ros.core.landmark_map import LandmarkMap
+from landmark_ros.core.landmarks import sensor_in_world
+from landmark_ros.core.partial import BEARING, RANGE, Views
+from landmark_ros.pipeline.config import FuserConfig, ObserverConfig
+from landmark_ros.pipeline.fuser import Fuser
+from landmark_ros.pipeline.observer import ObservationMessage, Observer
+from landmark_ros.pipeline.views import CONSTRAINT_COLUMNS, Constraints
+import numpy as np
+import pytest
+from scipy.stats import chi2
+
+S = 1_000_000_000
+P_POSE = np.diag([1e-4, 1e-4, 1e-5])
+LANDMARKS = ['/r1/landmarks', '/r2/landmarks']
+VIEWS = ['/r1/landmark_constraints', '/r2/landmark_constraints']
+
+
+def columns(ids, kind, y, s, P_s=np.zeros((3, 3)), R=1e-6, R_bias=0.0, group=0):
+    """Return constraint columns of views (as the observer publishes them)."""
+    views = Views(kind, s, P_s, y, R, R_bias)
+    ids = np.broadcast_to(np.asarray(ids, np.int64), (len(views),)).copy()
+    return Constraints(ids, views, np.full(len(views), group, np.int64)).columns()
+
+
+def bearing_to(s, m):
+    """Return the exact bearing of ``m`` from sensor pose ``s``."""
+    return math.atan2(m[1] - s[1], m[0] - s[0]) - s[2]
+
+
+def fuser(fusion='split_covariance_intersection', **values):
+    """Return a fuser with two landmark and two constraint sources."""
+    return Fuser(FuserConfig(fusion=fusion, **values), LANDMARKS, constraint_sources=VIEWS)
+
+
+# --- Observer ----------------------------------------------------------------------------------
+
+def test_bearing_only_cloud_gives_constraints_with_the_mounting_composed():
+    mount = (0.2, -0.1, 0.3)
+    observer = Observer(ObserverConfig(sensor_pose=mount, bearing_stddev=0.01,
+                                       bearing_bias_stddev=0.005))
+    pose = np.array([1.0, 2.0, 0.5])
+    observer.add_pose(S, pose, P_POSE)
+    batch, = observer.add_observations([ObservationMessage(
+        S, {'id': np.array([4, 5]), 'bearing': np.array([0.1, -0.2])})])
+    assert len(batch.ids) == 0
+    c = batch.constraints
+    np.testing.assert_array_equal(c.ids, [4, 5])
+    np.testing.assert_array_equal(c.views.kind, [BEARING, BEARING])
+    s, P_s = sensor_in_world(pose, P_POSE, np.array(mount))
+    np.testing.assert_allclose(c.views.s, np.broadcast_to(s, (2, 3)), atol=1e-12)
+    np.testing.assert_allclose(c.views.P_s, np.broadcast_to(P_s, (2, 3, 3)), atol=1e-15)
+    np.testing.assert_allclose(c.views.R, 1e-4)
+    np.testing.assert_allclose(c.views.R_bias, 0.005 ** 2)
+    out = c.columns()
+    assert tuple(out) == tuple(sorted(out, key=CONSTRAINT_COLUMNS.index))
+    assert all(np.isfinite(np.asarray(v, dtype=float)).all() for v in out.values())
+    assert observer.counters['partial_rows'] == 2
+    assert observer.status().level == 'ok'
+
+
+def test_range_only_cloud_with_per_row_variance():
+    observer = Observer(ObserverConfig())
+    observer.add_pose(S, np.zeros(3), P_POSE)
+    batch, = observer.add_observations([ObservationMessage(
+        S, {'id': np.array([1, 2, 3]), 'range': np.array([2.0, 0.0, 3.0]),
+            'range_variance': np.array([0.04, 0.04, np.nan])})])
+    c = batch.constraints
+    np.testing.assert_array_equal(c.ids, [1, 3])
+    np.testing.assert_array_equal(c.views.kind, [RANGE, RANGE])
+    np.testing.assert_allclose(c.views.R, [0.04, 0.1 ** 2])
+    assert observer.counters['range_not_positive'] == 1
+
+
+def test_nan_in_a_range_bearing_row_makes_it_partial_not_rejected():
+    observer = Observer(ObserverConfig())
+    observer.add_pose(S, np.zeros(3), P_POSE)
+    batch, = observer.add_observations([ObservationMessage(
+        S, {'id': np.array([1, 2, 3, 4]), 'range': np.array([2.0, np.nan, 3.0, np.nan]),
+            'bearing': np.array([0.1, 0.2, np.nan, np.nan])})])
+    np.testing.assert_array_equal(batch.ids, [1])
+    np.testing.assert_array_equal(batch.constraints.ids, [2, 3])
+    np.testing.assert_array_equal(batch.constraints.views.kind, [BEARING, RANGE])
+    assert observer.counters['partial_rows'] == 2
+    assert observer.counters['observation_nonfinite'] == 1   # both NaN
+
+
+def test_view_groups_differ_between_poses():
+    observer = Observer(ObserverConfig())
+    observer.add_pose(S, np.zeros(3), P_POSE)
+    observer.add_pose(2 * S, np.ones(3), P_POSE)
+    first, second = observer.add_observations([
+        ObservationMessage(S, {'id': np.array([1, 2]), 'bearing': np.array([0.1, 0.2])}),
+        ObservationMessage(2 * S, {'id': np.array([1]), 'bearing': np.array([0.3])})])
+    assert len(set(first.constraints.view_group.tolist())) == 1
+    assert first.constraints.view_group[0] != second.constraints.view_group[0]
+
+
+# --- Fuser: initialisation ---------------------------------------------------------------------
+
+@pytest.mark.parametrize('fusion', ['independent', 'covariance_intersection',
+                                    'split_covariance_intersection'])
+def test_two_exact_bearings_give_the_intersection(fusion):
+    m = np.array([3.0, 4.0])
+    f = fuser(fusion)
+    for k, s in enumerate(([0.0, 0.0, 0.3], [6.0, 0.0, -0.2])):
+        f.add_constraints(VIEWS[k], (k + 1) * S, columns(7, BEARING, bearing_to(s, m), s,
+                                                         P_s=P_POSE))
+    f.fuse_queued()
+    ids, mean, P, P_dep, _ = f.snapshot()
+    np.testing.assert_array_equal(ids, [7])
+    np.testing.assert_allclose(mean[0], m, atol=1e-9)
+    assert np.all(np.linalg.eigvalsh(P[0]) > 0)
+    assert f.counters['landmarks_initialised'] == 1
+    assert f.sources[VIEWS[0]].counts['views_fused'] == 1
+
+
+def test_three_exact_ranges_give_the_point():
+    m = np.array([-1.0, 2.5])
+    f = fuser()
+    for k, s in enumerate(([0.0, 0.0, 0.0], [4.0, 0.0, 1.0], [0.0, 5.0, 2.0])):
+        f.add_constraints(VIEWS[k % 2], (k + 1) * S,
+                          columns(3, RANGE, np.hypot(*(m - s[:2])), s, P_s=P_POSE, R=1e-4))
+        f.fuse_queued()
+    ids, mean, _, _, _ = f.snapshot()
+    np.testing.assert_array_equal(ids, [3])
+    np.testing.assert_allclose(mean[0], m, atol=1e-9)
+
+
+def test_a_near_parallel_pair_waits():
+    m = np.array([50.0, 0.0])
+    f = fuser(min_triangulation_angle_deg=5.0)
+    for k, s in enumerate(([0.0, 0.0, 0.0], [0.0, 1.0, 0.0])):   # ~1.1 degrees apart
+        f.add_constraints(VIEWS[k], (k + 1) * S, columns(1, BEARING, bearing_to(s, m), s))
+    f.fuse_queued()
+    assert len(f.map) == 0
+    assert f.views.wait_reasons['small_crossing_angle'] == 1
+    s = [25.0, 40.0, 0.0]                                        # a wide third view
+    f.add_constraints(VIEWS[0], 3 * S, columns(1, BEARING, bearing_to(s, m), s))
+    f.fuse_queued()
+    np.testing.assert_allclose(f.snapshot().m[0], m, atol=1e-6)
+
+
+@pytest.mark.parametrize('fusion', ['independent', 'covariance_intersection',
+                                    'split_covariance_intersection'])
+def test_a_mixed_landmark(fusion, rng):
+    m = np.array([2.0, 1.0])
+    f = fuser(fusion, min_observations=1)
+    for k, s in enumerate(([0.0, 0.0, 0.0], [4.0, 0.0, 0.0])):
+        f.add_constraints(VIEWS[k], (k + 1) * S, columns(9, BEARING, bearing_to(s, m), s,
+                                                         P_s=P_POSE, R=1e-4))
+    f.fuse_queued()
+    before = f.snapshot()
+    # A range-bearing landmark row of another robot fuses through the map.
+    R = np.diag([1e-4, 1e-4])
+    f.add_landmarks(LANDMARKS[1], 3 * S, [9], (m + [0.005, -0.005])[None], R[None],
+                    0.5 * R[None])
+    f.fuse_queued()
+    after = f.snapshot()
+    assert after.observations[0] == before.observations[0] + 1
+    assert np.linalg.det(after.P[0]) < np.linalg.det(before.P[0])
+    # A range view updates it by the partial EKF.
+    s = np.array([2.0, -3.0, 0.0])
+    f.add_constraints(VIEWS[0], 4 * S, columns(9, RANGE, 4.0, s, P_s=P_POSE, R=1e-3))
+    f.fuse_queued()
+    last = f.snapshot()
+    assert last.observations[0] == after.observations[0] + 1
+    assert last.P[0][1, 1] <= after.P[0][1, 1] * (1 + 1e-9)   # CI may ignore a view
+    assert f.sources[VIEWS[0]].counts['views_fused'] == 2
+    assert f.map.sources_of(9)
+
+
+def test_views_update_a_landmark_range_bearing_rows_confirmed():
+    f = fuser(min_observations=1)
+    R = np.diag([0.04, 0.04])
+    f.add_landmarks(LANDMARKS[0], S, [5], np.array([[1.0, 1.0]]), R[None], 0.0 * R[None])
+    s = np.array([1.0, -2.0, 0.0])
+    f.add_constraints(VIEWS[1], 2 * S, columns(5, BEARING, bearing_to(s, [1.0, 1.0]), s))
+    f.fuse_queued()     # the views go first: the landmark is not yet there, the view waits
+    f.add_constraints(VIEWS[1], 3 * S, columns(5, BEARING, bearing_to(s, [1.0, 1.0]), s))
+    f.fuse_queued()
+    assert f.sources[VIEWS[1]].counts['views_superseded'] == 1
+    assert f.sources[VIEWS[1]].counts['views_fused'] == 1
+    assert f.snapshot().P[0][0, 0] < 0.01
+
+
+def test_an_outlier_view_is_gated_and_counted():
+    m = np.array([3.0, 4.0])
+    f = fuser()
+    for k, s in enumerate(([0.0, 0.0, 0.0], [6.0, 0.0, 0.0])):
+        f.add_constraints(VIEWS[k], (k + 1) * S, columns(7, BEARING, bearing_to(s, m), s,
+                                                         R=1e-4))
+    f.add_constraints(VIEWS[0], 3 * S, columns(7, BEARING, bearing_to([0, 0, 0], m) + 0.5,
+                                               [0.0, 0.0, 0.0], R=1e-4))
+    f.fuse_queued()
+    assert f.sources[VIEWS[0]].counts['views_gated'] == 1
+    assert f.statuses(0)[0].level == 'warn'
+    np.testing.assert_allclose(f.snapshot().m[0], m, atol=1e-9)
+
+
+def test_waiting_views_are_bounded():
+    f = fuser(max_views_per_landmark=3)
+    for k in range(5):    # all from one place: never placed
+        f.add_constraints(VIEWS[0], (k + 1) * S, columns(2, BEARING, 0.1, [0.0, 0.0, 0.0]))
+    f.fuse_queued()
+    assert len(f.views.waiting[2]) == 3
+    assert f.sources[VIEWS[0]].counts['views_dropped'] == 2
+    f.reset()
+    assert not f.views.waiting
+
+
+def test_malformed_constraint_rows_are_rejected_with_counters():
+    good = columns(np.arange(8), BEARING, 0.1, np.zeros((8, 3)), P_s=P_POSE)
+    bad = {name: np.array(values, dtype=float if name not in ('id', 'kind', 'view_group')
+                          else np.int64) for name, values in good.items()}
+    bad['value'][0] = np.nan
+    bad['id'][1] = -1
+    bad['kind'][2] = 2
+    bad['kind'][3], bad['value'][3] = RANGE, 0.0
+    bad['variance'][4] = 0.0
+    bad['variance_dep'][5] = -1.0
+    bad['sensor_cov_xx'][6] = -1.0
+    f = fuser()
+    assert f.add_constraints(VIEWS[0], S, bad) == 1
+    assert dict(f.sources[VIEWS[0]].counts) == {
+        'messages_in': 1, 'constraints_in': 8, 'constraint_nonfinite': 1, 'invalid_id': 1,
+        'invalid_kind': 1, 'range_not_positive': 1, 'variance_not_positive': 1,
+        'variance_dep_negative': 1, 'sensor_covariance_not_psd': 1}
+    assert f.add_constraints(VIEWS[0], S, good, frame_id='odom') == 0
+    assert f.sources[VIEWS[0]].counts['wrong_frame'] == 1
+
+
+def test_set_estimate_holds_the_estimate_for_every_method():
+    for fusion in ('independent', 'covariance_intersection', 'split_covariance_intersection'):
+        landmark_map = LandmarkMap(fusion, min_observations=1)
+        P, P_dep = np.array([[0.04, 0.01], [0.01, 0.09]]), np.diag([0.01, 0.02])
+        landmark_map.set_estimate(3, [1.0, 2.0], P, P_dep, 'views', 5, 2)
+        ids, m, P_out, _, observations = landmark_map.snapshot()
+        np.testing.assert_allclose(m[0], [1.0, 2.0], atol=1e-12)
+        np.testing.assert_allclose(P_out[0], P, atol=1e-12)
+        assert observations[0] == 2
+        landmark_map.update([3], [[1.1, 2.0]], [np.diag([0.04, 0.04])], source='r1')
+        assert landmark_map.snapshot().observations[0] == 3
+        assert landmark_map.sources_of(3) == ['r1', 'views']
+
+
+# --- Consistency -------------------------------------------------------------------------------
+
+@pytest.mark.parametrize('kind', [BEARING, RANGE])
+def test_nees_of_views_through_the_fuser(kind):
+    """Monte Carlo: noisy poses and views; the ANEES lies in its 99.9 % interval."""
+    rng = np.random.default_rng(11)
+    runs, m_true = 200, np.array([2.0, 3.0])
+    R = 0.02 ** 2 if kind == BEARING else 0.05 ** 2
+    P_pose = np.diag([0.03 ** 2, 0.03 ** 2, 0.01 ** 2])
+    nees = []
+    for _ in range(runs):
+        f = fuser('independent')
+        for k in range(6):
+            angle = rng.uniform(0, 2 * np.pi)
+            true = np.array([*(m_true + rng.uniform(3, 6) * np.array(
+                [np.cos(angle), np.sin(angle)])), rng.uniform(-np.pi, np.pi)])
+            believed = true + rng.multivariate_normal(np.zeros(3), P_pose)
+            y = (bearing_to(true, m_true) if kind == BEARING
+                 else np.hypot(*(m_true - true[:2]))) + rng.normal(0, np.sqrt(R))
+            f.add_constraints(VIEWS[k % 2], (k + 1) * S,
+                              columns(1, kind, y, believed, P_s=P_pose, R=R, group=k))
+            f.fuse_queued()
+        ids, m, P, _, _ = f.snapshot()
+        if not len(ids):      # e.g. ranges whose circles still meet twice: waits
+            continue
+        d = m[0] - m_true
+        nees.append(d @ np.linalg.solve(P[0], d))
+    assert len(nees) >= 0.95 * runs
+    anees, count = np.mean(nees), len(nees)
+    low, high = chi2.ppf([0.0005, 0.9995], 2 * count) / count
+    assert low <= anees <= high, anees
+    assert chi2_threshold(2, 0.999) > np.median(nees)
+
+
+def test_a_landmark_gated_again_and_again_is_placed_again_from_its_recent_views():
+    old, new = np.array([3.0, 4.0]), np.array([5.0, 1.0])
+    f = fuser(max_views_per_landmark=5, max_consecutive_rejections=5)
+    for k, s in enumerate(([0.0, 0.0, 0.0], [6.0, 0.0, 0.0])):
+        f.add_constraints(VIEWS[k], (k + 1) * S, columns(7, BEARING, bearing_to(s, old), s))
+    f.fuse_queued()
+    np.testing.assert_allclose(f.snapshot().m[0], old, atol=1e-9)
+    for k, s in enumerate(([0.0, 0.0, 0.0], [9.0, 0.0, 0.0], [0.0, 6.0, 0.0],
+                           [9.0, 6.0, 1.0], [2.0, -3.0, 0.0])):
+        f.add_constraints(VIEWS[0], (k + 3) * S, columns(7, BEARING, bearing_to(s, new), s))
+    f.fuse_queued()
+    assert f.sources[VIEWS[0]].counts['views_gated'] == 5
+    assert f.counters['landmarks_reinitialised'] == 1
+    np.testing.assert_allclose(f.snapshot().m[0], new, atol=1e-9)
