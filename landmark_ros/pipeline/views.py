@@ -24,7 +24,7 @@ from typing import Any, Dict, List, Optional, Tuple
 from landmark_ros.core.partial import (BEARING, GATED, initialise, InitialiseParams, RANGE,
                                        TOO_CLOSE, update, UPDATED, Views, views_from_robot)
 from landmark_ros.core.sensors import MIN_RANGE
-from landmark_ros.pipeline.rows import first_problems, MAX_ID
+from landmark_ros.pipeline.rows import first_problems, MAX_ID, UNKNOWN_ID
 import numpy as np
 from numpy.typing import NDArray
 
@@ -174,6 +174,8 @@ def constraints_from_rows(columns: Dict[str, NDArray[Any]], R: NDArray[np.float6
             ('observation_nonfinite', ~np.isfinite(y)),
             ('range_not_positive', (kind == RANGE) & ~(y >= MIN_RANGE)),
             ('invalid_id', (ids < 0) | (ids > MAX_ID)),
+            # Views are gathered by ID: no association of partial rows (yet).
+            ('partial_without_id', ids == UNKNOWN_ID),
             ('variance_not_positive', ~(variance > 0.0) | ~np.isfinite(variance)),
         ])
     if not valid.any():
@@ -223,7 +225,7 @@ def constraint_row_problems(
         value = np.asarray(columns['value'], dtype=np.float64)
         return first_problems(count, [
             ('constraint_nonfinite', ~finite),
-            ('invalid_id', (ids < 0) | (ids > MAX_ID)),
+            ('invalid_id', (ids < 0) | (ids >= UNKNOWN_ID)),
             ('invalid_kind', (kind != RANGE) & (kind != BEARING)),
             ('range_not_positive', (kind == RANGE) & ~(value >= MIN_RANGE)),
             ('variance_not_positive', ~(np.asarray(columns['variance']) > 0.0)),

@@ -233,3 +233,12 @@ def test_compatible_tracks_that_never_met_are_merged(met):
     else:
         assert merged == [(b, a)] and counts['merged'] == 1
         assert fuser.snapshot().ids.tolist() == [a] and tracker.resolve(b) == a
+
+
+def test_partial_rows_without_an_id_are_rejected_by_the_observer():
+    observer = Observer(ObserverConfig())
+    observer.add_pose(S, np.zeros(3), np.zeros((3, 3)))
+    columns = {'range': np.array([2.0, 3.0])}
+    (batch,) = observer.add_observations([ObservationMessage(S, columns)], S)
+    assert len(batch.ids) == 0 and len(batch.constraints) == 0
+    assert observer.counters.counts['partial_without_id'] == 2
