@@ -135,6 +135,20 @@ class Fuser:
 
     # Input ---------------------------------------------------------------------
 
+    def _arrive(self, source: str, frame_id: Optional[str], now_ns: Optional[int],
+                what: str) -> Optional[Source]:
+        """Count a message of ``source`` in; return its state, or None if in the wrong frame."""
+        state = self.sources[source]
+        if now_ns is not None:
+            state.last_message_ns = now_ns
+        state.counts['messages_in'] += 1
+        if frame_id is not None and frame_id != self.config.world_frame:
+            self.reject(source, 'wrong_frame', 1,
+                        f"{what} in frame '{frame_id}', expected "
+                        f"'{self.config.world_frame}': message dropped")
+            return None
+        return state
+
     def add_landmarks(self, source: str, stamp_ns: int, ids: NDArray[Any],
                       m: NDArray[np.float64], P: NDArray[np.float64],
                       P_dep: NDArray[np.float64], frame_id: Optional[str] = None,
@@ -173,14 +187,8 @@ class Fuser:
             The rows queued.
 
         """
-        state = self.sources[source]
-        if now_ns is not None:
-            state.last_message_ns = now_ns
-        state.counts['messages_in'] += 1
-        if frame_id is not None and frame_id != self.config.world_frame:
-            self.reject(source, 'wrong_frame', 1,
-                        f"landmarks in frame '{frame_id}', expected "
-                        f"'{self.config.world_frame}': message dropped")
+        state = self._arrive(source, frame_id, now_ns, 'landmarks')
+        if state is None:
             return 0
         ids = np.asarray(ids)
         state.counts['observations_in'] += len(ids)
@@ -236,14 +244,8 @@ class Fuser:
             The rows queued.
 
         """
-        state = self.sources[source]
-        if now_ns is not None:
-            state.last_message_ns = now_ns
-        state.counts['messages_in'] += 1
-        if frame_id is not None and frame_id != self.config.world_frame:
-            self.reject(source, 'wrong_frame', 1,
-                        f"constraints in frame '{frame_id}', expected "
-                        f"'{self.config.world_frame}': message dropped")
+        state = self._arrive(source, frame_id, now_ns, 'constraints')
+        if state is None:
             return 0
         ids = np.asarray(columns['id'])
         state.counts['constraints_in'] += len(ids)
