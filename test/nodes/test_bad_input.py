@@ -19,9 +19,10 @@ from landmark_ros.ros.schemas import landmark_message, observation_message
 import numpy as np
 import pytest
 from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rigs import DEADLINE_S, FuserRig, ObserverRig, unique_namespace
 from rosutil import header, pose_message, wait_for_match
 from sensor_msgs.msg import PointCloud2
-from test_fuser_node import assert_rows, C, DEADLINE_S, FuserRig, ObserverRig, unique_namespace
+from test_fuser_node import assert_rows, C
 from visualization_msgs.msg import MarkerArray
 
 I2 = np.eye(2)
@@ -87,14 +88,15 @@ def test_an_exception_in_the_fusion_timer_is_counted_and_the_node_goes_on(env):
 
 def test_tiny_noise_with_an_exact_pose_never_leaves_the_observer(env):
     tester = env.node('observer_tester')
-    observer = ObserverRig(env, tester, unique_namespace(env) + '/robot1')
+    observer = ObserverRig(env, unique_namespace(env) + '/robot1', tester=tester,
+                           range_stddev=0.5, bearing_stddev=0.2)
     observer.pose_pub.publish(pose_message(10.0, [1.0, 2.0, 0.5], np.zeros((3, 3))))
     assert env.spin_until(lambda: observer.node.counters['poses_in'] == 1, DEADLINE_S)
     R = np.array([np.diag([1e-200, 1e-200]), np.diag([0.01, 0.001])])
     msg = observation_message(header(10.0, 'camera'), [7, 8], [[4.0, 0.7], [3.0, 0.2]], R)
     observer.obs_pub.publish(msg)
-    assert env.spin_until(lambda: observer.output.messages, DEADLINE_S)
-    assert observer.output.messages[0].width == 1                # landmark 8 only
+    assert env.spin_until(lambda: observer.landmarks.messages, DEADLINE_S)
+    assert observer.landmarks.messages[0].width == 1                # landmark 8 only
     assert observer.node.counters['result_covariance_too_small'] == 1
 
 

@@ -3,9 +3,10 @@
 from landmark_ros.ros.qos import LATCHED
 import numpy as np
 from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rigs import DEADLINE_S, decode, FuserRig
 from rosutil import Collector
 from sensor_msgs.msg import PointCloud2
-from test_fuser_node import C, DEADLINE_S, decode, FuserRig
+from test_fuser_node import C
 from visualization_msgs.msg import Marker, MarkerArray
 
 RELIABLE = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)

@@ -19,23 +19,21 @@ import sys
 import time
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
-from geometry_msgs.msg import PoseWithCovarianceStamped
 from landmark_ros.core.gaussian import (covariance_intersection, split_covariance_intersection,
                                         split_covariance_intersection_omega)
 from landmark_ros.core.landmarks import landmark_to_world_dependent
 from landmark_ros.nodes.fuser import LandmarkFuser
-from landmark_ros.nodes.observer import LandmarkObserver
 from landmark_ros.pipeline import map_file
 from landmark_ros.pipeline.config import FuserConfig
 from landmark_ros.pipeline.rows import UNKNOWN_ID
 from landmark_ros.ros.qos import LATCHED
-from landmark_ros.ros.schemas import (landmark_message, observation_message, read_landmark_cloud,
-                                      read_landmarks)
+from landmark_ros.ros.schemas import (landmark_message, read_landmark_cloud, read_landmarks)
 import numpy as np
 import pytest
-from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
-from rosutil import Collector, header, pose_message, wait_for_match
+from rigs import (DEADLINE_S, decode, FuserRig, ObserverRig, params, RELIABLE,
+                  unique_namespace, values_of)
+from rosutil import Collector, header, wait_for_match
 from sensor_msgs.msg import PointCloud2, PointField
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import Marker, MarkerArray
@@ -48,13 +46,9 @@ I2 = np.eye(2)
 ZERO2 = np.zeros((2, 2))
 C = 0.01 * I2
 """Covariance of the hand-made observations: 0.1 m standard deviation."""
-DEADLINE_S = 20.0
-"""Generous deadline for anything that should happen (cross-process discovery included)."""
-NOT_BEFORE_S = 0.3
-"""How long a test spins to show that something does not happen (a deadline, not a sleep)."""
+
 FUSER = '/landmark_fuser'
 """Name of the fuser node (in the root namespace: ``ns + FUSER`` in another)."""
-RELIABLE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
 
 # The textbook exercise, case 5: robots 1 and 2 observe landmark 7 with noise R.
 TEXTBOOK_PARAMS = {'range_stddev': 0.5, 'bearing_stddev': 0.2}
@@ -83,24 +77,6 @@ def pose_term(pose, P_pose, z):
     dx, dy = z[0] * math.cos(angle), z[0] * math.sin(angle)
     J_pose = np.array([[1.0, 0.0, -dy], [0.0, 1.0, dx]])
     return J_pose @ P_pose @ J_pose.T
-
-
-def decode(msg):
-    """Read a landmark cloud in the map frame, checking that everything is finite."""
-    assert msg.header.frame_id == 'map'
-    rows = read_landmarks(msg)
-    assert all(np.all(np.isfinite(v)) for v in rows[1:4]), 'non-finite landmark published'
-    return rows
-
-
-def params(values):
-    """Return parameter overrides for a node."""
-    return [Parameter(name, value=value) for name, value in values.items()]
-
-
-def values_of(status):
-    """Return the key-value pairs of a DiagnosticStatus as a dict."""
-    return {kv.key: kv.value for kv in status.values}
 
 
 def copy_fields(msg):
@@ -138,96 +114,6 @@ def call(env, client, timeout=DEADLINE_S):
 
 # Fixtures and the in-process rig ---------------------------------------------------------
 
-def unique_namespace(env):
-    """Return a namespace of its own for a test's nodes (other runs may share the domain)."""
-    return f'/fuser_test_{os.getpid()}_{env.domain_id}'
-
-
-class FuserRig:
-    """
-    A fuser node, a publisher per input topic and collectors of its map and diagnostics.
-
-    ``send`` waits until the fuser has counted the message and fused its queue, so
-    inputs are handled in the order the test sends them.
-    """
-
-    def __init__(self, env, topics=('a/landmarks', 'b/landmarks'), **overrides):
-        values = {'input_topics': list(topics), 'fusion': 'independent',
-                  'publish_rate_hz': 50.0, 'diagnostics_period_s': 0.1, **overrides}
-        self.env = env
-        self.ns = unique_namespace(env)
-        self.node = env.add(LandmarkFuser(context=env.context, namespace=self.ns,
-                                          parameter_overrides=params(values)))
-        self.name = self.node.get_fully_qualified_name()
-        self.tester = env.node('fuser_tester')
-        self.pubs = {topic: self.tester.create_publisher(PointCloud2, self.resolved(topic),
-                                                         RELIABLE)
-                     for topic in topics}
-        self.maps = Collector(self.tester, PointCloud2, f'{self.ns}/fused_landmarks', LATCHED)
-        self.diagnostics = Collector(self.tester, DiagnosticArray, '/diagnostics')
-        assert wait_for_match(env, self.pubs.values(),
-                              [self.maps.subscription, self.diagnostics.subscription],
-                              DEADLINE_S), 'topics did not match'
-
-    def resolved(self, topic):
-        """Return the full name of an input topic (as given in ``input_topics``)."""
-        return f'{self.ns}/{topic}'
-
-    def counts(self, topic):
-        """Return the counters of one source."""
-        return self.node.sources[topic].counts
-
-    def send_msg(self, topic, msg):
-        """Publish a cloud and wait until the fuser has counted it and fused its queue."""
-        source = self.node.sources[topic]
-        before = source.counts['messages_in']
-        self.pubs[topic].publish(msg)
-        assert self.env.spin_until(
-            lambda: source.counts['messages_in'] > before and not source.queue, DEADLINE_S), \
-            'the fuser did not handle the message'
-
-    def send(self, topic, ids, m, P, P_dep=None, frame='map', stamp=1.0):
-        """Publish landmark rows and wait until the fuser has fused them."""
-        msg = landmark_message(header(stamp, frame), ids, m, P, P_dep)
-        self.send_msg(topic, msg)
-        return msg
-
-    def wait_map(self, predicate=lambda rows: True, timeout=DEADLINE_S):
-        """Spin until the newest map satisfies ``predicate``; return its rows."""
-        def ready():
-            return self.maps.messages and predicate(decode(self.maps.messages[-1]))
-        assert self.env.spin_until(ready, timeout), \
-            f'map never as expected; last: {self.maps.messages and decode(self.maps.messages[-1])}'
-        return decode(self.maps.messages[-1])
-
-    def assert_no_new_map(self, count, within=NOT_BEFORE_S):
-        """Spin until a deadline and assert that no map beyond ``count`` arrived."""
-        assert not self.env.spin_until(lambda: len(self.maps.messages) > count, within), \
-            f'unexpected map: {decode(self.maps.messages[-1])}'
-
-    def wait_diagnostics(self, predicate, timeout=DEADLINE_S, since=None):
-        """
-        Spin until a DiagnosticArray of this fuser satisfies ``predicate``.
-
-        ``predicate`` gets the statuses as a dict: ``'fuser'`` for the fuser's own, the
-        input topic (as given in ``input_topics``) for each source. Only arrays received
-        from index ``since`` on count (by default: new ones).
-        """
-        seen = len(self.diagnostics.messages) if since is None else since
-        keys = {self.name: 'fuser'}
-        keys.update({f'{self.name}: {self.resolved(topic)}': topic for topic in self.pubs})
-
-        def find():
-            for array in self.diagnostics.messages[seen:]:
-                statuses = {keys[status.name]: status for status in array.status
-                            if status.name in keys}
-                if 'fuser' in statuses and predicate(statuses):
-                    return statuses
-            return None
-        assert self.env.spin_until(lambda: find() is not None, timeout), 'no such diagnostics'
-        return find()
-
-
 def assert_rows(rows, expected, atol=0.0):
     """Assert map rows equal ``[(id, m, P, P_dep, observations), ...]``."""
     assert rows.ids.tolist() == [e[0] for e in expected]
@@ -240,37 +126,13 @@ def assert_rows(rows, expected, atol=0.0):
 
 # 1-2. Observers and the fuser: the textbook case 5 ---------------------------------------------
 
-class ObserverRig:
-    """An observer in namespace ``ns`` (absolute), its input publishers and output collector."""
-
-    def __init__(self, env, tester, ns, **overrides):
-        self.env = env
-        self.node = env.add(LandmarkObserver(
-            context=env.context, namespace=ns,
-            parameter_overrides=params({**TEXTBOOK_PARAMS, **overrides})))
-        self.pose_pub = tester.create_publisher(PoseWithCovarianceStamped, f'{ns}/pose', 10)
-        self.obs_pub = tester.create_publisher(PointCloud2, f'{ns}/observations', 10)
-        self.output = Collector(tester, PointCloud2, f'{ns}/landmarks')
-        assert wait_for_match(env, [self.pose_pub, self.obs_pub], [self.output.subscription],
-                              DEADLINE_S)
-
-    def observe(self, stamp, pose, P_pose, z, landmark_id=7):
-        """Send a pose and one observation of landmark 7; return the landmark cloud out."""
-        count = self.node.counters['poses_in']
-        self.pose_pub.publish(pose_message(stamp, pose, P_pose))
-        assert self.env.spin_until(lambda: self.node.counters['poses_in'] > count)
-        count = len(self.output.messages)
-        self.obs_pub.publish(observation_message(header(stamp, 'laser'), [landmark_id], [z]))
-        assert self.env.spin_until(lambda: len(self.output.messages) > count)
-        return decode(self.output.messages[-1])
-
-
 @pytest.mark.parametrize('fusion', ['independent', 'split_covariance_intersection',
                                     'covariance_intersection'])
 def test_textbook_case5_through_two_observers_and_the_fuser(env, fusion):
     topics = ('robot1/landmarks', 'robot2/landmarks')
     rig = FuserRig(env, topics, fusion=fusion)
-    observers = [ObserverRig(env, rig.tester, f'{rig.ns}/{ns}') for ns in ('robot1', 'robot2')]
+    observers = [ObserverRig(env, f'{rig.ns}/{ns}', tester=rig.tester, **TEXTBOOK_PARAMS)
+                 for ns in ('robot1', 'robot2')]
     # Observer outputs are volatile: wait until the fuser (and the tester) listen.
     assert env.spin_until(lambda: all(o.node.landmark_pub.get_subscription_count() >= 2
                                       for o in observers), DEADLINE_S)
@@ -278,7 +140,7 @@ def test_textbook_case5_through_two_observers_and_the_fuser(env, fusion):
     outputs = []
     for observer, topic, (pose, P_pose, z) in zip(
             observers, topics, [(POSE1, POSE1_COV, Z1), (POSE2, POSE2_COV, Z2)]):
-        outputs.append(observer.observe(10.0, pose, P_pose, z))
+        outputs.append(observer.observe_one(10.0, pose, P_pose, z))
         source = rig.node.sources[topic]
         assert env.spin_until(lambda: source.counts['messages_in'] == 1 and not source.queue,
                               DEADLINE_S), f'{topic} never reached the fuser'
@@ -314,13 +176,14 @@ def test_textbook_case5_through_two_observers_and_the_fuser(env, fusion):
 def test_textbook_case5_without_ids_over_dds_gives_one_new_landmark(env):
     topics = ('robot1/landmarks', 'robot2/landmarks')
     rig = FuserRig(env, topics)
-    observers = [ObserverRig(env, rig.tester, f'{rig.ns}/{ns}') for ns in ('robot1', 'robot2')]
+    observers = [ObserverRig(env, f'{rig.ns}/{ns}', tester=rig.tester, **TEXTBOOK_PARAMS)
+                 for ns in ('robot1', 'robot2')]
     assert env.spin_until(lambda: all(o.node.landmark_pub.get_subscription_count() >= 2
                                       for o in observers), DEADLINE_S)
     for observer, topic, (pose, P_pose, z) in zip(
             observers, topics, [(POSE1, POSE1_COV, Z1), (POSE2, POSE2_COV, Z2)]):
-        observer.observe(10.0, pose, P_pose, z, landmark_id=UNKNOWN_ID)
-        cloud = read_landmark_cloud(observer.output.messages[-1])[1]
+        observer.observe_one(10.0, pose, P_pose, z, landmark_id=UNKNOWN_ID)
+        cloud = read_landmark_cloud(observer.landmarks.messages[-1])[1]
         np.testing.assert_array_equal(cloud.scan.robot_xy, pose[:2])
         np.testing.assert_array_equal(cloud.scan.P_pose, P_pose)
         source = rig.node.sources[topic]
@@ -337,15 +200,16 @@ def test_textbook_case5_without_ids_over_dds_gives_one_new_landmark(env):
 @pytest.mark.parametrize('bias', [(0.0, 0.0), (0.3, 0.1)])
 def test_observer_dependent_part_is_the_pose_term_plus_the_bias_term(env, bias):
     tester = env.node('tester')
-    observer = ObserverRig(env, tester, f'{unique_namespace(env)}/robot1',
-                           range_bias_stddev=bias[0], bearing_bias_stddev=bias[1])
+    observer = ObserverRig(env, f'{unique_namespace(env)}/robot1', tester=tester,
+                           range_bias_stddev=bias[0], bearing_bias_stddev=bias[1],
+                           **TEXTBOOK_PARAMS)
     R_bias = np.diag(np.square(bias))
     J = polar_jacobian(POSE1, Z1)
     bias_term = J @ R_bias @ J.T
     # Case 1 (exact pose): only the bias is dependent; case 2 adds the pose term.
     for stamp, P_pose, P_expected in [(10.0, np.zeros((3, 3)), PM_CASE1),
                                       (11.0, POSE1_COV, PM_CASE2)]:
-        _, m, P, P_dep, _ = observer.observe(stamp, POSE1, P_pose, Z1)
+        _, m, P, P_dep, _ = observer.observe_one(stamp, POSE1, P_pose, Z1)
         np.testing.assert_allclose(m[0], M_CASE2, rtol=0, atol=1e-8)
         np.testing.assert_allclose(P[0], P_expected + bias_term, rtol=0, atol=1e-8)
         np.testing.assert_allclose(P_dep[0], P_expected - PM_CASE1 + bias_term, rtol=0,

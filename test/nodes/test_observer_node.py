@@ -20,11 +20,12 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from landmark_ros.nodes.observer import LandmarkObserver
 from landmark_ros.pipeline.config import ObserverConfig
-from landmark_ros.ros.schemas import observation_message, read_landmarks
+from landmark_ros.ros.schemas import observation_message
 import numpy as np
 import pytest
 from rclpy.exceptions import InvalidParameterValueException
 from rclpy.parameter import Parameter
+from rigs import decode, NOT_BEFORE_S, ObserverRig, values_of
 from rosutil import Collector, header, pose_message, wait_for_match
 from sensor_msgs.msg import PointCloud2, PointField
 from visualization_msgs.msg import Marker, MarkerArray
@@ -54,8 +55,6 @@ POINT_FIELD_TYPES = {
     np.dtype(np.int32): PointField.INT32, np.dtype(np.uint32): PointField.UINT32,
     np.dtype(np.float32): PointField.FLOAT32, np.dtype(np.float64): PointField.FLOAT64,
 }
-NOT_BEFORE_S = 0.3
-"""How long a test spins to show that something does not happen (a deadline, not a sleep)."""
 
 
 # Reference values ---------------------------------------------------------------------
@@ -90,18 +89,11 @@ def interpolated(pose0, P0, pose1, P1_, fraction):
 
 def assert_landmarks(actual, expected, atol=1e-9):
     """Assert decoded landmarks ``(ids, m, P_m)`` equal ``[(id, m, P_m), ...]``."""
-    ids, m, P_m = actual
+    ids, m, P_m = actual[:3]
     assert ids.tolist() == [e[0] for e in expected]
     for i, (_, m_expected, P_expected) in enumerate(expected):
         np.testing.assert_allclose(m[i], m_expected, rtol=0, atol=atol)
         np.testing.assert_allclose(P_m[i], P_expected, rtol=0, atol=atol)
-
-
-def decode(msg):
-    """Read a landmarks cloud and check that everything in it is finite."""
-    ids, m, P_m = read_landmarks(msg)[:3]
-    assert np.all(np.isfinite(m)) and np.all(np.isfinite(P_m)), 'non-finite landmark published'
-    return ids, m, P_m
 
 
 def stamp_tuple(stamp):
@@ -172,84 +164,9 @@ def row_R(row, params=(0.25, 0.04)):
 
 # Fixtures and the test rig ---------------------------------------------------------------
 
-class Rig:
-    """
-    An observer node, publishers of its inputs and a collector of its landmarks.
-
-    The tester node lives in the root namespace and uses absolute topic names when
-    the observer is namespaced. ``send_*`` waits until the observer has counted the
-    message, so inputs are handled in the order the test sends them.
-    """
-
-    def __init__(self, env, namespace=None, node=None, **params):
-        self.env = env
-        if node is None:
-            kwargs = {} if namespace is None else {'namespace': namespace}
-            node = LandmarkObserver(
-                context=env.context,
-                parameter_overrides=[Parameter(k, value=v) for k, v in params.items()],
-                **kwargs)
-        self.node = env.add(node)
-        ns = node.get_namespace().rstrip('/')
-        self.tester = env.node('tester' + ns.replace('/', '_'))
-        self.pose_pub = self.tester.create_publisher(PoseWithCovarianceStamped,
-                                                     ns + '/pose', 10)
-        self.obs_pub = self.tester.create_publisher(PointCloud2, ns + '/observations', 10)
-        self.landmarks = Collector(self.tester, PointCloud2, ns + '/landmarks')
-        assert wait_for_match(env, [self.pose_pub, self.obs_pub],
-                              [self.landmarks.subscription]), 'topics did not match'
-
-    @property
-    def counts(self):
-        """Return the observer's counters."""
-        return self.node.observer.counters.counts
-
-    def problems(self):
-        """Return the non-zero rejection counters."""
-        return {k: v for k, v in self.counts.items() if k not in THROUGHPUT and v}
-
-    def _send(self, publisher, msg):
-        before = sum(self.counts.values())
-        publisher.publish(msg)
-        assert self.env.spin_until(lambda: sum(self.counts.values()) > before), \
-            'the observer did not handle the message'
-
-    def send_pose(self, msg):
-        """Publish a pose message and wait until the observer has handled it."""
-        self._send(self.pose_pub, msg)
-
-    def pose(self, stamp, pose, P_pose=ZERO3, frame='map'):
-        """Publish a planar pose and wait until the observer has handled it."""
-        self.send_pose(pose_message(stamp, pose, P_pose, frame))
-
-    def send_cloud(self, msg):
-        """Publish an observation cloud and wait until the observer has handled it."""
-        self._send(self.obs_pub, msg)
-
-    def observe(self, stamp, ids, z, R=None, frame='laser'):
-        """Publish observation rows and wait until the observer has handled them."""
-        msg = observation_message(header(stamp, frame), ids, z, R)
-        self.send_cloud(msg)
-        return msg
-
-    def wait_landmarks(self, count=1, timeout=5.0):
-        """Spin until ``count`` landmark clouds arrived; return them, checked finite."""
-        assert self.env.spin_until(lambda: len(self.landmarks.messages) >= count, timeout), \
-            f'{len(self.landmarks.messages)} landmark messages, expected {count}'
-        for msg in self.landmarks.messages:
-            decode(msg)
-        return self.landmarks.messages
-
-    def assert_no_more_landmarks(self, count=0, within=NOT_BEFORE_S):
-        """Spin until a deadline and assert no more than ``count`` clouds arrived."""
-        assert not self.env.spin_until(lambda: len(self.landmarks.messages) > count, within), \
-            'unexpected landmark message'
-        assert len(self.landmarks.messages) == count
-
-
 def textbook_rig(env, **params):
     """Return a rig with the textbook noise parameters plus ``params``."""
-    return Rig(env, **{**TEXTBOOK_PARAMS, **params})
+    return ObserverRig(env, **{**TEXTBOOK_PARAMS, **params})
 
 
 # 1. Textbook cases ------------------------------------------------------------------------
@@ -261,7 +178,7 @@ def test_textbook_case(env, case, P_pose, P_expected, noise):
     # per_row: the cloud carries R while the parameters are the defaults (0.1, 0.02);
     # per_row_nan: the cloud carries NaN variances, which mean "use the parameters".
     if noise == 'per_row':
-        rig, R = Rig(env), R_TEXTBOOK[None]
+        rig, R = ObserverRig(env), R_TEXTBOOK[None]
     else:
         rig = textbook_rig(env)
         R = None if noise == 'parameters' else np.full((1, 2, 2), NAN)
@@ -275,7 +192,7 @@ def test_textbook_case(env, case, P_pose, P_expected, noise):
     np.testing.assert_allclose(m_ref, M_TEXTBOOK, rtol=0, atol=1e-8)
     np.testing.assert_allclose(P_ref, P_expected, rtol=0, atol=1e-8)
     # ... and so does the node.
-    ids, m, P_m = decode(msg)
+    ids, m, P_m = decode(msg)[:3]
     assert ids.tolist() == [7]
     np.testing.assert_allclose(m[0], M_TEXTBOOK, rtol=0, atol=1e-8)
     np.testing.assert_allclose(P_m[0], P_expected, rtol=0, atol=1e-8)
@@ -368,11 +285,6 @@ def test_observation_waits_for_a_late_pose(env):
     assert rig.problems() == {}
 
 
-def diagnostics_values(status):
-    """Return the KeyValues of a DiagnosticStatus as a dict."""
-    return {kv.key: kv.value for kv in status.values}
-
-
 def test_no_pose_in_time_on_diagnostics(env):
     rig = textbook_rig(env, max_wait_s=0.2, diagnostics_period_s=0.1)
     diagnostics = Collector(rig.tester, DiagnosticArray, '/diagnostics')
@@ -388,7 +300,7 @@ def test_no_pose_in_time_on_diagnostics(env):
 
     def warned():
         return [status for array in diagnostics.messages for status in array.status
-                if diagnostics_values(status).get('no_pose_in_time') == '3']
+                if values_of(status).get('no_pose_in_time') == '3']
 
     assert env.spin_until(lambda: rig.counts['no_pose_in_time'] == 3, 5.0)
     assert time.monotonic() - sent >= 0.19   # dropped only after max_wait_s
@@ -397,7 +309,7 @@ def test_no_pose_in_time_on_diagnostics(env):
     assert status.name == '/landmark_observer' == rig.node.get_fully_qualified_name()
     assert status.level == DiagnosticStatus.WARN
     assert 'no_pose_in_time 3' in status.message
-    assert diagnostics_values(status) == {
+    assert values_of(status) == {
         'pose_buffer_size': '1', 'pending_messages': '0', 'poses_in': '1',
         'observation_messages_in': '2', 'observations_in': '4', 'landmarks_out': '1',
         'no_pose_in_time': '3'}
@@ -407,7 +319,7 @@ def test_no_pose_in_time_on_diagnostics(env):
         s.level == DiagnosticStatus.OK for a in diagnostics.messages[count:] for s in a.status))
     ok = [s for a in diagnostics.messages[count:] for s in a.status
           if s.level == DiagnosticStatus.OK][0]
-    assert ok.message == 'ok' and diagnostics_values(ok)['no_pose_in_time'] == '3'
+    assert ok.message == 'ok' and values_of(ok)['no_pose_in_time'] == '3'
     rig.assert_no_more_landmarks(1, within=0.0)
 
 
@@ -528,7 +440,7 @@ def test_yaml_values_take_effect(ros_env, tmp_path):
     path = tmp_path / 'observer.yaml'
     path.write_text(yaml.safe_dump({key: {'ros__parameters': values}}))
     env = ros_env(args=['--ros-args', '--params-file', str(path), '-r', '__ns:=/robot1'])
-    rig = Rig(env, node=LandmarkObserver(context=env.context))
+    rig = ObserverRig(env, node=LandmarkObserver(context=env.context))
     node = rig.node
     assert node.get_parameter('bearing_stddev').value == 1   # an integer in the file
     assert node.config.bearing_stddev == 1.0 and isinstance(node.config.bearing_stddev, float)
@@ -654,7 +566,7 @@ def test_all_rows_bad_or_no_rows_give_empty_clouds(env):
         assert stamp_tuple(msg.header.stamp) == stamp and msg.header.frame_id == 'map'
         assert [f.name for f in msg.fields] == LANDMARK_NAMES
         assert msg.width * msg.height == 0 and len(msg.data) == 0
-        ids, m, P_m = decode(msg)
+        ids, m, P_m = decode(msg)[:3]
         assert ids.shape == (0,) and m.shape == (0, 2) and P_m.shape == (0, 2, 2)
     assert rig.problems() == {'range_not_positive': 2}
     assert rig.counts['landmarks_out'] == 0
