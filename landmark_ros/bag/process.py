@@ -150,7 +150,8 @@ class BagPipeline:
         handlers = {}
         for robot, observer in self.observers.items():
             if observer.config.pose_type == 'odometry':
-                handlers[f'/{robot}/odometry'] = (Odometry, self._odometry_handler(robot))
+                handlers[f'/{robot}/odometry'] = (Odometry,
+                                                  self._pose_handler(robot, odometry=True))
             else:
                 handlers[f'/{robot}/pose'] = (PoseWithCovarianceStamped,
                                               self._pose_handler(robot))
@@ -206,26 +207,18 @@ class BagPipeline:
 
     # Inputs ------------------------------------------------------------------------------
 
-    def _pose_handler(self, robot):
+    def _pose_handler(self, robot, odometry=False):
         observer = self.observers[robot]
+
+        def convert(msg):
+            config = observer.config
+            if odometry:
+                return pose_from_odometry(msg, config.world_frame, config.base_frame)
+            return pose_from_msg(msg, config.world_frame)
 
         def handle(msg, now_ns):
             try:
-                pose, P_pose = pose_from_msg(msg, observer.config.world_frame)
-            except InputError as error:
-                observer.reject(error.reason, 1, error.detail)
-                return
-            self.publish_landmarks(robot, observer.add_pose(stamp_ns(msg.header.stamp), pose,
-                                                            P_pose, now_ns), now_ns)
-        return handle
-
-    def _odometry_handler(self, robot):
-        observer = self.observers[robot]
-
-        def handle(msg, now_ns):
-            try:
-                pose, P_pose = pose_from_odometry(msg, observer.config.world_frame,
-                                                  observer.config.base_frame)
+                pose, P_pose = convert(msg)
             except InputError as error:
                 observer.reject(error.reason, 1, error.detail)
                 return
