@@ -15,6 +15,7 @@ import math
 from landmark_ros.core.pose2 import wrap_angle
 import numpy as np
 from scipy import special
+from scipy.optimize import minimize_scalar
 
 MAD_TO_SIGMA = 1.4826
 """Median absolute deviation to standard deviation, for Gaussian data."""
@@ -89,6 +90,11 @@ class Calibration:
     pair_bearing_bias_rms: float
     residual_tails: dict
     """Fraction of residuals beyond 3 model standard deviations, per quantity."""
+    range_correlated_fraction: float = 0.0
+    bearing_correlated_fraction: float = 0.0
+    noise_correlation_time_s: float = 0.0
+    correlation: dict = None
+    """``correlation_model``: the binned correlations the time constant was fitted to."""
 
     def to_dict(self):
         """Return plain values for JSON."""
@@ -101,7 +107,10 @@ class Calibration:
                 f'    range_stddev_per_m: {self.range_stddev_per_m:.4f}\n'
                 f'    bearing_stddev: {self.bearing_stddev:.4f}\n'
                 f'    range_bias_stddev: {self.range_bias_stddev:.4f}\n'
-                f'    bearing_bias_stddev: {self.bearing_bias_stddev:.4f}')
+                f'    bearing_bias_stddev: {self.bearing_bias_stddev:.4f}\n'
+                f'    noise_correlation_time_s: {self.noise_correlation_time_s:.1f}\n'
+                f'    range_correlated_fraction: {self.range_correlated_fraction:.2f}\n'
+                f'    bearing_correlated_fraction: {self.bearing_correlated_fraction:.2f}')
 
 
 def measurement_errors(dataset):
@@ -111,11 +120,12 @@ def measurement_errors(dataset):
     Returns
     -------
     dict of ndarray
-        ``robot`` (index), ``id``, ``range``, ``range_error``, ``bearing_error``
-        (measured minus true, bearing wrapped), one entry per sighting.
+        ``robot`` (index), ``id``, ``time`` [s], ``range``, ``range_error``,
+        ``bearing_error`` (measured minus true, bearing wrapped), one entry per sighting.
 
     """
-    columns = {key: [] for key in ('robot', 'id', 'range', 'range_error', 'bearing_error')}
+    columns = {key: [] for key in ('robot', 'id', 'time', 'range', 'range_error',
+                                   'bearing_error')}
     for index, robot in enumerate(dataset.robots):
         known = np.array([i in dataset.landmarks for i in robot.ids.tolist()], dtype=bool)
         if not known.any():
@@ -125,12 +135,95 @@ def measurement_errors(dataset):
         d = truth - pose[:, :2]
         columns['robot'].append(np.full(len(z), index))
         columns['id'].append(robot.ids[known])
+        columns['time'].append(robot.times[known])
         columns['range'].append(z[:, 0])
         columns['range_error'].append(z[:, 0] - np.hypot(d[:, 0], d[:, 1]))
         columns['bearing_error'].append(wrap_angle(
             z[:, 1] - (np.arctan2(d[:, 1], d[:, 0]) - pose[:, 2])))
     return {key: (np.concatenate(value) if value else np.empty(0))
             for key, value in columns.items()}
+
+
+CORRELATION_SHORT_LAG_S = 0.5
+"""Consecutive sightings of one pair at most this far apart measure the white noise [s]."""
+
+CORRELATION_LAG_EDGES_S = (0.5, 1.0, 2.0, 4.0, 8.0, 16.0, 32.0, 64.0)
+"""Lag bins [s] of the correlations the correlation time is fitted to."""
+
+
+def correlation_model(key, time, residuals, max_lag_steps=400):
+    """
+    Split residuals into white and time-correlated noise and fit the correlation time.
+
+    The model: each residual is ``w + c``, ``w`` white, ``c`` a first-order
+    Gauss-Markov process per robot-landmark pair (``key``) holding ``fraction`` of the
+    variance, correlation ``exp(-lag / tau)``. Consecutive residuals of a pair at most
+    ``CORRELATION_SHORT_LAG_S`` apart differ by about ``w1 - w2``, so the white
+    standard deviation is ``central_sigma`` of those differences over ``sqrt(2)`` and
+    ``fraction = 1 - white^2 / total^2`` (``total`` the ``central_sigma`` of the
+    residuals). The correlation of pairs of residuals (clipped at 3 ``total``) is
+    binned by lag (``CORRELATION_LAG_EDGES_S``) and ``tau`` is the least-squares fit of
+    ``fraction * exp(-lag / tau)`` to it, weighted by the pairs per bin, over every
+    quantity at once (one correlation time for the sensor).
+
+    Parameters
+    ----------
+    key : ndarray of int, shape (N,)
+        Robot-landmark pair of each residual.
+    time : ndarray, shape (N,) [s]
+    residuals : dict of str to ndarray, shape (N,)
+        Per quantity (``range`` normalised by its model standard deviation, ``bearing``).
+    max_lag_steps : int
+        Pairs at most this many sightings apart within a pair are correlated.
+
+    Returns
+    -------
+    dict
+        ``fraction`` per quantity, ``tau_s``, and per quantity the bins: ``lag_s``,
+        ``correlation``, ``pairs``.
+
+    """
+    order = np.lexsort((time, key))
+    k, t = key[order], time[order]
+    same = k[1:] == k[:-1]
+    dt = np.diff(t)
+    short = same & (dt > 0.0) & (dt <= CORRELATION_SHORT_LAG_S)
+    edges = np.asarray(CORRELATION_LAG_EDGES_S)
+    out = {'fraction': {}, 'bins': {}}
+    for name, values in residuals.items():
+        values = np.asarray(values, dtype=np.float64)[order]
+        total = central_sigma(values)
+        white = central_sigma(np.diff(values)[short]) / math.sqrt(2.0) if short.any() else total
+        fraction = min(max(1.0 - (white / total) ** 2, 0.0), 0.999) if total > 0 else 0.0
+        r = np.clip(values, -3.0 * total, 3.0 * total)
+        num, cnt, lags = (np.zeros(len(edges) - 1) for _ in range(3))
+        for step in range(1, min(max_lag_steps, len(k))):
+            lag = t[step:] - t[:-step]
+            b = np.digitize(lag, edges) - 1
+            m = (k[step:] == k[:-step]) & (b >= 0) & (b < len(num))
+            if not m.any():
+                continue
+            np.add.at(num, b[m], (r[step:] * r[:-step])[m])
+            np.add.at(cnt, b[m], 1.0)
+            np.add.at(lags, b[m], lag[m])
+        with np.errstate(invalid='ignore', divide='ignore'):
+            out['bins'][name] = {'lag_s': (lags / cnt).tolist(),
+                                 'correlation': (num / cnt / np.mean(r * r)).tolist(),
+                                 'pairs': cnt.astype(int).tolist()}
+        out['fraction'][name] = float(fraction)
+
+    def cost(log_tau):
+        total = 0.0
+        for name, b in out['bins'].items():
+            n = np.asarray(b['pairs'], dtype=np.float64)
+            ok = n > 0
+            model = out['fraction'][name] * np.exp(-np.asarray(b['lag_s'])[ok] / np.exp(log_tau))
+            total += float(np.sum(n[ok] * (np.asarray(b['correlation'])[ok] - model) ** 2))
+        return total
+
+    fit = minimize_scalar(cost, bounds=(math.log(0.05), math.log(600.0)), method='bounded')
+    out['tau_s'] = float(math.exp(fit.x))
+    return out
 
 
 def _weighted_bias(medians, counts, noise_variance):
@@ -183,6 +276,13 @@ def calibrate(dataset, min_pair=10, bins=10):
     6. Tails: the fraction of residuals beyond 3 model standard deviations
        (``sigma_r(r)``, ``bearing_stddev``); well above 0.27 % means heavy tails,
        which the gate of the fuser (``gate_probability``) has to reject.
+    7. Time correlation (``correlation_model``): the residuals of step 4 (ranges
+       divided by ``sigma_r(r)``) per robot-landmark pair, split into white noise and
+       a first-order Gauss-Markov part: ``range_correlated_fraction``,
+       ``bearing_correlated_fraction`` and ``noise_correlation_time_s``. The errors of
+       consecutive sightings are far from independent (the viewing geometry, the
+       camera latency while the robot turns): a fuser that treats thousands of views
+       as independent becomes over-confident (``pipeline.views.CorrelatedNoise``).
 
     Parameters
     ----------
@@ -276,8 +376,12 @@ def calibrate(dataset, min_pair=10, bins=10):
     model_r = np.sqrt(a * a + (k * ranges) ** 2)
     tails = {'range': float(np.mean(np.abs(res_r) > 3.0 * model_r)),
              'bearing': float(np.mean(np.abs(res_b) > 3.0 * sigma_b))}
+    correlation = correlation_model(pair_key, e['time'], {'range': res_r / model_r,
+                                                          'bearing': res_b})
     return Calibration(count, overall, robots, int(big.sum()), range_bins, a, k, sigma_b,
-                       range_bias, bearing_bias, pair_range, pair_bearing, tails)
+                       range_bias, bearing_bias, pair_range, pair_bearing, tails,
+                       correlation['fraction']['range'], correlation['fraction']['bearing'],
+                       correlation['tau_s'], correlation)
 
 
 def format_calibration(cal):
@@ -308,6 +412,10 @@ def format_calibration(cal):
                  f'{cal.pair_range_bias_rms:.4f} m, bearing {cal.pair_bearing_bias_rms:.4f} rad')
     lines.append(f'residuals beyond 3 model sd: range {100 * cal.residual_tails["range"]:.2f}%, '
                  f'bearing {100 * cal.residual_tails["bearing"]:.2f}% (Gaussian: 0.27%)')
+    lines.append('time correlation (white + first-order Gauss-Markov per robot-landmark pair): '
+                 f'correlated share of the variance: range {cal.range_correlated_fraction:.2f}, '
+                 f'bearing {cal.bearing_correlated_fraction:.2f}; correlation time '
+                 f'{cal.noise_correlation_time_s:.1f} s')
     lines.append('suggested values:')
     lines.append(cal.suggested_yaml())
     return '\n'.join(lines)

@@ -149,6 +149,16 @@ class ObserverConfig(ConfigBase):
     bearing_bias_stddev: float = param(
         0.0, 'Standard deviation of a bearing bias shared by all observations [rad].',
         low=0.0, high=math.pi)
+    noise_correlation_time_s: float = param(
+        0.0, 'Correlation time of the slowly varying part of the noise (first-order '
+        'Gauss-Markov) [s]; range-only and bearing-only views of a landmark seen again '
+        'within it carry less information. 0: the noise is white.', low=0.0, high=3600.0)
+    range_correlated_fraction: float = param(
+        0.0, 'Share of the range noise variance that is time-correlated (views only).',
+        low=0.0, high=0.999)
+    bearing_correlated_fraction: float = param(
+        0.0, 'Share of the bearing noise variance that is time-correlated (views only).',
+        low=0.0, high=0.999)
     pose_buffer_s: float = param(
         10.0, 'How much pose history to keep for matching observation stamps [s].',
         read_only=True, low=0.01, high=3600.0)

@@ -21,8 +21,8 @@ from landmark_ros.pipeline.config import ObserverConfig
 from landmark_ros.pipeline.counters import Counters, Status
 from landmark_ros.pipeline.rows import landmarks_from_rows, observation_noise, UNKNOWN_ID
 from landmark_ros.pipeline.tracks import Scan
-from landmark_ros.pipeline.views import (Constraints, constraints_from_rows, no_constraints,
-                                         split_partial)
+from landmark_ros.pipeline.views import (Constraints, constraints_from_rows, CorrelatedNoise,
+                                         no_constraints, split_partial)
 import numpy as np
 from numpy.typing import NDArray
 
@@ -139,6 +139,7 @@ class Observer:
         self._superseded_ns: Optional[tuple] = None
         self._reported: Dict[str, int] = {}
         self._view_group = 0
+        self._correlated: Optional[CorrelatedNoise] = None
         self.reconfigure(config)
 
     def reconfigure(self, config: ObserverConfig) -> None:
@@ -152,6 +153,12 @@ class Observer:
         if config.range_bias_stddev or config.bearing_bias_stddev:
             self._R_bias = np.diag([config.range_bias_stddev ** 2,
                                     config.bearing_bias_stddev ** 2])
+        correlated = CorrelatedNoise(config.range_correlated_fraction,
+                                     config.bearing_correlated_fraction,
+                                     config.noise_correlation_time_s)
+        if self._correlated is not None:  # keep when each landmark was last seen
+            correlated.last_ns = self._correlated.last_ns
+        self._correlated = correlated
 
     def reject(self, reason: str, count: int = 1, detail: Optional[str] = None) -> None:
         """Count (and log, throttled) input rejected before it reached the observer."""
@@ -420,7 +427,7 @@ class Observer:
                 rows = {name: np.asarray(values)[partial] for name, values in columns.items()}
                 found, reasons = constraints_from_rows(
                     rows, self.noise(rows), pose, P_pose, self._sensor_pose, self._R_bias,
-                    self._view_group)
+                    self._view_group, item.stamp_ns, self._correlated)
                 self.counters.add('partial_rows', int(partial.sum()))
                 for reason, count in reasons.items():
                     self.counters.add(reason, count, f'{count} of {int(partial.sum())} '

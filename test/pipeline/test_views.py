@@ -9,7 +9,7 @@ from landmark_ros.core.partial import BEARING, RANGE, Views
 from landmark_ros.pipeline.config import FuserConfig, ObserverConfig
 from landmark_ros.pipeline.fuser import Fuser
 from landmark_ros.pipeline.observer import ObservationMessage, Observer
-from landmark_ros.pipeline.views import CONSTRAINT_COLUMNS, Constraints
+from landmark_ros.pipeline.views import CONSTRAINT_COLUMNS, Constraints, CorrelatedNoise
 import numpy as np
 import pytest
 from scipy.stats import chi2
@@ -296,3 +296,91 @@ def test_a_landmark_gated_again_and_again_is_placed_again_from_its_recent_views(
     assert f.sources[VIEWS[0]].counts['views_gated'] == 5
     assert f.counters['landmarks_reinitialised'] == 1
     np.testing.assert_allclose(f.snapshot().m[0], new, atol=1e-9)
+
+
+# --- Time-correlated noise -------------------------------------------------------------------
+
+def test_correlated_noise_factors():
+    tau, f = 4.0, 0.75
+    c = CorrelatedNoise(0.5, f, tau)
+    first = c.factors(10 * S, np.array([3, 3, 4]), np.array([BEARING, RANGE, BEARING]))
+    np.testing.assert_allclose(first, 1.0)          # first views of (id, kind)
+    again = c.factors(12 * S, np.array([3, 4, 3]), np.array([BEARING, BEARING, RANGE]))
+    coth = 1.0 / np.tanh(2.0 / (2.0 * tau))
+    np.testing.assert_allclose(again, [(1 - f) + f * coth, (1 - f) + f * coth,
+                                       0.5 + 0.5 * coth])
+    late = c.factors(1000 * S, np.array([3]), np.array([BEARING]))
+    np.testing.assert_allclose(late, 1.0, atol=1e-12)  # long after: independent again
+    white = CorrelatedNoise(0.5, f, 0.0)
+    assert not white.enabled
+    np.testing.assert_array_equal(white.factors(S, np.array([3, 3]), np.array([1, 1])), 1.0)
+    small = CorrelatedNoise(0.0, f, tau, max_landmarks=2)
+    for k in range(5):
+        small.factors(S, np.array([k]), np.array([BEARING]))
+    assert len(small.last_ns) == 2 and (4, BEARING) in small.last_ns
+
+
+@pytest.mark.parametrize('f', [0.3, 0.64, 0.94])
+@pytest.mark.parametrize('dt', [0.05, 0.2, 1.0, 5.0])
+def test_correlated_noise_weights_give_the_variance_of_the_mean(f, dt):
+    """The weighted mean of AR(1) + white views: variance 1/sum(w) against the exact one."""
+    tau, n = 8.0, 200
+    c = CorrelatedNoise(f, f, tau)
+    factor = np.concatenate([c.factors(int(k * dt * S), np.array([1]), np.array([BEARING]))
+                             for k in range(n)])
+    i = np.arange(n)
+    C = f * np.exp(-np.abs(i[:, None] - i[None]) * dt / tau) + (1 - f) * np.eye(n)
+
+    def ratio(w):          # claimed variance over true variance of the weighted mean
+        return (1.0 / w.sum()) / (w @ C @ w / w.sum() ** 2)
+
+    assert 0.8 <= ratio(1.0 / factor) <= 1.25
+    if dt <= 1.0:          # the white model claims far less than the truth
+        assert ratio(np.ones(n)) < 0.3
+
+
+def ar1_errors(rng, times, tau, sigma, fraction):
+    """Return white plus first-order Gauss-Markov errors at ``times`` [s]."""
+    x, last, out = rng.standard_normal(), times[0], []
+    for t in times:
+        rho = math.exp(-(t - last) / tau)
+        x = rho * x + math.sqrt(1.0 - rho * rho) * rng.standard_normal()
+        last = t
+        out.append(sigma * (math.sqrt(fraction) * x
+                            + math.sqrt(1.0 - fraction) * rng.standard_normal()))
+    return np.array(out)
+
+
+@pytest.mark.parametrize('modelled, consistent', [(False, False), (True, True)])
+def test_nees_with_time_correlated_bearing_noise(modelled, consistent):
+    """Monte Carlo: a robot circling a landmark at 2 Hz with correlated bearing errors."""
+    rng = np.random.default_rng(5)
+    runs, m_true, sigma, tau, fraction = 40, np.array([1.0, 2.0]), 0.02, 5.0, 0.8
+    times = np.arange(0.0, 20.0, 0.5)
+    nees = []
+    for _ in range(runs):
+        observer = Observer(ObserverConfig(
+            bearing_stddev=sigma, noise_correlation_time_s=tau if modelled else 0.0,
+            bearing_correlated_fraction=fraction))
+        f = fuser('independent')
+        errors = ar1_errors(rng, times, tau, sigma, fraction)
+        phase = rng.uniform(0, 2 * np.pi)
+        for k, t in enumerate(times):
+            a = phase + 0.15 * t
+            pose = np.array([*(m_true + 4.0 * np.array([np.cos(a), np.sin(a)])), a + 2.0])
+            stamp = int(round((t + 1.0) * S))
+            observer.add_pose(stamp, pose, np.zeros((3, 3)))
+            batch, = observer.add_observations([ObservationMessage(
+                stamp, {'id': np.array([1]),
+                        'bearing': np.array([bearing_to(pose, m_true) + errors[k]])})])
+            f.add_constraints(VIEWS[0], stamp, batch.constraints.columns())
+            f.fuse_queued()
+        ids, m, P, _, _ = f.snapshot()
+        d = m[0] - m_true
+        nees.append(d @ np.linalg.solve(P[0], d))
+    anees = np.mean(nees)
+    low, high = chi2.ppf([0.0005, 0.9995], 2 * runs) / runs
+    print(f'modelled {modelled}: ANEES {anees:.2f}, interval [{low:.2f}, {high:.2f}]')
+    assert (low <= anees <= high) == consistent, anees
+    if not consistent:
+        assert anees > 3 * high
