@@ -23,7 +23,8 @@ from landmark_ros.pipeline.counters import Counters, Status
 from landmark_ros.pipeline.rows import landmark_row_problems, MAX_LABEL_ID, UNKNOWN_ID
 from landmark_ros.pipeline.tracks import Scan, Tracker
 from landmark_ros.pipeline.views import (constraint_row_problems, NOT_PROBLEMS as VIEW_COUNTS,
-                                         PartialViews, views_from_columns)
+                                         parse_waiting_records, PartialViews,
+                                         views_from_columns)
 import numpy as np
 from numpy.typing import NDArray
 
@@ -469,7 +470,8 @@ class Fuser:
             for record in records:
                 record['class'] = self.tracker.classes.get(record['id'], 0)
             map_file.save(self.config.map_file, records, self.config.world_frame,
-                          self.config.fusion, next_id=self.tracker.next_id)
+                          self.config.fusion, next_id=self.tracker.next_id,
+                          waiting_views=self.views.waiting_records())
         except (OSError, ValueError) as error:
             self.counters.add('save_failed', 1, f'cannot save {self.config.map_file}: {error}')
             return False
@@ -492,7 +494,10 @@ class Fuser:
                     0 <= next_id <= MAX_LABEL_ID + 1):
                 raise ValueError(f'next_id {next_id!r} is not an integer in '
                                  f'[0, {MAX_LABEL_ID + 1}]')
+            waiting = parse_waiting_records(document.get('waiting_views', []))
             self.map.load_records(document['landmarks'])
+            self.views.reset()
+            self.views.restore(waiting)
             self.tracker.reset()
             self.tracker.next_id = max(next_id, self.config.first_new_id)
             for record in document['landmarks']:

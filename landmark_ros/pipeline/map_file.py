@@ -21,7 +21,8 @@ class MapFileError(ValueError):
 
 
 def save(path: str, records: Sequence[Mapping[str, Any]], world_frame: str, fusion: str,
-         next_id: Optional[int] = None) -> None:
+         next_id: Optional[int] = None,
+         waiting_views: Optional[Sequence[Mapping[str, Any]]] = None) -> None:
     """
     Write the map to ``path`` atomically.
 
@@ -38,6 +39,10 @@ def save(path: str, records: Sequence[Mapping[str, Any]], world_frame: str, fusi
     next_id : int, optional
         The next landmark ID the fuser allocates to landmarks found without an ID
         (kept so that an ID is never given twice, across restarts); omitted when None.
+    waiting_views : list of dict, optional
+        Range-only and bearing-only views of landmarks not placed yet
+        (``pipeline.views.PartialViews.waiting_records``), so that a restart keeps
+        them; omitted when None or empty (files without it load as before).
 
     """
     document = {
@@ -50,6 +55,8 @@ def save(path: str, records: Sequence[Mapping[str, Any]], world_frame: str, fusi
     }
     if next_id is not None:
         document['next_id'] = int(next_id)
+    if waiting_views:
+        document['waiting_views'] = list(waiting_views)
     directory = os.path.dirname(os.path.abspath(path))
     handle, temporary = tempfile.mkstemp(prefix='.' + os.path.basename(path) + '.',
                                          suffix='.tmp', dir=directory)

@@ -364,6 +364,55 @@ class ViewResult:
     counts: Dict[str, Counter]
 
 
+def parse_waiting_records(records: Any) -> List[Tuple[int, _View]]:
+    """
+    Check saved waiting views (``PartialViews.waiting_records``) and return them.
+
+    Returns
+    -------
+    list of (int, _View)
+        Landmark ID and view, in the saved order (for ``PartialViews.restore``).
+
+    Raises
+    ------
+    ValueError
+        If a record lacks a field or has a wrong type, or its row fails the checks
+        of a live constraint row (``constraint_row_problems``); nothing is loaded.
+
+    """
+    if not isinstance(records, list) or not all(isinstance(r, dict) for r in records):
+        raise ValueError('waiting_views must be a list of objects')
+    if not records:
+        return []
+    names = CONSTRAINT_COLUMNS + ('source', 'stamp_ns')
+    for record in records:
+        missing = [name for name in names if name not in record]
+        if missing:
+            raise ValueError(f'waiting view without {missing}')
+        for name in names:
+            value = record[name]
+            if name == 'source':
+                if not isinstance(value, str):
+                    raise ValueError(f'waiting view source {value!r} is not a string')
+            elif isinstance(value, bool) or not isinstance(value, (int, float)):
+                raise ValueError(f'waiting view {name} {value!r} is not a number')
+            elif name in ('id', 'kind', 'view_group', 'stamp_ns') and not isinstance(
+                    value, int):
+                raise ValueError(f'waiting view {name} {value!r} is not an integer')
+    try:
+        columns = {name: np.array([r[name] for r in records],
+                                  np.int64 if name in ('id', 'kind', 'view_group') else
+                                  np.float64) for name in CONSTRAINT_COLUMNS}
+    except OverflowError as error:
+        raise ValueError(f'waiting view number out of range: {error}') from None
+    valid, reasons = constraint_row_problems(columns)
+    if not valid.all():
+        raise ValueError(f'invalid waiting views: {dict(reasons)}')
+    views = views_from_columns(columns)
+    return [(int(r['id']), _View(r['source'], int(r['stamp_ns']), int(r['view_group']),
+                                 views[k])) for k, r in enumerate(records)]
+
+
 class PartialViews:
     """
     Buffer the views of landmarks until they are placed, then update with them.
@@ -414,6 +463,49 @@ class PartialViews:
         self.waiting.clear()
         self.recent.clear()
         self.streak.clear()
+
+    def waiting_records(self) -> List[Dict[str, Any]]:
+        """
+        Return the views of the landmarks still waiting to be placed, for the map file.
+
+        Returns
+        -------
+        list of dict
+            One per view, oldest first per landmark: ``CONSTRAINT_COLUMNS`` (plain
+            numbers) plus ``source`` and ``stamp_ns`` [ns].
+
+        """
+        records = []
+        for landmark_id, buffer in self.waiting.items():
+            for b in buffer:
+                columns = Constraints(np.array([landmark_id], np.int64), b.views,
+                                      np.array([b.group], np.int64)).columns()
+                record: Dict[str, Any] = {name: values[0].item()
+                                          for name, values in columns.items()}
+                record.update(source=b.source, stamp_ns=int(b.stamp_ns))
+                records.append(record)
+        return records
+
+    def restore(self, parsed: List[Tuple[int, _View]]) -> int:
+        """
+        Put checked saved views (``parse_waiting_records``) back into the buffers.
+
+        Views of a landmark the map already holds are left out (it was placed).
+        Landmarks are not placed here: the next view of each tries again.
+
+        Returns
+        -------
+        int
+            Views restored.
+
+        """
+        restored = 0
+        for landmark_id, view in parsed:
+            if self.map.estimate(landmark_id) is not None:
+                continue
+            self.waiting.setdefault(landmark_id, deque(maxlen=self.max_views)).append(view)
+            restored += 1
+        return restored
 
     def add(self, source: str, stamp_ns: int, ids: NDArray[np.int64], views: Views,
             groups: NDArray[np.int64]) -> None:

@@ -1,5 +1,6 @@
 """Tests of pipeline.views: partial rows in the Observer, views in the Fuser (no ROS)."""
 
+import json
 import math
 
 from landmark_ros.core.gaussian import chi2_threshold
@@ -384,3 +385,58 @@ def test_nees_with_time_correlated_bearing_noise(modelled, consistent):
     assert (low <= anees <= high) == consistent, anees
     if not consistent:
         assert anees > 3 * high
+
+
+# --- Persistence -----------------------------------------------------------------------------
+
+def test_waiting_views_survive_a_restart(tmp_path):
+    path = str(tmp_path / 'map.json')
+    m = np.array([3.0, 4.0])
+    first, second = np.array([0.0, 0.0, 0.1]), np.array([6.0, 0.0, -0.2])
+    P_s = np.diag([1e-4, 2e-4, 1e-5])
+    f = fuser(map_file=path)
+    f.add_constraints(VIEWS[0], S, columns(7, BEARING, bearing_to(first, m), first, P_s=P_s,
+                                           R=1e-6, R_bias=4e-6, group=9))
+    f.fuse_queued()
+    assert len(f.map) == 0 and list(f.views.waiting) == [7]
+    assert f.save()
+    with open(path) as stream:
+        saved = json.load(stream)['waiting_views']
+    assert len(saved) == 1 and saved[0]['source'] == VIEWS[0] and saved[0]['view_group'] == 9
+    again = fuser(map_file=path)
+    again.load()
+    restored = again.views.waiting[7][0]
+    original = f.views.waiting[7][0]
+    assert (restored.source, restored.stamp_ns, restored.group) == (VIEWS[0], S, 9)
+    for name in ('kind', 's', 'P_s', 'y', 'R', 'R_bias'):
+        np.testing.assert_array_equal(getattr(restored.views, name),
+                                      getattr(original.views, name))
+    again.add_constraints(VIEWS[1], 2 * S, columns(7, BEARING, bearing_to(second, m), second))
+    again.fuse_queued()
+    np.testing.assert_allclose(again.snapshot().m[0], m, atol=1e-9)
+    assert again.save()
+    with open(path) as stream:
+        assert 'waiting_views' not in json.load(stream)   # placed: nothing waits
+
+
+@pytest.mark.parametrize('field, value', [
+    ('kind', 3), ('variance', -1.0), ('value', 'x'), ('stamp_ns', 1.5), ('id', 2 ** 70),
+    ('source', 4), ('sensor_cov_xx', -1.0)])
+def test_a_bad_waiting_view_moves_the_map_file_aside(tmp_path, field, value):
+    path = str(tmp_path / 'map.json')
+    f = fuser(map_file=path)
+    f.add_landmarks(LANDMARKS[0], S, np.array([1]), np.array([[1.0, 2.0]]),
+                    np.eye(2)[None] * 0.01, np.zeros((1, 2, 2)))
+    f.add_constraints(VIEWS[0], S, columns(7, BEARING, 0.3, [0.0, 0.0, 0.0]))
+    f.fuse_queued()
+    assert f.save()
+    with open(path) as stream:
+        document = json.load(stream)
+    document['waiting_views'][0][field] = value
+    with open(path, 'w') as stream:
+        json.dump(document, stream)
+    again = fuser(map_file=path, min_observations=1)
+    again.load()
+    assert len(again.map) == 0 and not again.views.waiting
+    assert again.counters['map_file_rejected'] == 1
+    assert len(list(tmp_path.glob('map.json.bad-*'))) == 1
