@@ -602,6 +602,12 @@ class InitialiseParams:
         Largest condition number of the information ``J^T W J``; beyond, wait.
     max_stddev : float
         Largest standard deviation [m] of the position (along its worst direction).
+    max_relative_stddev : float
+        Largest standard deviation of the position (worst direction) over its distance
+        to the nearest sensor of its views: the EKF updates that follow linearise
+        ``h`` at the estimate, which holds only while the uncertainty is small
+        against the range (the linearity condition of delayed initialisation,
+        Bailey, ICRA 2003). Beyond, wait (``too_uncertain``).
     ambiguity_chi2 : float
         A second local minimum whose cost (sum of squared normalised residuals) is
         within this of the best makes the landmark ambiguous (two circles: two points).
@@ -625,6 +631,7 @@ class InitialiseParams:
     min_triangulation_angle_deg: float = 5.0
     max_condition: float = 1e6
     max_stddev: float = 10.0
+    max_relative_stddev: float = 0.1
     ambiguity_chi2: float = 10.827566170662733
     consistency_probability: Optional[float] = 0.999
     loss: str = 'linear'
@@ -637,7 +644,7 @@ class InitialiseParams:
                              f'{self.min_triangulation_angle_deg!r}')
         if not self.max_condition >= 1.0:
             raise ValueError(f'max_condition must be >= 1, got {self.max_condition!r}')
-        for name in ('max_stddev', 'ambiguity_chi2', 'f_scale'):
+        for name in ('max_stddev', 'max_relative_stddev', 'ambiguity_chi2', 'f_scale'):
             if not getattr(self, name) > 0.0:
                 raise ValueError(f'{name} must be positive, got {getattr(self, name)!r}')
         p = self.consistency_probability
@@ -840,7 +847,47 @@ def _distinct(solutions):
     return kept
 
 
-def initialise(views, params=InitialiseParams()):
+def dependent_covariance(views, lin, bias_group=None, pose_group=None):
+    """
+    Return the covariance of the dependent errors of views, with their cross terms.
+
+    The diagonal is ``R_dep`` (bias and pose term). Two views of one kind in one
+    ``bias_group`` share the sensor bias (covariance ``sqrt(R_bias_i R_bias_j)``); two
+    views in one ``pose_group`` share the sensor pose error (``J_h_s,i P_s J_h_s,j^T``).
+
+    Parameters
+    ----------
+    views : Views
+        ``N`` views.
+    lin : Linearisation
+        The views linearised at the landmark.
+    bias_group, pose_group : array_like of int, shape (N,), optional
+        Equal numbers for views sharing the bias (one sensor) or the pose error (one
+        pose of one robot); None: no view shares it with another.
+
+    Returns
+    -------
+    ndarray, shape (N, N)
+
+    """
+    n = len(views)
+    D = np.diag(lin.R_dep)
+    if bias_group is not None:
+        b = np.asarray(bias_group)
+        same = (b[:, None] == b[None, :]) & (views.kind[:, None] == views.kind[None, :])
+        D = D + np.where(same & ~np.eye(n, dtype=bool),
+                         np.sqrt(np.outer(views.R_bias, views.R_bias)), 0.0)
+    if pose_group is not None:
+        g = np.asarray(pose_group)
+        same = (g[:, None] == g[None, :]) & ~np.eye(n, dtype=bool)
+        if same.any():
+            J = lin.J_h_s[:, 0, :]
+            cross = np.einsum('ik,ikl,jl->ij', J, views.P_s, J)
+            D = D + np.where(same, 0.5 * (cross + cross.T), 0.0)
+    return D
+
+
+def initialise(views, params=InitialiseParams(), bias_group=None, pose_group=None):
     """
     Place a landmark from its views, or say why it must wait for more.
 
@@ -858,7 +905,11 @@ def initialise(views, params=InitialiseParams()):
     dependent part of each view's error). Views are treated as independent of each
     other: pose errors of different views must be uncorrelated for ``P_m`` to be
     consistent (the dependent part says how much of it a later split CI must treat
-    as correlated with other estimates).
+    as correlated with other estimates). With ``bias_group`` and ``pose_group`` the
+    covariance is the sandwich ``B (R + D) B^T`` with ``B = P_m J^T W`` and ``D`` the
+    dependent covariance with its cross terms (``dependent_covariance``), and
+    ``P_m_dep = B D B^T``: views of one sensor share its bias, views of one pose its
+    error, and these do not average out.
 
     Parameters
     ----------
@@ -866,6 +917,10 @@ def initialise(views, params=InitialiseParams()):
         The views of one landmark (kinds may mix).
     params : InitialiseParams
         Thresholds, loss.
+    bias_group, pose_group : array_like of int, shape (N,), optional
+        Which views share a sensor bias and which a pose error
+        (``dependent_covariance``): their cross-covariances enter ``P_m`` and
+        ``P_m_dep`` (the least-squares weights stay diagonal). None: independent.
 
     Returns
     -------
@@ -904,7 +959,9 @@ def initialise(views, params=InitialiseParams()):
             return wait('ambiguous', best, condition)
     if not condition <= params.max_condition:
         return wait('ill_conditioned', best, condition)
-    if not 1.0 / eigenvalues[0] <= params.max_stddev ** 2:
+    nearest = float(np.min(np.hypot(*(views.s[:, :2] - best.m).T)))
+    if not 1.0 / eigenvalues[0] <= min(params.max_stddev,
+                                       params.max_relative_stddev * nearest) ** 2:
         return wait('too_uncertain', best, condition)
     if (params.consistency_probability is not None and n > 2
             and best.cost > chi2_threshold(n - 2, params.consistency_probability)):
@@ -915,6 +972,11 @@ def initialise(views, params=InitialiseParams()):
     J = lin.J_h_m[:, 0, :]
     B = P_m @ (J.T / lin.R_eff)                  # (2, N): d m / d y
     P_m_dep = (B * lin.R_dep) @ B.T
+    if bias_group is not None or pose_group is not None:
+        # The sandwich B (R + D) B^T: the weights ignore the cross terms, the
+        # covariance of what they produce does not.
+        P_m_dep = B @ dependent_covariance(views, lin, bias_group, pose_group) @ B.T
+        P_m = (B * views.R) @ B.T + P_m_dep
     return Initialisation(OK, OK, best.m, P_m, 0.5 * (P_m_dep + P_m_dep.T), best.cost, n - 2,
                           float(condition), geo.crossing_angle, n)
 

@@ -437,9 +437,10 @@ class PartialViews:
     Notes
     -----
     A waiting landmark is tried again with every new view (``initialise`` on its
-    buffer, at least two views). ``view_group`` is kept with each view; the
-    initialisation treats the views as independent, which holds when every view of a
-    landmark comes from another pose (one row per landmark and message).
+    buffer, at least two views). The initialisation's covariance accounts for the
+    views that share errors: the views of one source share its bias, the views of one
+    ``view_group`` of a source share its pose error (``core.partial.initialise``
+    with ``bias_group`` and ``pose_group``).
 
     """
 
@@ -513,6 +514,15 @@ class PartialViews:
         self.queue.append((source, int(stamp_ns), np.asarray(ids, np.int64), views,
                            np.asarray(groups, np.int64)))
 
+    def _initialise(self, buffer):
+        """Place a landmark from buffered views: a source shares its bias, a view group its pose."""
+        sources = [b.source for b in buffer]
+        index = {name: k for k, name in enumerate(dict.fromkeys(sources))}
+        bias_group = np.array([index[name] for name in sources], np.int64)
+        pose_group = np.array([index[b.source] * (1 << 33) + b.group for b in buffer], np.int64)
+        return initialise(Views.concatenate(b.views for b in buffer), self.params,
+                          bias_group, pose_group)
+
     def fuse(self) -> ViewResult:
         """
         Take every queued view in arrival order: buffer, initialise or update.
@@ -547,8 +557,7 @@ class PartialViews:
                         status == GATED) else 0
                     if self.streak[landmark_id] >= self.max_consecutive_rejections:
                         self.streak[landmark_id] = 0
-                        placed = initialise(Views.concatenate(b.views for b in recent),
-                                            self.params)
+                        placed = self._initialise(recent)
                         if placed.ok:
                             self.map.set_estimate(landmark_id, placed.m, placed.P_m,
                                                   placed.P_m_dep, VIEW_SOURCE, stamp_ns, 0)
@@ -570,7 +579,7 @@ class PartialViews:
                 buffer.append(_View(source, stamp_ns, int(groups[k]), view))
                 if len(buffer) < 2:
                     continue
-                placed = initialise(Views.concatenate(b.views for b in buffer), self.params)
+                placed = self._initialise(buffer)
                 if not placed.ok:
                     self.wait_reasons[placed.reason] += 1
                     continue

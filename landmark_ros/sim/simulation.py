@@ -37,6 +37,9 @@ import numpy as np
 MAX_ID = 2 ** 32 - 1
 """Largest landmark ID the ``landmarks`` schema (UINT32) can carry."""
 
+SENSOR_KINDS = ('rb', 'range', 'bearing')
+"""Values of ``SimConfig.sensor_kinds``."""
+
 _WORLD, _PATH, _BIAS, _POSE, _NOISE, _DETECTION, _CLUTTER = range(7)
 """Stream numbers of the random draws (part of each draw's seed)."""
 
@@ -97,6 +100,11 @@ class SimConfig(ConfigBase):
     no_ids: bool = param(
         False, 'Publish every observation without its landmark ID (UNKNOWN_ID).',
         read_only=True)
+    sensor_kinds: tuple = param(
+        ('rb',), "Sensor of each robot, in turn (robot i takes entry i modulo the length): "
+        "'rb' measures range and bearing, 'range' only the range (UWB, radio; the bearing "
+        "column is NaN), 'bearing' only the bearing (camera; the range is NaN).",
+        read_only=True)
     duration_s: float = param(0.0, 'Simulated time to run; 0 runs forever [s].',
                               read_only=True, low=0.0, high=1e9)
     time_scale: float = param(1.0, 'Simulated seconds per wall-clock second.',
@@ -120,6 +128,13 @@ class SimConfig(ConfigBase):
             raise ValueError('min_range must be below max_range')
         if not self.frame:
             raise ValueError('frame must not be empty')
+        if not self.sensor_kinds or not set(self.sensor_kinds) <= set(SENSOR_KINDS):
+            raise ValueError(f'sensor_kinds must be a list of {SENSOR_KINDS}, got '
+                             f'{list(self.sensor_kinds)}')
+
+    def sensor_kind(self, robot):
+        """Return the sensor kind of a robot (0-based index): 'rb', 'range' or 'bearing'."""
+        return self.sensor_kinds[int(robot) % len(self.sensor_kinds)]
 
     @property
     def pose_period_ns(self):
@@ -444,7 +459,8 @@ class Measurement:
     ids: np.ndarray
     """Landmark IDs, int64, shape (N,)."""
     z: np.ndarray
-    """Measured ``(range [m], bearing [rad])``, shape (N, 2)."""
+    """Measured ``(range [m], bearing [rad])``, shape (N, 2); the column a range-only
+    or bearing-only robot does not measure is NaN."""
     z_true: np.ndarray
     """Noise- and bias-free values, shape (N, 2)."""
 
@@ -577,6 +593,8 @@ class Simulation:
         probability ``detection_probability``, and a Poisson number (mean
         ``clutter_rate``) of false measurements with ID ``UNKNOWN_ID`` follow, uniform
         over the range interval and the field of view (the defaults draw nothing).
+        A robot whose ``sensor_kind`` is ``range`` (``bearing``) gets NaN bearings
+        (ranges); the draws are the same whatever the kind.
 
         Parameters
         ----------
@@ -614,6 +632,9 @@ class Simulation:
                 draw.uniform(-0.5 * config.fov, 0.5 * config.fov, count)])
             ids = np.concatenate([ids, np.full(count, UNKNOWN_ID, np.int64)])
             z, z_true = np.concatenate([z, clutter]), np.concatenate([z_true, clutter])
+        kind = config.sensor_kind(robot)
+        if kind != 'rb':
+            z[:, 1 if kind == 'range' else 0] = np.nan
         return Measurement(stamp, true, ids, z, z_true)
 
     def visible_ids(self, robot, t):

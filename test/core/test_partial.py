@@ -153,7 +153,8 @@ def test_two_exact_bearings_give_the_ray_intersection(seed):
         if pt.geometry(_exact_views(pt.BEARING, s, m)).reason == pt.OK:
             break
     views = _exact_views(pt.BEARING, s, m)
-    init = pt.initialise(views)
+    # The point, whatever the uncertainty (the linearity check has its own test).
+    init = pt.initialise(views, pt.InitialiseParams(max_relative_stddev=100.0))
     assert init.ok, init.reason
     phi = s[:, 2] + views.y
     reference = _ray_intersection(s[0, :2], phi[0], s[1, :2], phi[1])
@@ -211,8 +212,26 @@ def test_near_parallel_bearings_wait():
     assert init.status == pt.WAIT and init.reason == 'small_crossing_angle'
     assert np.degrees(init.crossing_angle) == pytest.approx(2.862, abs=1e-3)
     assert np.isnan(init.m).all()
-    params = pt.InitialiseParams(min_triangulation_angle_deg=2.0)
+    params = pt.InitialiseParams(min_triangulation_angle_deg=2.0, max_relative_stddev=1.0)
     assert pt.initialise(_exact_views(pt.BEARING, s, m), params).ok
+
+
+def test_a_landmark_too_uncertain_for_the_linearisation_waits():
+    """Placed only once its worst standard deviation is below 0.1 of the nearest range."""
+    m = np.array([20.0, 0.0])
+    s = np.array([[0.0, 0.0, 0.0], [0.0, 2.0, 0.0]])     # 5.7 deg, 20 m away
+    views = _exact_views(pt.BEARING, s, m)
+    loose = pt.initialise(views, pt.InitialiseParams(max_relative_stddev=1.0))
+    assert loose.ok
+    worst = np.sqrt(np.linalg.eigvalsh(loose.P_m)[1])
+    nearest = np.hypot(*(s[:, :2] - m).T).min()
+    assert 0.1 < worst / nearest < 1.0
+    init = pt.initialise(views)
+    assert init.status == pt.WAIT and init.reason == 'too_uncertain'
+    tight = pt.InitialiseParams(max_relative_stddev=1.01 * worst / nearest)
+    assert pt.initialise(views, tight).ok
+    assert pt.initialise(views, pt.InitialiseParams(
+        max_relative_stddev=0.99 * worst / nearest)).reason == 'too_uncertain'
 
 
 def test_rays_crossing_behind_wait():
@@ -277,7 +296,7 @@ def test_inconsistent_views_wait_and_robust_loss_recovers(rng):
 
 def test_initialise_params_validate():
     for bad in ({'min_triangulation_angle_deg': 0.0}, {'max_condition': 0.5},
-                {'max_stddev': 0.0}, {'consistency_probability': 1.0}, {'loss': 'l2'}):
+                {'max_stddev': 0.0}, {'max_relative_stddev': 0.0}, {'consistency_probability': 1.0}, {'loss': 'l2'}):
         with pytest.raises(ValueError):
             pt.InitialiseParams(**bad)
 
@@ -464,3 +483,31 @@ def test_anees_inside_the_chi_square_interval(rng, kinds, method):
         assert lo <= anees <= hi, (anees, lo, hi)
     else:   # the intersections are conservative by design
         assert anees <= hi, (anees, lo, hi)
+
+
+@pytest.mark.parametrize('grouped, consistent', [(False, False), (True, True)])
+def test_initialisation_covariance_with_a_bias_shared_by_each_sensor(grouped, consistent):
+    """Monte Carlo: two cameras with a bias each, five views apiece; ANEES with the groups."""
+    rng = np.random.default_rng(3)
+    m = np.array([0.0, 5.0])
+    xy = np.concatenate([np.column_stack([np.linspace(-4, -2, 5), np.zeros(5)]),
+                         np.column_stack([np.linspace(2, 4, 5), np.zeros(5)])])
+    s = np.column_stack([xy, np.full(10, 1.0)])
+    sensor = np.repeat([0, 1], 5)
+    P_s = np.diag([1e-4, 1e-4, 1e-5])
+    sigma, bias = 0.003, 0.02
+    runs, nees = 300, []
+    for _ in range(runs):
+        errors = (rng.normal(0, bias, 2)[sensor] + rng.normal(0, sigma, 10))
+        pose_error = rng.multivariate_normal(np.zeros(3), P_s, 2)[sensor]
+        y = pt.observe_view(pt.BEARING, s + pose_error, m)[:, 0] + errors
+        views = pt.Views(pt.BEARING, s, P_s, y, sigma ** 2, bias ** 2)
+        init = (pt.initialise(views, bias_group=sensor, pose_group=sensor) if grouped
+                else pt.initialise(views))
+        assert init.ok, init.reason
+        d = init.m - m
+        nees.append(d @ np.linalg.solve(init.P_m, d))
+        assert_psd(init.P_m - init.P_m_dep, atol=1e-15)
+    anees = np.mean(nees)
+    low, high = chi2.ppf([0.0005, 0.9995], 2 * runs) / runs
+    assert (low <= anees <= high) == consistent, anees
