@@ -171,6 +171,7 @@ def correlation_model(key, time, residuals, max_lag_steps=400):
     key : ndarray of int, shape (N,)
         Robot-landmark pair of each residual.
     time : ndarray, shape (N,) [s]
+        Stamp of each residual.
     residuals : dict of str to ndarray, shape (N,)
         Per quantity (``range`` normalised by its model standard deviation, ``bearing``).
     max_lag_steps : int

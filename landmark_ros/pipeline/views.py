@@ -515,7 +515,7 @@ class PartialViews:
                            np.asarray(groups, np.int64)))
 
     def _initialise(self, buffer):
-        """Place a landmark from buffered views: a source shares its bias, a view group its pose."""
+        """Place a landmark from views: a source shares its bias, a view group its pose."""
         sources = [b.source for b in buffer]
         index = {name: k for k, name in enumerate(dict.fromkeys(sources))}
         bias_group = np.array([index[name] for name in sources], np.int64)

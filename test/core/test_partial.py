@@ -296,7 +296,8 @@ def test_inconsistent_views_wait_and_robust_loss_recovers(rng):
 
 def test_initialise_params_validate():
     for bad in ({'min_triangulation_angle_deg': 0.0}, {'max_condition': 0.5},
-                {'max_stddev': 0.0}, {'max_relative_stddev': 0.0}, {'consistency_probability': 1.0}, {'loss': 'l2'}):
+                {'max_stddev': 0.0}, {'max_relative_stddev': 0.0},
+                {'consistency_probability': 1.0}, {'loss': 'l2'}):
         with pytest.raises(ValueError):
             pt.InitialiseParams(**bad)
 

@@ -7,7 +7,7 @@ deterministic). The node test runs ``landmark_sim`` in a private context and
 domain and checks every message it publishes against the ``Simulation``.
 """
 
-from dataclasses import fields
+from dataclasses import fields, replace
 import math
 from pathlib import Path
 
@@ -441,3 +441,24 @@ def test_node_refuses_a_bad_world_file(env, tmp_path):
     with pytest.raises(ValueError):
         LandmarkSim(context=env.context,
                     parameter_overrides=[Parameter('world_file', value=str(path))])
+
+
+def test_sensor_kinds_blank_the_column_a_robot_does_not_measure():
+    base = replace(SimConfig(), robots=3, seed=4)
+    mixed = Simulation(replace(base, sensor_kinds=('rb', 'range', 'bearing')))
+    plain = Simulation(base)
+    assert [mixed.config.sensor_kind(r) for r in range(4)] == ['rb', 'range', 'bearing', 'rb']
+    seen = 0
+    for robot in range(3):
+        for j in range(0, 40, 7):
+            a, b = mixed.measure(robot, j), plain.measure(robot, j)
+            np.testing.assert_array_equal(a.ids, b.ids)
+            keep = {0: [0, 1], 1: [0], 2: [1]}[robot]
+            np.testing.assert_array_equal(a.z[:, keep], b.z[:, keep])   # the same draws
+            assert np.isnan(np.delete(a.z, keep, axis=1)).all()
+            seen += len(a.ids)
+    assert seen > 10
+    with pytest.raises(ValueError, match='sensor_kinds'):
+        replace(base, sensor_kinds=('rb', 'sonar'))
+    with pytest.raises(ValueError, match='sensor_kinds'):
+        replace(base, sensor_kinds=())
