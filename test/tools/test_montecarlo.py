@@ -7,7 +7,7 @@ from landmark_ros.eval import montecarlo
 
 def test_each_method_is_as_consistent_as_theory_says():
     out = io.StringIO()
-    rows = montecarlo.run(seeds=6, duration_s=10.0, out=out)
+    rows = montecarlo.run(seeds=6, duration_s=10.0, scenarios=('white', 'biased'), out=out)
     assert len(rows) == 6, out.getvalue()
     failures = [row for row in rows if not row['ok']]
     assert not failures, out.getvalue()
