@@ -338,6 +338,7 @@ def test_shipped_yaml_lists_every_parameter_with_its_default():
     document = yaml.safe_load(path.read_text())
     values = document['/**/landmark_sim']['ros__parameters']
     defaults = {spec.name: getattr(SimConfig(), spec.name) for spec in fields(SimConfig)}
+    defaults = {k: list(v) if isinstance(v, tuple) else v for k, v in defaults.items()}
     assert values == defaults
 
 
