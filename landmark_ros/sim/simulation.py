@@ -101,7 +101,7 @@ class SimConfig(ConfigBase):
         False, 'Publish every observation without its landmark ID (UNKNOWN_ID).',
         read_only=True)
     sensor_kinds: tuple = param(
-        ('rb',), "Sensor of each robot, in turn (robot i takes entry i modulo the length): "
+        ('rb',), 'Sensor of each robot, in turn (robot i takes entry i modulo the length): '
         "'rb' measures range and bearing, 'range' only the range (UWB, radio; the bearing "
         "column is NaN), 'bearing' only the bearing (camera; the range is NaN).",
         read_only=True)
