@@ -21,7 +21,9 @@ PACKAGES = ('landmark_ros/core', 'landmark_ros/pipeline')
 
 REQUIRED = [
     'landmark_ros.core',
+    'landmark_ros.core._arrays',
     'landmark_ros.core.ellipse',
+    'landmark_ros.core.gaussian',
     'landmark_ros.core.landmarks',
     'landmark_ros.core.pose2',
     'landmark_ros.core.sensors',
@@ -29,8 +31,7 @@ REQUIRED = [
     'landmark_ros.pipeline.counters',
     'landmark_ros.pipeline.map_file',
     'landmark_ros.pipeline.pose_buffer',
-    # Not annotated yet: landmark_ros.core._arrays, landmark_ros.core.association,
-    # landmark_ros.core.gaussian, landmark_ros.core.landmark_map,
+    # Not annotated yet: landmark_ros.core.association, landmark_ros.core.landmark_map,
     # landmark_ros.pipeline.fuser, landmark_ros.pipeline.observer,
     # landmark_ros.pipeline.rows.
 ]
