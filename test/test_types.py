@@ -30,10 +30,11 @@ REQUIRED = [
     'landmark_ros.pipeline.config',
     'landmark_ros.pipeline.counters',
     'landmark_ros.pipeline.map_file',
+    'landmark_ros.pipeline.observer',
     'landmark_ros.pipeline.pose_buffer',
     'landmark_ros.pipeline.rows',
     # Not annotated yet: landmark_ros.core.association, landmark_ros.core.landmark_map,
-    # landmark_ros.pipeline.fuser, landmark_ros.pipeline.observer.
+    # landmark_ros.pipeline.fuser.
 ]
 
 
