@@ -22,6 +22,7 @@ PACKAGES = ('landmark_ros/core', 'landmark_ros/pipeline')
 REQUIRED = [
     'landmark_ros.core',
     'landmark_ros.core._arrays',
+    'landmark_ros.core.association',
     'landmark_ros.core.ellipse',
     'landmark_ros.core.gaussian',
     'landmark_ros.core.landmarks',
@@ -33,7 +34,7 @@ REQUIRED = [
     'landmark_ros.pipeline.observer',
     'landmark_ros.pipeline.pose_buffer',
     'landmark_ros.pipeline.rows',
-    # Not annotated yet: landmark_ros.core.association, landmark_ros.core.landmark_map,
+    # Not annotated yet: landmark_ros.core.landmark_map,
     # landmark_ros.pipeline.fuser.
 ]
 
