@@ -26,6 +26,7 @@ REQUIRED = [
     'landmark_ros.core.ellipse',
     'landmark_ros.core.gaussian',
     'landmark_ros.core.landmarks',
+    'landmark_ros.core.partial',
     'landmark_ros.core.pose2',
     'landmark_ros.core.sensors',
     'landmark_ros.pipeline.config',
