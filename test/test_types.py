@@ -35,6 +35,7 @@ REQUIRED = [
     'landmark_ros.pipeline.observer',
     'landmark_ros.pipeline.pose_buffer',
     'landmark_ros.pipeline.rows',
+    'landmark_ros.pipeline.tracks',
     'landmark_ros.pipeline.views',
     # Not annotated yet: landmark_ros.core.landmark_map,
     # landmark_ros.pipeline.fuser.
