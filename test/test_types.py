@@ -31,14 +31,14 @@ REQUIRED = [
     'landmark_ros.core.sensors',
     'landmark_ros.pipeline.config',
     'landmark_ros.pipeline.counters',
+    'landmark_ros.pipeline.fuser',
     'landmark_ros.pipeline.map_file',
     'landmark_ros.pipeline.observer',
     'landmark_ros.pipeline.pose_buffer',
     'landmark_ros.pipeline.rows',
     'landmark_ros.pipeline.tracks',
     'landmark_ros.pipeline.views',
-    # Not annotated yet: landmark_ros.core.landmark_map,
-    # landmark_ros.pipeline.fuser.
+    # Not annotated yet: landmark_ros.core.landmark_map.
 ]
 
 
