@@ -48,7 +48,7 @@ once, and every computation is element-wise.
 from collections import Counter, deque
 import copy
 from dataclasses import dataclass, field
-from typing import NamedTuple
+from typing import Any, Deque, Dict, List, Mapping, NamedTuple, Optional, Sequence, Tuple, Union
 
 from landmark_ros.core._arrays import (inverse_2x2, mahalanobis_sq_2x2, power_of_4_scale,
                                        symmetric_2x2)
@@ -56,6 +56,7 @@ from landmark_ros.core.gaussian import (chi2_threshold, ci_2x2, covariance_inter
                                         fuse_2x2, information, sci_omega_2x2,
                                         split_ci_2x2_entries, split_covariance_intersection)
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
 
 _TABLE_LIMIT = 1 << 20
 """IDs below this are looked up in a dense table, others by binary search."""
@@ -72,15 +73,15 @@ FUSION_METHODS = ('independent', 'covariance_intersection', 'split_covariance_in
 class MapSnapshot(NamedTuple):
     """The confirmed landmarks, sorted by ID (``LandmarkMap.snapshot``)."""
 
-    ids: np.ndarray
+    ids: NDArray[np.int64]
     """Landmark IDs, int64, shape (K,)."""
-    m: np.ndarray
+    m: NDArray[np.float64]
     """Means, shape (K, 2) [m]."""
-    P: np.ndarray
+    P: NDArray[np.float64]
     """Total covariances, shape (K, 2, 2) [m^2]."""
-    P_dep: np.ndarray
+    P_dep: NDArray[np.float64]
     """Their dependent parts, shape (K, 2, 2) [m^2]."""
-    observations: np.ndarray
+    observations: NDArray[np.int64]
     """Observations fused into each, int64, shape (K,)."""
 
 
@@ -92,20 +93,20 @@ def _no_ids():
 class UpdateResult:
     """What one ``LandmarkMap.update`` did, for counters and logs."""
 
-    accepted: Counter = field(default_factory=Counter)
+    accepted: Counter[str] = field(default_factory=Counter)
     """Observations fused into confirmed landmarks, by source."""
-    rejected: Counter = field(default_factory=Counter)
+    rejected: Counter[str] = field(default_factory=Counter)
     """Observations gated out or left out of a confirmation, by source."""
-    confirmed: list = field(default_factory=list)
+    confirmed: List[int] = field(default_factory=list)
     """IDs that became landmarks."""
-    reinitialised: list = field(default_factory=list)
+    reinitialised: List[int] = field(default_factory=list)
     """IDs rebuilt from their recent observations."""
-    changed_ids: np.ndarray = field(default_factory=_no_ids, compare=False)
+    changed_ids: NDArray[np.int64] = field(default_factory=_no_ids, compare=False)
     """IDs (int64, sorted, unique) whose published estimate changed in this update;
     not part of ``==`` (an array)."""
 
     @property
-    def changed(self):
+    def changed(self) -> bool:
         """Whether the confirmed map changed."""
         return bool(self.accepted or self.confirmed or self.reinitialised)
 
@@ -301,8 +302,9 @@ class LandmarkMap:
 
     """
 
-    def __init__(self, fusion='split_covariance_intersection', gate_probability=0.999,
-                 min_observations=2, max_consecutive_rejections=5):
+    def __init__(self, fusion: str = 'split_covariance_intersection',
+                 gate_probability: float = 0.999, min_observations: int = 2,
+                 max_consecutive_rejections: int = 5) -> None:
         if fusion not in FUSION_METHODS:
             raise ValueError(f'fusion must be one of {FUSION_METHODS}, got {fusion!r}')
         if min_observations < 1 or max_consecutive_rejections < 1:
@@ -316,10 +318,10 @@ class LandmarkMap:
 
     # State ---------------------------------------------------------------------
 
-    def reset(self):
+    def reset(self) -> None:
         """Forget every landmark."""
         self._count = 0
-        self._row = {}
+        self._row: Dict[int, int] = {}
         self._sorted_ids = np.empty(0, np.int64)
         self._sorted_rows = np.empty(0, np.int64)
         self._table = np.empty(0, np.int64)
@@ -333,22 +335,22 @@ class LandmarkMap:
         self.consecutive = np.empty(0, np.int64)
         self.first_stamp_ns = np.empty(0, np.int64)
         self.last_stamp_ns = np.empty(0, np.int64)
-        self._seen_by = {}
-        self._buffers = {}
-        self._source_names = []
-        self._source_codes = {}
+        self._seen_by: Dict[str, NDArray[np.bool_]] = {}
+        self._buffers: Dict[int, Deque[_Observation]] = {}
+        self._source_names: List[str] = []
+        self._source_codes: Dict[str, int] = {}
         self._method.reset()
 
-    def __len__(self):
+    def __len__(self) -> int:
         """Return the number of confirmed landmarks."""
         return int(self.confirmed[:self._count].sum())
 
     @property
-    def source_names(self):
+    def source_names(self) -> List[str]:
         """Return the source names, indexed by their codes."""
         return self._source_names
 
-    def source_code(self, name):
+    def source_code(self, name: str) -> int:
         """Return the map's integer code of a source name, registering a new one."""
         code = self._source_codes.get(name)
         if code is None:
@@ -414,7 +416,9 @@ class LandmarkMap:
 
     # Update --------------------------------------------------------------------
 
-    def update(self, ids, z, R, R_dep=None, source='', stamp_ns=0):
+    def update(self, ids: ArrayLike, z: ArrayLike, R: ArrayLike, R_dep: Optional[ArrayLike] = None,
+               source: Union[str, Sequence[str], NDArray[np.str_]] = '',
+               stamp_ns: ArrayLike = 0) -> UpdateResult:
         """
         Fuse a batch of observations, row by row in order.
 
@@ -528,7 +532,7 @@ class LandmarkMap:
         rows = self._rows_of(ids)
         # The one conversion to the independent part.
         batch = _Batch(z, R - R_dep, R_dep, self._source_names, codes, stamps_ns)
-        changed = []
+        changed: List[NDArray[np.int64]] = []
         known = self.confirmed[rows]
         # Rows of already confirmed landmarks: in rounds of distinct landmarks, which
         # keeps each landmark's own order while fusing the rows of a round together.
@@ -626,7 +630,7 @@ class LandmarkMap:
         self._buffers.pop(row, None)
         return cluster
 
-    def known(self, ids):
+    def known(self, ids: ArrayLike) -> NDArray[np.bool_]:
         """
         Return whether the map has had rows of each ID (confirmed, tentative or forgotten).
 
@@ -642,7 +646,7 @@ class LandmarkMap:
         """
         return self._lookup(np.asarray(ids, dtype=np.int64).reshape(-1)) >= 0
 
-    def forget(self, ids):
+    def forget(self, ids: ArrayLike) -> int:
         """
         Drop the buffered observations of unconfirmed IDs (confirmed ones are kept).
 
@@ -668,7 +672,7 @@ class LandmarkMap:
         self.first_stamp_ns[rows] = _NO_STAMP
         return len(rows)
 
-    def retire(self, ids):
+    def retire(self, ids: ArrayLike) -> int:
         """
         Take confirmed landmarks out of the map (a duplicate merged into another one).
 
@@ -699,7 +703,9 @@ class LandmarkMap:
         return len(rows)
     # Estimates from elsewhere -------------------------------------------------------
 
-    def estimate(self, landmark_id):
+    def estimate(
+            self, landmark_id: int
+    ) -> Optional[Tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]]:
         """
         Return the estimate of a confirmed landmark, or None.
 
@@ -718,7 +724,8 @@ class LandmarkMap:
         return (self.mean[row].copy(), self.cov_ind[row] + self.cov_dep[row],
                 self.cov_dep[row].copy())
 
-    def set_estimate(self, landmark_id, m, P, P_dep, source, stamp_ns=0, observations=1):
+    def set_estimate(self, landmark_id: int, m: ArrayLike, P: ArrayLike, P_dep: ArrayLike,
+                     source: str, stamp_ns: int = 0, observations: int = 1) -> None:
         """
         Insert or replace a confirmed landmark's estimate computed outside the map.
 
@@ -770,7 +777,7 @@ class LandmarkMap:
 
     # Output --------------------------------------------------------------------
 
-    def snapshot(self, ids=None):
+    def snapshot(self, ids: Optional[ArrayLike] = None) -> MapSnapshot:
         """
         Return the confirmed landmarks, sorted by ID.
 
@@ -798,12 +805,12 @@ class LandmarkMap:
                            self.cov_ind[rows] + self.cov_dep[rows], self.cov_dep[rows].copy(),
                            self.observations[rows].copy())
 
-    def sources_of(self, landmark_id):
+    def sources_of(self, landmark_id: int) -> List[str]:
         """Return the sorted sources whose observations a landmark fused."""
         row = self._row[landmark_id]
         return sorted(source for source, seen in self._seen_by.items() if seen[row])
 
-    def to_records(self):
+    def to_records(self) -> List[Dict[str, Any]]:
         """Return the confirmed landmarks as plain dicts (for saving); stamps in ns."""
         records = []
         for landmark_id in self.snapshot().ids.tolist():
@@ -822,7 +829,7 @@ class LandmarkMap:
             })
         return records
 
-    def load_records(self, records):
+    def load_records(self, records: Sequence[Mapping[str, Any]]) -> None:
         """
         Replace the map with confirmed landmarks from ``to_records`` output.
 
