@@ -647,7 +647,7 @@ class InitialiseParams:
     loss: str = 'linear'
     f_scale: float = 1.0
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         """Check every value."""
         if not 0.0 < self.min_triangulation_angle_deg < 90.0:
             raise ValueError('min_triangulation_angle_deg must lie in (0, 90), got '
