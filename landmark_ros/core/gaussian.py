@@ -797,7 +797,7 @@ def mahalanobis_sq(x: ArrayLike, mean: ArrayLike,
     return np.sum(d * _solve_vec(P / s[..., None, None], d), axis=-1)[()]
 
 
-def gate(d2: ArrayLike, chi2_threshold: float) -> Union[bool, NDArray[np.bool_]]:
+def gate(d2: ArrayLike, chi2_threshold: float) -> Union[np.bool_, NDArray[np.bool_]]:
     """
     Return True where a squared Mahalanobis distance passes the gate.
 
@@ -872,7 +872,8 @@ def chi2_threshold(dof: int, probability: float) -> float:
     return float(special.chdtri(int(dof), 1.0 - probability))
 
 
-def covariance_status(P: ArrayLike, rtol: float = 1e-9) -> Union[int, NDArray[np.int_]]:
+def covariance_status(P: ArrayLike,
+                      rtol: float = 1e-9) -> Union[np.int_, NDArray[np.int_]]:
     """
     Check covariances: finite, symmetric and positive semi-definite.
 
@@ -948,7 +949,7 @@ def validate_covariance(P: ArrayLike, name: str = 'covariance',
     return np.asarray(P, dtype=np.float64)
 
 
-def covariance_range_status(P: ArrayLike) -> Union[int, NDArray[np.int_]]:
+def covariance_range_status(P: ArrayLike) -> Union[np.int_, NDArray[np.int_]]:
     """
     Check that covariances lie in the range the core computes reliably.
 

@@ -469,8 +469,9 @@ def intersect_rays(
     return s1 + t1[..., None] * d1, t1, t2, crossing
 
 
-def intersect_circles(c1: ArrayLike, r1: ArrayLike, c2: ArrayLike,
-                      r2: ArrayLike) -> Tuple[NDArray[np.float64], NDArray[np.bool_]]:
+def intersect_circles(
+        c1: ArrayLike, r1: ArrayLike, c2: ArrayLike, r2: ArrayLike
+) -> Tuple[NDArray[np.float64], Union[np.bool_, NDArray[np.bool_]]]:
     """
     Intersect pairs of circles.
 
@@ -516,7 +517,7 @@ def intersect_circles(c1: ArrayLike, r1: ArrayLike, c2: ArrayLike,
 
 def intersect_ray_circle(
         s: ArrayLike, phi: ArrayLike, c: ArrayLike, r: ArrayLike
-) -> Tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]:
+) -> Tuple[NDArray[np.float64], NDArray[np.float64], Union[np.bool_, NDArray[np.bool_]]]:
     """
     Intersect rays ``s + t d(phi)`` with circles.
 
