@@ -234,34 +234,81 @@ class _SplitCovarianceIntersection(_Independent):
         self.parts = _SourceParts()
         self.planned = None
 
+    _PLAN_PASSES = 8
+    """Most passes of ``prepare`` (each rules out one more rejected row per landmark)."""
+
     def prepare(self, landmark_map, rows, batch, positions):
         """
         Find the estimates after each row of confirmed landmarks of a batch at once.
 
-        ``rows`` (landmark rows, in arrival order) at ``positions`` in the batch. Each
-        estimate assumes the landmark's earlier rows of the batch are all accepted;
-        ``update`` uses it while that holds and folds the landmark itself otherwise.
-        Only worth it when some landmark has several rows (more than one round).
+        ``rows`` (landmark rows, in arrival order) at ``positions`` in the batch. The
+        rows are gated here as ``LandmarkMap`` will gate them (same numbers, same
+        decisions): a first pass takes every row as accepted; each further pass, for
+        the landmarks that had one, leaves out the first row that failed its gate and
+        folds their rows again. ``update`` then takes these estimates while the map's
+        decisions match (a reinitialisation in between breaks the landmark) and folds
+        the others itself. Only worth it when some landmark has several rows.
         """
         self.planned = None
         if len(rows) < 2 or len(np.unique(rows)) == len(rows):
             return
+        count = len(rows)
         codes = batch.codes[positions]
-        plan = self.parts.plan(rows, codes, batch.z[positions], batch.R_ind[positions],
-                               batch.R_dep[positions])
-        if plan is None:
-            return
-        m, P_ind, P_dep, occurrence, landmark = plan
+        z, R_ind, R_dep = batch.z[positions], batch.R_ind[positions], batch.R_dep[positions]
+        terms = np.concatenate(_terms(z, R_ind, R_dep), axis=1)
+        landmarks, landmark = np.unique(rows, return_inverse=True)
+        landmark = landmark.reshape(-1)
+        # Rows by landmark, in arrival order within each: the previous included row.
+        order = np.argsort(landmark, kind='stable')
+        start = np.searchsorted(landmark[order], landmark[order])
+        include = np.ones(count, bool)
+        planned = np.ones(count, bool)
+        m, P_ind, P_dep = np.zeros((count, 2)), np.zeros((count, 2, 2)), np.zeros((count, 2, 2))
+        todo = np.arange(count)
+        for _ in range(self._PLAN_PASSES):
+            states = self.parts.plan(rows[todo], codes[todo], terms[todo], include[todo])
+            if states is None:
+                return
+            m[todo], P_ind[todo], P_dep[todo] = states
+            # Each row against the state before it (the map's for a landmark's first).
+            held = np.where(include[order], np.arange(count), -1)
+            previous = np.full(count, -1)
+            previous[1:] = np.maximum.accumulate(held)[:-1]
+            previous = np.where(previous >= start, previous, -1)
+            before = np.full(count, -1)
+            before[order] = np.where(previous >= 0, order[np.maximum(previous, 0)], -1)
+            first = before < 0
+            mean, cov_ind, cov_dep = m[before], P_ind[before], P_dep[before]
+            mean[first] = landmark_map.mean[rows[first]]
+            cov_ind[first] = landmark_map.cov_ind[rows[first]]
+            cov_dep[first] = landmark_map.cov_dep[rows[first]]
+            S = cov_ind + cov_dep + R_ind + R_dep
+            d = z - mean
+            d2 = mahalanobis_sq_2x2(d[:, 0], d[:, 1], *_entries(S))
+            failed = include & ~(d2 <= landmark_map.threshold)
+            if not failed.any():
+                break
+            # The first failing row of each landmark is rejected for sure.
+            first_failed = np.full(len(landmarks), count)
+            np.minimum.at(first_failed, landmark[failed], _rank(landmark)[failed])
+            hit = first_failed[landmark] == _rank(landmark)
+            include[hit] = False
+            again = np.zeros(len(landmarks), bool)
+            again[landmark[hit]] = True
+            todo = np.flatnonzero(again[landmark])
+        else:
+            planned[todo] = False
         size = len(batch.codes)
-        at_occurrence = np.full(size, -1, np.int64)
-        at_occurrence[positions] = occurrence
-        at_landmark = np.zeros(size, np.int64)
-        at_landmark[positions] = landmark
-        at = np.zeros(size, np.int64)
-        at[positions] = np.arange(len(positions))
+        at = np.full(size, -1, np.int64)
+        at[positions[planned]] = np.flatnonzero(planned)
+        included = np.cumsum(include[order]) - include[order]
+        accepted_before = np.empty(count, np.int64)
+        accepted_before[order] = included - included[start]
         self.planned = {'m': m, 'P_ind': P_ind, 'P_dep': P_dep, 'at': at,
-                        'occurrence': at_occurrence, 'landmark': at_landmark,
-                        'accepted': np.zeros(int(landmark.max()) + 1, np.int64)}
+                        'landmarks': landmarks, 'landmark': landmark,
+                        'accepted_before': accepted_before,
+                        'accepted': np.zeros(len(landmarks), np.int64),
+                        'broken': np.zeros(len(landmarks), bool)}
 
     def finish(self):
         """Forget what ``prepare`` found."""
@@ -282,10 +329,13 @@ class _SplitCovarianceIntersection(_Independent):
         plan = self.planned
         if plan is None or positions is None:
             return self.parts.combine(rows)
-        occurrence, landmark = plan['occurrence'][positions], plan['landmark'][positions]
-        ready = (occurrence >= 0) & (plan['accepted'][landmark] == occurrence)
+        at = plan['at'][positions]
+        ready = at >= 0
+        landmark = plan['landmark'][np.maximum(at, 0)]
+        ready &= ~plan['broken'][landmark] & (
+            plan['accepted'][landmark] == plan['accepted_before'][np.maximum(at, 0)])
         plan['accepted'][landmark[ready]] += 1
-        at = plan['at'][positions[ready]]
+        at = at[ready]
         if ready.all():
             return plan['m'][at], plan['P_ind'][at], plan['P_dep'][at]
         m, P_ind, P_dep = np.empty((len(rows), 2)), np.empty((len(rows), 2, 2)), np.empty(
@@ -298,6 +348,11 @@ class _SplitCovarianceIntersection(_Independent):
 
     def initialise(self, landmark_map, row, cluster):
         """Replace a landmark's sums by those of agreeing observations; fold them."""
+        if self.planned is not None:     # what prepare found for it no longer holds
+            plan = self.planned
+            at = np.searchsorted(plan['landmarks'], row)
+            if at < len(plan['landmarks']) and plan['landmarks'][at] == row:
+                plan['broken'][at] = True
         z, R_ind, R_dep = _stack(cluster)
         codes = np.array([landmark_map.source_code(obs.source) for obs in cluster], np.int64)
         self.parts.clear(row)
@@ -1047,9 +1102,9 @@ class _SourceParts:
         slots = self.slots[np.minimum(lo[:, None] + columns, len(self.keys) - 1)]
         return _fold(self.Y[slots], self.y[slots], self.Q[slots], valid)
 
-    def plan(self, rows, codes, z, R_ind, R_dep):
+    def plan(self, rows, codes, terms, include):
         """
-        Return each row's landmark estimate after that row, every row accepted in order.
+        Return each row's landmark estimate after that row, the included rows accepted.
 
         What ``add`` then ``combine`` row after row would give, bit for bit (the sums
         are accumulated in the same order; ``_fold`` is element-wise), in one fold of
@@ -1059,31 +1114,32 @@ class _SourceParts:
         ----------
         rows, codes : ndarray of int, shape (N,)
             Landmark rows and source codes, in arrival order.
-        z : ndarray, shape (N, 2) [m]
-        R_ind, R_dep : ndarray, shape (N, 2, 2) [m^2]
+        terms : ndarray, shape (N, 9)
+            Their ``_terms``, concatenated.
+        include : ndarray of bool, shape (N,)
+            The rows taken as accepted; the others leave the sums as they are.
 
         Returns
         -------
         m : ndarray, shape (N, 2)
         P_ind, P_dep : ndarray, shape (N, 2, 2)
-        occurrence : ndarray of int, shape (N,)
-            How many earlier rows of the batch each row's landmark has.
-        landmark : ndarray of int, shape (N,)
-            Index of each row's landmark among the distinct ones (sorted by row).
+            Estimates after the included rows (rows not included: unspecified).
 
         None when the table of states would be too large (a few landmarks with very
         many rows next to many with few): fold round by round then.
 
         """
         count = len(rows)
-        terms = np.concatenate(_terms(z, R_ind, R_dep), axis=1)        # (N, 9)
+        m, P_ind, P_dep = np.zeros((count, 2)), np.zeros((count, 2, 2)), np.zeros((count, 2, 2))
+        if not include.any():
+            return m, P_ind, P_dep
         keys = (rows << _SOURCE_BITS) | codes
         landmarks, landmark = np.unique(rows, return_inverse=True)
         landmark = landmark.reshape(-1)
         occurrence = _rank(landmark)
         # Every pair of these landmarks, the known ones and those new in the batch.
         known = self._ranges(landmarks)
-        all_keys = np.union1d(self.keys[known], keys)
+        all_keys = np.union1d(self.keys[known], keys[include])
         is_known = np.zeros(len(all_keys), bool)
         is_known[np.searchsorted(all_keys, self.keys[known])] = True
         owner = np.searchsorted(landmarks, all_keys >> _SOURCE_BITS)
@@ -1094,26 +1150,30 @@ class _SourceParts:
         before = np.zeros((len(all_keys), 9))
         slots = self.slots[known]
         before[is_known] = np.concatenate([self.Y[slots], self.y[slots], self.Q[slots]], axis=1)
-        # The sums after each row, pair by pair in arrival order, as ``add`` makes them.
-        pair = np.searchsorted(all_keys, keys)
+        # The sums after each included row, pair by pair in arrival order, as ``add``
+        # makes them.
+        taken = np.flatnonzero(include)
+        pair = np.searchsorted(all_keys, keys[taken])
         running = before.copy()
-        after = np.empty((count, 9))
+        after = np.empty((len(taken), 9))
         for level in _levels(pair):
-            running[pair[level]] += terms[level]
+            running[pair[level]] += terms[taken[level]]
             after[level] = running[pair[level]]
         # Which sums each state holds: grid[landmark, occurrence, column] indexes the
         # values [before..., after...]; the latest row so far of each pair wins.
         grid = np.full((len(landmarks), depth, width), -1, np.int64)
         known_pairs = np.flatnonzero(is_known)
         grid[owner[known_pairs], :, column[known_pairs]] = known_pairs[:, None]
-        grid[landmark, occurrence, column[pair]] = len(all_keys) + np.arange(count)
+        grid[landmark[taken], occurrence[taken], column[pair]] = len(all_keys) + np.arange(
+            len(taken))
         np.maximum.accumulate(grid, axis=1, out=grid)
-        index = grid[landmark, occurrence]
+        index = grid[landmark[taken], occurrence[taken]]
         # A pair not seen yet in a state shows the state's own sums (masked out).
-        own = len(all_keys) + np.arange(count)[:, None]
+        own = len(all_keys) + np.arange(len(taken))[:, None]
         values = np.concatenate([before, after])[np.where(index >= 0, index, own)]
-        m, P_ind, P_dep = _fold(values[..., :3], values[..., 3:5], values[..., 5:], index >= 0)
-        return m, P_ind, P_dep, occurrence, landmark
+        m[taken], P_ind[taken], P_dep[taken] = _fold(values[..., :3], values[..., 3:5],
+                                                     values[..., 5:], index >= 0)
+        return m, P_ind, P_dep
 
     def records(self, row, names):
         """Return the sums of one landmark as plain data, sorted by source name."""
@@ -1218,13 +1278,34 @@ def _fold(Y, y, Q, valid):
         first, second = fused[:k], parts[:k, j]
         first_m, first_i, first_d = _split_entries(first)
         second_m, second_i, second_d = _split_entries(second)
-        omega = sci_omega_2x2(first_i, first_d, second_i, second_d)
+        omega = sci_omega_2x2(first_i, first_d, second_i, second_d,
+                              _omega_start(first_i, first_d, second_i, second_d))
         new_m, new_i, new_d = split_ci_2x2_entries(first_m, first_i, first_d, second_m,
                                                    second_i, second_d, omega)
         fused[:k] = np.stack([*new_m, *new_i, *new_d], axis=1)
     fused[by_count] = fused.copy()
     return (fused[:, :2].copy(), symmetric_2x2(fused[:, 2], fused[:, 3], fused[:, 4]),
             symmetric_2x2(fused[:, 5], fused[:, 6], fused[:, 7]))
+
+
+def _omega_start(P1i, P1d, P2i, P2d):
+    """
+    Return a first split-CI weight for the search: the optimum of the scalar problem.
+
+    With each part replaced by a scalar size ``a = sqrt(det)`` (dependent ``a``,
+    independent ``b``), ``1 / (a1 / w + b1) + 1 / (a2 / (1 - w) + b2)`` is largest at
+    ``w = (sqrt(a1) (a2 + b2) - sqrt(a2) a1) / (sqrt(a2) b1 + sqrt(a1) b2)``; clipped
+    to the search bracket, 0.5 where that is not finite. Only a start: the search
+    ends at the same optimum (to its tolerance) from anywhere.
+    """
+    def size(P):
+        return np.sqrt(np.maximum(P[0] * P[2] - P[1] * P[1], 0.0))
+
+    with np.errstate(divide='ignore', invalid='ignore', over='ignore'):
+        a1, b1, a2, b2 = size(P1d), size(P1i), size(P2d), size(P2i)
+        r1, r2 = np.sqrt(a1), np.sqrt(a2)
+        w = (r1 * (a2 + b2) - r2 * a1) / (r2 * b1 + r1 * b2)
+    return np.where(np.isfinite(w), np.clip(w, 1e-6, 1.0 - 1e-6), 0.5)
 
 
 def _split_entries(parts):
