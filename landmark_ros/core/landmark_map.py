@@ -66,6 +66,9 @@ _NO_STAMP = np.iinfo(np.int64).min
 _SOURCE_BITS = 24
 """A (landmark row, source) pair is the key ``row << 24 | source code``."""
 
+_PLAN_CELLS = 1 << 20
+"""Cells of a batch plan's table of states allowed beyond 16 per row and source."""
+
 FUSION_METHODS = ('independent', 'covariance_intersection', 'split_covariance_intersection')
 
 
@@ -1145,7 +1148,7 @@ class _SourceParts:
         owner = np.searchsorted(landmarks, all_keys >> _SOURCE_BITS)
         column = np.arange(len(all_keys)) - np.searchsorted(owner, owner)
         width, depth = int(column.max()) + 1, int(occurrence.max()) + 1
-        if len(landmarks) * depth * width > max(16 * count * width, 1 << 20):
+        if len(landmarks) * depth * width > max(16 * count * width, _PLAN_CELLS):
             return None
         before = np.zeros((len(all_keys), 9))
         slots = self.slots[known]
@@ -1278,34 +1281,14 @@ def _fold(Y, y, Q, valid):
         first, second = fused[:k], parts[:k, j]
         first_m, first_i, first_d = _split_entries(first)
         second_m, second_i, second_d = _split_entries(second)
-        omega = sci_omega_2x2(first_i, first_d, second_i, second_d,
-                              _omega_start(first_i, first_d, second_i, second_d))
+        # From 0.5 every time, as ``split_covariance_intersection_omega``.
+        omega = sci_omega_2x2(first_i, first_d, second_i, second_d)
         new_m, new_i, new_d = split_ci_2x2_entries(first_m, first_i, first_d, second_m,
                                                    second_i, second_d, omega)
         fused[:k] = np.stack([*new_m, *new_i, *new_d], axis=1)
     fused[by_count] = fused.copy()
     return (fused[:, :2].copy(), symmetric_2x2(fused[:, 2], fused[:, 3], fused[:, 4]),
             symmetric_2x2(fused[:, 5], fused[:, 6], fused[:, 7]))
-
-
-def _omega_start(P1i, P1d, P2i, P2d):
-    """
-    Return a first split-CI weight for the search: the optimum of the scalar problem.
-
-    With each part replaced by a scalar size ``a = sqrt(det)`` (dependent ``a``,
-    independent ``b``), ``1 / (a1 / w + b1) + 1 / (a2 / (1 - w) + b2)`` is largest at
-    ``w = (sqrt(a1) (a2 + b2) - sqrt(a2) a1) / (sqrt(a2) b1 + sqrt(a1) b2)``; clipped
-    to the search bracket, 0.5 where that is not finite. Only a start: the search
-    ends at the same optimum (to its tolerance) from anywhere.
-    """
-    def size(P):
-        return np.sqrt(np.maximum(P[0] * P[2] - P[1] * P[1], 0.0))
-
-    with np.errstate(divide='ignore', invalid='ignore', over='ignore'):
-        a1, b1, a2, b2 = size(P1d), size(P1i), size(P2d), size(P2i)
-        r1, r2 = np.sqrt(a1), np.sqrt(a2)
-        w = (r1 * (a2 + b2) - r2 * a1) / (r2 * b1 + r1 * b2)
-    return np.where(np.isfinite(w), np.clip(w, 1e-6, 1.0 - 1e-6), 0.5)
 
 
 def _split_entries(parts):
