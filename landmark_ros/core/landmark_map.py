@@ -66,6 +66,9 @@ _NO_STAMP = np.iinfo(np.int64).min
 _SOURCE_BITS = 24
 """A (landmark row, source) pair is the key ``row << 24 | source code``."""
 
+_FOLD_CELLS = 1 << 16
+"""(Landmark, source) cells folded at once by a batch plan (bounds its memory)."""
+
 _PLAN_CELLS = 1 << 20
 """Cells of a batch plan's table of states allowed beyond 16 per row and source."""
 
@@ -1173,9 +1176,16 @@ class _SourceParts:
         index = grid[landmark[taken], occurrence[taken]]
         # A pair not seen yet in a state shows the state's own sums (masked out).
         own = len(all_keys) + np.arange(len(taken))[:, None]
-        values = np.concatenate([before, after])[np.where(index >= 0, index, own)]
-        m[taken], P_ind[taken], P_dep[taken] = _fold(values[..., :3], values[..., 3:5],
-                                                     values[..., 5:], index >= 0)
+        index = np.where(index >= 0, index, ~own)
+        sums = np.concatenate([before, after])
+        # In parts of about _FOLD_CELLS (state, source) cells: the fold's temporaries
+        # are a few dozen arrays of that size (element-wise: the same results).
+        step = max(_FOLD_CELLS // width, 1)
+        for lo in range(0, len(taken), step):
+            part = index[lo:lo + step]
+            values = sums[np.where(part >= 0, part, ~part)]
+            m[taken[lo:lo + step]], P_ind[taken[lo:lo + step]], P_dep[taken[lo:lo + step]] = \
+                _fold(values[..., :3], values[..., 3:5], values[..., 5:], part >= 0)
         return m, P_ind, P_dep
 
     def records(self, row, names):

@@ -188,3 +188,14 @@ def test_loaded_landmarks_are_gated_against_their_loaded_estimate(rng):
             landmark_map.update(ids, z, R, R_dep, names.tolist(), stamps)
         maps.append(landmark_map)
     assert_same_map(*maps)
+
+
+def test_a_plan_folded_in_parts_is_the_same(rng, monkeypatch):
+    # The plan folds its states in parts of about _FOLD_CELLS cells (memory).
+    rows = stream(rng, count=500, landmarks=12)
+    count = len(rows[0])
+    whole, expected = feed(LandmarkMap, rows, chunked(count, 250))
+    monkeypatch.setattr(landmark_map_module, '_FOLD_CELLS', 7)
+    parts, result = feed(LandmarkMap, rows, chunked(count, 250))
+    assert result == expected
+    assert_same_map(parts, whole)
