@@ -42,7 +42,10 @@ landmark rejected ``max_consecutive_rejections`` times in a row is rebuilt from
 those recent observations when they agree (it moved). Rows of one batch are
 applied in order, so a batch gives the same map as its rows one by one (bit for
 bit): rows of confirmed landmarks go in rounds in which each landmark appears
-once, and every computation is element-wise.
+once, and every computation is element-wise. With split CI a landmark's estimate is
+a pure function of its per-source sums, so the estimates after every row of a batch
+are found before the rounds in one fold of all the rows (``prepare`` of the split-CI
+strategy); the rounds then gate, count and take those estimates.
 """
 
 from collections import Counter, deque
@@ -1167,7 +1170,8 @@ class _SourceParts:
             after[level] = running[pair[level]]
         # Which sums each state holds: grid[landmark, occurrence, column] indexes the
         # values [before..., after...]; the latest row so far of each pair wins.
-        grid = np.full((len(landmarks), depth, width), -1, np.int64)
+        small = len(all_keys) + len(taken) < np.iinfo(np.int32).max
+        grid = np.full((len(landmarks), depth, width), -1, np.int32 if small else np.int64)
         known_pairs = np.flatnonzero(is_known)
         grid[owner[known_pairs], :, column[known_pairs]] = known_pairs[:, None]
         grid[landmark[taken], occurrence[taken], column[pair]] = len(all_keys) + np.arange(
