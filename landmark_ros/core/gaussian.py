@@ -23,7 +23,7 @@ Outside the range results stay finite as long as they are representable.
 """
 
 import math
-from typing import List, Optional, Tuple, Union
+from typing import Optional, Tuple, Union
 
 from landmark_ros.core._arrays import (as_matrices, as_vectors, common_batch_shape,
                                        Entries2x2, entries_2x2, inverse_2x2, mahalanobis_sq_2x2,
@@ -498,15 +498,18 @@ def sci_omega_2x2(P1i: Entries2x2, P1d: Entries2x2, P2i: Entries2x2, P2d: Entrie
     """
     s = power_of_4_scale(P1i[0] + P1d[0], P1i[2] + P1d[2], P2i[0] + P2d[0], P2i[2] + P2d[2])
     shape = s.shape
-    P1i, P1d, P2i, P2d = (tuple(np.broadcast_to(x / s, shape).reshape(-1) for x in P)
-                          for P in (P1i, P1d, P2i, P2d))
-    Si = tuple(x + y for x, y in zip(P1i, P2i))
-    Dd = tuple(y - x for x, y in zip(P1d, P2d))
-    parts: List[Union[Tuple[NDArray[np.float64], ...], NDArray[np.float64]]] = [
-        P1i, P1d, P2i, P2d, Si, Dd, 2.0 * (P1i[0] * P1i[2] - P1i[1] * P1i[1]),
-        2.0 * (P2i[0] * P2i[2] - P2i[1] * P2i[1])]
-    edge_lo, edge_hi = _OMEGA_BRACKET, 1.0 - _OMEGA_BRACKET
     size = s.size
+    # Every per-element input in one table, so that dropping the finished elements
+    # is one indexing operation: rows 0-11 the four parts, 12-17 Si and Dd, 18-19
+    # twice the independent determinants.
+    table = np.empty((20, size))
+    for k, x in enumerate((*P1i, *P1d, *P2i, *P2d)):
+        table[k] = np.broadcast_to(x / s, shape).reshape(-1)
+    table[12:15] = table[0:3] + table[6:9]
+    table[15:18] = table[9:12] - table[3:6]
+    table[18] = 2.0 * (table[0] * table[2] - table[1] * table[1])
+    table[19] = 2.0 * (table[6] * table[8] - table[7] * table[7])
+    edge_lo, edge_hi = _OMEGA_BRACKET, 1.0 - _OMEGA_BRACKET
     omega = np.full(size, 0.5)
     u = np.full(size, 0.5) if start is None else np.clip(
         np.broadcast_to(start, shape).reshape(-1), edge_lo, edge_hi)
@@ -515,7 +518,9 @@ def sci_omega_2x2(P1i: Entries2x2, P1d: Entries2x2, P2i: Entries2x2, P2d: Entrie
     active = np.arange(size)
     with np.errstate(divide='ignore', invalid='ignore', over='ignore'):
         for _ in range(200):
-            slope, curvature = _sci_slope(u, *parts)
+            t = table
+            slope, curvature = _sci_slope(u, t[0:3], t[3:6], t[6:9], t[9:12], t[12:15],
+                                          t[15:18], t[18], t[19])
             positive = slope > 0.0
             lo_seen |= positive
             hi_seen |= ~positive
@@ -541,10 +546,12 @@ def sci_omega_2x2(P1i: Entries2x2, P1d: Entries2x2, P2i: Entries2x2, P2d: Entrie
             keep = ~done
             if not keep.any():
                 break
+            if keep.all():
+                u = new
+                continue
             active, u, lo, hi = active[keep], new[keep], lo[keep], hi[keep]
             lo_seen, hi_seen = lo_seen[keep], hi_seen[keep]
-            parts = [tuple(x[keep] for x in P) if isinstance(P, tuple) else P[keep]
-                     for P in parts]
+            table = table[:, keep]
         else:
             omega[active] = u
     return omega.reshape(shape)
