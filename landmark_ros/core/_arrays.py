@@ -201,6 +201,42 @@ def inverse_2x2(a: NDArray[np.float64], b: NDArray[np.float64], c: NDArray[np.fl
     return c * inv_det, -b * inv_det, a * inv_det
 
 
+def psd_projection_2x2(a: NDArray[np.float64], b: NDArray[np.float64],
+                       c: NDArray[np.float64]) -> Entries2x2:
+    """
+    Return the nearest positive semi-definite matrices of symmetric 2x2 matrices.
+
+    The projection in the Frobenius norm (Higham, Linear Algebra Appl. 103, 1988):
+    negative eigenvalues set to zero. Matrices that are already positive
+    semi-definite are returned unchanged, bit for bit.
+
+    Parameters
+    ----------
+    a, b, c : ndarray, shape () or (N,)
+        Entries (0, 0), (0, 1) = (1, 0) and (1, 1), finite.
+
+    Returns
+    -------
+    tuple of ndarray, shape () or (N,)
+        ``(a, b, c)`` of the projections.
+
+    """
+    a, b, c = np.broadcast_arrays(*(np.asarray(x, dtype=float) for x in (a, b, c)))
+    # Positive semi-definite: both diagonal entries and the determinant non-negative.
+    psd = (a >= 0.0) & (c >= 0.0) & (a * c >= b * b)
+    if np.all(psd):
+        return a, b, c
+    half_sum = 0.5 * (a + c)
+    radius = np.hypot(0.5 * (a - c), b)
+    top = half_sum + radius                   # the larger eigenvalue
+    low = half_sum - radius
+    with np.errstate(divide='ignore', invalid='ignore'):
+        # Only the top eigenvalue is kept: top * (P - low I) / (top - low).
+        scale = np.where(top > 0.0, top / (top - low), 0.0)
+    pa, pb, pc = scale * (a - low), scale * b, scale * (c - low)
+    return np.where(psd, a, pa), np.where(psd, b, pb), np.where(psd, c, pc)
+
+
 def mahalanobis_sq_2x2(
         dx: NDArray[np.float64], dy: NDArray[np.float64], a: NDArray[np.float64],
         b: NDArray[np.float64], c: NDArray[np.float64],

@@ -395,8 +395,10 @@ def split_covariance_intersection_omega(
     Return the split-CI weight ``omega`` that minimises ``det(P)``.
 
     ``P^-1 = A^-1 + B^-1`` with ``A = P1_dep / omega + P1_ind`` and
-    ``B = P2_dep / (1 - omega) + P2_ind``. Each term is a parallel sum, operator concave
-    in omega, so ``log det P^-1`` is concave and the optimum unique. Multiplied out,
+    ``B = P2_dep / (1 - omega) + P2_ind``. For positive semi-definite dependent parts
+    each term is a parallel sum, operator concave in omega, so ``log det P^-1`` is
+    concave and the optimum unique (an indefinite dependent part breaks this: callers
+    project it first, as ``LandmarkMap`` does). Multiplied out,
     ``det(P^-1) = det M / (det E det F)`` with ``M = (1 - w) P1_dep + w P2_dep
     + w (1 - w) (P1_ind + P2_ind)``, ``E = P1_dep + w P1_ind``,
     ``F = P2_dep + (1 - w) P2_ind``: finite for singular dependent parts. For 2x2

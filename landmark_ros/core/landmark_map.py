@@ -54,7 +54,7 @@ from dataclasses import dataclass, field
 from typing import Any, Deque, Dict, List, Mapping, NamedTuple, Optional, Sequence, Tuple, Union
 
 from landmark_ros.core._arrays import (inverse_2x2, mahalanobis_sq_2x2, power_of_4_scale,
-                                       symmetric_2x2)
+                                       psd_projection_2x2, symmetric_2x2)
 from landmark_ros.core.gaussian import (chi2_threshold, ci_2x2, covariance_intersection,
                                         fuse_2x2, information, sci_omega_2x2,
                                         split_ci_2x2_entries, split_covariance_intersection)
@@ -1013,7 +1013,8 @@ class _SourceParts:
 
     A source's estimate of a landmark is ``m_s = Y^-1 y`` with ``Y = sum R_ind_i^-1``
     and ``y = sum R_ind_i^-1 z_i`` (independent parts as information), covariance
-    ``Y^-1 + D`` where ``D = sym(Y^-1 Q)``, ``Q = sum R_ind_i^-1 R_dep_i``: the
+    ``Y^-1 + D`` where ``D`` is ``sym(Y^-1 Q)`` projected onto the positive
+    semi-definite matrices (``psd_projection_2x2``), ``Q = sum R_ind_i^-1 R_dep_i``: the
     information-weighted mean of the dependent parts, a shared error that averaging
     does not reduce. Pairs are found by binary search in a sorted array of keys
     ``row << 24 | source code``, so a landmark's pairs are contiguous, in source-code
@@ -1260,7 +1261,10 @@ def _estimate(Y, y, Q):
     P_dep = (a * Q[..., 0] + b * Q[..., 2],
              0.5 * (a * Q[..., 1] + b * Q[..., 3] + b * Q[..., 0] + c * Q[..., 2]),
              b * Q[..., 1] + c * Q[..., 3])
-    return m, P_ind, P_dep
+    # sym(Y^-1 Q) is indefinite when a source's rows have differently shaped
+    # dependent fractions; split CI needs a covariance there (its weight objective is
+    # concave only for positive semi-definite parts), so it is projected onto them.
+    return m, P_ind, psd_projection_2x2(*P_dep)
 
 
 def _fold(Y, y, Q, valid):
