@@ -717,3 +717,25 @@ def test_fusion_is_scale_safe_in_the_accepted_range(P1, P2, P3, P4, omega):
         A, B = P3 / weight + P1, P4 / (1.0 - weight) + P2
         P_ref = inv(inv(A) + inv(B))
         assert_relative(P_ind + P_dep, P_ref, RANGE_TOL)
+
+
+# --- projection onto the positive semi-definite 2x2 matrices -----------------------------------
+
+def test_psd_projection_2x2_clips_negative_eigenvalues(rng):
+    from landmark_ros.core._arrays import psd_projection_2x2
+    A = rng.normal(size=(500, 2, 2))
+    S = 0.5 * (A + np.swapaxes(A, 1, 2))
+    S[:100] = A[:100] @ np.swapaxes(A[:100], 1, 2)            # already PSD
+    S[100:120] = -S[100:120] @ S[100:120]                      # negative semi-definite
+    a, b, c = psd_projection_2x2(S[:, 0, 0], S[:, 0, 1], S[:, 1, 1])
+    got = np.stack([np.stack([a, b], -1), np.stack([b, c], -1)], -2)
+    w, V = np.linalg.eigh(S)
+    expected = V @ (np.clip(w, 0.0, None)[..., None] * np.swapaxes(V, 1, 2))
+    np.testing.assert_allclose(got, expected, rtol=0, atol=1e-12 * np.abs(S).max())
+    assert np.array_equal(got[:100], S[:100])                  # bit for bit when PSD
+    assert np.linalg.eigvalsh(got).min() >= -1e-12 * np.abs(S).max()
+    assert (got[100:120] == 0.0).all()
+    np.testing.assert_allclose(np.stack(psd_projection_2x2(a, b, c)), np.stack([a, b, c]),
+                               rtol=0, atol=1e-12 * np.abs(S).max())     # idempotent
+    single = [psd_projection_2x2(*S[k, [0, 0, 1], [0, 1, 1]]) for k in range(120, 140)]
+    np.testing.assert_array_equal(np.array(single), np.stack([a, b, c], 1)[120:140])

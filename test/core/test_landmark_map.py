@@ -982,3 +982,31 @@ def test_an_update_that_fails_half_way_leaves_the_map_as_it_was(fusion, fail_at,
     landmark_map.update(*after)
     twin.update(*after)
     assert state(landmark_map) == state(twin)
+
+
+def test_split_ci_source_dependent_part_is_a_covariance():
+    # Two rows of one source whose dependent fractions differ in shape: the
+    # information-weighted mean sym(Y^-1 Q) of their dependent parts is indefinite
+    # (eigenvalue -12.4), so the map projects it onto the PSD matrices before split CI.
+    R_ind = np.array([[[0.913, 2.074], [2.074, 4.777]], [[1.712, 1.701], [1.701, 1.739]]])
+    R_dep = np.array([[[0.0, 0.0], [0.0, 0.0]], [[10.236, -4.074], [-4.074, 4.393]]])
+    Y = np.linalg.inv(R_ind).sum(axis=0)
+    D = np.linalg.solve(Y, np.einsum('kij,kjl->il', np.linalg.inv(R_ind), R_dep))
+    assert np.linalg.eigvalsh(0.5 * (D + D.T))[0] < -10.0
+    z = np.array([[1.0, 2.0], [1.2, 1.9]])
+    other = (np.array([[1.1, 2.05]]), np.array([[[0.5, 0.1], [0.1, 0.4]]]),
+             np.array([[[0.2, 0.0], [0.0, 0.1]]]))
+    maps = []
+    for batches in ([(0, 2)], [(0, 1), (1, 2)]):
+        lm = LandmarkMap('split_covariance_intersection')
+        for lo, hi in batches:
+            lm.update([7] * (hi - lo), z[lo:hi], R_ind[lo:hi] + R_dep[lo:hi], R_dep[lo:hi],
+                      source='a')
+        lm.update([7], other[0], other[1] + other[2], other[2], source='b')
+        maps.append(lm.snapshot())
+    for snap in maps:
+        assert snap.ids.tolist() == [7]
+        assert np.linalg.eigvalsh(snap.P_dep[0])[0] >= -1e-12
+        assert np.linalg.eigvalsh(snap.P[0] - snap.P_dep[0])[0] >= -1e-12
+    np.testing.assert_array_equal(maps[0].m, maps[1].m)
+    np.testing.assert_array_equal(maps[0].P, maps[1].P)
