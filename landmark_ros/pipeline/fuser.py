@@ -312,22 +312,26 @@ class Fuser:
             return self._apply(items)
         # Rows without an ID: message by message, each associated with the map as the
         # messages before it left it; labelled messages in between go in one batch.
+        # Expiry (before) and merging (after) go with each such message, so the map
+        # does not depend on where the batches begin and end (``pipeline.tracks``).
         results, group = [], []
         for item, name in items:
+            self.tracker.advance(item.stamp_ns)
             if not item.unlabelled:
                 group.append((item, name))
                 continue
             if group:
                 results.append(self._apply(group))
                 group = []
+            self.tracker.expire(self.map, self.tracker.now_ns, self._counts_of())
             results.append(self._apply([(self._associate(item, name), name)]))
             self.tracker.after_update(results[-1], self._counts_of())
+            if self.tracker.merge(self.map, self.sources[name].counts,
+                                  results[-1].changed_ids):
+                self.map_changed = self.unsaved = True
         if group:
             results.append(self._apply(group))
-        newest = max(item.stamp_ns for item, _ in items)
-        self.tracker.expire(self.map, newest, self._counts_of())
-        if self.tracker.merge(self.map, self.sources[items[-1][1]].counts):
-            self.map_changed = self.unsaved = True
+        self.tracker.expire(self.map, self.tracker.now_ns, self._counts_of())
         return _combine(results)
 
     def _counts_of(self) -> Dict[str, Counter]:

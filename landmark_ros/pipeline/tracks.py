@@ -13,6 +13,12 @@ confirmation by ``min_observations`` agreeing rows and the fusion stay one
 implementation. A tentative track not confirmed within ``tentative_timeout_s`` (of
 observation stamps) is deleted (``LandmarkMap.forget``).
 
+Determinism. Expiry and merging are checked per message without an ID, in the fuser's
+sequence order (expiry before its association, against the newest stamp fused so far,
+``now_ns``; merging after its update, for the landmarks it changed), never at the
+boundaries of a ``fuse_queued`` batch: the map depends on the order of the messages
+only, not on when the fuser's timer fused them (the nodes and the offline replay agree).
+
 Symbols
 -------
 z : unlabelled rows of one message in the world, shape (N, 2) [m].
@@ -104,6 +110,8 @@ class Tracker:
         """Pairs of owned IDs that rows of one message went to: never merged."""
         self.merged_into: Dict[int, int] = {}
         """A merged (retired) ID -> the ID it was merged into."""
+        self.now_ns: Optional[int] = None
+        """The newest observation stamp fused so far [ns] (the clock of expiry)."""
 
     def reset(self) -> None:
         """Forget the tracks and classes; the allocator goes on (IDs are never reused)."""
@@ -112,7 +120,14 @@ class Tracker:
         self.owned.clear()
         self.together.clear()
         self.merged_into.clear()
+        self.now_ns = None
         self.dirty = True
+
+    def advance(self, stamp_ns: int) -> int:
+        """Move the expiry clock to ``stamp_ns`` if it is newer; return the clock [ns]."""
+        if self.now_ns is None or stamp_ns > self.now_ns:
+            self.now_ns = int(stamp_ns)
+        return self.now_ns
 
     def class_of(self, ids: NDArray[np.int64]) -> NDArray[np.int64]:
         """Return the class of each landmark ID, shape (K,) (0 when none was given)."""
@@ -227,7 +242,8 @@ class Tracker:
             self.together.update((a, b) for b in seen[k + 1:])
         return ids
 
-    def merge(self, landmark_map: LandmarkMap, counts: Counter) -> List[Tuple[int, int]]:
+    def merge(self, landmark_map: LandmarkMap, counts: Counter,
+              changed: Optional[NDArray[np.int64]] = None) -> List[Tuple[int, int]]:
         """
         Merge confirmed tracks of one class that became compatible and never met.
 
@@ -243,6 +259,10 @@ class Tracker:
             The map.
         counts : collections.Counter
             Counters where ``merged`` is counted.
+        changed : ndarray of int, shape (C,), optional
+            Only pairs with one of these landmarks are checked (the fuser passes what
+            an update changed: a pair becomes compatible only when one of its two
+            changes); all pairs by default.
 
         Returns
         -------
@@ -256,13 +276,24 @@ class Tracker:
             return []
         ids, m, P = snapshot.ids[mine], snapshot.m[mine], snapshot.P[mine]
         observations = snapshot.observations[mine]
+        queries = np.arange(len(ids))
+        if changed is not None:
+            queries = np.flatnonzero(np.isin(ids, np.asarray(changed, np.int64)))
+            if not len(queries):
+                return []
         index = LandmarkIndex(m, P, self.class_of(ids))
-        cands = candidates(index, m, P, self.class_of(ids),
+        cands = candidates(index, m[queries], P[queries], self.class_of(ids[queries]),
                            self.config.association_gate_probability)
         threshold = chi2_threshold(2, self.config.association_gate_probability)
         merged, retired = [], set()
-        for a, b, d2 in zip(cands.rows.tolist(), cands.landmarks.tolist(), cands.d2.tolist()):
-            if a >= b or a in retired or b in retired or d2 > threshold:
+        pairs: Dict[Tuple[int, int], float] = {}
+        for a, b, d2 in zip(queries[cands.rows].tolist(), cands.landmarks.tolist(),
+                            cands.d2.tolist()):
+            if a != b:
+                key = (min(a, b), max(a, b))
+                pairs[key] = min(d2, pairs.get(key, d2))
+        for (a, b), d2 in sorted(pairs.items()):
+            if a in retired or b in retired or d2 > threshold:
                 continue
             pair = (int(ids[a]), int(ids[b]))
             if pair in self.together:
@@ -336,7 +367,8 @@ class Tracker:
         landmark_map : LandmarkMap
             Where their buffered rows are forgotten.
         now_ns : int
-            The newest observation stamp fused [ns].
+            The newest observation stamp fused [ns] (the clock ``now_ns`` moves to it
+            if it is newer; the clock is what counts).
         counts_of : dict of str to collections.Counter
             Counters by source; ``deleted`` is counted on the source that started a track.
 
@@ -345,6 +377,7 @@ class Tracker:
         list of int
 
         """
+        now_ns = self.advance(now_ns)
         timeout_ns = self.config.tentative_timeout_s * 1e9
         if not self.tentative or timeout_ns <= 0.0:
             return []
