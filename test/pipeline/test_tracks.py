@@ -1,5 +1,6 @@
 """Tests of landmarks without IDs: pipeline.tracks through Observer and Fuser, without ROS."""
 
+from collections import Counter
 import json
 
 from landmark_ros.pipeline.config import FuserConfig, ObserverConfig
@@ -242,3 +243,43 @@ def test_partial_rows_without_an_id_are_rejected_by_the_observer():
     (batch,) = observer.add_observations([ObservationMessage(S, columns)], S)
     assert len(batch.ids) == 0 and len(batch.constraints) == 0
     assert observer.counters.counts['partial_without_id'] == 2
+
+
+def _batch_independent_run(chunks):
+    """Fuse a fixed sequence of unlabelled messages, calling fuse_queued after ``chunks``."""
+    fuser = Fuser(FuserConfig(tentative_timeout_s=5.0), SOURCES)
+    R = np.broadcast_to(0.01 * np.eye(2), (1, 2, 2)).copy()
+    scan = Scan(np.zeros(2), np.zeros((3, 3)))
+    # A: a track at (0, 0); B, far away, moves the clock past A's timeout; C comes
+    # back to (0, 0) with an older stamp from the other robot (A must be gone, however
+    # the messages were batched); then D..G confirm a track from both sources.
+    sequence = [(SOURCES[0], 1.0, (0.0, 0.0)), (SOURCES[1], 6.5, (50.0, 0.0)),
+                (SOURCES[0], 6.2, (0.01, 0.0)), (SOURCES[0], 7.0, (20.0, 0.0)),
+                (SOURCES[0], 7.1, (20.0, 0.0)), (SOURCES[1], 7.2, (20.05, 0.0)),
+                (SOURCES[1], 7.3, (20.05, 0.0)), (SOURCES[0], 7.4, (30.0, 0.0))]
+    for k, (source, t, point) in enumerate(sequence):
+        fuser.add_landmarks(source, int(t * S), [UNKNOWN_ID], np.array([point]), R, 0.5 * R,
+                            scan=scan)
+        if k in chunks:
+            fuser.fuse_queued()
+    fuser.fuse_queued()
+    counts = sum((state.counts for state in fuser.sources.values()), Counter())
+    return fuser, counts
+
+
+def test_expiry_and_merging_do_not_depend_on_where_fuse_batches_end():
+    runs = [_batch_independent_run(chunks) for chunks in (
+        set(range(8)), set(), {1}, {2, 5}, {0, 3, 4, 6})]
+    first, counts = runs[0]
+    # The clock reached 6.5 s before C: A's track (started at 1 s) was deleted, C
+    # started its own.
+    assert counts['deleted'] >= 1 and counts['confirmed'] == 1
+    assert first.snapshot().ids.tolist() == [FIRST + 3]
+    for fuser, other in runs[1:]:
+        for a, b in zip(first.snapshot(), fuser.snapshot(), strict=True):
+            np.testing.assert_array_equal(a, b)
+        assert fuser.tracker.next_id == first.tracker.next_id
+        assert sorted(fuser.tracker.tentative) == sorted(first.tracker.tentative)
+        assert fuser.tracker.merged_into == first.tracker.merged_into
+        assert {k: other[k] for k in ('deleted', 'merged', 'confirmed', 'new_tentative')} == {
+            k: counts[k] for k in ('deleted', 'merged', 'confirmed', 'new_tentative')}

@@ -3,6 +3,7 @@
 import json
 
 from landmark_ros.mrclam.cli import main
+import numpy as np
 from test_mrclam import CONFIG, LANDMARKS, noisy_dataset  # noqa: F401, the fixture
 
 
@@ -44,3 +45,11 @@ def test_hide_ids_through_nodes_agrees_with_offline(noisy_dataset, tmp_path):  #
     assert summary['association_accuracy'] is not None
     assert summary['association_accuracy'] >= summary['oracle_accuracy'] - 0.02
     assert all(lm['id'] in LANDMARKS for lm in summary['landmarks'])
+
+
+def test_without_ids_every_cloud_follows_the_one_before_it():
+    from landmark_ros.mrclam.player import sequential
+    msg_robot = np.array([0, 0, 1, 0, 2, 2, 1])
+    local = np.array([0, 1, 0, 2, 0, 1, 1])
+    assert sequential(msg_robot, local) == [
+        (), (), ((0, 1),), ((1, 0),), ((0, 2),), (), ((2, 1),)]
