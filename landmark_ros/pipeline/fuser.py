@@ -112,6 +112,7 @@ class Fuser:
         self.unsaved = False
         """Whether the map changed since the last save."""
         self._updated: List[NDArray[np.int64]] = []
+        self._removed: List[tuple] = []
         self.tracker = Tracker(config)
         """Association of the rows without an ID (``pipeline.tracks``)."""
         self.association_log: Optional[List[tuple]] = None
@@ -326,9 +327,12 @@ class Fuser:
             self.tracker.expire(self.map, self.tracker.now_ns, self._counts_of())
             results.append(self._apply([(self._associate(item, name), name)]))
             self.tracker.after_update(results[-1], self._counts_of())
-            if self.tracker.merge(self.map, self.sources[name].counts,
-                                  results[-1].changed_ids):
+            merged = self.tracker.merge(self.map, self.sources[name].counts,
+                                        results[-1].changed_ids)
+            if merged:
                 self.map_changed = self.unsaved = True
+                self._updated.append(np.array([keep for _, keep in merged], np.int64))
+                self._removed += merged
         if group:
             results.append(self._apply(group))
         self.tracker.expire(self.map, self.tracker.now_ns, self._counts_of())
@@ -392,6 +396,20 @@ class Fuser:
         """Return the class of each landmark ID, shape (K,) (0 when none was given)."""
         return self.tracker.class_of(ids)
 
+    def take_removed(self) -> List[tuple]:
+        """
+        Return the landmarks taken out of the map since the last call.
+
+        Returns
+        -------
+        list of (int, int)
+            ``(removed ID, ID it was merged into)``, in the order of the merges; the
+            nodes announce them on ``fused_landmark_updates``.
+
+        """
+        removed, self._removed = self._removed, []
+        return removed
+
     def take_updates(self):
         """
         Return the confirmed landmarks that changed since the last call.
@@ -416,6 +434,7 @@ class Fuser:
         for state in self.sources.values():
             state.queue.clear()
         self._updated = []
+        self._removed = []
         self.map_changed = False
         self.unsaved = True
         return count

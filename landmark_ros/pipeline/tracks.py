@@ -250,8 +250,10 @@ class Tracker:
         Two confirmed landmarks this tracker allocated, of the same class, whose means
         pass the gate ``d2 <= chi2_threshold(2, association_gate_probability)`` with
         ``S = P_a + P_b`` and that no message saw together, are one landmark: the one
-        with fewer observations is taken out of the map (``LandmarkMap.retire``) and
-        its ID recorded in ``merged_into``; its observations are not moved over.
+        with fewer observations is fused into the other and taken out of the map
+        (``LandmarkMap.merge``: with split CI its per-source sums are added to the
+        other's, as if its rows had gone there) and its ID recorded in
+        ``merged_into``.
 
         Parameters
         ----------
@@ -299,13 +301,13 @@ class Tracker:
             if pair in self.together:
                 continue
             keep, drop = (a, b) if observations[a] >= observations[b] else (b, a)
+            if not landmark_map.merge(int(ids[keep]), int(ids[drop])):
+                continue
             retired.add(drop)
             merged.append((int(ids[drop]), int(ids[keep])))
+            self.merged_into[int(ids[drop])] = int(ids[keep])
+            self.owned.discard(int(ids[drop]))
         if merged:
-            landmark_map.retire(np.array([drop for drop, _ in merged], np.int64))
-            for drop, keep in merged:
-                self.merged_into[drop] = keep
-                self.owned.discard(drop)
             counts['merged'] += len(merged)
             self.dirty = True
         return merged

@@ -283,3 +283,45 @@ def test_expiry_and_merging_do_not_depend_on_where_fuse_batches_end():
         assert fuser.tracker.merged_into == first.tracker.merged_into
         assert {k: other[k] for k in ('deleted', 'merged', 'confirmed', 'new_tentative')} == {
             k: counts[k] for k in ('deleted', 'merged', 'confirmed', 'new_tentative')}
+
+
+@pytest.mark.parametrize('fusion', ['independent', 'split_covariance_intersection'])
+def test_a_merge_fuses_the_retired_track_into_the_kept_one(fusion, rng):
+    fuser = Fuser(FuserConfig(fusion=fusion), SOURCES[:1])
+    tracker = fuser.tracker
+    a, b = tracker.allocate(fuser.map), tracker.allocate(fuser.map)
+    z = np.array([[0.0, 0.0], [0.02, -0.01], [-0.01, 0.02], [0.05, 0.0], [0.04, 0.01]])
+    R = np.array([np.diag(d) for d in rng.uniform(0.005, 0.02, (5, 2))])
+    R_dep = 0.3 * R
+    sources = np.array(['r1', 'r2', 'r1', 'r2', 'r2'])
+    fuser.map.update([a, a, a], z[:3], R[:3], R_dep[:3], sources[:3], S)
+    fuser.map.update([b, b], z[3:], R[3:], R_dep[3:], sources[3:], S)
+    merged = tracker.merge(fuser.map, Counter())
+    assert merged == [(b, a)]
+    # The same rows all under one ID, in one map: what the kept landmark must hold.
+    from landmark_ros.core.landmark_map import LandmarkMap
+    reference = LandmarkMap(fusion, 0.999, 2, 5)
+    reference.update([a, a, a], z[:3], R[:3], R_dep[:3], sources[:3], S)
+    reference.update([a, a], z[3:], R[3:], R_dep[3:], sources[3:], S)
+    got, want = fuser.map.snapshot(), reference.snapshot()
+    assert got.ids.tolist() == [a] and got.observations.tolist() == [5]
+    np.testing.assert_allclose(got.m, want.m, atol=1e-12)
+    np.testing.assert_allclose(got.P, want.P, atol=1e-12)
+    np.testing.assert_allclose(got.P_dep, want.P_dep, atol=1e-12)
+    assert fuser.map.known(np.array([b]))[0] and tracker.resolve(b) == a
+
+
+def test_merges_are_announced_once_with_the_kept_landmark_updated():
+    fuser = Fuser(FuserConfig(), SOURCES[:1])
+    tracker, C = fuser.tracker, np.broadcast_to(0.01 * np.eye(2), (3, 2, 2)).copy()
+    a, b = tracker.allocate(fuser.map), tracker.allocate(fuser.map)
+    fuser.map.update([a, a, a], np.array([[0.0, 0.0]] * 3), C, 0 * C, 'r', S)
+    fuser.map.update([b, b], np.array([[0.05, 0.0]] * 2), C[:2], 0 * C[:2], 'r', S)
+    fuser.take_updates()
+    # A message without an ID that changes b runs the merge check.
+    fuser.add_landmarks(SOURCES[0], 2 * S, [UNKNOWN_ID], np.array([[0.05, 0.0]]), C[:1],
+                        0 * C[:1], scan=Scan(np.zeros(2), np.zeros((3, 3))))
+    fuser.fuse_queued()
+    assert fuser.take_removed() == [(b, a)] and fuser.take_removed() == []
+    assert a in fuser.take_updates().ids.tolist()
+    assert fuser.snapshot().ids.tolist() == [a]
