@@ -403,12 +403,39 @@ class Fuser:
         Returns
         -------
         list of (int, int)
-            ``(removed ID, ID it was merged into)``, in the order of the merges; the
-            nodes announce them on ``fused_landmark_updates``.
+            ``(removed ID, ID it is now part of)`` (later merges followed), in the
+            order of the merges; the nodes announce them on ``fused_landmark_updates``.
 
         """
         removed, self._removed = self._removed, []
-        return removed
+        return [(drop, self.tracker.resolve(keep)) for drop, keep in removed]
+
+    def removal_rows(self, removed: Sequence[tuple]):
+        """
+        Return the rows that announce removed landmarks, and what each went into.
+
+        Parameters
+        ----------
+        removed : sequence of (int, int)
+            ``take_removed()``.
+
+        Returns
+        -------
+        rows : MapSnapshot
+            Per removed landmark whose landmark is confirmed, in order: its ID, the
+            estimate of the landmark it went into, 0 observations.
+        merged_into : ndarray of int64, shape (K,)
+            The landmark each went into.
+
+        """
+        kept = self.map.snapshot(np.array([keep for _, keep in removed], np.int64))
+        where = {landmark_id: k for k, landmark_id in enumerate(kept.ids.tolist())}
+        pairs = [(drop, keep) for drop, keep in removed if keep in where]
+        rows = np.array([where[keep] for _, keep in pairs], np.int64)
+        merged_into = np.array([keep for _, keep in pairs], np.int64)
+        return type(kept)(np.array([drop for drop, _ in pairs], np.int64), kept.m[rows],
+                          kept.P[rows], kept.P_dep[rows],
+                          np.zeros(len(pairs), np.int64)), merged_into
 
     def take_updates(self):
         """
