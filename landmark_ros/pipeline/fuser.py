@@ -354,6 +354,8 @@ class Fuser:
         if self.association_log is not None:
             self.association_log.append((name, item.stamp_ns, ids[unlabelled].copy()))
         keep = ids >= 0
+        self.tracker.note_rows(ids[keep], item.m[keep], item.P[keep], item.P_dep[keep], name,
+                               item.stamp_ns)
         return _Queued(item.sequence, ids[keep], item.m[keep], item.P[keep], item.P_dep[keep],
                        item.stamp_ns, classes[keep], item.scan, False)
 
@@ -519,7 +521,8 @@ class Fuser:
             for record in records:
                 record['class'] = self.tracker.classes.get(record['id'], 0)
             map_file.save(self.config.map_file, records, self.config.world_frame,
-                          self.config.fusion, next_id=self.tracker.next_id)
+                          self.config.fusion, next_id=self.tracker.next_id,
+                          tracks=self.tracker.to_dict())
         except (OSError, ValueError) as error:
             self.counters.add('save_failed', 1, f'cannot save {self.config.map_file}: {error}')
             return False
@@ -548,6 +551,12 @@ class Fuser:
             for record in document['landmarks']:
                 if record.get('class', 0):
                     self.tracker.classes[record['id']] = record['class']
+            try:
+                self.tracker.restore(document.get('tracks'), self.map)
+            except ValueError:
+                self.map.reset()
+                self.tracker.reset()
+                raise
         except FileNotFoundError:
             self.logger.info(f'no map file {path} yet: starting with an empty map')
             return

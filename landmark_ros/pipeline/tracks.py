@@ -27,8 +27,8 @@ C_z : their joint covariance, shape (2N, 2N) [m^2] (``association.scan_covarianc
 """
 
 from collections import Counter
-from dataclasses import dataclass
-from typing import Dict, List, Optional, Set, Tuple
+from dataclasses import dataclass, field
+from typing import Any, Dict, List, Optional, Set, Tuple
 
 from landmark_ros.core.association import (candidates, global_nearest_neighbour, jcbb,
                                            LandmarkIndex, nearest_neighbour,
@@ -39,6 +39,9 @@ from landmark_ros.pipeline.config import FuserConfig
 from landmark_ros.pipeline.rows import MAX_LABEL_ID, UNKNOWN_ID
 import numpy as np
 from numpy.typing import NDArray
+
+TRACK_ROWS_KEPT = 16
+"""Rows of a tentative track kept for the map file (the newest; what a restart replays)."""
 
 ASSOCIATION_COUNTERS = ('associated', 'new_tentative', 'confirmed', 'deleted', 'merged',
                         'ambiguous', 'jcbb_fallback')
@@ -78,6 +81,9 @@ class _Track:
     landmark_class: int
     first_ns: int
     source: str
+    rows: List[tuple] = field(default_factory=list)
+    """``(m, P, P_dep, source, stamp_ns)`` of the rows it got (the newest
+    ``TRACK_ROWS_KEPT``): what the map holds for it, saved in the map file."""
 
 
 class Tracker:
@@ -311,6 +317,101 @@ class Tracker:
             counts['merged'] += len(merged)
             self.dirty = True
         return merged
+
+    def note_rows(self, ids: NDArray[np.int64], m: NDArray[np.float64],
+                  P: NDArray[np.float64], P_dep: NDArray[np.float64], source: str,
+                  stamp_ns: int) -> None:
+        """Keep the rows of one message that went to tentative tracks (for the map file)."""
+        for i, landmark_id in enumerate(np.asarray(ids).tolist()):
+            track = self.tentative.get(landmark_id)
+            if track is not None:
+                track.rows.append((m[i].copy(), P[i].copy(), P_dep[i].copy(), source,
+                                   int(stamp_ns)))
+                del track.rows[:-TRACK_ROWS_KEPT]
+
+    def to_dict(self) -> Dict[str, Any]:
+        """
+        Return what a restart needs to resume the tracks, as plain JSON data.
+
+        ``tentative`` (per track: ``id``, ``class``, ``first_stamp_ns``, ``source`` and
+        its ``rows``, each ``mean``, ``covariance``, ``covariance_dependent``,
+        ``source``, ``stamp_ns``), ``owned`` (the IDs this tracker allocated that are
+        still landmarks or tracks), ``together`` (pairs of them a message saw
+        together: never merged), ``merged_into`` (``[retired, kept]`` pairs) and
+        ``now_ns`` (the expiry clock, or null).
+        """
+        return {
+            'tentative': [{
+                'id': int(landmark_id), 'class': int(track.landmark_class),
+                'first_stamp_ns': int(track.first_ns), 'source': track.source,
+                'rows': [{'mean': m.tolist(), 'covariance': P.tolist(),
+                          'covariance_dependent': P_dep.tolist(), 'source': source,
+                          'stamp_ns': int(stamp)}
+                         for m, P, P_dep, source, stamp in track.rows]}
+                for landmark_id, track in sorted(self.tentative.items())],
+            'owned': sorted(int(i) for i in self.owned),
+            'together': sorted([int(a), int(b)] for a, b in self.together),
+            'merged_into': sorted([int(a), int(b)] for a, b in self.merged_into.items()),
+            'now_ns': None if self.now_ns is None else int(self.now_ns)}
+
+    def restore(self, document: Optional[Dict[str, Any]], landmark_map: LandmarkMap) -> int:
+        """
+        Resume the tracks of a map file (``to_dict``); return the tentative tracks resumed.
+
+        The rows of each tentative track go through ``LandmarkMap.update`` again, so
+        the map buffers them as it did before the restart. A file without tracks (an
+        older one) resumes none.
+
+        Raises
+        ------
+        ValueError
+            If the section is malformed (a field missing or of the wrong type, an ID
+            outside 0..2^32 - 2).
+
+        """
+        if document is None:
+            return 0
+        try:
+            def ident(value):
+                if isinstance(value, bool) or not isinstance(value, int) or not (
+                        0 <= value <= MAX_LABEL_ID):
+                    raise ValueError(f'{value!r} is not a landmark ID')
+                return value
+            owned = {ident(i) for i in document.get('owned', [])}
+            together = {(ident(a), ident(b)) for a, b in document.get('together', [])}
+            merged = {ident(a): ident(b) for a, b in document.get('merged_into', [])}
+            now_ns = document.get('now_ns')
+            if now_ns is not None and (isinstance(now_ns, bool) or not isinstance(now_ns, int)):
+                raise ValueError(f'now_ns {now_ns!r} is not an integer')
+            tracks, rows = {}, []
+            for entry in document.get('tentative', []):
+                landmark_id = ident(entry['id'])
+                track_rows = [(np.array(r['mean'], np.float64).reshape(2),
+                               np.array(r['covariance'], np.float64).reshape(2, 2),
+                               np.array(r['covariance_dependent'], np.float64).reshape(2, 2),
+                               str(r['source']), int(r['stamp_ns'])) for r in entry['rows']]
+                if not track_rows:
+                    raise ValueError(f'tentative track {landmark_id} has no row')
+                last = track_rows[-1]
+                tracks[landmark_id] = _Track(last[0], last[1], int(entry['class']),
+                                             int(entry['first_stamp_ns']),
+                                             str(entry['source']), track_rows)
+                rows += [(landmark_id, *row) for row in track_rows]
+        except (KeyError, TypeError, ValueError) as error:
+            raise ValueError(f'tracks section: {error}') from error
+        rows.sort(key=lambda row: row[5])
+        if rows:
+            landmark_map.update(np.array([r[0] for r in rows], np.int64),
+                                np.array([r[1] for r in rows]), np.array([r[2] for r in rows]),
+                                np.array([r[3] for r in rows]), np.array([r[4] for r in rows]),
+                                np.array([r[5] for r in rows], np.int64))
+        self.owned, self.together, self.merged_into = owned | set(tracks), together, merged
+        self.tentative, self.now_ns = tracks, now_ns
+        for landmark_id, track in tracks.items():
+            if track.landmark_class:
+                self.classes[landmark_id] = track.landmark_class
+        self.dirty = True
+        return len(tracks)
 
     def resolve(self, landmark_id: int) -> int:
         """Return the ID a landmark ended up as, following merges."""

@@ -325,3 +325,67 @@ def test_merges_are_announced_once_with_the_kept_landmark_updated():
     assert fuser.take_removed() == [(b, a)] and fuser.take_removed() == []
     assert a in fuser.take_updates().ids.tolist()
     assert fuser.snapshot().ids.tolist() == [a]
+
+
+def _unlabelled_messages(rng, count=40):
+    """Messages without IDs: 6 landmarks, rows from two sources, noise 0.05 m."""
+    truth = np.array([[0.0, 0.0], [3.0, 0.0], [0.0, 3.0], [3.0, 3.0], [6.0, 0.0], [6.0, 3.0]])
+    R = np.broadcast_to(0.0025 * np.eye(2), (2, 2, 2)).copy()
+    for k in range(count):
+        seen = rng.choice(len(truth), 2, replace=False)
+        m = truth[seen] + rng.normal(0.0, 0.05, (2, 2))
+        yield SOURCES[k % 2], (k + 1) * S, m, R
+
+
+def _feed_unlabelled(fuser, messages):
+    for source, stamp, m, R in messages:
+        fuser.add_landmarks(source, stamp, [UNKNOWN_ID] * len(m), m, R, 0.2 * R,
+                            scan=Scan(np.zeros(2), np.zeros((3, 3))))
+        fuser.fuse_queued()
+
+
+def test_a_restart_resumes_tentative_tracks_and_merge_bookkeeping(tmp_path, rng):
+    path = str(tmp_path / 'map.json')
+    config = FuserConfig(min_observations=4, map_file=path)
+    messages = list(_unlabelled_messages(rng))
+    running = Fuser(config, SOURCES)
+    _feed_unlabelled(running, messages[:13])
+    assert running.tracker.tentative and running.tracker.together
+    running.tracker.merged_into[FIRST + 999] = FIRST    # bookkeeping of an earlier merge
+    assert running.save()
+    document = json.loads((tmp_path / 'map.json').read_text())
+    assert {t['id'] for t in document['tracks']['tentative']} == set(running.tracker.tentative)
+    restarted = Fuser(config, SOURCES)
+    restarted.load()
+    for name in ('owned', 'together', 'merged_into', 'now_ns', 'next_id'):
+        assert getattr(restarted.tracker, name) == getattr(running.tracker, name), name
+    assert sorted(restarted.tracker.tentative) == sorted(running.tracker.tentative)
+    # Both go on with the same messages: the restarted one is the running one.
+    _feed_unlabelled(running, messages[13:])
+    _feed_unlabelled(restarted, messages[13:])
+    for a, b in zip(running.snapshot(), restarted.snapshot(), strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert sorted(restarted.tracker.tentative) == sorted(running.tracker.tentative)
+    assert restarted.tracker.next_id == running.tracker.next_id
+
+
+def test_a_file_without_tracks_loads_and_a_bad_tracks_section_is_moved_aside(tmp_path, rng):
+    path = tmp_path / 'map.json'
+    config = FuserConfig(min_observations=4, map_file=str(path))
+    fuser = Fuser(config, SOURCES)
+    _feed_unlabelled(fuser, list(_unlabelled_messages(rng))[:13])
+    assert fuser.save()
+    document = json.loads(path.read_text())
+    landmarks = len(document['landmarks'])
+    del document['tracks']
+    path.write_text(json.dumps(document))
+    old = Fuser(config, SOURCES)
+    old.load()
+    assert len(old.map) == landmarks and not old.tracker.tentative
+    document['tracks'] = {'tentative': [{'id': -3, 'class': 0, 'first_stamp_ns': 1,
+                                         'source': 'x', 'rows': []}]}
+    path.write_text(json.dumps(document))
+    bad = Fuser(config, SOURCES)
+    bad.load()
+    assert len(bad.map) == 0 and not bad.tracker.tentative
+    assert bad.counters.counts['map_file_rejected'] == 1 and not path.exists()
