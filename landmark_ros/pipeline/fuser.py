@@ -21,7 +21,7 @@ from landmark_ros.pipeline import map_file
 from landmark_ros.pipeline.config import FuserConfig
 from landmark_ros.pipeline.counters import Counters, Status
 from landmark_ros.pipeline.rows import landmark_row_problems, MAX_LABEL_ID, UNKNOWN_ID
-from landmark_ros.pipeline.tracks import Scan, Tracker
+from landmark_ros.pipeline.tracks import Scan, shard_of_position, Tracker
 from landmark_ros.pipeline.views import (constraint_row_problems, NOT_PROBLEMS as VIEW_COUNTS,
                                          PartialViews, views_from_columns)
 import numpy as np
@@ -196,8 +196,10 @@ class Fuser:
         valid, reasons = landmark_row_problems(ids, m, P, P_dep)
         unlabelled = ids == UNKNOWN_ID
         if self.config.shard_count > 1:
-            # Rows without an ID go to shard 0.
-            other = valid & np.where(unlabelled, self.config.shard_index != 0,
+            # Rows without an ID go to the shard of their cell (``shard_of_position``).
+            cells = shard_of_position(np.asarray(m, np.float64).reshape(-1, 2),
+                                      self.config.shard_cell_m, self.config.shard_count)
+            other = valid & np.where(unlabelled, cells != self.config.shard_index,
                                      ids % self.config.shard_count != self.config.shard_index)
             if other.any():
                 state.counts['other_shard'] += int(other.sum())

@@ -48,6 +48,37 @@ ASSOCIATION_COUNTERS = ('associated', 'new_tentative', 'confirmed', 'deleted', '
 """Per-source counters of the association (throughput, not rejections)."""
 
 
+def shard_of_position(m: NDArray[np.float64], cell_m: float,
+                      shard_count: int) -> NDArray[np.int64]:
+    """
+    Return the shard of each row without an ID, from its world position.
+
+    Square cells of side ``cell_m``: ``(floor(x / cell_m) + 31 floor(y / cell_m))``
+    modulo ``shard_count``. A non-finite position (a row the checks reject anyway)
+    goes to shard 0.
+
+    Parameters
+    ----------
+    m : ndarray, shape (N, 2) [m]
+        Positions in the world.
+    cell_m : float
+        Side of a cell [m].
+    shard_count : int
+        Number of shards.
+
+    Returns
+    -------
+    ndarray of int64, shape (N,)
+
+    """
+    m = np.asarray(m, np.float64).reshape(-1, 2)
+    finite = np.isfinite(m).all(axis=1)
+    cells = np.zeros((len(m), 2))
+    cells[finite] = np.floor(np.clip(m[finite] / cell_m, -1e15, 1e15))
+    return ((cells[:, 0].astype(np.int64) + 31 * cells[:, 1].astype(np.int64))
+            % int(shard_count)).astype(np.int64)
+
+
 @dataclass(frozen=True)
 class Scan:
     """
@@ -152,14 +183,21 @@ class Tracker:
         """
         Return a new landmark ID: never given before, unknown to the map.
 
+        With ``shard_count`` > 1 only IDs equal to ``shard_index`` modulo
+        ``shard_count`` are given (the labelled rule: each shard owns its IDs).
+
         Raises
         ------
         ValueError
             If the IDs up to ``MAX_LABEL_ID`` are used up.
 
         """
+        count, index = self.config.shard_count, self.config.shard_index
+        if count > 1 and self.next_id % count != index:
+            # A shard gives IDs of its own residue only: shards never give one ID twice.
+            self.next_id += (index - self.next_id) % count
         while landmark_map.known(np.array([self.next_id], np.int64))[0]:
-            self.next_id += 1
+            self.next_id += count if count > 1 else 1
         if self.next_id > MAX_LABEL_ID:
             raise ValueError('no landmark ID left to allocate')
         landmark_id = self.next_id

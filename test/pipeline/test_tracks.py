@@ -389,3 +389,42 @@ def test_a_file_without_tracks_loads_and_a_bad_tracks_section_is_moved_aside(tmp
     bad.load()
     assert len(bad.map) == 0 and not bad.tracker.tentative
     assert bad.counters.counts['map_file_rejected'] == 1 and not path.exists()
+
+
+def test_shard_of_position_numbers_the_cells():
+    from landmark_ros.pipeline.tracks import shard_of_position
+    m = np.array([[5.0, 5.0], [25.0, 5.0], [-5.0, 5.0], [5.0, 25.0], [np.nan, 1.0]])
+    # Cells (0, 0), (1, 0), (-1, 0), (0, 1); side 20 m; 3 shards.
+    assert shard_of_position(m, 20.0, 3).tolist() == [0, 1, 2, 31 % 3, 0]
+
+
+def test_shards_split_rows_without_ids_by_cell_and_own_their_ids(rng):
+    centres = np.array([[5.0, 5.0], [25.0, 5.0], [45.0, 5.0], [5.0, 25.0], [25.0, 25.0]])
+    one = Fuser(FuserConfig(), SOURCES)
+    shards = [Fuser(FuserConfig(shard_count=2, shard_index=k), SOURCES) for k in range(2)]
+    R = np.broadcast_to(0.0025 * np.eye(2), (5, 2, 2)).copy()
+    for k in range(6):
+        m = centres + rng.normal(0.0, 0.05, (5, 2))
+        for fuser in [one] + shards:
+            fuser.add_landmarks(SOURCES[k % 2], (k + 1) * S, [UNKNOWN_ID] * 5, m, R, 0.2 * R,
+                                scan=Scan(np.zeros(2), np.zeros((3, 3))))
+            fuser.fuse_queued()
+    whole = one.snapshot()
+    parts = [shard.snapshot() for shard in shards]
+    assert len(whole.ids) == 5 == sum(len(p.ids) for p in parts)
+    for k, part in enumerate(parts):
+        assert all(i % 2 == k for i in part.ids.tolist())     # each shard's own IDs
+    # The same landmarks, estimated from the same rows.
+    order = np.lexsort(whole.m.T)
+    joined = np.concatenate([p.m for p in parts])
+    np.testing.assert_allclose(joined[np.lexsort(joined.T)], whole.m[order], atol=1e-12)
+    in_shard = [int((shard_of(centres) == k).sum()) for k in range(2)]
+    for k, shard in enumerate(shards):
+        counts = sum((state.counts for state in shard.sources.values()), Counter())
+        assert counts['other_shard'] == 6 * (5 - in_shard[k])
+
+
+def shard_of(m):
+    """Return the shard (of 2, 20 m cells) of positions."""
+    from landmark_ros.pipeline.tracks import shard_of_position
+    return shard_of_position(m, 20.0, 2)
