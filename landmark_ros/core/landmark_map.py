@@ -697,6 +697,7 @@ class LandmarkMap:
             self._buffers.pop(row, None)
         self._method.retire(rows)
         return len(rows)
+
     def merge(self, keep_id, drop_id):
         """
         Fuse a confirmed landmark into another one and take it out (a duplicate).

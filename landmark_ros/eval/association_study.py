@@ -221,7 +221,7 @@ def score_fuser(fuser, measurements: Dict[tuple, NDArray[np.int64]], world: simu
     match = match_tracks(m, world.positions, radius)
     track_to_true = {int(t): int(world.ids[j]) for t, j in zip(ids.tolist(), match.tolist())
                      if j >= 0}
-    detections = np.concatenate([v for v in measurements.values()]) if measurements else (
+    detections = np.concatenate(list(measurements.values())) if measurements else (
         np.zeros(0, np.int64))
     counts = np.array([np.count_nonzero(detections == i) for i in world.ids.tolist()])
     observable = counts >= min_observations
@@ -421,12 +421,12 @@ def _seed_interval(summary):
 
 
 def _line(spacing, clutter_rate, method, s):
+    low, high = _seed_interval(s)
     return (f'{spacing:7.2f} {clutter_rate:7.1f} {SHORT.get(method, method):<11} '
             f"{100 * s['precision']:8.2f}% {100 * s['recall']:6.2f}% {s['duplicates']:4d} "
             f"{s['false_tracks']:5d} {100 * s['association_accuracy']:7.2f}% "
             f"{100 * s['clutter_absorbed']:7.2f}% {s['anees']:6.2f} "
-            f"{s['seed_anees_mean']:6.2f} [{s['seed_anees_mean'] - s['seed_anees_half_width']:5.2f}"
-            f", {s['seed_anees_mean'] + s['seed_anees_half_width']:5.2f}]")
+            f"{s['seed_anees_mean']:6.2f} [{low:5.2f}, {high:5.2f}]")
 
 
 def main(argv=None) -> int:

@@ -328,7 +328,7 @@ def test_short_demo_run_without_ids_matches_tracks_by_position(tmp_path):
     assert tracks == matched == measured >= 3, output
     # The matched tracks are reported under the IDs of their true landmarks (1 .. 8).
     rows = re.findall(r'^\s+(\d+)\s+-?\d+\.\d{3}\s+-?\d+\.\d{3}\s', output, re.M)
-    assert sorted(int(r) for r in rows) == sorted(set(int(r) for r in rows))
+    assert sorted(int(r) for r in rows) == sorted({int(r) for r in rows})
     assert all(1 <= int(r) <= 8 for r in rows) and len(rows) == matched, output
     assert 'OK: all' in output
     assert_nothing_left(children, shm, domain_of(output), ports_before)
