@@ -698,7 +698,7 @@ class LandmarkMap:
         self._method.retire(rows)
         return len(rows)
 
-    def merge(self, keep_id, drop_id):
+    def merge(self, keep_id: int, drop_id: int) -> bool:
         """
         Fuse a confirmed landmark into another one and take it out (a duplicate).
 
@@ -1015,7 +1015,7 @@ class _SourceParts:
         self.omega[min(shape[0], first_new_row):] = 0.5
         self.omega[:, shape[1]:] = 0.5
 
-    def merge_into(self, keep, drop):
+    def merge_into(self, keep: int, drop: int) -> None:
         """
         Add the sums of landmark row ``drop`` to those of row ``keep``, source by source.
 

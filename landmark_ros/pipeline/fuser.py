@@ -14,9 +14,9 @@ give one by one). Partial views (range-only, bearing-only rows of the constraint
 from collections import Counter, deque
 from dataclasses import dataclass, field
 import itertools
-from typing import Any, Dict, List, Optional, Sequence
+from typing import Any, Dict, List, Optional, Sequence, Tuple
 
-from landmark_ros.core.landmark_map import LandmarkMap, UpdateResult
+from landmark_ros.core.landmark_map import LandmarkMap, MapSnapshot, UpdateResult
 from landmark_ros.pipeline import map_file
 from landmark_ros.pipeline.config import FuserConfig
 from landmark_ros.pipeline.counters import Counters, Status
@@ -414,7 +414,7 @@ class Fuser:
         removed, self._removed = self._removed, []
         return [(drop, self.tracker.resolve(keep)) for drop, keep in removed]
 
-    def removal_rows(self, removed: Sequence[tuple]):
+    def removal_rows(self, removed: Sequence[tuple]) -> Tuple[MapSnapshot, NDArray[np.int64]]:
         """
         Return the rows that announce removed landmarks, and what each went into.
 
