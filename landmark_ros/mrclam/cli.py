@@ -103,7 +103,8 @@ with its 95 % interval, then a summary table, one row per method.
              "observations", "rejections"}, ...]}, ...],
      "timing": {...},                  # seconds; speedup = dataset duration / replay
      "agreement": {METHOD: {"same_ids", "same_counts", "max_mean_diff_m",
-                            "max_cov_diff_m2", "max_cov_dep_diff_m2"}},  # through_nodes
+                            "max_cov_diff_m2", "max_cov_dep_diff_m2",
+                            "same_track_ids"}},  # through_nodes; the last with --hide-ids
      "nodes": {...}}                   # through_nodes: counters, diagnostics, CPU time
 
 With ``--calibrate`` the object is ``{"calibration": {...}, "dataset": {...}}``
