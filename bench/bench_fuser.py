@@ -15,14 +15,18 @@ consistent: a robot 2-20 m from the landmark, its pose estimate drawn from a ful
 time, best of blocks; then a cProfile of the same loop for the default method.
 (``LandmarkMap.update`` throughput on big batches is ``bench_map.py``'s.)
 
-Part 2, node level over DDS, side by side in one run. Three nodes under test, each
+Part 2, node level over DDS, side by side in one run. Five nodes under test, each
 in its own process (``multiprocessing``, 'spawn') with its own
 ``SingleThreadedExecutor``, all alive for the whole run, in their own namespaces of
 one private ROS domain: ``LandmarkFuser`` with ``split_covariance_intersection``
 (the default), ``LandmarkFuser`` with ``independent``, and a bare relay
-(subscribes PointCloud2 on ``landmarks`` and republishes it unchanged). The fusers'
-maps are loaded with the warmed maps of part 1 (1,000 confirmed landmarks). Input
-QoS is the fuser's: reliable, keep last, depth ``input_depth`` (100).
+(subscribes PointCloud2 on ``landmarks`` and republishes it unchanged); then a
+split-CI ``LandmarkFuser`` with 50 input topics (``input_topics`` ``landmarks_00`` to
+``landmarks_49``: 50 sources) and a relay subscribed to the same 50 topics, the driver
+publishing on the 50 topics in turn (one process for all the robots). Each fuser is
+compared with the relay on the same topics. The fusers' maps are loaded with the
+warmed maps of part 1 (1,000 confirmed landmarks). Input QoS is the fuser's:
+reliable, keep last, depth ``input_depth`` (100).
 
 Nothing in the nodes is wrapped: each node process runs its executor with
 ``spin_once`` and, after each, copies public state into shared memory the driver
@@ -94,20 +98,31 @@ WARMUP_SOURCE = 'warmup'
 """The source that built the warmed maps."""
 RELAY_OUTPUT_DEPTH = 10
 
-KINDS = ('relay', 'split_covariance_intersection', 'independent')
-"""Nodes under test: the relay and the fuser with two fusion methods."""
+MANY_SOURCES = 50
+"""Input topics of the many-sources runs (one driver process publishing on all)."""
+
+KINDS = ('relay', 'split_covariance_intersection', 'independent', 'relay_many', 'split_many')
+"""Nodes under test: the relay and the fuser with two fusion methods on one input topic,
+and a relay and a split-CI fuser on ``MANY_SOURCES`` input topics."""
+RELAY_OF = {'split_covariance_intersection': 'relay', 'independent': 'relay',
+            'split_many': 'relay_many'}
+"""Each fuser's reference relay (the same input topics)."""
+FUSION_OF = {'split_covariance_intersection': 'split_covariance_intersection',
+             'independent': 'independent', 'split_many': 'split_covariance_intersection'}
 NAMESPACES = {'relay': 'bench_relay', 'split_covariance_intersection': 'bench_fuser_sci',
-              'independent': 'bench_fuser_ind'}
+              'independent': 'bench_fuser_ind', 'relay_many': 'bench_relay_many',
+              'split_many': 'bench_fuser_sci_many'}
 LABELS = {'relay': 'relay', 'split_covariance_intersection': 'fuser split CI',
-          'independent': 'fuser independent'}
+          'independent': 'fuser independent', 'relay_many': f'relay {MANY_SOURCES} src',
+          'split_many': f'split CI {MANY_SOURCES} src'}
 SHORT = {'split_covariance_intersection': 'split_ci', 'covariance_intersection': 'ci',
-         'independent': 'independent'}
+         'independent': 'independent', 'split_many': f'split_ci_{MANY_SOURCES}_sources'}
 
 POOL_MESSAGES = 400
 """Distinct messages fed in turn (pipeline part and driver)."""
 
 POLL_S = 0.001
-STALL_S = 0.5
+STALL_S = 2.0
 """No message handled for this long with messages outstanding: written off as lost."""
 
 PROBE_ID0 = LANDMARKS
@@ -275,9 +290,26 @@ MESSAGES, FUSIONS, LAG_SUM, LAG_MAX, LAG_OLDEST_SUM, LAG_OLDEST_MAX, STOP = rang
 FIELDS = 7
 
 
-def fuser_parameters(fusion, input_depth):
-    """Return the fuser's parameter overrides: fusion method and input depth."""
-    return [Parameter('fusion', value=fusion), Parameter('input_depth', value=input_depth)]
+def input_topics(kind):
+    """Return the input topics of a node under test (relative to its namespace)."""
+    if kind in ('relay_many', 'split_many'):
+        return [f'landmarks_{k:02d}' for k in range(MANY_SOURCES)]
+    return ['landmarks']
+
+
+def fuser_parameters(kind, input_depth):
+    """Return the fuser's parameter overrides: fusion method, input topics and depth."""
+    return [Parameter('fusion', value=FUSION_OF[kind]),
+            Parameter('input_depth', value=input_depth),
+            Parameter('input_topics', value=input_topics(kind))]
+
+
+def many_relay(topics, input_qos, output_topic, output_qos, **kwargs):
+    """Return a relay node (``_common.relay``) that subscribes to every topic of ``topics``."""
+    node = _common.relay(topics[0], input_qos, output_topic, output_qos, **kwargs)
+    node.more = [node.create_subscription(PointCloud2, topic, node.on_message, input_qos)
+                 for topic in topics[1:]]
+    return node
 
 
 def serve(kind, domain_id, input_depth, records, shared, conn):
@@ -297,10 +329,10 @@ def serve(kind, domain_id, input_depth, records, shared, conn):
     node = executor = None
     try:
         namespace = NAMESPACES[kind]
-        if kind == 'relay':
-            node = _common.relay('landmarks', qos.reliable_input(input_depth), 'relayed',
-                                 qos.reliable_output(RELAY_OUTPUT_DEPTH), context=context,
-                                 namespace=namespace)
+        if kind not in RELAY_OF:
+            node = many_relay(input_topics(kind), qos.reliable_input(input_depth), 'relayed',
+                              qos.reliable_output(RELAY_OUTPUT_DEPTH), context=context,
+                              namespace=namespace)
 
             def handled():
                 return node.count
@@ -308,10 +340,10 @@ def serve(kind, domain_id, input_depth, records, shared, conn):
             node = LandmarkFuser(context=context, namespace=namespace,
                                  parameter_overrides=fuser_parameters(kind, input_depth))
             node.fuser.map.load_records(records)
-            source, = node.fuser.sources.values()
+            sources = list(node.fuser.sources.values())
 
             def handled():
-                return source.counts['messages_in']
+                return sum(source.counts['messages_in'] for source in sources)
         node.get_logger().set_level(LoggingSeverity.ERROR)
         executor = SingleThreadedExecutor(context=context)
         executor.add_node(node)
@@ -331,13 +363,15 @@ def serve(kind, domain_id, input_depth, records, shared, conn):
                 shared[LAG_OLDEST_SUM] += now - first
                 shared[LAG_OLDEST_MAX] = max(shared[LAG_OLDEST_MAX], now - first)
                 first = None
-            if kind == 'relay':
+            if kind not in RELAY_OF:
                 first = None
-        if kind == 'relay':
+        if kind not in RELAY_OF:
             stats = {'messages': node.count}
         else:
             stats = dict(node.fuser.counters.counts)
-            stats.update({f'source_{k}': v for k, v in source.counts.items()})
+            for source in sources:
+                for k, v in source.counts.items():
+                    stats[f'source_{k}'] = stats.get(f'source_{k}', 0) + v
             stats['landmarks'] = len(node.fuser.map)
         stats['hwm_kb'] = _common.vm_hwm_kb()
         stats['maxrss_kb'] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
@@ -388,12 +422,30 @@ def probe_payload(landmark_id):
                                               [landmark_id] * 2, m, P, 0.5 * P))
 
 
+class RoundRobin:
+    """Publishers used in turn, one message each (the many-sources runs)."""
+
+    def __init__(self, publishers):
+        self.publishers = publishers
+        self.sent = 0
+
+    def publish(self, payload):
+        """Publish on the next publisher."""
+        self.publishers[self.sent % len(self.publishers)].publish(payload)
+        self.sent += 1
+
+    def get_subscription_count(self):
+        """Return the fewest subscriptions any of the publishers has."""
+        return min(p.get_subscription_count() for p in self.publishers)
+
+
 def make_target(node, kind, input_depth, window):
-    """Return the driver's publisher and raw output subscription for one node under test."""
+    """Return the driver's publisher(s) and raw output subscription for one node under test."""
     namespace = NAMESPACES[kind]
-    publisher = node.create_publisher(PointCloud2, f'/{namespace}/landmarks',
-                                      qos.reliable_input(input_depth))
-    if kind == 'relay':
+    publisher = RoundRobin([node.create_publisher(PointCloud2, f'/{namespace}/{topic}',
+                                                  qos.reliable_input(input_depth))
+                            for topic in input_topics(kind)])
+    if kind not in RELAY_OF:
         subscription_qos = qos.reliable_input(max(RELAY_OUTPUT_DEPTH, 2 * window))
         topic = f'/{namespace}/relayed'
     else:
@@ -456,7 +508,7 @@ def run_window(target, server, payloads, window, warmup_s, measure_s, probe_id):
             last_handled, last_progress = done, now
         elif now - last_progress > STALL_S:
             lost += state['sent'] - done
-            state['sent'] = done
+            state['sent'] = int(done)
             last_progress = now
         refill()
     end = (time.perf_counter(), server.snapshot(), _common.process_cpu_s(server.pid),
@@ -550,8 +602,8 @@ def node_rates(args, servers, domain_id, truth, deadline_s):
         probe_id = PROBE_ID0
         for rep in range(args.reps):
             for kind in (KINDS if rep % 2 == 0 else KINDS[::-1]):
-                probe = None if kind == 'relay' else probe_id
-                probe_id += kind != 'relay'
+                probe = None if kind not in RELAY_OF else probe_id
+                probe_id += kind in RELAY_OF
                 runs[kind].append(run_window(targets[kind], servers[kind], payloads,
                                              args.window, args.warmup, args.measure, probe))
             if time.perf_counter() > deadline_s and 2 <= rep + 1 < args.reps:
@@ -653,19 +705,19 @@ def main(argv=None):
         f' pipeline_{SHORT[m]}_fuse_us={own[m]["fuse_us"]:.4g}' for m in FUSION_METHODS)
     targets = {}
     if not args.pipeline_only:
-        records = {kind: own[kind]['records'] for kind in KINDS if kind in own}
+        records = {kind: own[FUSION_OF[kind]]['records'] for kind in RELAY_OF}
         servers = start_servers(args, domain_id, records)
         try:
             runs = node_rates(args, servers, domain_id, truth, started + args.budget - 10.0)
         finally:
             stats = stop_servers(servers)
-        fusers = [k for k in KINDS if k != 'relay']
+        fusers = list(RELAY_OF)
         rates = {kind: _median(runs[kind], 'msg_per_s') for kind in KINDS}
         ratio = {kind: statistics.median(f['msg_per_s'] / r['msg_per_s']
-                                         for r, f in zip(runs['relay'], runs[kind]))
+                                         for r, f in zip(runs[RELAY_OF[kind]], runs[kind]))
                  for kind in fusers}
-        cpu_ratio = {kind: _median(runs['relay'], 'cpu_us') / _median(runs[kind], 'cpu_us')
-                     for kind in fusers}
+        cpu_ratio = {kind: (_median(runs[RELAY_OF[kind]], 'cpu_us')
+                            / _median(runs[kind], 'cpu_us')) for kind in fusers}
         lost = int(sum(run['lost'] for kind in KINDS for run in runs[kind]))
         targets = {f'node_{SHORT[k]}': ratio[k] >= TARGET_RATIO for k in fusers}
         rounds = len(runs['relay'])
@@ -681,17 +733,19 @@ def main(argv=None):
         ]
         for kind in KINDS:
             values = [run['msg_per_s'] for run in runs[kind]]
-            ratio_text = ' 1.00' if kind == 'relay' else f'{ratio[kind]:5.2f}'
-            cpu_text = ' 1.00' if kind == 'relay' else f'{cpu_ratio[kind]:5.2f}'
+            ratio_text = ' 1.00' if kind not in RELAY_OF else f'{ratio[kind]:5.2f}'
+            cpu_text = ' 1.00' if kind not in RELAY_OF else f'{cpu_ratio[kind]:5.2f}'
             lines.append(f'{LABELS[kind]:17s} | {rates[kind]:6.0f} | '
                          f'{_spread(values, "{:.0f}"):11s} | {ratio_text} | '
                          f'{_median(runs[kind], "cpu_us"):4.0f} us | {cpu_text:>14s} | '
                          f'{_median(runs[kind], "node_cpu") * 100:4.0f} % / '
                          f'{_median(runs[kind], "driver_cpu") * 100:3.0f} %       | '
                          f'{_median(runs[kind], "idle_polls") * 100:5.1f} %')
-        lines.append('each round (msg/s, relay / split CI / independent): ' + '; '.join(
+        lines.append('each round (msg/s, ' + ' / '.join(LABELS[k] for k in KINDS) + '): '
+                     + '; '.join(
             '/'.join(f'{runs[k][i]["msg_per_s"]:.0f}' for k in KINDS) for i in range(rounds)))
-        lines.append('(CPU-time ratio relay/fuser: what the msg/s ratio would be on idle cores)')
+        lines.append('(ratios against the relay on the same input topics; CPU-time ratio '
+                     'relay/fuser: what the msg/s ratio would be on idle cores)')
         lines.append('fusion lag in the fuser, last input -> queues empty after a fusion (mean '
                      '/ max) and oldest input -> same (mean / max), messages per fusion; end to '
                      'end (probe behind a full window -> fused_landmarks holds it):')
@@ -721,16 +775,19 @@ def main(argv=None):
                          f'{LABELS[k]} {_mb(stats[k].get("hwm_kb"))} '
                          f'({_mb(stats[k].get("maxrss_kb"))})' for k in KINDS))
         lines.append('targets: ' + '; '.join(
-            f'{LABELS[k]} msg/s >= {TARGET_RATIO:.0%} of relay ({ratio[k]:.2f}): '
+            f'{LABELS[k]} msg/s >= {TARGET_RATIO:.0%} of {LABELS[RELAY_OF[k]]} '
+            f'({ratio[k]:.2f}): '
             f'{_common.verdict(targets[f"node_{SHORT[k]}"])}' for k in fusers))
         result += (f' relay_msg_per_s_{ROWS_PER_MESSAGE}={rates["relay"]:.6g}'
+                   f' relay_{MANY_SOURCES}_sources_msg_per_s_{ROWS_PER_MESSAGE}='
+                   f'{rates["relay_many"]:.6g}'
                    + ''.join(f' fuser_{SHORT[k]}_msg_per_s_{ROWS_PER_MESSAGE}={rates[k]:.6g}'
                              f' ratio_{SHORT[k]}_{ROWS_PER_MESSAGE}={ratio[k]:.4g}'
                              f' cpu_ratio_{SHORT[k]}={cpu_ratio[k]:.4g}'
                              f' lag_{SHORT[k]}_ms={_median(runs[k], "lag_ms"):.4g}'
                              f' e2e_lag_{SHORT[k]}_ms={_median(runs[k], "e2e_lag_ms"):.4g}'
                              for k in fusers)
-                   + ''.join(f' peak_rss_{"relay" if k == "relay" else "fuser_" + SHORT[k]}_mb='
+                   + ''.join(f' peak_rss_{"fuser_" + SHORT[k] if k in RELAY_OF else k}_mb='
                              f'{(stats[k].get("hwm_kb") or 0) / 1024:.4g}' for k in KINDS)
                    + f' window={args.window} rounds={rounds} lost={lost}')
     seconds = time.perf_counter() - started

@@ -1,9 +1,16 @@
 """Input checks and small array helpers shared by the core modules."""
 
+from typing import Iterable, Optional, Sequence, Tuple, Union
+
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
 
 
-def as_vectors(value, size, name):
+Entries2x2 = Tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]
+"""``(xx, xy, yy)`` of symmetric 2x2 matrices, each entry shape () or (N,)."""
+
+
+def as_vectors(value: ArrayLike, size: int, name: str) -> NDArray[np.float64]:
     """
     Return ``value`` as a float64 array whose last axis has ``size`` entries.
 
@@ -30,7 +37,7 @@ def as_vectors(value, size, name):
     return array
 
 
-def as_matrices(value, size, name):
+def as_matrices(value: ArrayLike, size: int, name: str) -> NDArray[np.float64]:
     """
     Return ``value`` as a float64 array of ``(size, size)`` matrices.
 
@@ -57,12 +64,12 @@ def as_matrices(value, size, name):
     return array
 
 
-def transpose(J):
+def transpose(J: NDArray[np.float64]) -> NDArray[np.float64]:
     """Swap the last two axes of a matrix or a batch of matrices."""
     return np.swapaxes(J, -1, -2)
 
 
-def sandwich(J, P):
+def sandwich(J: NDArray[np.float64], P: NDArray[np.float64]) -> NDArray[np.float64]:
     """
     Return ``J @ P @ J.T`` for single matrices or batches, symmetrised.
 
@@ -81,12 +88,13 @@ def sandwich(J, P):
     return symmetrise(J @ P @ transpose(J))
 
 
-def symmetrise(P):
+def symmetrise(P: NDArray[np.float64]) -> NDArray[np.float64]:
     """Return ``(P + P.T) / 2`` for a matrix or a batch of matrices."""
     return 0.5 * (P + transpose(P))
 
 
-def matrix(rows, batch_shape):
+def matrix(rows: Sequence[Sequence[Union[float, NDArray[np.float64]]]],
+           batch_shape: Tuple[int, ...]) -> NDArray[np.float64]:
     """
     Build matrices from nested lists of entries.
 
@@ -110,12 +118,12 @@ def matrix(rows, batch_shape):
     return out
 
 
-def batch_shape(*arrays):
+def batch_shape(*arrays: NDArray[np.float64]) -> Tuple[int, ...]:
     """Return the broadcast leading shape of vectors: ``()`` or ``(N,)``."""
     return np.broadcast_shapes(*(a.shape[:-1] for a in arrays))
 
 
-def power_of_4_scale(*diagonals):
+def power_of_4_scale(*diagonals: NDArray[np.float64]) -> NDArray[np.float64]:
     """
     Return per-matrix scales ``s = 4^k`` near the largest of some diagonal entries.
 
@@ -143,7 +151,8 @@ def power_of_4_scale(*diagonals):
     return np.ldexp(1.0, exponent - (exponent & 1))
 
 
-def det_2x2(a, b, c, s=None):
+def det_2x2(a: NDArray[np.float64], b: NDArray[np.float64], c: NDArray[np.float64],
+            s: Optional[NDArray[np.float64]] = None) -> NDArray[np.float64]:
     """
     Return ``a c - b^2``, the determinant of symmetric 2x2 matrices, computed scaled.
 
@@ -167,7 +176,8 @@ def det_2x2(a, b, c, s=None):
     return (a * c - b * b) * s * s
 
 
-def inverse_2x2(a, b, c, s=None):
+def inverse_2x2(a: NDArray[np.float64], b: NDArray[np.float64], c: NDArray[np.float64],
+                s: Optional[NDArray[np.float64]] = None) -> Entries2x2:
     """
     Return the entries of the inverse of symmetric 2x2 matrices, computed scaled.
 
@@ -191,7 +201,10 @@ def inverse_2x2(a, b, c, s=None):
     return c * inv_det, -b * inv_det, a * inv_det
 
 
-def mahalanobis_sq_2x2(dx, dy, a, b, c, s=None):
+def mahalanobis_sq_2x2(
+        dx: NDArray[np.float64], dy: NDArray[np.float64], a: NDArray[np.float64],
+        b: NDArray[np.float64], c: NDArray[np.float64],
+        s: Optional[NDArray[np.float64]] = None) -> NDArray[np.float64]:
     """
     Return ``d^T P^-1 d`` for 2-vectors ``d`` and symmetric 2x2 ``P``, computed scaled.
 
@@ -217,12 +230,12 @@ def mahalanobis_sq_2x2(dx, dy, a, b, c, s=None):
         return (c * dx * dx - 2.0 * b * dx * dy + a * dy * dy) / (a * c - b * b)
 
 
-def matrix_scale(P):
+def matrix_scale(P: NDArray[np.float64]) -> NDArray[np.float64]:
     """Return ``power_of_4_scale`` of the diagonals of square matrices, shape () or (N,)."""
     return power_of_4_scale(*(P[..., i, i] for i in range(P.shape[-1])))
 
 
-def det(P):
+def det(P: NDArray[np.float64]) -> NDArray[np.float64]:
     """Return determinants of square matrices: closed form for 2x2, scaled (``det_2x2``)."""
     if P.shape[-1] != 2:
         return np.linalg.det(P)
@@ -231,7 +244,7 @@ def det(P):
             ) * s * s
 
 
-def solve(A, B):
+def solve(A: NDArray[np.float64], B: NDArray[np.float64]) -> NDArray[np.float64]:
     """
     Solve ``A X = B`` for matrices; closed form (Cramer's rule) for 2x2, scaled.
 
@@ -262,7 +275,8 @@ def solve(A, B):
     return np.stack([x0, x1], axis=-2)
 
 
-def symmetric_2x2(xx, xy, yy):
+def symmetric_2x2(xx: Union[float, NDArray[np.float64]], xy: Union[float, NDArray[np.float64]],
+                  yy: Union[float, NDArray[np.float64]]) -> NDArray[np.float64]:
     """
     Build symmetric 2x2 matrices from their three distinct entries.
 
@@ -284,12 +298,14 @@ def symmetric_2x2(xx, xy, yy):
     return out
 
 
-def entries_2x2(P):
+def entries_2x2(P: NDArray[np.float64]) -> Entries2x2:
     """Return ``(xx, xy, yy)`` of 2x2 matrices, the off-diagonal averaged."""
     return P[..., 0, 0], 0.5 * (P[..., 0, 1] + P[..., 1, 0]), P[..., 1, 1]
 
 
-def common_batch_shape(vectors=(), matrices=()):
+def common_batch_shape(
+        vectors: Iterable[Optional[NDArray[np.float64]]] = (),
+        matrices: Iterable[Optional[NDArray[np.float64]]] = ()) -> Tuple[int, ...]:
     """Return the broadcast batch shape, ``()`` or ``(N,)``, of vectors and matrices."""
     shapes = {v.shape[:-1] for v in vectors if v is not None}
     shapes.update(M.shape[:-2] for M in matrices if M is not None)
@@ -299,7 +315,8 @@ def common_batch_shape(vectors=(), matrices=()):
     return np.broadcast_shapes(*shapes)
 
 
-def to_batch(shape, array, item_ndim):
+def to_batch(shape: Tuple[int, ...], array: NDArray[np.float64],
+             item_ndim: int) -> NDArray[np.float64]:
     """Broadcast an output to the batch shape ``shape`` (a copy only when it grows)."""
     target = tuple(shape) + array.shape[array.ndim - item_ndim:]
     return array if array.shape == target else np.broadcast_to(array, target).copy()

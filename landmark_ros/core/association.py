@@ -44,10 +44,12 @@ from dataclasses import dataclass
 import functools
 import itertools
 import math
+from typing import List, Optional, Tuple
 
 from landmark_ros.core._arrays import as_matrices, as_vectors
 from landmark_ros.core.gaussian import chi2_threshold, mahalanobis_sq
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
 from scipy.linalg import cho_factor, cho_solve, cholesky, solve_triangular
 from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
@@ -71,7 +73,7 @@ def _largest_eigenvalue(P):
     return 0.5 * (a + c) + np.hypot(0.5 * (a - c), b)
 
 
-def joint_thresholds(n, probability=DEFAULT_PROBABILITY):
+def joint_thresholds(n: int, probability: float = DEFAULT_PROBABILITY) -> NDArray[np.float64]:
     """
     Return the chi-square gates of hypotheses with 0 to ``n`` pairings.
 
@@ -107,7 +109,9 @@ def _joint_thresholds(n, probability):
     return thresholds
 
 
-def scan_covariance(z, R, robot_xy, P_pose, R_bias=None, sensor_xy=None):
+def scan_covariance(z: ArrayLike, R: ArrayLike, robot_xy: ArrayLike, P_pose: ArrayLike,
+                    R_bias: Optional[ArrayLike] = None,
+                    sensor_xy: Optional[ArrayLike] = None) -> NDArray[np.float64]:
     """
     Return the joint covariance of the rows of one message, shared pose error included.
 
@@ -226,7 +230,8 @@ class LandmarkIndex:
 
     """
 
-    def __init__(self, m_map, P_map, classes, tier_ratio=4.0):
+    def __init__(self, m_map: ArrayLike, P_map: ArrayLike, classes: ArrayLike,
+                 tier_ratio: float = 4.0) -> None:
         self.m_map = as_vectors(m_map, 2, 'm_map').reshape(-1, 2)
         count = len(self.m_map)
         self.P_map = as_matrices(P_map, 2, 'P_map').reshape(-1, 2, 2)
@@ -237,7 +242,7 @@ class LandmarkIndex:
         if not tier_ratio > 1.0:
             raise ValueError(f'tier_ratio must exceed 1, got {tier_ratio!r}')
         largest = _largest_eigenvalue(self.P_map)
-        self.tiers = []
+        self.tiers: List[Tuple[cKDTree, NDArray[np.intp], float]] = []
         """List of ``(tree, landmark ids, largest eigenvalue in the tier [m^2])``."""
         if count == 0:
             return
@@ -247,7 +252,7 @@ class LandmarkIndex:
             ids = np.flatnonzero(tier == value)
             self.tiers.append((cKDTree(self.m_map[ids]), ids, float(largest[ids].max())))
 
-    def __len__(self):
+    def __len__(self) -> int:
         """Return the number of landmarks ``K``."""
         return len(self.m_map)
 
@@ -274,14 +279,14 @@ class Candidates:
 
     """
 
-    rows: np.ndarray
-    landmarks: np.ndarray
-    d2: np.ndarray
+    rows: NDArray[np.intp]
+    landmarks: NDArray[np.intp]
+    d2: NDArray[np.float64]
     n_rows: int
     threshold: float
     probability: float
 
-    def counts(self):
+    def counts(self) -> NDArray[np.intp]:
         """Return the number of candidates of each row, shape (N,)."""
         return np.bincount(self.rows, minlength=self.n_rows)
 
@@ -311,16 +316,16 @@ class Association:
 
     """
 
-    assignment: np.ndarray
-    d2: np.ndarray
-    ambiguous: np.ndarray
+    assignment: NDArray[np.intp]
+    d2: NDArray[np.float64]
+    ambiguous: NDArray[np.intp]
     method: str
     fallback: bool = False
     joint_d2: float = float('nan')
     nodes: int = 0
 
     @property
-    def n_assigned(self):
+    def n_assigned(self) -> int:
         """Return the number of assigned rows."""
         return int(np.count_nonzero(self.assignment >= 0))
 
@@ -334,7 +339,8 @@ def _check_scan(z, R, classes):
     return z, R, classes
 
 
-def candidates(index, z, R, classes, probability=DEFAULT_PROBABILITY):
+def candidates(index: LandmarkIndex, z: ArrayLike, R: ArrayLike, classes: ArrayLike,
+               probability: float = DEFAULT_PROBABILITY) -> Candidates:
     """
     Return the individually compatible pairings of a scan's rows with the map.
 
@@ -402,7 +408,7 @@ def candidates(index, z, R, classes, probability=DEFAULT_PROBABILITY):
                       threshold=threshold, probability=probability)
 
 
-def ambiguous_rows(cands):
+def ambiguous_rows(cands: Candidates) -> NDArray[np.intp]:
     """
     Return the rows with more than one candidate (no joint test to choose between them).
 
@@ -432,7 +438,7 @@ def _result(cands, rows, landmarks, d2, method, **kwargs):
                        **kwargs)
 
 
-def nearest_neighbour(cands):
+def nearest_neighbour(cands: Candidates) -> Association:
     """
     Pair each row independently with its candidate of smallest d2 (NN).
 
@@ -471,7 +477,7 @@ def _gnn_pairs(cands):
     return rows[assigned_row], landmarks[column], cost[assigned_row, column]
 
 
-def global_nearest_neighbour(cands):
+def global_nearest_neighbour(cands: Candidates) -> Association:
     """
     Pair rows with landmarks one-to-one at the smallest total d2 (GNN).
 
@@ -658,7 +664,8 @@ class _Search:
         return True
 
 
-def jcbb(cands, index, z, C_z, max_nodes=DEFAULT_MAX_NODES):
+def jcbb(cands: Candidates, index: LandmarkIndex, z: ArrayLike, C_z: ArrayLike,
+         max_nodes: int = DEFAULT_MAX_NODES) -> Association:
     """
     Pair rows with landmarks by joint compatibility branch and bound (JCBB).
 
@@ -756,7 +763,8 @@ def _pair_d2(cands, rows, landmarks):
     return cands.d2[found]
 
 
-def joint_mahalanobis_sq(index, z, C_z, rows, landmarks):
+def joint_mahalanobis_sq(index: LandmarkIndex, z: ArrayLike, C_z: ArrayLike, rows: ArrayLike,
+                         landmarks: ArrayLike) -> float:
     """
     Return the joint squared Mahalanobis distance of a hypothesis.
 

@@ -23,12 +23,14 @@ Outside the range results stay finite as long as they are representable.
 """
 
 import math
+from typing import Optional, Tuple, Union
 
 from landmark_ros.core._arrays import (as_matrices, as_vectors, common_batch_shape,
-                                       entries_2x2, inverse_2x2, mahalanobis_sq_2x2,
+                                       Entries2x2, entries_2x2, inverse_2x2, mahalanobis_sq_2x2,
                                        matrix_scale, power_of_4_scale, solve, symmetric_2x2,
                                        symmetrise, to_batch, transpose)
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
 from scipy import special
 
 
@@ -93,13 +95,20 @@ def _pair(m1, P1, m2, P2):
     return m1, as_matrices(P1, n, 'P1'), m2, as_matrices(P2, n, 'P2')
 
 
+def _broadcast_entries(P: Entries2x2, shape: Tuple[int, ...]) -> Entries2x2:
+    """Return the entries of ``P`` broadcast to ``shape`` (read-only views)."""
+    a, b, c = (np.broadcast_to(x, shape) for x in P)
+    return a, b, c
+
+
 def _solve_vec(A, b):
     """Solve ``A x = b`` for vectors ``b`` of shape (n,) or (N, n)."""
     A, b = np.broadcast_arrays(A, b[..., None])
     return solve(A, b)[..., 0]
 
 
-def fuse(m1, P1, m2, P2):
+def fuse(m1: ArrayLike, P1: ArrayLike, m2: ArrayLike,
+         P2: ArrayLike) -> Tuple[NDArray[np.float64], NDArray[np.float64]]:
     """
     Fuse two independent Gaussian estimates of the same quantity (their product).
 
@@ -141,7 +150,7 @@ def fuse(m1, P1, m2, P2):
     return to_batch(shape, m, 1), to_batch(shape, P, 2)
 
 
-def information(P):
+def information(P: NDArray[np.float64]) -> NDArray[np.float64]:
     """
     Return the information matrix ``P^-1`` (closed form for 2x2, else solved), scaled.
 
@@ -162,7 +171,8 @@ def information(P):
     return symmetrise(solve(P, eye))
 
 
-def fuse_many(ms, Ps):
+def fuse_many(ms: ArrayLike,
+              Ps: ArrayLike) -> Tuple[NDArray[np.float64], NDArray[np.float64]]:
     """
     Fuse ``N`` independent estimates of one quantity by summing their information.
 
@@ -196,7 +206,8 @@ def fuse_many(ms, Ps):
     return m, P
 
 
-def covariance_intersection_omega(P1, P2):
+def covariance_intersection_omega(P1: ArrayLike,
+                                  P2: ArrayLike) -> Union[float, NDArray[np.float64]]:
     """
     Return the weight ``omega`` in [0, 1] that minimises ``det(P)`` in CI.
 
@@ -224,7 +235,10 @@ def covariance_intersection_omega(P1, P2):
     return _omega_golden(A, B)
 
 
-def ci_2x2(m1, P1, m2, P2, omega=None):
+def ci_2x2(
+        m1: NDArray[np.float64], P1: Entries2x2, m2: NDArray[np.float64], P2: Entries2x2,
+        omega: Optional[NDArray[np.float64]] = None
+) -> Optional[Tuple[NDArray[np.float64], NDArray[np.float64]]]:
     """
     Return covariance intersection of 2x2 entries in information form, or None.
 
@@ -249,8 +263,7 @@ def ci_2x2(m1, P1, m2, P2, omega=None):
 
     """
     s = power_of_4_scale(P1[0], P1[2], P2[0], P2[2])
-    p1 = tuple(x / s for x in P1)
-    p2 = tuple(x / s for x in P2)
+    p1, p2 = _divide(P1, s), _divide(P2, s)
     with np.errstate(divide='ignore', invalid='ignore', over='ignore'):
         if not np.all((p1[0] * p1[2] - p1[1] * p1[1] > 1e-13 * p1[0] * p1[2])
                       & (p2[0] * p2[2] - p2[1] * p2[1] > 1e-13 * p2[0] * p2[2])):
@@ -315,7 +328,9 @@ def _omega_golden(A, B, iterations=80):
     return (0.5 * (lo + hi))[()]
 
 
-def covariance_intersection(m1, P1, m2, P2, omega=None):
+def covariance_intersection(
+        m1: ArrayLike, P1: ArrayLike, m2: ArrayLike, P2: ArrayLike,
+        omega: Optional[ArrayLike] = None) -> Tuple[NDArray[np.float64], NDArray[np.float64]]:
     """
     Fuse two estimates whose cross-correlation is unknown (covariance intersection).
 
@@ -373,7 +388,9 @@ def covariance_intersection(m1, P1, m2, P2, omega=None):
     return to_batch(shape, m, 1), to_batch(shape, P, 2)
 
 
-def split_covariance_intersection_omega(P1_ind, P1_dep, P2_ind, P2_dep):
+def split_covariance_intersection_omega(
+        P1_ind: ArrayLike, P1_dep: ArrayLike, P2_ind: ArrayLike,
+        P2_dep: ArrayLike) -> Union[float, NDArray[np.float64]]:
     """
     Return the split-CI weight ``omega`` that minimises ``det(P)``.
 
@@ -410,8 +427,8 @@ def split_covariance_intersection_omega(P1_ind, P1_dep, P2_ind, P2_dep):
     parts = [np.asarray(P, dtype=np.float64) for P in (P1_ind, P1_dep, P2_ind, P2_dep)]
     shape = np.broadcast_shapes(*(P.shape[:-2] for P in parts))
     if parts[0].shape[-1] == 2:
-        entries = [tuple(np.broadcast_to(e, shape) for e in entries_2x2(P)) for P in parts]
-        return sci_omega_2x2(*entries)[()]
+        e1i, e1d, e2i, e2d = (_broadcast_entries(entries_2x2(P), shape) for P in parts)
+        return sci_omega_2x2(e1i, e1d, e2i, e2d)[()]
     P1i, P1d, P2i, P2d = (np.broadcast_to(P, shape + P.shape[-2:]) for P in parts)
 
     def log_f(u):
@@ -454,7 +471,8 @@ def _sci_slope(u, P1i, P1d, P2i, P2d, Si, Dd, two_det_1i, two_det_2i):
     return slope, curvature
 
 
-def sci_omega_2x2(P1i, P1d, P2i, P2d, start=None):
+def sci_omega_2x2(P1i: Entries2x2, P1d: Entries2x2, P2i: Entries2x2, P2d: Entries2x2,
+                  start: Optional[NDArray[np.float64]] = None) -> NDArray[np.float64]:
     """
     Return ``split_covariance_intersection_omega`` for 2x2 parts given as entries.
 
@@ -480,14 +498,18 @@ def sci_omega_2x2(P1i, P1d, P2i, P2d, start=None):
     """
     s = power_of_4_scale(P1i[0] + P1d[0], P1i[2] + P1d[2], P2i[0] + P2d[0], P2i[2] + P2d[2])
     shape = s.shape
-    P1i, P1d, P2i, P2d = (tuple(np.broadcast_to(x / s, shape).reshape(-1) for x in P)
-                          for P in (P1i, P1d, P2i, P2d))
-    Si = tuple(x + y for x, y in zip(P1i, P2i))
-    Dd = tuple(y - x for x, y in zip(P1d, P2d))
-    parts = [P1i, P1d, P2i, P2d, Si, Dd, 2.0 * (P1i[0] * P1i[2] - P1i[1] * P1i[1]),
-             2.0 * (P2i[0] * P2i[2] - P2i[1] * P2i[1])]
-    edge_lo, edge_hi = _OMEGA_BRACKET, 1.0 - _OMEGA_BRACKET
     size = s.size
+    # Every per-element input in one table, so that dropping the finished elements
+    # is one indexing operation: rows 0-11 the four parts, 12-17 Si and Dd, 18-19
+    # twice the independent determinants.
+    table = np.empty((20, size))
+    for k, x in enumerate((*P1i, *P1d, *P2i, *P2d)):
+        table[k] = np.broadcast_to(x / s, shape).reshape(-1)
+    table[12:15] = table[0:3] + table[6:9]
+    table[15:18] = table[9:12] - table[3:6]
+    table[18] = 2.0 * (table[0] * table[2] - table[1] * table[1])
+    table[19] = 2.0 * (table[6] * table[8] - table[7] * table[7])
+    edge_lo, edge_hi = _OMEGA_BRACKET, 1.0 - _OMEGA_BRACKET
     omega = np.full(size, 0.5)
     u = np.full(size, 0.5) if start is None else np.clip(
         np.broadcast_to(start, shape).reshape(-1), edge_lo, edge_hi)
@@ -496,7 +518,9 @@ def sci_omega_2x2(P1i, P1d, P2i, P2d, start=None):
     active = np.arange(size)
     with np.errstate(divide='ignore', invalid='ignore', over='ignore'):
         for _ in range(200):
-            slope, curvature = _sci_slope(u, *parts)
+            t = table
+            slope, curvature = _sci_slope(u, t[0:3], t[3:6], t[6:9], t[9:12], t[12:15],
+                                          t[15:18], t[18], t[19])
             positive = slope > 0.0
             lo_seen |= positive
             hi_seen |= ~positive
@@ -522,16 +546,21 @@ def sci_omega_2x2(P1i, P1d, P2i, P2d, start=None):
             keep = ~done
             if not keep.any():
                 break
+            if keep.all():
+                u = new
+                continue
             active, u, lo, hi = active[keep], new[keep], lo[keep], hi[keep]
             lo_seen, hi_seen = lo_seen[keep], hi_seen[keep]
-            parts = [tuple(x[keep] for x in P) if isinstance(P, tuple) else P[keep]
-                     for P in parts]
+            table = table[:, keep]
         else:
             omega[active] = u
     return omega.reshape(shape)
 
 
-def split_covariance_intersection(m1, P1_ind, P1_dep, m2, P2_ind, P2_dep, omega=None):
+def split_covariance_intersection(
+        m1: ArrayLike, P1_ind: ArrayLike, P1_dep: ArrayLike, m2: ArrayLike, P2_ind: ArrayLike,
+        P2_dep: ArrayLike, omega: Optional[ArrayLike] = None
+) -> Tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
     """
     Fuse two estimates whose errors have independent and correlated parts (split CI).
 
@@ -595,7 +624,8 @@ def split_covariance_intersection(m1, P1_ind, P1_dep, m2, P2_ind, P2_dep, omega=
     return to_batch(shape, m, 1), to_batch(shape, P_ind, 2), to_batch(shape, P - P_ind, 2)
 
 
-def fuse_2x2(m1, P1, m2, P2):
+def fuse_2x2(m1: NDArray[np.float64], P1: Entries2x2, m2: NDArray[np.float64],
+             P2: Entries2x2) -> Tuple[NDArray[np.float64], NDArray[np.float64]]:
     """
     Return ``fuse`` for 2x2 covariances given as ``(xx, xy, yy)`` entries.
 
@@ -664,7 +694,11 @@ def _split_ci_2x2(m1, P1i, P1d, m2, P2i, P2d, omega):
     return np.stack(m, axis=-1), symmetric_2x2(*P_ind), symmetric_2x2(*P_dep)
 
 
-def split_ci_2x2_entries(m1, P1i, P1d, m2, P2i, P2d, omega):
+def split_ci_2x2_entries(
+        m1: Tuple[NDArray[np.float64], NDArray[np.float64]], P1i: Entries2x2, P1d: Entries2x2,
+        m2: Tuple[NDArray[np.float64], NDArray[np.float64]], P2i: Entries2x2, P2d: Entries2x2,
+        omega: NDArray[np.float64]
+) -> Tuple[Tuple[NDArray[np.float64], NDArray[np.float64]], Entries2x2, Entries2x2]:
     """
     Return split CI of 2x2 parts given as entries, as entries.
 
@@ -693,10 +727,10 @@ def split_ci_2x2_entries(m1, P1i, P1d, m2, P2i, P2d, omega):
 
     """
     s = power_of_4_scale(P1i[0] + P1d[0], P1i[2] + P1d[2], P2i[0] + P2d[0], P2i[2] + P2d[2])
-    P1i, P1d, P2i, P2d = (tuple(x / s for x in P) for P in (P1i, P1d, P2i, P2d))
+    P1i, P1d, P2i, P2d = (_divide(P, s) for P in (P1i, P1d, P2i, P2d))
     u, v = omega, 1.0 - omega
-    D1 = tuple(d / u for d in P1d)
-    D2 = tuple(d / v for d in P2d)
+    D1 = _divide(P1d, u)
+    D2 = _divide(P2d, v)
     Ai = inverse_2x2(*(d + i for d, i in zip(D1, P1i)))
     Bi = inverse_2x2(*(d + i for d, i in zip(D2, P2i)))
     P = inverse_2x2(*(x + y for x, y in zip(Ai, Bi)))
@@ -705,18 +739,31 @@ def split_ci_2x2_entries(m1, P1i, P1d, m2, P2i, P2d, omega):
     w2 = _product(P, Bi)
     m = (w1[0] * m1[0] + w1[1] * m1[1] + w2[0] * m2[0] + w2[1] * m2[1],
          w1[2] * m1[0] + w1[3] * m1[1] + w2[2] * m2[0] + w2[3] * m2[1])
-    P_ind = tuple((x + y) * s for x, y in zip(_congruence(*w1, P1i), _congruence(*w2, P2i)))
-    P_dep = tuple((x + y) * s for x, y in zip(_congruence(*w1, D1), _congruence(*w2, D2)))
+    P_ind = _sum_times(_congruence(*w1, P1i), _congruence(*w2, P2i), s)
+    P_dep = _sum_times(_congruence(*w1, D1), _congruence(*w2, D2), s)
     return m, P_ind, P_dep
 
 
-def _product(P, Q):
+def _divide(P: Entries2x2, s: NDArray[np.float64]) -> Entries2x2:
+    """Return the entries of ``P / s``."""
+    return P[0] / s, P[1] / s, P[2] / s
+
+
+def _sum_times(P: Entries2x2, Q: Entries2x2, s: NDArray[np.float64]) -> Entries2x2:
+    """Return the entries of ``(P + Q) s``."""
+    return (P[0] + Q[0]) * s, (P[1] + Q[1]) * s, (P[2] + Q[2]) * s
+
+
+def _product(
+        P: Entries2x2, Q: Entries2x2
+) -> Tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
     """Return the entries ``(k00, k01, k10, k11)`` of ``P Q`` for symmetric 2x2 entries."""
     return (P[0] * Q[0] + P[1] * Q[1], P[0] * Q[1] + P[1] * Q[2],
             P[1] * Q[0] + P[2] * Q[1], P[1] * Q[1] + P[2] * Q[2])
 
 
-def _congruence(k00, k01, k10, k11, P):
+def _congruence(k00: NDArray[np.float64], k01: NDArray[np.float64], k10: NDArray[np.float64],
+                k11: NDArray[np.float64], P: Entries2x2) -> Entries2x2:
     """Return the entries of ``K P K^T`` for ``K = [[k00, k01], [k10, k11]]``."""
     a, b, c = P
     r00, r01 = k00 * a + k01 * b, k00 * b + k01 * c
@@ -724,7 +771,8 @@ def _congruence(k00, k01, k10, k11, P):
     return r00 * k00 + r01 * k01, r00 * k10 + r01 * k11, r10 * k10 + r11 * k11
 
 
-def mahalanobis_sq(x, mean, P):
+def mahalanobis_sq(x: ArrayLike, mean: ArrayLike,
+                   P: ArrayLike) -> Union[float, NDArray[np.float64]]:
     """
     Return the squared Mahalanobis distance ``(x - mean)^T P^-1 (x - mean)``.
 
@@ -756,7 +804,7 @@ def mahalanobis_sq(x, mean, P):
     return np.sum(d * _solve_vec(P / s[..., None, None], d), axis=-1)[()]
 
 
-def gate(d2, chi2_threshold):
+def gate(d2: ArrayLike, chi2_threshold: float) -> Union[np.bool_, NDArray[np.bool_]]:
     """
     Return True where a squared Mahalanobis distance passes the gate.
 
@@ -775,7 +823,7 @@ def gate(d2, chi2_threshold):
     return (np.asarray(d2) <= chi2_threshold)[()]
 
 
-def chi2_survival(x, dof):
+def chi2_survival(x: float, dof: int) -> float:
     """
     Return ``P(X > x)`` for a chi-square variable ``X`` with integer ``dof``.
 
@@ -799,7 +847,7 @@ def chi2_survival(x, dof):
     return float(special.chdtrc(dof, x))
 
 
-def chi2_threshold(dof, probability):
+def chi2_threshold(dof: int, probability: float) -> float:
     """
     Return the chi-square quantile: ``P(X <= threshold) = probability``.
 
@@ -831,7 +879,8 @@ def chi2_threshold(dof, probability):
     return float(special.chdtri(int(dof), 1.0 - probability))
 
 
-def covariance_status(P, rtol=1e-9):
+def covariance_status(P: ArrayLike,
+                      rtol: float = 1e-9) -> Union[np.int_, NDArray[np.int_]]:
     """
     Check covariances: finite, symmetric and positive semi-definite.
 
@@ -873,7 +922,8 @@ def _smallest_eigenvalue(P):
     return 0.5 * (a + c) - np.hypot(0.5 * (a - c), b)
 
 
-def validate_covariance(P, name='covariance', rtol=1e-9):
+def validate_covariance(P: ArrayLike, name: str = 'covariance',
+                        rtol: float = 1e-9) -> NDArray[np.float64]:
     """
     Raise unless every covariance is finite, symmetric and positive semi-definite.
 
@@ -906,7 +956,7 @@ def validate_covariance(P, name='covariance', rtol=1e-9):
     return np.asarray(P, dtype=np.float64)
 
 
-def covariance_range_status(P):
+def covariance_range_status(P: ArrayLike) -> Union[np.int_, NDArray[np.int_]]:
     """
     Check that covariances lie in the range the core computes reliably.
 

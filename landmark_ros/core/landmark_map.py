@@ -42,13 +42,16 @@ landmark rejected ``max_consecutive_rejections`` times in a row is rebuilt from
 those recent observations when they agree (it moved). Rows of one batch are
 applied in order, so a batch gives the same map as its rows one by one (bit for
 bit): rows of confirmed landmarks go in rounds in which each landmark appears
-once, and every computation is element-wise.
+once, and every computation is element-wise. With split CI a landmark's estimate is
+a pure function of its per-source sums, so the estimates after every row of a batch
+are found before the rounds in one fold of all the rows (``prepare`` of the split-CI
+strategy); the rounds then gate, count and take those estimates.
 """
 
 from collections import Counter, deque
 import copy
 from dataclasses import dataclass, field
-from typing import NamedTuple
+from typing import Any, Deque, Dict, List, Mapping, NamedTuple, Optional, Sequence, Tuple, Union
 
 from landmark_ros.core._arrays import (inverse_2x2, mahalanobis_sq_2x2, power_of_4_scale,
                                        symmetric_2x2)
@@ -56,6 +59,7 @@ from landmark_ros.core.gaussian import (chi2_threshold, ci_2x2, covariance_inter
                                         fuse_2x2, information, sci_omega_2x2,
                                         split_ci_2x2_entries, split_covariance_intersection)
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
 
 _TABLE_LIMIT = 1 << 20
 """IDs below this are looked up in a dense table, others by binary search."""
@@ -66,21 +70,27 @@ _NO_STAMP = np.iinfo(np.int64).min
 _SOURCE_BITS = 24
 """A (landmark row, source) pair is the key ``row << 24 | source code``."""
 
+_FOLD_CELLS = 1 << 16
+"""(Landmark, source) cells folded at once by a batch plan (bounds its memory)."""
+
+_PLAN_CELLS = 1 << 20
+"""Cells of a batch plan's table of states allowed beyond 16 per row and source."""
+
 FUSION_METHODS = ('independent', 'covariance_intersection', 'split_covariance_intersection')
 
 
 class MapSnapshot(NamedTuple):
     """The confirmed landmarks, sorted by ID (``LandmarkMap.snapshot``)."""
 
-    ids: np.ndarray
+    ids: NDArray[np.int64]
     """Landmark IDs, int64, shape (K,)."""
-    m: np.ndarray
+    m: NDArray[np.float64]
     """Means, shape (K, 2) [m]."""
-    P: np.ndarray
+    P: NDArray[np.float64]
     """Total covariances, shape (K, 2, 2) [m^2]."""
-    P_dep: np.ndarray
+    P_dep: NDArray[np.float64]
     """Their dependent parts, shape (K, 2, 2) [m^2]."""
-    observations: np.ndarray
+    observations: NDArray[np.int64]
     """Observations fused into each, int64, shape (K,)."""
 
 
@@ -92,20 +102,20 @@ def _no_ids():
 class UpdateResult:
     """What one ``LandmarkMap.update`` did, for counters and logs."""
 
-    accepted: Counter = field(default_factory=Counter)
+    accepted: Counter[str] = field(default_factory=Counter)
     """Observations fused into confirmed landmarks, by source."""
-    rejected: Counter = field(default_factory=Counter)
+    rejected: Counter[str] = field(default_factory=Counter)
     """Observations gated out or left out of a confirmation, by source."""
-    confirmed: list = field(default_factory=list)
+    confirmed: List[int] = field(default_factory=list)
     """IDs that became landmarks."""
-    reinitialised: list = field(default_factory=list)
+    reinitialised: List[int] = field(default_factory=list)
     """IDs rebuilt from their recent observations."""
-    changed_ids: np.ndarray = field(default_factory=_no_ids, compare=False)
+    changed_ids: NDArray[np.int64] = field(default_factory=_no_ids, compare=False)
     """IDs (int64, sorted, unique) whose published estimate changed in this update;
     not part of ``==`` (an array)."""
 
     @property
-    def changed(self):
+    def changed(self) -> bool:
         """Whether the confirmed map changed."""
         return bool(self.accepted or self.confirmed or self.reinitialised)
 
@@ -163,7 +173,13 @@ class _Independent:
         m, P = fuse_2x2(m, _entries(P_ind + P_dep), z, _entries(R_ind + R_dep))
         return m, P, np.zeros_like(P)
 
-    def update(self, landmark_map, rows, codes, z, R_ind, R_dep):
+    def prepare(self, landmark_map, rows, batch, positions):
+        """Get ready for the rows of confirmed landmarks of a batch (nothing here)."""
+
+    def finish(self):
+        """Forget what ``prepare`` found (nothing here)."""
+
+    def update(self, landmark_map, rows, codes, z, R_ind, R_dep, positions=None):
         """Return the new estimates of ``rows`` (one accepted observation each)."""
         return self.fuse(landmark_map.mean[rows], landmark_map.cov_ind[rows],
                          landmark_map.cov_dep[rows], z, R_ind, R_dep)
@@ -190,7 +206,7 @@ class _Independent:
         """Return what ``restore`` needs to undo an update of ``rows`` (nothing here)."""
         return None
 
-    def restore(self, state, first_new_row):
+    def restore(self, state):
         """Undo an update from a ``checkpoint`` (nothing here)."""
 
     def load(self, landmark_map, row, record, m, P_ind, P_dep):
@@ -226,18 +242,127 @@ class _SplitCovarianceIntersection(_Independent):
     def reset(self):
         """Forget every landmark."""
         self.parts = _SourceParts()
+        self.planned = None
+
+    _PLAN_PASSES = 8
+    """Most passes of ``prepare`` (each rules out one more rejected row per landmark)."""
+
+    def prepare(self, landmark_map, rows, batch, positions):
+        """
+        Find the estimates after each row of confirmed landmarks of a batch at once.
+
+        ``rows`` (landmark rows, in arrival order) at ``positions`` in the batch. The
+        rows are gated here as ``LandmarkMap`` will gate them (same numbers, same
+        decisions): a first pass takes every row as accepted; each further pass, for
+        the landmarks that had one, leaves out the first row that failed its gate and
+        folds their rows again. ``update`` then takes these estimates while the map's
+        decisions match (a reinitialisation in between breaks the landmark) and folds
+        the others itself. Only worth it when some landmark has several rows.
+        """
+        self.planned = None
+        if len(rows) < 2 or len(np.unique(rows)) == len(rows):
+            return
+        count = len(rows)
+        codes = batch.codes[positions]
+        z, R_ind, R_dep = batch.z[positions], batch.R_ind[positions], batch.R_dep[positions]
+        terms = np.concatenate(_terms(z, R_ind, R_dep), axis=1)
+        landmarks, landmark = np.unique(rows, return_inverse=True)
+        landmark = landmark.reshape(-1)
+        # Rows by landmark, in arrival order within each: the previous included row.
+        order = np.argsort(landmark, kind='stable')
+        start = np.searchsorted(landmark[order], landmark[order])
+        include = np.ones(count, bool)
+        planned = np.ones(count, bool)
+        m, P_ind, P_dep = np.zeros((count, 2)), np.zeros((count, 2, 2)), np.zeros((count, 2, 2))
+        todo = np.arange(count)
+        for _ in range(self._PLAN_PASSES):
+            states = self.parts.plan(rows[todo], codes[todo], terms[todo], include[todo])
+            if states is None:
+                return
+            m[todo], P_ind[todo], P_dep[todo] = states
+            # Each row against the state before it (the map's for a landmark's first).
+            held = np.where(include[order], np.arange(count), -1)
+            previous = np.full(count, -1)
+            previous[1:] = np.maximum.accumulate(held)[:-1]
+            previous = np.where(previous >= start, previous, -1)
+            before = np.full(count, -1)
+            before[order] = np.where(previous >= 0, order[np.maximum(previous, 0)], -1)
+            first = before < 0
+            mean, cov_ind, cov_dep = m[before], P_ind[before], P_dep[before]
+            mean[first] = landmark_map.mean[rows[first]]
+            cov_ind[first] = landmark_map.cov_ind[rows[first]]
+            cov_dep[first] = landmark_map.cov_dep[rows[first]]
+            S = cov_ind + cov_dep + R_ind + R_dep
+            d = z - mean
+            d2 = mahalanobis_sq_2x2(d[:, 0], d[:, 1], *_entries(S))
+            failed = include & ~(d2 <= landmark_map.threshold)
+            if not failed.any():
+                break
+            # The first failing row of each landmark is rejected for sure.
+            first_failed = np.full(len(landmarks), count)
+            np.minimum.at(first_failed, landmark[failed], _rank(landmark)[failed])
+            hit = first_failed[landmark] == _rank(landmark)
+            include[hit] = False
+            again = np.zeros(len(landmarks), bool)
+            again[landmark[hit]] = True
+            todo = np.flatnonzero(again[landmark])
+        else:
+            planned[todo] = False
+        size = len(batch.codes)
+        at = np.full(size, -1, np.int64)
+        at[positions[planned]] = np.flatnonzero(planned)
+        included = np.cumsum(include[order]) - include[order]
+        accepted_before = np.empty(count, np.int64)
+        accepted_before[order] = included - included[start]
+        self.planned = {'m': m, 'P_ind': P_ind, 'P_dep': P_dep, 'at': at,
+                        'landmarks': landmarks, 'landmark': landmark,
+                        'accepted_before': accepted_before,
+                        'accepted': np.zeros(len(landmarks), np.int64),
+                        'broken': np.zeros(len(landmarks), bool)}
+
+    def finish(self):
+        """Forget what ``prepare`` found."""
+        self.planned = None
 
     def fuse(self, m, P_ind, P_dep, z, R_ind, R_dep):
         """Fuse estimates with observations row by row (split CI, exact omega)."""
         return split_covariance_intersection(m, P_ind, P_dep, z, R_ind, R_dep)
 
-    def update(self, landmark_map, rows, codes, z, R_ind, R_dep):
-        """Add accepted observations (one per landmark) to their sums; refold those rows."""
+    def update(self, landmark_map, rows, codes, z, R_ind, R_dep, positions=None):
+        """
+        Add accepted observations (one per landmark) to their sums; refold those rows.
+
+        A row whose landmark had every earlier row of the batch accepted takes the
+        estimate ``prepare`` found (the same, bit for bit); the others are folded here.
+        """
         self.parts.add(rows, codes, z, R_ind, R_dep, unique=True)
-        return self.parts.combine(rows)
+        plan = self.planned
+        if plan is None or positions is None:
+            return self.parts.combine(rows)
+        at = plan['at'][positions]
+        ready = at >= 0
+        landmark = plan['landmark'][np.maximum(at, 0)]
+        ready &= ~plan['broken'][landmark] & (
+            plan['accepted'][landmark] == plan['accepted_before'][np.maximum(at, 0)])
+        plan['accepted'][landmark[ready]] += 1
+        at = at[ready]
+        if ready.all():
+            return plan['m'][at], plan['P_ind'][at], plan['P_dep'][at]
+        m, P_ind, P_dep = np.empty((len(rows), 2)), np.empty((len(rows), 2, 2)), np.empty(
+            (len(rows), 2, 2))
+        m[ready], P_ind[ready], P_dep[ready] = plan['m'][at], plan['P_ind'][at], plan[
+            'P_dep'][at]
+        rest = ~ready
+        m[rest], P_ind[rest], P_dep[rest] = self.parts.combine(rows[rest])
+        return m, P_ind, P_dep
 
     def initialise(self, landmark_map, row, cluster):
         """Replace a landmark's sums by those of agreeing observations; fold them."""
+        if self.planned is not None:     # what prepare found for it no longer holds
+            plan = self.planned
+            at = np.searchsorted(plan['landmarks'], row)
+            if at < len(plan['landmarks']) and plan['landmarks'][at] == row:
+                plan['broken'][at] = True
         z, R_ind, R_dep = _stack(cluster)
         codes = np.array([landmark_map.source_code(obs.source) for obs in cluster], np.int64)
         self.parts.clear(row)
@@ -263,9 +388,9 @@ class _SplitCovarianceIntersection(_Independent):
         """Return the pair index and the sums of the pairs of ``rows``."""
         return self.parts.checkpoint(rows)
 
-    def restore(self, state, first_new_row):
+    def restore(self, state):
         """Put the pair index and the saved sums back."""
-        self.parts.restore(state, first_new_row)
+        self.parts.restore(state)
 
     def retire(self, rows):
         """Forget the per-source sums of landmarks taken out of the map."""
@@ -301,8 +426,9 @@ class LandmarkMap:
 
     """
 
-    def __init__(self, fusion='split_covariance_intersection', gate_probability=0.999,
-                 min_observations=2, max_consecutive_rejections=5):
+    def __init__(self, fusion: str = 'split_covariance_intersection',
+                 gate_probability: float = 0.999, min_observations: int = 2,
+                 max_consecutive_rejections: int = 5) -> None:
         if fusion not in FUSION_METHODS:
             raise ValueError(f'fusion must be one of {FUSION_METHODS}, got {fusion!r}')
         if min_observations < 1 or max_consecutive_rejections < 1:
@@ -316,10 +442,10 @@ class LandmarkMap:
 
     # State ---------------------------------------------------------------------
 
-    def reset(self):
+    def reset(self) -> None:
         """Forget every landmark."""
         self._count = 0
-        self._row = {}
+        self._row: Dict[int, int] = {}
         self._sorted_ids = np.empty(0, np.int64)
         self._sorted_rows = np.empty(0, np.int64)
         self._table = np.empty(0, np.int64)
@@ -333,22 +459,22 @@ class LandmarkMap:
         self.consecutive = np.empty(0, np.int64)
         self.first_stamp_ns = np.empty(0, np.int64)
         self.last_stamp_ns = np.empty(0, np.int64)
-        self._seen_by = {}
-        self._buffers = {}
-        self._source_names = []
-        self._source_codes = {}
+        self._seen_by: Dict[str, NDArray[np.bool_]] = {}
+        self._buffers: Dict[int, Deque[_Observation]] = {}
+        self._source_names: List[str] = []
+        self._source_codes: Dict[str, int] = {}
         self._method.reset()
 
-    def __len__(self):
+    def __len__(self) -> int:
         """Return the number of confirmed landmarks."""
         return int(self.confirmed[:self._count].sum())
 
     @property
-    def source_names(self):
+    def source_names(self) -> List[str]:
         """Return the source names, indexed by their codes."""
         return self._source_names
 
-    def source_code(self, name):
+    def source_code(self, name: str) -> int:
         """Return the map's integer code of a source name, registering a new one."""
         code = self._source_codes.get(name)
         if code is None:
@@ -414,7 +540,9 @@ class LandmarkMap:
 
     # Update --------------------------------------------------------------------
 
-    def update(self, ids, z, R, R_dep=None, source='', stamp_ns=0):
+    def update(self, ids: ArrayLike, z: ArrayLike, R: ArrayLike, R_dep: Optional[ArrayLike] = None,
+               source: Union[str, Sequence[str], NDArray[np.str_]] = '',
+               stamp_ns: ArrayLike = 0) -> UpdateResult:
         """
         Fuse a batch of observations, row by row in order.
 
@@ -451,6 +579,8 @@ class LandmarkMap:
             # All or nothing: whatever failed half way, the map is as it was.
             self._restore(checkpoint)
             raise
+        finally:
+            self._method.finish()
 
     _ROW_ARRAYS = ('ids', 'mean', 'cov_ind', 'cov_dep', 'confirmed', 'observations',
                    'rejections', 'consecutive', 'first_stamp_ns', 'last_stamp_ns')
@@ -492,7 +622,7 @@ class LandmarkMap:
         for name in self._source_names[len(checkpoint['sources']):]:
             del self._source_codes[name]
         self._source_names[:] = checkpoint['sources']
-        self._method.restore(checkpoint['method'], count)
+        self._method.restore(checkpoint['method'])
         if self._count != count:
             self._count = count
             for landmark_id in added_ids:
@@ -528,13 +658,14 @@ class LandmarkMap:
         rows = self._rows_of(ids)
         # The one conversion to the independent part.
         batch = _Batch(z, R - R_dep, R_dep, self._source_names, codes, stamps_ns)
-        changed = []
+        changed: List[NDArray[np.int64]] = []
         known = self.confirmed[rows]
         # Rows of already confirmed landmarks: in rounds of distinct landmarks, which
         # keeps each landmark's own order while fusing the rows of a round together.
         if known.any():
             index = np.flatnonzero(known)
-            for positions in _rounds(rows[index]):
+            self._method.prepare(self, rows[index], batch, index)
+            for positions in _levels(rows[index]):
                 self._update_confirmed(rows[index[positions]], batch, index[positions],
                                        result, changed)
         for i in np.flatnonzero(~known).tolist():
@@ -558,7 +689,7 @@ class LandmarkMap:
             good = rows[ok]
             codes = batch.codes[positions[ok]]
             self.mean[good], self.cov_ind[good], self.cov_dep[good] = self._method.update(
-                self, good, codes, z[ok], R_ind[ok], R_dep[ok])
+                self, good, codes, z[ok], R_ind[ok], R_dep[ok], positions[ok])
             self.observations[good] += 1
             self.consecutive[good] = 0
             self.last_stamp_ns[good] = batch.stamps_ns[positions[ok]]
@@ -626,7 +757,7 @@ class LandmarkMap:
         self._buffers.pop(row, None)
         return cluster
 
-    def known(self, ids):
+    def known(self, ids: ArrayLike) -> NDArray[np.bool_]:
         """
         Return whether the map has had rows of each ID (confirmed, tentative or forgotten).
 
@@ -642,7 +773,7 @@ class LandmarkMap:
         """
         return self._lookup(np.asarray(ids, dtype=np.int64).reshape(-1)) >= 0
 
-    def forget(self, ids):
+    def forget(self, ids: ArrayLike) -> int:
         """
         Drop the buffered observations of unconfirmed IDs (confirmed ones are kept).
 
@@ -668,7 +799,7 @@ class LandmarkMap:
         self.first_stamp_ns[rows] = _NO_STAMP
         return len(rows)
 
-    def retire(self, ids):
+    def retire(self, ids: ArrayLike) -> int:
         """
         Take confirmed landmarks out of the map (a duplicate merged into another one).
 
@@ -744,7 +875,9 @@ class LandmarkMap:
 
     # Estimates from elsewhere -------------------------------------------------------
 
-    def estimate(self, landmark_id):
+    def estimate(
+            self, landmark_id: int
+    ) -> Optional[Tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]]:
         """
         Return the estimate of a confirmed landmark, or None.
 
@@ -763,7 +896,8 @@ class LandmarkMap:
         return (self.mean[row].copy(), self.cov_ind[row] + self.cov_dep[row],
                 self.cov_dep[row].copy())
 
-    def set_estimate(self, landmark_id, m, P, P_dep, source, stamp_ns=0, observations=1):
+    def set_estimate(self, landmark_id: int, m: ArrayLike, P: ArrayLike, P_dep: ArrayLike,
+                     source: str, stamp_ns: int = 0, observations: int = 1) -> None:
         """
         Insert or replace a confirmed landmark's estimate computed outside the map.
 
@@ -815,7 +949,7 @@ class LandmarkMap:
 
     # Output --------------------------------------------------------------------
 
-    def snapshot(self, ids=None):
+    def snapshot(self, ids: Optional[ArrayLike] = None) -> MapSnapshot:
         """
         Return the confirmed landmarks, sorted by ID.
 
@@ -843,12 +977,12 @@ class LandmarkMap:
                            self.cov_ind[rows] + self.cov_dep[rows], self.cov_dep[rows].copy(),
                            self.observations[rows].copy())
 
-    def sources_of(self, landmark_id):
+    def sources_of(self, landmark_id: int) -> List[str]:
         """Return the sorted sources whose observations a landmark fused."""
         row = self._row[landmark_id]
         return sorted(source for source, seen in self._seen_by.items() if seen[row])
 
-    def to_records(self):
+    def to_records(self) -> List[Dict[str, Any]]:
         """Return the confirmed landmarks as plain dicts (for saving); stamps in ns."""
         records = []
         for landmark_id in self.snapshot().ids.tolist():
@@ -867,7 +1001,7 @@ class LandmarkMap:
             })
         return records
 
-    def load_records(self, records):
+    def load_records(self, records: Sequence[Mapping[str, Any]]) -> None:
         """
         Replace the map with confirmed landmarks from ``to_records`` output.
 
@@ -929,6 +1063,10 @@ class _SourceParts:
     does not reduce. Pairs are found by binary search in a sorted array of keys
     ``row << 24 | source code``, so a landmark's pairs are contiguous, in source-code
     order; their sums live in flat arrays indexed by a slot.
+
+    A landmark's estimate is a pure function of its sums (``_fold``, no state carried
+    from one fold to the next), so the estimates after each row of a batch can be
+    found all at once (``plan``) and equal, bit for bit, those found one row at a time.
     """
 
     def __init__(self):
@@ -938,7 +1076,6 @@ class _SourceParts:
         self.Y = np.zeros((64, 3))            # (xx, xy, yy) of the information sum
         self.y = np.zeros((64, 2))
         self.Q = np.zeros((64, 4))            # (00, 01, 10, 11) of sum R_ind^-1 R_dep
-        self.omega = np.full((64, 4), 0.5)    # last split-CI weight per (row, fold step)
 
     def _pairs(self, rows, codes):
         """Return the slots of (row, code) pairs, creating the new ones."""
@@ -963,6 +1100,14 @@ class _SourceParts:
             position = np.searchsorted(self.keys, keys)
         return self.slots[position]
 
+    def _ranges(self, rows):
+        """Return the positions in ``keys`` of the pairs of ``rows``, concatenated."""
+        lo = np.searchsorted(self.keys, rows << _SOURCE_BITS)
+        hi = np.searchsorted(self.keys, (rows + 1) << _SOURCE_BITS)
+        counts = hi - lo
+        starts = np.repeat(lo - np.cumsum(counts) + counts, counts)
+        return starts + np.arange(int(counts.sum()))
+
     def add(self, rows, codes, z, R_ind, R_dep, unique=False):
         """
         Add observations to the sums of their (landmark row, source code) pairs.
@@ -971,18 +1116,7 @@ class _SourceParts:
         ``unique`` (every pair once, as in a round) by plain indexing.
         """
         slots = self._pairs(rows, codes)
-        a, b, c = _entries(R_ind)
-        # A positive definite independent part is needed for weights; a tiny floor
-        # keeps an all-dependent observation from dividing by zero.
-        trace = a + c
-        floor = 1e-12 * np.where(trace > 0.0, trace, R_dep[:, 0, 0] + R_dep[:, 1, 1])
-        ya, yb, yc = inverse_2x2(a + floor, b, c + floor)
-        Y = np.stack([ya, yb, yc], axis=1)
-        y = np.stack([ya * z[:, 0] + yb * z[:, 1], yb * z[:, 0] + yc * z[:, 1]], axis=1)
-        Q = np.stack([ya * R_dep[:, 0, 0] + yb * R_dep[:, 1, 0],
-                      ya * R_dep[:, 0, 1] + yb * R_dep[:, 1, 1],
-                      yb * R_dep[:, 0, 0] + yc * R_dep[:, 1, 0],
-                      yb * R_dep[:, 0, 1] + yc * R_dep[:, 1, 1]], axis=1)
+        Y, y, Q = _terms(z, R_ind, R_dep)
         if unique:
             self.Y[slots] += Y
             self.y[slots] += y
@@ -994,26 +1128,17 @@ class _SourceParts:
 
     def checkpoint(self, rows):
         """Return the index and the sums of every pair of ``rows`` (for ``restore``)."""
-        lo = np.searchsorted(self.keys, rows << _SOURCE_BITS)
-        hi = np.searchsorted(self.keys, (rows + 1) << _SOURCE_BITS)
-        slots = self.slots[np.concatenate([np.arange(a, b) for a, b in zip(lo, hi)])
-                           .astype(np.int64)] if len(rows) else np.empty(0, np.int64)
-        touched = rows[rows < len(self.omega)]
+        slots = self.slots[self._ranges(rows)]
         return (self.keys.copy(), self.slots.copy(), self.count, slots,
-                self.Y[slots].copy(), self.y[slots].copy(), self.Q[slots].copy(),
-                touched, self.omega[touched].copy(), self.omega.shape)
+                self.Y[slots].copy(), self.y[slots].copy(), self.Q[slots].copy())
 
-    def restore(self, state, first_new_row):
-        """Undo every change since ``checkpoint``; rows from ``first_new_row`` are new."""
-        keys, slots_of_keys, count, slots, Y, y, Q, touched, omega, shape = state
+    def restore(self, state):
+        """Undo every change since ``checkpoint``."""
+        keys, slots_of_keys, count, slots, Y, y, Q = state
         for sums in (self.Y, self.y, self.Q):     # new slots are taken as zero sums
             sums[count:self.count] = 0.0
         self.keys, self.slots, self.count = keys, slots_of_keys, count
         self.Y[slots], self.y[slots], self.Q[slots] = Y, y, Q
-        # The warm starts of the omega search: rows and steps added since are new again.
-        self.omega[touched, :shape[1]] = omega
-        self.omega[min(shape[0], first_new_row):] = 0.5
-        self.omega[:, shape[1]:] = 0.5
 
     def merge_into(self, keep: int, drop: int) -> None:
         """
@@ -1038,25 +1163,9 @@ class _SourceParts:
         self.keys = np.delete(self.keys, np.s_[lo:hi])
         self.slots = np.delete(self.slots, np.s_[lo:hi])
 
-    def estimate(self, slots):
-        """Return the source estimates ``m, P_ind, P_dep`` of some pairs, as entries."""
-        Y, y, Q = self.Y[slots], self.y[slots], self.Q[slots]
-        P_ind = inverse_2x2(Y[..., 0], Y[..., 1], Y[..., 2])
-        a, b, c = P_ind
-        m = (a * y[..., 0] + b * y[..., 1], b * y[..., 0] + c * y[..., 1])
-        P_dep = (a * Q[..., 0] + b * Q[..., 2],
-                 0.5 * (a * Q[..., 1] + b * Q[..., 3] + b * Q[..., 0] + c * Q[..., 2]),
-                 b * Q[..., 1] + c * Q[..., 3])
-        return m, P_ind, P_dep
-
     def combine(self, rows):
         """
-        Fuse the source estimates of each landmark by split CI, the tightest first.
-
-        Split CI is not associative: folding the sources from the smallest covariance
-        (determinant) up makes the result independent of the order they arrived in.
-        Vectorised over the landmarks: step ``j`` folds the ``j``-th tightest source
-        of every landmark that has one.
+        Fuse the source estimates of each landmark of ``rows`` by split CI (``_fold``).
 
         Returns
         -------
@@ -1066,57 +1175,91 @@ class _SourceParts:
         """
         lo = np.searchsorted(self.keys, rows << _SOURCE_BITS)
         hi = np.searchsorted(self.keys, (rows + 1) << _SOURCE_BITS)
-        counts = hi - lo
-        # Landmarks with the most sources first: those still folding form a prefix.
-        by_count = np.argsort(-counts, kind='stable')
-        lo, counts = lo[by_count], counts[by_count]
-        width = int(counts[0])
-        columns = np.arange(width)
-        valid = columns < counts[:, None]
+        columns = np.arange(int((hi - lo).max()))
+        valid = columns < (hi - lo)[:, None]
         slots = self.slots[np.minimum(lo[:, None] + columns, len(self.keys) - 1)]
-        m, P_ind, P_dep = self.estimate(slots)
-        size = np.where(valid, _log2_det(*(i + d for i, d in zip(P_ind, P_dep))), np.inf)
-        order = np.argsort(size, axis=1, kind='stable')
+        return _fold(self.Y[slots], self.y[slots], self.Q[slots], valid)
 
-        def column(parts, j, k):
-            return tuple(np.take_along_axis(x[:k], order[:k, j:j + 1], 1)[:, 0] for x in parts)
+    def plan(self, rows, codes, terms, include):
+        """
+        Return each row's landmark estimate after that row, the included rows accepted.
 
-        total = len(rows)
-        fused_m, fused_i, fused_d = column(m, 0, total), column(P_ind, 0, total), column(
-            P_dep, 0, total)
-        ordered_rows = rows[by_count]
-        need_rows, need_steps = int(rows.max()) + 1, width - 1
-        if need_rows > len(self.omega) or need_steps > self.omega.shape[1]:
-            rows_now, steps_now = self.omega.shape
-            grown = np.full((rows_now if need_rows <= rows_now else max(need_rows, 2 * rows_now),
-                             steps_now if need_steps <= steps_now else max(need_steps,
-                                                                           2 * steps_now)),
-                            0.5)
-            grown[:len(self.omega), :self.omega.shape[1]] = self.omega
-            self.omega = grown
-        steps = (counts[:, None] > columns[1:]).sum(axis=0)
-        for j in range(1, width):
-            k = int(steps[j - 1])
-            first_m = tuple(x[:k] for x in fused_m)
-            first_i = tuple(x[:k] for x in fused_i)
-            first_d = tuple(x[:k] for x in fused_d)
-            second_m, second_i, second_d = column(m, j, k), column(P_ind, j, k), column(
-                P_dep, j, k)
-            # The last weight of this landmark and step starts the search: the same
-            # history (row by row or in rounds) gives the same start, bit for bit.
-            hint = (ordered_rows[:k], j - 1)
-            omega = sci_omega_2x2(first_i, first_d, second_i, second_d, self.omega[hint])
-            self.omega[hint] = omega
-            new_m, new_i, new_d = split_ci_2x2_entries(first_m, first_i, first_d, second_m,
-                                                       second_i, second_d, omega)
-            for fused, new in ((fused_m, new_m), (fused_i, new_i), (fused_d, new_d)):
-                for x, value in zip(fused, new):
-                    x[:k] = value
-        back = np.empty_like(by_count)
-        back[by_count] = np.arange(total)
-        mean = np.stack(fused_m, axis=1)[back]
-        return (mean, symmetric_2x2(*(x[back] for x in fused_i)),
-                symmetric_2x2(*(x[back] for x in fused_d)))
+        What ``add`` then ``combine`` row after row would give, bit for bit (the sums
+        are accumulated in the same order; ``_fold`` is element-wise), in one fold of
+        all the rows at once instead of one per round.
+
+        Parameters
+        ----------
+        rows, codes : ndarray of int, shape (N,)
+            Landmark rows and source codes, in arrival order.
+        terms : ndarray, shape (N, 9)
+            Their ``_terms``, concatenated.
+        include : ndarray of bool, shape (N,)
+            The rows taken as accepted; the others leave the sums as they are.
+
+        Returns
+        -------
+        m : ndarray, shape (N, 2)
+        P_ind, P_dep : ndarray, shape (N, 2, 2)
+            Estimates after the included rows (rows not included: unspecified).
+
+        None when the table of states would be too large (a few landmarks with very
+        many rows next to many with few): fold round by round then.
+
+        """
+        count = len(rows)
+        m, P_ind, P_dep = np.zeros((count, 2)), np.zeros((count, 2, 2)), np.zeros((count, 2, 2))
+        if not include.any():
+            return m, P_ind, P_dep
+        keys = (rows << _SOURCE_BITS) | codes
+        landmarks, landmark = np.unique(rows, return_inverse=True)
+        landmark = landmark.reshape(-1)
+        occurrence = _rank(landmark)
+        # Every pair of these landmarks, the known ones and those new in the batch.
+        known = self._ranges(landmarks)
+        all_keys = np.union1d(self.keys[known], keys[include])
+        is_known = np.zeros(len(all_keys), bool)
+        is_known[np.searchsorted(all_keys, self.keys[known])] = True
+        owner = np.searchsorted(landmarks, all_keys >> _SOURCE_BITS)
+        column = np.arange(len(all_keys)) - np.searchsorted(owner, owner)
+        width, depth = int(column.max()) + 1, int(occurrence.max()) + 1
+        if len(landmarks) * depth * width > max(16 * count * width, _PLAN_CELLS):
+            return None
+        before = np.zeros((len(all_keys), 9))
+        slots = self.slots[known]
+        before[is_known] = np.concatenate([self.Y[slots], self.y[slots], self.Q[slots]], axis=1)
+        # The sums after each included row, pair by pair in arrival order, as ``add``
+        # makes them.
+        taken = np.flatnonzero(include)
+        pair = np.searchsorted(all_keys, keys[taken])
+        running = before.copy()
+        after = np.empty((len(taken), 9))
+        for level in _levels(pair):
+            running[pair[level]] += terms[taken[level]]
+            after[level] = running[pair[level]]
+        # Which sums each state holds: grid[landmark, occurrence, column] indexes the
+        # values [before..., after...]; the latest row so far of each pair wins.
+        small = len(all_keys) + len(taken) < np.iinfo(np.int32).max
+        grid = np.full((len(landmarks), depth, width), -1, np.int32 if small else np.int64)
+        known_pairs = np.flatnonzero(is_known)
+        grid[owner[known_pairs], :, column[known_pairs]] = known_pairs[:, None]
+        grid[landmark[taken], occurrence[taken], column[pair]] = len(all_keys) + np.arange(
+            len(taken))
+        np.maximum.accumulate(grid, axis=1, out=grid)
+        index = grid[landmark[taken], occurrence[taken]]
+        # A pair not seen yet in a state shows the state's own sums (masked out).
+        own = len(all_keys) + np.arange(len(taken))[:, None]
+        index = np.where(index >= 0, index, ~own)
+        sums = np.concatenate([before, after])
+        # In parts of about _FOLD_CELLS (state, source) cells: the fold's temporaries
+        # are a few dozen arrays of that size (element-wise: the same results).
+        step = max(_FOLD_CELLS // width, 1)
+        for lo in range(0, len(taken), step):
+            part = index[lo:lo + step]
+            values = sums[np.where(part >= 0, part, ~part)]
+            m[taken[lo:lo + step]], P_ind[taken[lo:lo + step]], P_dep[taken[lo:lo + step]] = \
+                _fold(values[..., :3], values[..., 3:5], values[..., 5:], part >= 0)
+        return m, P_ind, P_dep
 
     def records(self, row, names):
         """Return the sums of one landmark as plain data, sorted by source name."""
@@ -1142,6 +1285,125 @@ class _SourceParts:
             self.Q[slot] = Q.reshape(4)
 
 
+def _terms(z, R_ind, R_dep):
+    """
+    Return what observations add to their pair's sums: ``Y``, ``y`` and ``Q`` terms.
+
+    Returns
+    -------
+    Y : ndarray, shape (N, 3)
+        ``(xx, xy, yy)`` of ``R_ind^-1``.
+    y : ndarray, shape (N, 2)
+        ``R_ind^-1 z``.
+    Q : ndarray, shape (N, 4)
+        ``(00, 01, 10, 11)`` of ``R_ind^-1 R_dep``.
+
+    """
+    a, b, c = _entries(R_ind)
+    # A positive definite independent part is needed for weights; a tiny floor
+    # keeps an all-dependent observation from dividing by zero.
+    trace = a + c
+    floor = 1e-12 * np.where(trace > 0.0, trace, R_dep[:, 0, 0] + R_dep[:, 1, 1])
+    ya, yb, yc = inverse_2x2(a + floor, b, c + floor)
+    Y = np.stack([ya, yb, yc], axis=1)
+    y = np.stack([ya * z[:, 0] + yb * z[:, 1], yb * z[:, 0] + yc * z[:, 1]], axis=1)
+    Q = np.stack([ya * R_dep[:, 0, 0] + yb * R_dep[:, 1, 0],
+                  ya * R_dep[:, 0, 1] + yb * R_dep[:, 1, 1],
+                  yb * R_dep[:, 0, 0] + yc * R_dep[:, 1, 0],
+                  yb * R_dep[:, 0, 1] + yc * R_dep[:, 1, 1]], axis=1)
+    return Y, y, Q
+
+
+def _estimate(Y, y, Q):
+    """Return the source estimates ``m, P_ind, P_dep`` of sums, as entries (``_SourceParts``)."""
+    P_ind = inverse_2x2(Y[..., 0], Y[..., 1], Y[..., 2])
+    a, b, c = P_ind
+    m = (a * y[..., 0] + b * y[..., 1], b * y[..., 0] + c * y[..., 1])
+    P_dep = (a * Q[..., 0] + b * Q[..., 2],
+             0.5 * (a * Q[..., 1] + b * Q[..., 3] + b * Q[..., 0] + c * Q[..., 2]),
+             b * Q[..., 1] + c * Q[..., 3])
+    return m, P_ind, P_dep
+
+
+def _fold(Y, y, Q, valid):
+    """
+    Fuse the source estimates of each landmark by split CI, the tightest first.
+
+    Split CI is not associative: folding the sources from the smallest covariance
+    (determinant) up makes the result independent of the order they arrived in.
+    Vectorised over the landmarks: step ``j`` folds the ``j``-th tightest source of
+    every landmark that has one. Every operation is element-wise and the weight search
+    starts from the same point every time, so a landmark's result depends on its own
+    sums only (not on the other rows, nor on earlier folds).
+
+    Parameters
+    ----------
+    Y, y, Q : ndarray, shape (K, W, 3), (K, W, 2), (K, W, 4)
+        Sums of up to ``W`` sources of ``K`` landmarks (``_SourceParts``).
+    valid : ndarray of bool, shape (K, W)
+        Which of them hold a source (at least one per landmark).
+
+    Returns
+    -------
+    m : ndarray, shape (K, 2)
+    P_ind, P_dep : ndarray, shape (K, 2, 2)
+
+    """
+    m, P_ind, P_dep = _estimate(Y, y, Q)
+    size = np.where(valid, _log2_det(*(i + d for i, d in zip(P_ind, P_dep))), np.inf)
+    counts = valid.sum(axis=1)
+    # Landmarks with the most sources first: those still folding form a prefix.
+    by_count = np.argsort(-counts, kind='stable')
+    counts = counts[by_count]
+    order = np.argsort(size[by_count], axis=1, kind='stable')
+    parts = np.take_along_axis(np.stack([*m, *P_ind, *P_dep], axis=-1)[by_count],
+                               order[:, :, None], axis=1)         # (K, W, 8), tightest first
+    fused = parts[:, 0].copy()
+    steps = (counts[:, None] > np.arange(1, int(counts[0]))).sum(axis=0)
+    for j, k in enumerate(steps.tolist(), start=1):
+        first, second = fused[:k], parts[:k, j]
+        first_m, first_i, first_d = _split_entries(first)
+        second_m, second_i, second_d = _split_entries(second)
+        # From 0.5 every time, as ``split_covariance_intersection_omega``.
+        omega = sci_omega_2x2(first_i, first_d, second_i, second_d)
+        new_m, new_i, new_d = split_ci_2x2_entries(first_m, first_i, first_d, second_m,
+                                                   second_i, second_d, omega)
+        fused[:k] = np.stack([*new_m, *new_i, *new_d], axis=1)
+    fused[by_count] = fused.copy()
+    return (fused[:, :2].copy(), symmetric_2x2(fused[:, 2], fused[:, 3], fused[:, 4]),
+            symmetric_2x2(fused[:, 5], fused[:, 6], fused[:, 7]))
+
+
+def _split_entries(parts):
+    """Return ``(m, P_ind, P_dep)`` entry tuples of packed ``(K, 8)`` estimates."""
+    return ((parts[:, 0], parts[:, 1]), (parts[:, 2], parts[:, 3], parts[:, 4]),
+            (parts[:, 5], parts[:, 6], parts[:, 7]))
+
+
+def _rank(groups):
+    """Return how many earlier entries share each entry's group (its rank in it)."""
+    order = np.argsort(groups, kind='stable')
+    sorted_groups = groups[order]
+    starts = np.ones(len(groups), bool)
+    starts[1:] = sorted_groups[1:] != sorted_groups[:-1]
+    first = np.maximum.accumulate(np.where(starts, np.arange(len(groups)), 0))
+    rank = np.empty(len(groups), np.int64)
+    rank[order] = np.arange(len(groups)) - first
+    return rank
+
+
+def _levels(groups):
+    """Split entry positions into levels by rank: each group at most once per level."""
+    if not len(groups):
+        return []
+    rank = _rank(groups)
+    if rank.max() == 0:
+        return [np.arange(len(groups))]
+    by_rank = np.argsort(rank, kind='stable')
+    bounds = np.searchsorted(rank[by_rank], np.arange(rank.max() + 2))
+    return [by_rank[bounds[k]:bounds[k + 1]] for k in range(rank.max() + 1)]
+
+
 def _log2_det(a, b, c):
     """
     Return a key increasing with ``a c - b^2`` (about its base-2 logarithm), never inf.
@@ -1161,22 +1423,6 @@ def _one_source(mean, P_ind, P_dep):
     return [{'source': 'loaded', 'information': Y.tolist(),
              'information_mean': (Y @ mean).tolist(),
              'dependent_sum': (Y @ P_dep).tolist()}]
-
-
-def _rounds(rows):
-    """Split row positions into rounds in which every landmark appears at most once."""
-    order = np.argsort(rows, kind='stable')
-    sorted_rows = rows[order]
-    starts = np.ones(len(rows), bool)
-    starts[1:] = sorted_rows[1:] != sorted_rows[:-1]
-    first = np.maximum.accumulate(np.where(starts, np.arange(len(rows)), 0))
-    rank = np.empty(len(rows), np.int64)
-    rank[order] = np.arange(len(rows)) - first
-    if rank.max() == 0:
-        return [np.arange(len(rows))]
-    by_rank = np.argsort(rank, kind='stable')
-    bounds = np.searchsorted(rank[by_rank], np.arange(rank.max() + 2))
-    return [by_rank[bounds[k]:bounds[k + 1]] for k in range(rank.max() + 1)]
 
 
 def _agreeing(observations, threshold, fuse_rows):

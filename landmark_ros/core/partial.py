@@ -34,13 +34,14 @@ A residual is ``y - h`` with bearings wrapped to [-pi, pi).
 
 from dataclasses import dataclass, fields
 import math
-from typing import Optional
+from typing import Any, Iterable, List, Optional, Tuple, TYPE_CHECKING, Union
 
 from landmark_ros.core import sensors
 from landmark_ros.core.gaussian import chi2_threshold
 from landmark_ros.core.landmarks import sensor_in_world
 from landmark_ros.core.pose2 import wrap_angle
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import least_squares
 
 RANGE = 0
@@ -123,14 +124,21 @@ class Views:
 
     """
 
-    kind: np.ndarray
-    s: np.ndarray
-    P_s: np.ndarray
-    y: np.ndarray
-    R: np.ndarray
-    R_bias: np.ndarray = 0.0
+    kind: NDArray[np.int64]
+    s: NDArray[np.float64]
+    P_s: NDArray[np.float64]
+    y: NDArray[np.float64]
+    R: NDArray[np.float64]
+    # Any array_like on input: __post_init__ makes every field an array (0.0 too).
+    R_bias: NDArray[np.float64] = 0.0  # type: ignore[assignment]
 
-    def __post_init__(self):
+    if TYPE_CHECKING:
+        # The constructor takes array_like fields (what __post_init__ converts).
+        def __init__(self, kind: ArrayLike, s: ArrayLike, P_s: ArrayLike, y: ArrayLike,
+                     R: ArrayLike, R_bias: ArrayLike = 0.0) -> None:
+            ...
+
+    def __post_init__(self) -> None:
         """Broadcast, convert and check the fields."""
         kind = _kinds(self.kind)
         s = np.asarray(self.s, dtype=np.float64)
@@ -174,25 +182,27 @@ class Views:
             value.flags.writeable = False
             object.__setattr__(self, name, value)
 
-    def __len__(self):
+    def __len__(self) -> int:
         """Return the number of views ``N``."""
         return self.kind.shape[0]
 
-    def __getitem__(self, index):
+    def __getitem__(self, index: Union[int, np.integer[Any], slice, NDArray[Any]]) -> 'Views':
         """Return the views selected by an index, a slice or a mask, as a batch."""
         if isinstance(index, (int, np.integer)):
             index = slice(index, index + 1 if index != -1 else None)
         return Views(**{f.name: getattr(self, f.name)[index] for f in fields(self)})
 
     @staticmethod
-    def concatenate(batches):
+    def concatenate(batches: Iterable['Views']) -> 'Views':
         """Return one batch holding the views of several, in order."""
         batches = list(batches)
         return Views(**{f.name: np.concatenate([getattr(b, f.name) for b in batches])
                         for f in fields(Views)})
 
 
-def views_from_robot(kind, pose, P_pose, y, R, R_bias=0.0, sensor_pose=None):
+def views_from_robot(kind: ArrayLike, pose: ArrayLike, P_pose: ArrayLike, y: ArrayLike,
+                     R: ArrayLike, R_bias: ArrayLike = 0.0,
+                     sensor_pose: Optional[ArrayLike] = None) -> Views:
     """
     Make views from robot poses, their covariances and the sensor mounting.
 
@@ -232,7 +242,7 @@ def views_from_robot(kind, pose, P_pose, y, R, R_bias=0.0, sensor_pose=None):
 
 # --- the model: h, its Jacobians, residuals, effective variances --------------------------
 
-def observe_view(kind, s, m):
+def observe_view(kind: ArrayLike, s: ArrayLike, m: ArrayLike) -> NDArray[np.float64]:
     """
     Predict a scalar view: the ``kind`` column of ``sensors.observe(s, m)``.
 
@@ -266,7 +276,8 @@ def observe_view(kind, s, m):
     return np.take_along_axis(z, np.broadcast_to(kind, shape)[..., None], axis=-1)
 
 
-def observe_view_jacobians(kind, s, m):
+def observe_view_jacobians(kind: ArrayLike, s: ArrayLike,
+                           m: ArrayLike) -> Tuple[NDArray[np.float64], NDArray[np.float64]]:
     """
     Return the Jacobians of ``observe_view``: rows of ``sensors.observe_jacobians``.
 
@@ -317,14 +328,14 @@ class Linearisation:
 
     """
 
-    residual: np.ndarray
-    J_h_s: np.ndarray
-    J_h_m: np.ndarray
-    R_eff: np.ndarray
-    R_dep: np.ndarray
+    residual: NDArray[np.float64]
+    J_h_s: NDArray[np.float64]
+    J_h_m: NDArray[np.float64]
+    R_eff: NDArray[np.float64]
+    R_dep: NDArray[np.float64]
 
 
-def linearise(views, m):
+def linearise(views: Views, m: ArrayLike) -> Linearisation:
     """
     Return residuals, Jacobians and effective variances of views at a landmark.
 
@@ -360,7 +371,7 @@ def linearise(views, m):
     return Linearisation(residual, J_h_s, J_h_m, views.R + R_dep, R_dep)
 
 
-def residuals(views, m):
+def residuals(views: Views, m: ArrayLike) -> NDArray[np.float64]:
     """
     Return the residuals ``y - h(s, m)`` of views, bearings wrapped to [-pi, pi).
 
@@ -386,7 +397,8 @@ def residuals(views, m):
     return np.where(views.kind == BEARING, wrap_angle(residual), residual)
 
 
-def effective_variances(views, m):
+def effective_variances(views: Views,
+                        m: ArrayLike) -> Tuple[NDArray[np.float64], NDArray[np.float64]]:
     """
     Return the effective variance of each view at a landmark and its dependent part.
 
@@ -416,7 +428,9 @@ def effective_variances(views, m):
 
 # --- closed-form geometry ------------------------------------------------------------------
 
-def intersect_rays(s1, phi1, s2, phi2):
+def intersect_rays(
+        s1: ArrayLike, phi1: ArrayLike, s2: ArrayLike, phi2: ArrayLike
+) -> Tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
     """
     Intersect pairs of rays ``s1 + t1 d(phi1)`` and ``s2 + t2 d(phi2)``.
 
@@ -455,7 +469,9 @@ def intersect_rays(s1, phi1, s2, phi2):
     return s1 + t1[..., None] * d1, t1, t2, crossing
 
 
-def intersect_circles(c1, r1, c2, r2):
+def intersect_circles(
+        c1: ArrayLike, r1: ArrayLike, c2: ArrayLike, r2: ArrayLike
+) -> Tuple[NDArray[np.float64], Union[np.bool_, NDArray[np.bool_]]]:
     """
     Intersect pairs of circles.
 
@@ -499,7 +515,9 @@ def intersect_circles(c1, r1, c2, r2):
     return points, meet[()]
 
 
-def intersect_ray_circle(s, phi, c, r):
+def intersect_ray_circle(
+        s: ArrayLike, phi: ArrayLike, c: ArrayLike, r: ArrayLike
+) -> Tuple[NDArray[np.float64], NDArray[np.float64], Union[np.bool_, NDArray[np.bool_]]]:
     """
     Intersect rays ``s + t d(phi)`` with circles.
 
@@ -538,7 +556,7 @@ def intersect_ray_circle(s, phi, c, r):
     return s[..., None, :] + t[..., None] * d[..., None, :], t, meet[()]
 
 
-def trilaterate(c, r):
+def trilaterate(c: ArrayLike, r: ArrayLike) -> Tuple[NDArray[np.float64], float]:
     """
     Place a point from ranges to three or more centres, linearised (no iteration).
 
@@ -630,7 +648,7 @@ class InitialiseParams:
     loss: str = 'linear'
     f_scale: float = 1.0
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         """Check every value."""
         if not 0.0 < self.min_triangulation_angle_deg < 90.0:
             raise ValueError('min_triangulation_angle_deg must lie in (0, 90), got '
@@ -666,11 +684,11 @@ class Geometry:
     """
 
     reason: str
-    candidates: np.ndarray
+    candidates: NDArray[np.float64]
     crossing_angle: float
 
 
-def geometry(views, params=InitialiseParams()):
+def geometry(views: Views, params: InitialiseParams = InitialiseParams()) -> Geometry:
     """
     Check whether views can place a landmark and return closed-form starting points.
 
@@ -776,9 +794,9 @@ class Initialisation:
 
     status: str
     reason: str
-    m: np.ndarray
-    P_m: np.ndarray
-    P_m_dep: np.ndarray
+    m: NDArray[np.float64]
+    P_m: NDArray[np.float64]
+    P_m_dep: NDArray[np.float64]
     cost: float
     dof: int
     condition: float
@@ -786,7 +804,7 @@ class Initialisation:
     n_views: int
 
     @property
-    def ok(self):
+    def ok(self) -> bool:
         """Return whether the landmark was placed."""
         return self.status == OK
 
@@ -833,14 +851,15 @@ def _refine(views, m0, params, reweight):
 
 def _distinct(solutions):
     """Keep the first of solutions closer than 1e-3 sigma to each other (sorted by cost)."""
-    kept = []
+    kept: List[_Solution] = []
     for solution in sorted(solutions, key=lambda s: s.cost):
         if all((d := solution.m - k.m) @ k.information @ d > 1e-6 for k in kept):
             kept.append(solution)
     return kept
 
 
-def initialise(views, params=InitialiseParams()):
+def initialise(views: Views,
+               params: InitialiseParams = InitialiseParams()) -> Initialisation:
     """
     Place a landmark from its views, or say why it must wait for more.
 
@@ -948,17 +967,17 @@ class UpdateResult:
 
     """
 
-    m: np.ndarray
-    P_m: np.ndarray
-    P_m_dep: np.ndarray
-    innovation: np.ndarray
-    S: np.ndarray
-    mahalanobis_sq: np.ndarray
-    omega: np.ndarray
-    status: np.ndarray
+    m: NDArray[np.float64]
+    P_m: NDArray[np.float64]
+    P_m_dep: NDArray[np.float64]
+    innovation: NDArray[np.float64]
+    S: NDArray[np.float64]
+    mahalanobis_sq: NDArray[np.float64]
+    omega: NDArray[np.float64]
+    status: NDArray[np.int64]
 
     @property
-    def updated(self):
+    def updated(self) -> NDArray[np.bool_]:
         """Return a mask of the rows that were updated, shape (N,)."""
         return self.status == UPDATED
 
@@ -982,7 +1001,8 @@ def _posterior_log_det_slope(omega, H, P_ind, P_dep, R_ind, R_dep):
     return trace + da / a - (_quadratic(H, dA) + da) / (_quadratic(H, A) + a)
 
 
-def view_omega(H, P_m_ind, P_m_dep, R_ind, R_dep):
+def view_omega(H: NDArray[np.float64], P_m_ind: NDArray[np.float64], P_m_dep: NDArray[np.float64],
+               R_ind: NDArray[np.float64], R_dep: NDArray[np.float64]) -> NDArray[np.float64]:
     """
     Return the split-CI weight that minimises ``det`` of the updated covariance.
 
@@ -1035,8 +1055,9 @@ def view_omega(H, P_m_ind, P_m_dep, R_ind, R_dep):
     return omega
 
 
-def update(m, P_m, views, P_m_dep=None, method='independent', gate_probability=0.999,
-           omega=None):
+def update(m: ArrayLike, P_m: ArrayLike, views: Views, P_m_dep: Optional[ArrayLike] = None,
+           method: str = 'independent', gate_probability: float = 0.999,
+           omega: Optional[ArrayLike] = None) -> UpdateResult:
     """
     Update landmarks with one view each: the EKF with a scalar measurement.
 

@@ -8,7 +8,8 @@ so the dataclass is the single list of parameters and their defaults.
 
 from dataclasses import dataclass, Field, field, fields, MISSING
 import math
-from typing import Any, ClassVar, Dict, Mapping, Optional, Sequence, Type, TypeVar, Union
+from typing import (Any, ClassVar, Dict, Mapping, Optional, Sequence, Tuple, Type, TypeVar,
+                    Union)
 
 
 def param(default: Union[float, str, Sequence[Union[float, str]]], description: str,
@@ -131,7 +132,7 @@ class ObserverConfig(ConfigBase):
         'any.', read_only=True)
     sensor_frame: str = param(
         '', "Frame the observation clouds must carry; '' accepts any.", read_only=True)
-    sensor_pose: tuple = param(
+    sensor_pose: Tuple[float, float, float] = param(
         (0.0, 0.0, 0.0), 'Sensor pose in the robot frame: x [m], y [m], yaw [rad].',
         read_only=True)
     range_stddev: float = param(
@@ -204,10 +205,10 @@ class FuserConfig(ConfigBase):
     world_frame: str = param(
         'map', 'Frame the landmark clouds must be in; the fused map uses it too.',
         read_only=True)
-    input_topics: tuple = param(
+    input_topics: Tuple[str, ...] = param(
         ('landmarks',), 'Landmark topics to fuse, one per robot (each one source).',
         read_only=True)
-    constraint_topics: tuple = param(
+    constraint_topics: Tuple[str, ...] = param(
         ('landmark_constraints',), 'Topics of partial views (range-only, bearing-only '
         "rows), one per robot (each one source); [''] disables.", read_only=True)
     min_triangulation_angle_deg: float = param(

@@ -3,7 +3,7 @@
 from collections import Counter
 from dataclasses import dataclass, field
 import time
-from typing import Any, Callable, Dict, List, Mapping, Optional, Tuple
+from typing import Any, Callable, Dict, List, Mapping, Optional, Protocol, Tuple
 
 
 class Counters:
@@ -112,3 +112,16 @@ class Status:
     counts: Dict[str, int]
     extra: Dict[str, Any] = field(default_factory=dict)
     name: str = ''
+
+
+class Logger(Protocol):
+    """What the pipeline logs through: an rclpy logger or a ``logging.Logger``."""
+
+    def info(self, text: str, /) -> object:
+        """Log an info line."""
+
+    def warning(self, text: str, /) -> object:
+        """Log a warning."""
+
+    def error(self, text: str, /) -> object:
+        """Log an error."""

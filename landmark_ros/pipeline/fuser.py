@@ -14,12 +14,12 @@ give one by one). Partial views (range-only, bearing-only rows of the constraint
 from collections import Counter, deque
 from dataclasses import dataclass, field
 import itertools
-from typing import Any, Dict, List, Optional, Sequence, Tuple
+from typing import Any, Deque, Dict, List, Optional, Sequence, Tuple
 
 from landmark_ros.core.landmark_map import LandmarkMap, MapSnapshot, UpdateResult
 from landmark_ros.pipeline import map_file
 from landmark_ros.pipeline.config import FuserConfig
-from landmark_ros.pipeline.counters import Counters, Status
+from landmark_ros.pipeline.counters import Counters, Logger, Status
 from landmark_ros.pipeline.rows import landmark_row_problems, MAX_LABEL_ID, UNKNOWN_ID
 from landmark_ros.pipeline.tracks import Scan, shard_of_position, Tracker
 from landmark_ros.pipeline.views import (constraint_row_problems, NOT_PROBLEMS as VIEW_COUNTS,
@@ -62,8 +62,8 @@ class Source:
     """One input of the fuser (a robot's landmark topic): its queue and counters."""
 
     name: str
-    queue: deque = field(default_factory=deque)
-    counts: Counter = field(default_factory=Counter)
+    queue: Deque[_Queued] = field(default_factory=deque)
+    counts: Counter[str] = field(default_factory=Counter)
     last_message_ns: Optional[int] = None
     optional: bool = False
     """A constraint source: not stale before its first message (rb-only teams)."""
@@ -94,7 +94,8 @@ class Fuser:
     """
 
     def __init__(self, config: FuserConfig, sources: Sequence[str],
-                 logger: Any = None, constraint_sources: Sequence[str] = ()) -> None:
+                 logger: Optional[Logger] = None,
+                 constraint_sources: Sequence[str] = ()) -> None:
         sources = list(sources) + list(constraint_sources)
         if len(set(sources)) != len(sources):
             raise ValueError(f'input_topics name one topic twice once resolved: {list(sources)}')
@@ -115,7 +116,7 @@ class Fuser:
         self._removed: List[tuple] = []
         self.tracker = Tracker(config)
         """Association of the rows without an ID (``pipeline.tracks``)."""
-        self.association_log: Optional[List[tuple]] = None
+        self.association_log: Optional[List[Tuple[str, int, NDArray[np.int64]]]] = None
         """Set to a list to record, per message with rows without an ID, in fuse order,
         ``(source, stamp_ns, ids)``: the ID each such row got (-1: dropped as ambiguous)."""
         self.views = PartialViews(self.map, config.min_triangulation_angle_deg,
@@ -340,7 +341,7 @@ class Fuser:
         self.tracker.expire(self.map, self.tracker.now_ns, self._counts_of())
         return _combine(results)
 
-    def _counts_of(self) -> Dict[str, Counter]:
+    def _counts_of(self) -> Dict[str, Counter[str]]:
         return {name: state.counts for name, state in self.sources.items()}
 
     def _associate(self, item: _Queued, name: str) -> _Queued:
@@ -361,7 +362,7 @@ class Fuser:
         return _Queued(item.sequence, ids[keep], item.m[keep], item.P[keep], item.P_dep[keep],
                        item.stamp_ns, classes[keep], item.scan, False)
 
-    def _apply(self, items) -> UpdateResult:
+    def _apply(self, items: Sequence[Tuple[_Queued, str]]) -> UpdateResult:
         """Fuse queued messages (labelled rows only) in one ``LandmarkMap.update``."""
         lengths = [len(item.ids) for item, _ in items]
         result = self.map.update(
@@ -391,7 +392,7 @@ class Fuser:
 
     # Output --------------------------------------------------------------------
 
-    def snapshot(self):
+    def snapshot(self) -> MapSnapshot:
         """Return the confirmed map (``LandmarkMap.snapshot``); clears ``map_changed``."""
         self.map_changed = False
         return self.map.snapshot()
@@ -441,7 +442,7 @@ class Fuser:
                           kept.P[rows], kept.P_dep[rows],
                           np.zeros(len(pairs), np.int64)), merged_into
 
-    def take_updates(self):
+    def take_updates(self) -> MapSnapshot:
         """
         Return the confirmed landmarks that changed since the last call.
 

@@ -13,7 +13,7 @@ than every pose waits for the next pose, up to ``max_wait_s``, in arrival order.
 
 from collections import deque
 from dataclasses import dataclass, field, replace
-from typing import Any, Callable, Dict, List, Optional, Sequence
+from typing import Any, Callable, Deque, Dict, List, Optional, Sequence, Tuple
 
 from landmark_ros.core.gaussian import COVARIANCE_PROBLEMS, covariance_status
 from landmark_ros.pipeline import pose_buffer
@@ -66,6 +66,10 @@ class ObservationMessage:
     def rows(self) -> int:
         """Return the number of rows."""
         return len(next(iter(self.columns.values())))
+
+
+MessageWithPose = Tuple[ObservationMessage, NDArray[np.float64], NDArray[np.float64]]
+"""An observation message with the robot pose, shape (3,), and its covariance, (3, 3)."""
 
 
 @dataclass(frozen=True)
@@ -135,8 +139,8 @@ class Observer:
         self.counters.counts.update(dict.fromkeys(THROUGHPUT_COUNTERS, 0))
         self.poses = pose_buffer.PoseBuffer(config.pose_buffer_s * 1e9,
                                             config.max_pose_gap_s * 1e9)
-        self.pending: deque = deque()
-        self._superseded_ns: Optional[tuple] = None
+        self.pending: Deque[ObservationMessage] = deque()
+        self._superseded_ns: Optional[Tuple[Optional[int], int]] = None
         self._reported: Dict[str, int] = {}
         self._view_group = 0
         self.reconfigure(config)
@@ -220,7 +224,8 @@ class Observer:
     def _repeated_pose(self, stamp_ns: int, pose: NDArray[np.float64],
                        P_pose: NDArray[np.float64]) -> None:
         lookup = self.poses.lookup(stamp_ns)
-        same = (lookup.status == pose_buffer.FOUND and np.array_equal(lookup.pose, pose)
+        same = (lookup.status == pose_buffer.FOUND and lookup.pose is not None
+                and lookup.P_pose is not None and np.array_equal(lookup.pose, pose)
                 and np.array_equal(lookup.P_pose, P_pose))
         if same:
             self.counters.add('pose_duplicate')
@@ -265,7 +270,7 @@ class Observer:
                 found = self.poses.lookup(message.stamp_ns,
                                           final=self.config.max_wait_s == 0.0)
                 if found.status == pose_buffer.FOUND:
-                    ready.append((message, found.pose, found.P_pose))
+                    ready.append(_with_pose(message, found))
                     continue
             if len(self.pending) >= self.config.max_pending:
                 oldest = self.pending.popleft()
@@ -327,7 +332,7 @@ class Observer:
                 found = self.poses.lookup(item.stamp_ns, final=True)
             self.pending.popleft()
             if found.status == pose_buffer.FOUND:
-                ready.append((item, found.pose, found.P_pose))
+                ready.append(_with_pose(item, found))
             elif found.status == pose_buffer.TOO_OLD:
                 self.counters.add('observation_too_old', item.rows,
                                   f'observation stamp {item.stamp_ns * 1e-9:.3f} s is older '
@@ -346,7 +351,7 @@ class Observer:
                                  self.config.bearing_stddev ** 2,
                                  self.config.range_stddev_per_m ** 2)
 
-    def place(self, ready: Sequence[tuple]) -> List[LandmarkBatch]:
+    def place(self, ready: Sequence[MessageWithPose]) -> List[LandmarkBatch]:
         """
         Place the rows of observation messages in the world with one core call.
 
@@ -410,7 +415,8 @@ class Observer:
         self.counters.add('landmarks_out', len(ids))
         return batches
 
-    def _partial(self, ready: Sequence[tuple]) -> tuple:
+    def _partial(self, ready: Sequence[MessageWithPose]
+                 ) -> Tuple[List[MessageWithPose], Dict[int, Constraints]]:
         """Take the partial rows out of messages; return the rest and their constraints."""
         out, constraints = [], {}
         for item, pose, P_pose in ready:
@@ -472,6 +478,12 @@ class Observer:
             level, message = 'warn', 'no pose received yet'
         extra = {'pose_buffer_size': len(self.poses), 'pending_messages': len(self.pending)}
         return Status(level, message, counts, extra)
+
+
+def _with_pose(message: ObservationMessage, found: pose_buffer.Lookup) -> MessageWithPose:
+    """Return the message with the pose of a ``FOUND`` lookup (which sets both fields)."""
+    assert found.pose is not None and found.P_pose is not None, found.status
+    return message, found.pose, found.P_pose
 
 
 def _with_ids(columns: Dict[str, NDArray[Any]]) -> Dict[str, NDArray[Any]]:

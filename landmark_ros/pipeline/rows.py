@@ -1,6 +1,7 @@
 """Observation rows to world-frame landmarks: noise, row checks, core call (ROS-free)."""
 
 from collections import Counter
+from typing import Any, Mapping, Optional, Sequence, Tuple
 
 from landmark_ros.core.gaussian import (COVARIANCE_ASYMMETRIC, COVARIANCE_NOT_PSD,
                                         COVARIANCE_PROBLEMS, COVARIANCE_RANGE_PROBLEMS,
@@ -9,6 +10,7 @@ from landmark_ros.core.gaussian import (COVARIANCE_ASYMMETRIC, COVARIANCE_NOT_PS
 from landmark_ros.core.landmarks import landmark_to_world_dependent
 from landmark_ros.core.sensors import MIN_RANGE
 import numpy as np
+from numpy.typing import NDArray
 
 
 MAX_ID = 2 ** 32 - 1
@@ -24,7 +26,9 @@ MAX_LABEL_ID = UNKNOWN_ID - 1
 NOISE_FIELDS = ('range_variance', 'bearing_variance', 'range_bearing_covariance')
 
 
-def first_problems(count, checks):
+def first_problems(
+        count: int, checks: Sequence[Tuple[str, NDArray[np.bool_]]]
+) -> Tuple[NDArray[np.bool_], Counter[str]]:
     """
     Combine row checks: each bad row is counted once, under its first problem.
 
@@ -43,7 +47,7 @@ def first_problems(count, checks):
 
     """
     valid = np.ones(count, dtype=bool)
-    reasons = Counter()
+    reasons: Counter[str] = Counter()
     for name, bad in checks:
         new = bad & valid
         if new.any():
@@ -52,7 +56,9 @@ def first_problems(count, checks):
     return valid, reasons
 
 
-def observation_noise(columns, range_variance, bearing_variance, range_variance_per_m2=0.0):
+def observation_noise(columns: Mapping[str, NDArray[Any]], range_variance: float,
+                      bearing_variance: float,
+                      range_variance_per_m2: float = 0.0) -> NDArray[np.float64]:
     """
     Return the noise covariance ``R`` of range-bearing observations.
 
@@ -100,7 +106,8 @@ def observation_noise(columns, range_variance, bearing_variance, range_variance_
     return R
 
 
-def row_problems(ids, z, R):
+def row_problems(ids: NDArray[np.integer[Any]], z: NDArray[np.float64],
+                 R: NDArray[np.float64]) -> Tuple[NDArray[np.bool_], Counter[str]]:
     """
     Find the rows that cannot be used, and why.
 
@@ -140,7 +147,13 @@ def row_problems(ids, z, R):
     return first_problems(len(ids), checks)
 
 
-def landmarks_from_rows(ids, z, R, pose, P_pose, sensor_pose=None, R_bias=None):
+def landmarks_from_rows(
+        ids: NDArray[np.integer[Any]], z: NDArray[np.float64], R: NDArray[np.float64],
+        pose: NDArray[np.float64], P_pose: NDArray[np.float64],
+        sensor_pose: Optional[NDArray[np.float64]] = None,
+        R_bias: Optional[NDArray[np.float64]] = None,
+) -> Tuple[NDArray[np.bool_], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64],
+           Counter[str]]:
     """
     Turn the valid observation rows into world-frame landmarks.
 
@@ -200,7 +213,9 @@ def landmarks_from_rows(ids, z, R, pose, P_pose, sensor_pose=None, R_bias=None):
     return kept, m, P_m, P_dep, reasons
 
 
-def landmark_row_problems(ids, m, P, P_dep):
+def landmark_row_problems(
+        ids: NDArray[np.integer[Any]], m: NDArray[np.float64], P: NDArray[np.float64],
+        P_dep: NDArray[np.float64]) -> Tuple[NDArray[np.bool_], Counter[str]]:
     """
     Find the landmark rows (fuser input) that cannot be fused, and why.
 
@@ -249,7 +264,7 @@ def landmark_row_problems(ids, m, P, P_dep):
     return first_problems(len(ids), checks)
 
 
-def range_status(P, usable):
+def range_status(P: NDArray[np.float64], usable: NDArray[np.bool_]) -> NDArray[np.int64]:
     """
     Return ``core.gaussian.covariance_range_status`` of symmetric 2x2 covariances, fast.
 

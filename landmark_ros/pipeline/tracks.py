@@ -30,7 +30,8 @@ from collections import Counter
 from dataclasses import dataclass, field
 from typing import Any, Dict, List, Optional, Set, Tuple
 
-from landmark_ros.core.association import (candidates, global_nearest_neighbour, jcbb,
+from landmark_ros.core.association import (Association, Candidates, candidates,
+                                           global_nearest_neighbour, jcbb,
                                            LandmarkIndex, nearest_neighbour,
                                            scan_covariance)
 from landmark_ros.core.gaussian import chi2_threshold
@@ -139,7 +140,7 @@ class Tracker:
         """Tentative tracks started by unlabelled rows, by ID."""
         self.dirty = True
         """Whether the index must be rebuilt before the next association."""
-        self._indices: List[tuple] = []
+        self._indices: List[Tuple[LandmarkIndex, NDArray[np.int64]]] = []
         """``(LandmarkIndex, IDs)`` of the confirmed landmarks, then of the tentative tracks."""
         self.owned: Set[int] = set()
         """IDs this tracker allocated (only these are ever merged)."""
@@ -219,7 +220,7 @@ class Tracker:
 
     def associate(self, landmark_map: LandmarkMap, source: str, z: NDArray[np.float64],
                   R: NDArray[np.float64], classes: NDArray[np.int64], scan: Optional[Scan],
-                  stamp_ns: int, counts: Counter) -> NDArray[np.int64]:
+                  stamp_ns: int, counts: Counter[str]) -> NDArray[np.int64]:
         """
         Give the unlabelled rows of one message landmark IDs.
 
@@ -457,7 +458,9 @@ class Tracker:
             landmark_id = self.merged_into[landmark_id]
         return landmark_id
 
-    def _pair(self, index, z, R, classes, scan, counts):
+    def _pair(self, index: LandmarkIndex, z: NDArray[np.float64], R: NDArray[np.float64],
+              classes: NDArray[np.int64], scan: Optional[Scan],
+              counts: Counter[str]) -> Tuple[NDArray[np.int64], NDArray[np.bool_]]:
         """Return each row's landmark in ``index`` (-1 none) and the rows skipped."""
         cands = candidates(index, z, R, classes, self.config.association_gate_probability)
         method = self.config.association
@@ -489,7 +492,7 @@ class Tracker:
         return paired, ambiguous
 
     def after_update(self, result: UpdateResult,
-                     counts_of: Dict[str, Counter]) -> None:
+                     counts_of: Dict[str, Counter[str]]) -> None:
         """Note the tracks an update confirmed; mark the index stale if the map changed."""
         for landmark_id in result.confirmed:
             track = self.tentative.pop(landmark_id, None)
@@ -499,7 +502,7 @@ class Tracker:
             self.dirty = True
 
     def expire(self, landmark_map: LandmarkMap, now_ns: int,
-               counts_of: Dict[str, Counter]) -> List[int]:
+               counts_of: Dict[str, Counter[str]]) -> List[int]:
         """
         Delete the tentative tracks older than ``tentative_timeout_s``; return their IDs.
 
@@ -532,7 +535,7 @@ class Tracker:
         return old
 
 
-def _open_ambiguity(cands, result) -> NDArray[np.intp]:
+def _open_ambiguity(cands: Candidates, result: Association) -> NDArray[np.intp]:
     """
     Return the ambiguous rows of an association that have a free alternative.
 

@@ -19,8 +19,9 @@ independent noise, ``R_bias`` that of a sensor bias. Time is integer nanoseconds
 
 from collections import Counter, deque
 from dataclasses import dataclass
-from typing import Any, Dict, List, Optional, Tuple
+from typing import Any, Deque, Dict, List, Optional, Tuple
 
+from landmark_ros.core.landmark_map import LandmarkMap
 from landmark_ros.core.partial import (BEARING, GATED, initialise, InitialiseParams, RANGE,
                                        TOO_CLOSE, update, UPDATED, Views, views_from_robot)
 from landmark_ros.core.sensors import MIN_RANGE
@@ -129,7 +130,7 @@ def constraints_from_rows(columns: Dict[str, NDArray[Any]], R: NDArray[np.float6
                           pose: NDArray[np.float64], P_pose: NDArray[np.float64],
                           sensor_pose: Optional[NDArray[np.float64]],
                           R_bias: Optional[NDArray[np.float64]],
-                          view_group: int) -> Tuple[Constraints, Counter]:
+                          view_group: int) -> Tuple[Constraints, Counter[str]]:
     """
     Turn the partial rows of one message into checked constraints.
 
@@ -189,7 +190,7 @@ def constraints_from_rows(columns: Dict[str, NDArray[Any]], R: NDArray[np.float6
 # --- Fuser side ------------------------------------------------------------------------------
 
 def constraint_row_problems(
-        columns: Dict[str, NDArray[Any]]) -> Tuple[NDArray[np.bool_], Counter]:
+        columns: Dict[str, NDArray[Any]]) -> Tuple[NDArray[np.bool_], Counter[str]]:
     """
     Find the constraint rows (fuser input) that cannot be used, and why.
 
@@ -214,7 +215,7 @@ def constraint_row_problems(
     reals = np.stack([np.asarray(columns[name], dtype=np.float64)
                       for name in CONSTRAINT_COLUMNS[2:-1]], axis=1) if count else np.zeros(
         (0, 12))
-    finite = np.isfinite(reals).all(axis=1)
+    finite = np.all(np.isfinite(reals), axis=1)
     P_s = sensor_covariance(columns)
     with np.errstate(invalid='ignore'):
         scale = np.maximum(np.abs(np.where(finite[:, None, None], P_s, 0.0)).max(
@@ -272,7 +273,7 @@ class ViewResult:
     """What ``PartialViews.fuse`` did: counts by source and the landmarks it changed."""
 
     changed_ids: List[int]
-    counts: Dict[str, Counter]
+    counts: Dict[str, Counter[str]]
 
 
 class PartialViews:
@@ -305,7 +306,7 @@ class PartialViews:
 
     """
 
-    def __init__(self, landmark_map, min_triangulation_angle_deg: float = 5.0,
+    def __init__(self, landmark_map: LandmarkMap, min_triangulation_angle_deg: float = 5.0,
                  max_views: int = 50, gate_probability: float = 0.999,
                  max_consecutive_rejections: int = 5) -> None:
         self.map = landmark_map
@@ -313,11 +314,11 @@ class PartialViews:
         self.max_views = int(max_views)
         self.gate_probability = gate_probability
         self.max_consecutive_rejections = int(max_consecutive_rejections)
-        self.queue: deque = deque()
-        self.waiting: Dict[int, deque] = {}
-        self.recent: Dict[int, deque] = {}
-        self.streak: Counter = Counter()
-        self.wait_reasons: Counter = Counter()
+        self.queue: Deque[Tuple[str, int, NDArray[np.int64], Views, NDArray[np.int64]]] = deque()
+        self.waiting: Dict[int, Deque[_View]] = {}
+        self.recent: Dict[int, Deque[_View]] = {}
+        self.streak: Counter[int] = Counter()
+        self.wait_reasons: Counter[str] = Counter()
 
     def reset(self) -> None:
         """Forget the queued and waiting views."""
@@ -344,7 +345,7 @@ class PartialViews:
             ``landmarks_initialised``; the IDs of the landmarks changed.
 
         """
-        counts: Dict[str, Counter] = {}
+        counts: Dict[str, Counter[str]] = {}
         changed: List[int] = []
         method = self.map.fusion
         while self.queue:
