@@ -320,14 +320,14 @@ class Fuser:
         # does not depend on where the batches begin and end (``pipeline.tracks``).
         results, group = [], []
         for item, name in items:
-            self.tracker.advance(item.stamp_ns)
+            now_ns = self.tracker.advance(item.stamp_ns)
             if not item.unlabelled:
                 group.append((item, name))
                 continue
             if group:
                 results.append(self._apply(group))
                 group = []
-            self.tracker.expire(self.map, self.tracker.now_ns, self._counts_of())
+            self.tracker.expire(self.map, now_ns, self._counts_of())
             results.append(self._apply([(self._associate(item, name), name)]))
             self.tracker.after_update(results[-1], self._counts_of())
             merged = self.tracker.merge(self.map, self.sources[name].counts,
@@ -338,7 +338,7 @@ class Fuser:
                 self._removed += merged
         if group:
             results.append(self._apply(group))
-        self.tracker.expire(self.map, self.tracker.now_ns, self._counts_of())
+        self.tracker.expire(self.map, now_ns, self._counts_of())
         return _combine(results)
 
     def _counts_of(self) -> Dict[str, Counter[str]]:
