@@ -828,6 +828,51 @@ class LandmarkMap:
             self._buffers.pop(row, None)
         self._method.retire(rows)
         return len(rows)
+
+    def merge(self, keep_id: int, drop_id: int) -> bool:
+        """
+        Fuse a confirmed landmark into another one and take it out (a duplicate).
+
+        ``drop_id``'s information goes into ``keep_id``: with split CI its per-source
+        sums are added to ``keep_id``'s (``keep_id`` then holds what it would hold had
+        ``drop_id``'s observations gone to it); with the other methods the two
+        estimates are fused by the method's own rule (the product of Gaussians;
+        covariance intersection). The observation counts add up, the stamps span
+        both; ``drop_id`` is then retired (``retire``).
+
+        Parameters
+        ----------
+        keep_id, drop_id : int
+            Two different confirmed landmarks.
+
+        Returns
+        -------
+        bool
+            Whether they were merged (False when one is not a confirmed landmark).
+
+        """
+        rows = self._lookup(np.array([keep_id, drop_id], np.int64))
+        if keep_id == drop_id or (rows < 0).any() or not self.confirmed[rows].all():
+            return False
+        keep, drop = (int(r) for r in rows)
+        if isinstance(self._method, _SplitCovarianceIntersection):
+            self._method.parts.merge_into(keep, drop)
+            m, P_ind, P_dep = (v[0] for v in self._method.parts.combine(
+                np.array([keep], np.int64)))
+        else:
+            one, other = slice(keep, keep + 1), slice(drop, drop + 1)
+            m, P_ind, P_dep = self._method.fuse(
+                self.mean[one], self.cov_ind[one], self.cov_dep[one],
+                self.mean[other], self.cov_ind[other], self.cov_dep[other])
+            m, P_ind, P_dep = self._method.held(m[0], P_ind[0], P_dep[0])
+        self.mean[keep], self.cov_ind[keep], self.cov_dep[keep] = m, P_ind, P_dep
+        self.observations[keep] += self.observations[drop]
+        self.first_stamp_ns[keep] = min(self.first_stamp_ns[keep], self.first_stamp_ns[drop])
+        self.last_stamp_ns[keep] = max(self.last_stamp_ns[keep], self.last_stamp_ns[drop])
+        self.consecutive[keep] = 0
+        self.retire(np.array([drop_id], np.int64))
+        return True
+
     # Estimates from elsewhere -------------------------------------------------------
 
     def estimate(
@@ -1095,6 +1140,23 @@ class _SourceParts:
             sums[count:self.count] = 0.0
         self.keys, self.slots, self.count = keys, slots_of_keys, count
         self.Y[slots], self.y[slots], self.Q[slots] = Y, y, Q
+
+    def merge_into(self, keep: int, drop: int) -> None:
+        """
+        Add the sums of landmark row ``drop`` to those of row ``keep``, source by source.
+
+        The sums are linear in the observations: ``keep`` then holds what it would
+        hold had the observations of ``drop`` been added to it.
+        """
+        lo, hi = np.searchsorted(self.keys, [drop << _SOURCE_BITS, (drop + 1) << _SOURCE_BITS])
+        if lo == hi:
+            return
+        codes = self.keys[lo:hi] & ((1 << _SOURCE_BITS) - 1)
+        sources = self.slots[lo:hi].copy()
+        targets = self._pairs(np.full(len(codes), keep, np.int64), codes)
+        for name in ('Y', 'y', 'Q'):
+            values = getattr(self, name)
+            values[targets] += values[sources]
 
     def clear(self, row):
         """Forget the sources of one landmark."""

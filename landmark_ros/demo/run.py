@@ -9,6 +9,17 @@ poses, /diagnostics), stops everything cleanly, then prints each fused landmark
 against the truth (error, NEES, observations, rejections), the RMSE and the
 average NEES with its 95 % interval, and draws the run (``demo.png``).
 
+With ``--no-ids`` the simulator publishes every observation without its landmark ID
+(``UNKNOWN_ID``): the fuser associates the rows (its default, JCBB) and starts tracks
+with new IDs. The report then matches the fused tracks to the true landmarks by optimal
+assignment on positions within 1 m (``eval.metrics.evaluate_association``), evaluates
+each matched track against its landmark, and prints the tracks confirmed, the extra
+tracks (matched to nothing) and the GOSPA distance (c = 1 m, p = 2); it cannot see
+which track each sighting went to, so instead of the association accuracy it prints
+the share of the sightings the matched tracks hold (``observations_matched``: the sum
+over true landmarks of min(track observations, true sightings) over all sightings, an
+upper bound of the association accuracy). Success then also needs no extra track.
+
 The exit code is 0 only when every landmark the robots measured was fused and the
 average NEES lies in its interval; 1 when the evaluation fails; 2 when the run
 itself fails (a process died, nothing arrived in time); 130 on Ctrl-C.
@@ -48,6 +59,8 @@ DOMAIN_RANGE = (150, 200)
 NEES_2SIGMA = 4.0
 """A 2D estimate whose truth lies outside its 2-sigma ellipse has NEES above 4."""
 DEFAULT_SEED = 0
+MIN_OBSERVATIONS_NO_IDS = 2
+"""The fuser's ``min_observations`` with ``--no-ids``: a track needs a second row."""
 
 
 def parse_args(argv=None):
@@ -81,6 +94,9 @@ def parse_args(argv=None):
     parser.add_argument('--domain-id', type=int, default=None,
                         help='ROS_DOMAIN_ID of the run (default: a free one in 150..199)')
     parser.add_argument('--no-plot', action='store_true', help='do not draw the plot')
+    parser.add_argument('--no-ids', action='store_true',
+                        help='observations without landmark IDs: the fuser associates them; '
+                        'tracks are matched to the truth by position')
     parser.add_argument('--no-progress', action='store_true',
                         help='no progress bar (default: a tqdm bar on stderr when it is a '
                         'terminal)')
@@ -108,7 +124,8 @@ def sim_config(args):
                      world_file=args.world_file, duration_s=args.duration,
                      time_scale=args.time_scale, range_bias_stddev=args.range_bias,
                      bearing_bias_stddev=args.bearing_bias, wait_for_subscribers_s=20.0,
-                     ground_truth_period_s=0.5, diagnostics_period_s=0.5)
+                     ground_truth_period_s=0.5, diagnostics_period_s=0.5,
+                     no_ids=bool(getattr(args, 'no_ids', False)))
 
 
 def node_parameters(config, fusion, map_path):
@@ -117,13 +134,15 @@ def node_parameters(config, fusion, map_path):
 
     The observers get the simulator's noise model exactly; the fuser confirms a
     landmark from its first observation (the simulator has no outliers), so that
-    every landmark measured at all ends up in the map.
+    every landmark measured at all ends up in the map; without IDs from its
+    ``MIN_OBSERVATIONS_NO_IDS``-th (a row the association gate misses must not
+    become a landmark at once).
     """
     sim = {name: getattr(config, name) for name in (
         'robots', 'landmarks', 'seed', 'world_file', 'duration_s', 'time_scale',
         'range_stddev', 'bearing_stddev', 'range_bias_stddev', 'bearing_bias_stddev',
         'pose_xy_stddev', 'pose_yaw_stddev', 'wait_for_subscribers_s',
-        'ground_truth_period_s', 'diagnostics_period_s')}
+        'ground_truth_period_s', 'diagnostics_period_s', 'no_ids')}
     observer = {name: getattr(config, name) for name in (
         'range_stddev', 'bearing_stddev', 'range_bias_stddev', 'bearing_bias_stddev')}
     # Deep input queues and a long wait for the pose after an observation: on a loaded
@@ -133,7 +152,8 @@ def node_parameters(config, fusion, map_path):
     fuser = {
         'world_frame': config.frame,
         'input_topics': [f'/robot{i + 1}/landmarks' for i in range(config.robots)],
-        'fusion': fusion, 'min_observations': 1, 'map_file': str(map_path),
+        'fusion': fusion, 'min_observations': MIN_OBSERVATIONS_NO_IDS if config.no_ids else 1,
+        'map_file': str(map_path),
         'autosave_period_s': 0.0, 'diagnostics_period_s': 0.5, 'source_timeout_s': 60.0,
     }
     return {'/landmark_sim': sim, '/**/landmark_observer': observer,
@@ -555,23 +575,75 @@ def plot_run(path, monitor, results, seen_ids, unfused_ids, title):
     plotting.finish(fig, ax, path, title)
 
 
-def evaluate_run(monitor, rejections):
-    """Return the per-landmark results, summary, seen and unfused IDs."""
+def evaluate_run(monitor, rejections, no_ids=False):
+    """
+    Return the per-landmark results, summary, seen and unfused IDs, and the association.
+
+    With ``no_ids`` the fused tracks are first matched to the true landmarks
+    (``match_tracks_to_truth``) and take their IDs; the last value is then that
+    dict, else None.
+    """
     import numpy as np
     truth = monitor.truth
-    seen = [int(i) for i, n in zip(truth.ids.tolist(), truth.observations.tolist()) if n > 0]
+    needed = MIN_OBSERVATIONS_NO_IDS if no_ids else 1
+    seen = [int(i) for i, n in zip(truth.ids.tolist(), truth.observations.tolist())
+            if n >= needed]
     fused = monitor.fused
+    association = None
+    truth_xy = {int(i): tuple(m) for i, m in zip(truth.ids.tolist(), truth.m)}
     if fused is None:
         fused_ids = np.empty(0, np.int64)
         results, summary = evaluate(fused_ids, np.empty((0, 2)), np.empty((0, 2, 2)), {})
     else:
         fused_ids = fused.ids
-        truth_xy = {int(i): tuple(m) for i, m in zip(truth.ids.tolist(), truth.m)}
-        results, summary = evaluate(
-            fused.ids, fused.m, fused.P, truth_xy, fused.observations,
-            [rejections.get(int(i), 0) for i in fused.ids.tolist()])
+        rejected = [rejections.get(int(i), 0) for i in fused.ids.tolist()]
+        if no_ids:
+            association = match_tracks_to_truth(fused, truth)
+            fused_ids = np.array([association['track_to_true'].get(int(i), -1)
+                                  for i in fused.ids.tolist()], np.int64)
+        results, summary = evaluate(fused_ids, fused.m, fused.P, truth_xy, fused.observations,
+                                    rejected)
     unfused = sorted(set(seen) - set(fused_ids.tolist()))
-    return results, summary, seen, unfused
+    return results, summary, seen, unfused, association
+
+
+def match_tracks_to_truth(fused, truth):
+    """
+    Match tracks found without IDs to the true landmarks (``--no-ids``).
+
+    Parameters
+    ----------
+    fused : landmark_ros.ros.schemas.LandmarkCloud
+        The fused map (``ids``, ``m``, ``observations``).
+    truth : landmark_ros.ros.schemas.LandmarkCloud
+        The simulator's ground truth (``ids``, ``m``, ``observations``: sightings).
+
+    Returns
+    -------
+    dict
+        ``track_to_true`` (track ID -> true ID, optimal assignment on positions
+        within 1 m), ``tracks``, ``extra_tracks`` (matched to nothing), ``gospa_m``
+        (c = 1 m, p = 2, alpha = 2), ``observations_matched`` (share of the sightings
+        held by the matched tracks: sum of min(track, true) over the matches over
+        all sightings; an upper bound of the association accuracy).
+
+    """
+    import numpy as np
+    from landmark_ros.eval.metrics import evaluate_association
+    seen = truth.observations > 0
+    truth_xy = {int(i): tuple(m) for i, m, s in zip(truth.ids.tolist(), truth.m, seen) if s}
+    summary = evaluate_association(np.zeros(0, np.int64), np.zeros(0, np.int64),
+                                   np.zeros((0, 2)), np.zeros((0, 2, 2)), fused.ids,
+                                   fused.m, truth_xy)
+    sightings = dict(zip(truth.ids.tolist(), truth.observations.tolist()))
+    held = sum(min(int(n), int(sightings[summary.track_to_true[int(i)]]))
+               for i, n in zip(fused.ids.tolist(), fused.observations.tolist())
+               if int(i) in summary.track_to_true)
+    total = int(truth.observations.sum())
+    return {'track_to_true': summary.track_to_true, 'tracks': len(fused.ids),
+            'extra_tracks': len(fused.ids) - len(summary.track_to_true),
+            'gospa_m': summary.gospa_m,
+            'observations_matched': held / total if total else 1.0}
 
 
 def run(args, started=None):
@@ -644,7 +716,8 @@ def run(args, started=None):
     rejections = rejections_by_id(map_path, config.frame)
     if not rejections and monitor.fused is not None and len(monitor.fused.ids):
         print(f'warning: no saved map in {map_path}: rejections per landmark unknown')
-    results, summary, seen, unfused = evaluate_run(monitor, rejections)
+    results, summary, seen, unfused, association = evaluate_run(
+        monitor, rejections, getattr(args, 'no_ids', False))
     print()
     print(format_table(results, summary, title=f'Fused landmarks ({args.fusion} fusion) '
                        'against the ground truth'))
@@ -654,6 +727,12 @@ def run(args, started=None):
           f"by {config.robots} robots; {gated} rejected by the fuser's gate; "
           f'{sum(r.nees > NEES_2SIGMA for r in results)} of {len(results)} true positions '
           'outside their 2σ ellipse')
+    if association is not None:
+        print(f"without IDs: {association['tracks']} tracks confirmed, "
+              f"{len(association['track_to_true'])} matched to a true landmark (of "
+              f"{len(seen)} measured), {association['extra_tracks']} extra; GOSPA "
+              f"{association['gospa_m']:.3f} m; the matched tracks hold "
+              f"{100 * association['observations_matched']:.1f} % of the sightings")
 
     if not args.no_plot:
         title = (f'{config.robots} robots, {len(seen)} landmarks measured, seed {config.seed}'
@@ -670,6 +749,8 @@ def run(args, started=None):
     failures = []
     if unfused:
         failures.append(f'landmarks measured but not fused: {unfused}')
+    if association is not None and association['extra_tracks']:
+        failures.append(f"{association['extra_tracks']} tracks matched to no true landmark")
     if not results:
         failures.append('no fused landmark to evaluate')
     elif not summary.consistent:

@@ -97,7 +97,8 @@ def observer_config(sim_config):
                           bearing_bias_stddev=sim_config.bearing_bias_stddev)
 
 
-def fuse_simulation(sim, methods=FUSION_METHODS, gate_probability=0.999):
+def fuse_simulation(sim, methods=FUSION_METHODS, gate_probability=0.999, configs=None,
+                    hide_ids=False, measurements=None):
     """
     Run a simulation through one ``Observer`` per robot and one ``Fuser`` per method.
 
@@ -117,11 +118,20 @@ def fuse_simulation(sim, methods=FUSION_METHODS, gate_probability=0.999):
         Fusion methods.
     gate_probability : float
         The fusers' gate.
+    configs : dict of str to FuserConfig, optional
+        Instead of ``methods``: one fuser per entry, ``name -> its parameters``.
+    hide_ids : bool
+        Send the observation messages without their ``id`` column (landmarks without
+        IDs: the fusers associate the rows).
+    measurements : dict, optional
+        Filled with ``(robot, stamp_ns) -> true IDs`` of every observation message
+        (``UNKNOWN_ID`` for clutter), stamps as the fusers see them; each fuser then
+        also keeps its ``association_log``.
 
     Returns
     -------
     fusers : dict
-        ``method -> Fuser`` after the last fusion.
+        ``method -> Fuser`` (``name -> Fuser`` with ``configs``) after the last fusion.
     observers : list of Observer
         One per robot, with their counters.
 
@@ -132,7 +142,12 @@ def fuse_simulation(sim, methods=FUSION_METHODS, gate_probability=0.999):
     fusers = {method: Fuser(FuserConfig(fusion=method, gate_probability=gate_probability,
                                         min_observations=1), sources,
                             constraint_sources=views)
-              for method in methods}
+              for method in methods} if configs is None else {
+                  name: Fuser(config, sources, constraint_sources=views)
+                  for name, config in configs.items()}
+    if measurements is not None:
+        for fuser in fusers.values():
+            fuser.association_log = []
     period_ns = int(round(FuserConfig().update_period_s * 1e9))
     observation_end = sim.observations_until(int(sim.config.duration_s * 1e9))
     last_stamp = sim.observation_stamp_ns(observation_end - 1) if observation_end else 0
@@ -145,7 +160,8 @@ def fuse_simulation(sim, methods=FUSION_METHODS, gate_probability=0.999):
         for batch in batches:
             for fuser in fusers.values():
                 fuser.add_landmarks(sources[robot], batch.stamp_ns, batch.ids, batch.m,
-                                    batch.P, batch.P_dep, now_ns=now_ns)
+                                    batch.P, batch.P_dep, now_ns=now_ns,
+                                    classes=batch.classes, scan=batch.scan)
                 if len(batch.constraints):
                     fuser.add_constraints(views[robot], batch.stamp_ns,
                                           batch.constraints.columns(), now_ns=now_ns)
@@ -160,6 +176,10 @@ def fuse_simulation(sim, methods=FUSION_METHODS, gate_probability=0.999):
                 measured = sim.measure(robot, next_observation)
                 columns = {'id': measured.ids, 'range': measured.z[:, 0],
                            'bearing': measured.z[:, 1]}
+                if hide_ids:
+                    del columns['id']
+                if measurements is not None:
+                    measurements[(robot, START_NS + measured.stamp_ns)] = measured.ids
                 hand_over(robot, observer.add_observations(
                     [ObservationMessage(START_NS + measured.stamp_ns, columns)], now_ns))
             next_observation += 1

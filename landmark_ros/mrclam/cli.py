@@ -59,15 +59,21 @@ offline (default)
     range-only (bearing-only) rows into ``landmark_constraints`` and the fusers place
     the landmarks from those views (``pipeline.views``). Offline only so far.
 ``--hide-ids``
-    Landmarks without IDs: the observation messages go without their ``id`` field,
+    Landmarks without IDs: the observation messages go without their ``id`` field
+    (through the nodes: every row ``UNKNOWN_ID``),
     the fusers associate the sightings (``pipeline.tracks``, parameter
     ``association``) and each summary entry gains ``association_accuracy`` (a sighting
     is right when it went to the confirmed track matched, by optimal assignment on
     positions within 1 m, to its true landmark), ``oracle_accuracy`` (each sighting to
     the nearest true landmark by Mahalanobis distance, the true map known),
     ``tracks_confirmed``, ``true_landmarks`` and ``gospa_m`` (c = 1 m, p = 2,
-    alpha = 2); RMSE and ANEES are those of the matched tracks. Offline only for now:
-    with ``--through-nodes`` it is refused (exit code 2).
+    alpha = 2); RMSE and ANEES are those of the matched tracks. With
+    ``--through-nodes`` the player sends the clouds in one global order (a barrier at
+    every change of robot, ``player.sequential``) and the agreement gains
+    ``same_track_ids`` (the fusers' own track IDs, matched to the same landmarks); the
+    nodes do not publish which track each sighting went to, so the nodes' entries take
+    the offline accuracies only when their maps agree exactly
+    (``report.fill_node_association``), else null.
 ``--calibrate``
     Estimate the sensor model from ground truth and print suggested YAML values
     (``landmark_ros.mrclam.calibrate.calibrate`` documents the procedure).
@@ -97,7 +103,8 @@ with its 95 % interval, then a summary table, one row per method.
              "observations", "rejections"}, ...]}, ...],
      "timing": {...},                  # seconds; speedup = dataset duration / replay
      "agreement": {METHOD: {"same_ids", "same_counts", "max_mean_diff_m",
-                            "max_cov_diff_m2", "max_cov_dep_diff_m2"}},  # through_nodes
+                            "max_cov_diff_m2", "max_cov_dep_diff_m2",
+                            "same_track_ids"}},  # through_nodes; the last with --hide-ids
      "nodes": {...}}                   # through_nodes: counters, diagnostics, CPU time
 
 With ``--calibrate`` the object is ``{"calibration": {...}, "dataset": {...}}``
@@ -117,8 +124,9 @@ from landmark_ros.mrclam.config import config_values, default_dataset_path, load
 from landmark_ros.mrclam.data import load_dataset
 from landmark_ros.mrclam.offline import run_offline, SENSORS
 from landmark_ros.mrclam.report import (agreement, dataset_dict, dataset_report,
-                                        format_agreement, format_association,
-                                        format_node_info, plot, report, write_json)
+                                        fill_node_association, format_agreement,
+                                        format_association, format_node_info, plot, report,
+                                        write_json)
 
 
 def parse_args(argv=None):
@@ -205,9 +213,6 @@ def main(argv=None):
             write_json(args.json, {'calibration': calibration.to_dict(),
                                    'dataset': dataset_dict(dataset)})
         return 0
-    if args.hide_ids and args.through_nodes:
-        print('landmark_mrclam: --hide-ids works offline only for now', file=sys.stderr)
-        return 2
     methods = [args.fusion] if args.fusion else list(FUSION_METHODS)
     if args.through_nodes and args.sensor != 'rb':
         print('landmark_mrclam: --sensor range/bearing runs offline only for now',
@@ -233,7 +238,7 @@ def main(argv=None):
             results, info = run_through_nodes(
                 dataset, config, methods,
                 progress=False if args.no_progress else None, keep_logs=args.keep_logs,
-                domain_id=args.domain_id)
+                domain_id=args.domain_id, hide_ids=args.hide_ids)
         except RuntimeError as error:  # ReplayError too
             print(f'landmark_mrclam: {error}', file=sys.stderr)
             return 1
@@ -242,6 +247,7 @@ def main(argv=None):
             return 130
         document['mode'] = 'through_nodes'
         document['agreement'] = agreement(offline, results)
+        fill_node_association(offline, results, document['agreement'])
         timing.update({k: info[k] for k in ('wall_s', 'startup_s', 'play_wall_s', 'speedup')})
         document['nodes'] = {k: info[k] for k in ('clouds', 'rows', 'rows_out', 'barriers',
                                                   'barrier_rounds', 'probes', 'fusers',
@@ -250,7 +256,7 @@ def main(argv=None):
     print(report(results))
     if args.hide_ids:
         print()
-        print(format_association(offline))
+        print(format_association(results))
     print()
     print(f'offline: {offline_s:.2f} s for {len(methods)} method(s) '
           f'({dataset.duration / offline_s:.0f}x real time)')

@@ -199,6 +199,7 @@ def run_offline(dataset, config, methods, chunk=FUSE_CHUNK, sensor='rb',
         if hide_ids:
             association = _association(fuser, sightings[method], dataset.landmarks)
             for record in records:
+                record['track_id'] = record['id']
                 record['id'] = association.track_to_true.get(record['id'], record['id'])
         result = method_result(method, records, dataset.landmarks,
                                sum(c['fused'] + c['views_fused'] for c in counts),

@@ -12,7 +12,7 @@ imports this module only for ``--through-nodes``.
 """
 
 from collections import Counter
-from dataclasses import fields
+from dataclasses import fields, replace
 import os
 from pathlib import Path
 import shutil
@@ -24,9 +24,11 @@ from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from landmark_ros.demo.launcher import Launcher, ProcessExitedError
+from landmark_ros.eval.metrics import evaluate_association
 from landmark_ros.mrclam.report import method_result
 from landmark_ros.pipeline import map_file
 from landmark_ros.pipeline.config import FuserConfig
+from landmark_ros.pipeline.rows import UNKNOWN_ID
 from landmark_ros.ros.conversions import stamp_ns
 from landmark_ros.ros.schemas import observation_message, pose_message
 from landmark_ros.ros.schemas import read_landmarks
@@ -194,6 +196,61 @@ def dependencies(rows, starts, ends):
     return requirements, local
 
 
+def sequential(msg_robot, local):
+    """
+    Return, per cloud, the cloud before it when another robot's: one global order.
+
+    Without IDs (``--hide-ids``) a row may go to any landmark and new tracks take IDs
+    in the order they start, so every fuser must take the clouds of all robots in
+    global time order, not only the clouds of each landmark: each cloud follows the
+    one before it (the clouds of one robot stay in order by themselves).
+
+    Parameters
+    ----------
+    msg_robot : ndarray of int, shape (K,)
+        Robot index of each cloud.
+    local : ndarray of int, shape (K,)
+        Index of each cloud among its robot's clouds (``dependencies``).
+
+    Returns
+    -------
+    list of tuple of (int, int)
+        As the requirements of ``dependencies``.
+
+    """
+    robots = np.asarray(msg_robot).tolist()
+    return [((robots[j - 1], int(local[j - 1])),) if j and robots[j - 1] != robots[j]
+            else () for j in range(len(robots))]
+
+
+def hidden_association(records, truth):
+    """
+    Match a map built without IDs to the true landmarks; rename its records.
+
+    Each record keeps its own ID as ``track_id`` and takes the ID of the true landmark
+    its track is matched to (``eval.metrics.evaluate_association``: optimal assignment
+    on positions within 1 m), as the offline replay does.
+
+    Returns
+    -------
+    AssociationSummary
+        The map's figures (tracks, GOSPA, matching); no sighting is scored (the
+        nodes do not publish which track each sighting went to): the accuracies are
+        NaN until the caller fills them in.
+
+    """
+    ids = np.array([r['id'] for r in records], np.int64)
+    m = np.array([r['mean'] for r in records], np.float64).reshape(-1, 2)
+    summary = evaluate_association(np.zeros(0, np.int64), np.zeros(0, np.int64),
+                                   np.zeros((0, 2)), np.zeros((0, 2, 2)), ids, m, truth)
+    summary = replace(summary, association_accuracy=float('nan'),
+                      oracle_accuracy=float('nan'))
+    for record in records:
+        record['track_id'] = record['id']
+        record['id'] = summary.track_to_true.get(record['id'], record['id'])
+    return summary
+
+
 class ReplayError(RuntimeError):
     """The replay through the nodes failed (process exit, stall, lost message)."""
 
@@ -226,10 +283,14 @@ class Player:
     dropped. Discovery: the player waits for matched publishers, subscriptions and
     services, then sends empty probe clouds until the diagnostics of every fuser
     count one from every robot, so every link carries data before the first cloud.
+
+    Without IDs (``hide_ids``) the clouds carry ``UNKNOWN_ID`` in every row and each
+    cloud follows the one before it (``sequential``): a barrier at every change of
+    robot, so every fuser takes all the clouds in global time order, as offline.
     """
 
     def __init__(self, node, executor, dataset, rows, config, methods, launcher,
-                 progress=None, stall_timeout_s=60.0):
+                 progress=None, stall_timeout_s=60.0, hide_ids=False):
         self.node, self.executor = node, executor
         self.dataset, self.rows, self.config = dataset, rows, config
         self.methods, self.launcher = list(methods), launcher
@@ -239,6 +300,9 @@ class Player:
         self.msg_robot = rows.robot[self.starts]
         self.msg_stamps_ns = rows.stamps_ns[self.starts]
         self.requirements, self.local = dependencies(rows, self.starts, self.ends)
+        self.hide_ids = bool(hide_ids)
+        if self.hide_ids:
+            self.requirements = sequential(self.msg_robot, self.local)
         self.totals = np.bincount(self.msg_robot, minlength=len(self.robots)).tolist()
         self.robot_clouds = [np.flatnonzero(self.msg_robot == r).tolist()
                              for r in range(len(self.robots))]
@@ -397,9 +461,10 @@ class Player:
         """Publish cloud ``j``: the robot's pose at its stamp, then the observations."""
         r = int(self.msg_robot[j])
         a, b = int(self.starts[j]), int(self.ends[j])
+        ids = np.full(b - a, UNKNOWN_ID, np.int64) if self.hide_ids else self.rows.ids[a:b]
         pose, cloud = stamped_messages(self.msg_stamps_ns[j], f'{self.robots[r].name}/camera',
                                        self.rows.poses[a], self.config.P_pose,
-                                       self.rows.ids[a:b], self.rows.z[a:b])
+                                       ids, self.rows.z[a:b])
         self.pose_pubs[r].publish(pose)
         self.obs_pubs[r].publish(cloud)
         self.sent[r] += 1
@@ -609,7 +674,7 @@ def domain_id_for(pid=None):
 
 
 def run_through_nodes(dataset, config, methods, progress=None, keep_logs=False, out=print,
-                      domain_id=None):
+                      domain_id=None, hide_ids=False):
     """
     Replay the dataset through the real nodes; return the results per method.
 
@@ -617,6 +682,9 @@ def run_through_nodes(dataset, config, methods, progress=None, keep_logs=False, 
     SIGINT, then SIGTERM and SIGKILL, whatever happens) in a private ROS domain on the
     loopback interface; this process joins it with its own context. ``progress``
     chooses the progress bar as in ``progress_bar`` (None: only on a terminal).
+    ``hide_ids`` sends every row as ``UNKNOWN_ID`` (``Player``); each result then has
+    its ``association`` (``hidden_association``) and its records take the IDs of the
+    true landmarks matched (``track_id`` keeps the fuser's).
 
     Returns
     -------
@@ -657,7 +725,8 @@ def run_through_nodes(dataset, config, methods, progress=None, keep_logs=False, 
                                  start_parameter_services=False)
         executor = SingleThreadedExecutor(context=context)
         executor.add_node(node)
-        player = Player(node, executor, dataset, rows, config, methods, launcher, progress)
+        player = Player(node, executor, dataset, rows, config, methods, launcher, progress,
+                        hide_ids=hide_ids)
         t_connect = time.monotonic()
         cpu_player = time.process_time()
         try:
@@ -690,7 +759,9 @@ def run_through_nodes(dataset, config, methods, progress=None, keep_logs=False, 
             sources = final[method]['sources']
             used = sum(int(v.get('fused', 0)) for v in sources.values())
             rejected = sum(int(v.get('gated_out', 0)) for v in sources.values())
+            association = hidden_association(records, dataset.landmarks) if hide_ids else None
             results[method] = method_result(method, records, dataset.landmarks, used, rejected)
+            results[method].association = association
         observers = {r.name: player.diagnostics[f'/{r.name}/landmark_observer'][1]
                      for r in dataset.robots}
         info = {

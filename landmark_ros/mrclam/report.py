@@ -8,7 +8,7 @@ writes, ``agreement`` compares the maps of the offline and through-the-nodes run
 ``plot`` draws the maps (matplotlib, optional).
 """
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 import json
 import math
 
@@ -247,7 +247,9 @@ def agreement(offline, nodes):
     dict
         Method -> ``same_ids``, ``same_counts`` (observations and rejections per
         landmark, used and rejected totals), ``max_mean_diff_m``,
-        ``max_cov_diff_m2``, ``max_cov_dep_diff_m2``.
+        ``max_cov_diff_m2``, ``max_cov_dep_diff_m2``; without IDs (records with a
+        ``track_id``, ``--hide-ids``) also ``same_track_ids``: the fusers' own track
+        IDs equal, matched to the same true landmarks.
 
     """
     document = {}
@@ -270,8 +272,34 @@ def agreement(offline, nodes):
                 and a[i]['rejections'] == b[i]['rejections'] for i in common)
             and offline[method].observations_used == node_result.observations_used
             and offline[method].observations_rejected == node_result.observations_rejected)
+        if all('track_id' in r for r in a.values()) and b:
+            entry['same_track_ids'] = bool(
+                sorted((i, r['track_id']) for i, r in a.items())
+                == sorted((i, r.get('track_id')) for i, r in b.items()))
         document[method] = entry
     return document
+
+
+def fill_node_association(offline, nodes, document):
+    """
+    Give the through-the-nodes results without IDs their sighting scores.
+
+    The nodes do not publish which track each sighting went to. When a method's two
+    maps agree exactly (``agreement``: same track IDs matched to the same landmarks,
+    same counts, means within 1e-9 m), the nodes associated every sighting as the
+    offline run did, and its ``association_accuracy``, ``oracle_accuracy`` and
+    confusion are the nodes' too; otherwise the accuracies stay NaN (JSON null).
+    """
+    for method, result in nodes.items():
+        a, entry = result.association, document.get(method, {})
+        if a is None or offline[method].association is None:
+            continue
+        if (entry.get('same_track_ids') and entry.get('same_counts')
+                and entry.get('max_mean_diff_m', 1.0) <= 1e-9):
+            source = offline[method].association
+            result.association = replace(a, association_accuracy=source.association_accuracy,
+                                         oracle_accuracy=source.oracle_accuracy,
+                                         confusion=dict(source.confusion))
 
 
 def format_agreement(document):
@@ -281,7 +309,9 @@ def format_agreement(document):
         lines.append(f'  {method:<30} same landmarks {"yes" if e["same_ids"] else "NO"}, '
                      f'same counts {"yes" if e["same_counts"] else "NO"}, max |dmean| '
                      f'{e["max_mean_diff_m"]:.2e} m, max |dP| {e["max_cov_diff_m2"]:.2e} m^2, '
-                     f'max |dP_dep| {e["max_cov_dep_diff_m2"]:.2e} m^2')
+                     f'max |dP_dep| {e["max_cov_dep_diff_m2"]:.2e} m^2'
+                     + ('' if 'same_track_ids' not in e else
+                        f', same track IDs {"yes" if e["same_track_ids"] else "NO"}'))
     return '\n'.join(lines)
 
 

@@ -19,10 +19,11 @@ from landmark_ros.pipeline.fuser import Fuser
 from landmark_ros.ros import diagnostics, guard, qos, runner
 from landmark_ros.ros.cloud import CloudError
 from landmark_ros.ros.conversions import stamp_ns
-from landmark_ros.ros.markers import delete_all, landmark_markers
+from landmark_ros.ros.markers import delete_all, delete_markers, landmark_markers
 from landmark_ros.ros.params import declare_config, keep_in_sync
 from landmark_ros.ros.qos import LATCHED  # noqa: F401 (the map outputs' QoS, re-exported)
-from landmark_ros.ros.schemas import landmark_message, read_constraints, read_landmark_cloud
+from landmark_ros.ros.schemas import (landmark_message, NOT_MERGED, read_constraints,
+                                      read_landmark_cloud)
 from landmark_ros.ros.subscriptions import take_waiting
 import numpy as np
 from rclpy.node import Node
@@ -167,24 +168,41 @@ class LandmarkFuser(Node):
 
         Markers go out for the changed landmarks only (ADD replaces a marker by ID),
         and in full when a subscriber joined, after a reset or a load, or when the
-        marker size changed.
+        marker size changed. Landmarks merged into others are announced with the
+        updates (``merged_into``) and their markers deleted.
         """
+        removed = self.fuser.take_removed()
         ids, m, P, P_dep, observations = self.fuser.take_updates()
         header = self._header()
+        classes, merged_into = self.fuser.classes_of(ids), None
+        if removed:
+            gone, into = self.fuser.removal_rows(removed)
+            merged_into = np.concatenate([np.full(len(ids), NOT_MERGED, np.int64), into])
+            classes = np.concatenate([classes, self.fuser.classes_of(into)])
+            ids, m, P, P_dep, observations = (np.concatenate([a, b]) for a, b in zip(
+                (ids, m, P, P_dep, observations), gone))
         if len(ids):
             self.updates_pub.publish(landmark_message(header, ids, m, P, P_dep, observations,
-                                                      classes=self.fuser.classes_of(ids)))
+                                                      classes=classes,
+                                                      merged_into=merged_into))
         subscribers = self.marker_pub.get_subscription_count()
         joined, self._marker_subscribers = subscribers > self._marker_subscribers, subscribers
         if not subscribers:
             return
+        # One message (the marker topic keeps one on a latched writer): deletions first.
+        deleted = delete_markers(header, [drop for drop, _ in removed]).markers
+        if merged_into is not None:
+            changed = merged_into == NOT_MERGED
+            ids, m, P = ids[changed], m[changed], P[changed]
         if joined or self._markers_stale:
             ids, m, P, _, _ = self.fuser.map.snapshot()
             self._markers_stale = False
-        elif not len(ids):
+        elif not len(ids) and not deleted:
             return
-        self.marker_pub.publish(landmark_markers(header, ids, m, P, self.config.marker_sigma,
-                                                 rgb=(1.0, 0.5, 0.0)))
+        array = landmark_markers(header, ids, m, P, self.config.marker_sigma,
+                                 rgb=(1.0, 0.5, 0.0))
+        array.markers = deleted + list(array.markers)
+        self.marker_pub.publish(array)
 
     def publish_diagnostics(self):
         """Publish the fuser's status and one status per source on /diagnostics."""

@@ -255,6 +255,10 @@ class FuserConfig(ConfigBase):
     shard_index: int = param(
         0, 'Which shard this fuser is (0 to shard_count - 1).', read_only=True, low=0,
         high=999)
+    shard_cell_m: float = param(
+        20.0, 'With shard_count > 1, a row without an ID goes to the shard of the square '
+        'cell (this side) its world position falls in: (floor(x / side) + 31 floor(y / side)) '
+        'modulo shard_count [m].', read_only=True, low=0.01, high=1e9)
     max_queue_messages: int = param(
         100, 'Messages one source may have waiting; the oldest is dropped beyond.',
         read_only=True, low=1, high=100000)

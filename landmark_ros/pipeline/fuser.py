@@ -21,7 +21,7 @@ from landmark_ros.pipeline import map_file
 from landmark_ros.pipeline.config import FuserConfig
 from landmark_ros.pipeline.counters import Counters, Logger, Status
 from landmark_ros.pipeline.rows import landmark_row_problems, MAX_LABEL_ID, UNKNOWN_ID
-from landmark_ros.pipeline.tracks import Scan, Tracker
+from landmark_ros.pipeline.tracks import Scan, shard_of_position, Tracker
 from landmark_ros.pipeline.views import (constraint_row_problems, NOT_PROBLEMS as VIEW_COUNTS,
                                          parse_waiting_records, PartialViews,
                                          views_from_columns)
@@ -114,6 +114,7 @@ class Fuser:
         self.unsaved = False
         """Whether the map changed since the last save."""
         self._updated: List[NDArray[np.int64]] = []
+        self._removed: List[tuple] = []
         self.tracker = Tracker(config)
         """Association of the rows without an ID (``pipeline.tracks``)."""
         self.association_log: Optional[List[Tuple[str, int, NDArray[np.int64]]]] = None
@@ -197,8 +198,10 @@ class Fuser:
         valid, reasons = landmark_row_problems(ids, m, P, P_dep)
         unlabelled = ids == UNKNOWN_ID
         if self.config.shard_count > 1:
-            # Rows without an ID go to shard 0.
-            other = valid & np.where(unlabelled, self.config.shard_index != 0,
+            # Rows without an ID go to the shard of their cell (``shard_of_position``).
+            cells = shard_of_position(np.asarray(m, np.float64).reshape(-1, 2),
+                                      self.config.shard_cell_m, self.config.shard_count)
+            other = valid & np.where(unlabelled, cells != self.config.shard_index,
                                      ids % self.config.shard_count != self.config.shard_index)
             if other.any():
                 state.counts['other_shard'] += int(other.sum())
@@ -314,22 +317,29 @@ class Fuser:
             return self._apply(items)
         # Rows without an ID: message by message, each associated with the map as the
         # messages before it left it; labelled messages in between go in one batch.
+        # Expiry (before) and merging (after) go with each such message, so the map
+        # does not depend on where the batches begin and end (``pipeline.tracks``).
         results, group = [], []
         for item, name in items:
+            now_ns = self.tracker.advance(item.stamp_ns)
             if not item.unlabelled:
                 group.append((item, name))
                 continue
             if group:
                 results.append(self._apply(group))
                 group = []
+            self.tracker.expire(self.map, now_ns, self._counts_of())
             results.append(self._apply([(self._associate(item, name), name)]))
             self.tracker.after_update(results[-1], self._counts_of())
+            merged = self.tracker.merge(self.map, self.sources[name].counts,
+                                        results[-1].changed_ids)
+            if merged:
+                self.map_changed = self.unsaved = True
+                self._updated.append(np.array([keep for _, keep in merged], np.int64))
+                self._removed += merged
         if group:
             results.append(self._apply(group))
-        newest = max(item.stamp_ns for item, _ in items)
-        self.tracker.expire(self.map, newest, self._counts_of())
-        if self.tracker.merge(self.map, self.sources[items[-1][1]].counts):
-            self.map_changed = self.unsaved = True
+        self.tracker.expire(self.map, now_ns, self._counts_of())
         return _combine(results)
 
     def _counts_of(self) -> Dict[str, Counter[str]]:
@@ -348,6 +358,8 @@ class Fuser:
         if self.association_log is not None:
             self.association_log.append((name, item.stamp_ns, ids[unlabelled].copy()))
         keep = ids >= 0
+        self.tracker.note_rows(ids[keep], item.m[keep], item.P[keep], item.P_dep[keep], name,
+                               item.stamp_ns)
         return _Queued(item.sequence, ids[keep], item.m[keep], item.P[keep], item.P_dep[keep],
                        item.stamp_ns, classes[keep], item.scan, False)
 
@@ -390,6 +402,47 @@ class Fuser:
         """Return the class of each landmark ID, shape (K,) (0 when none was given)."""
         return self.tracker.class_of(ids)
 
+    def take_removed(self) -> List[tuple]:
+        """
+        Return the landmarks taken out of the map since the last call.
+
+        Returns
+        -------
+        list of (int, int)
+            ``(removed ID, ID it is now part of)`` (later merges followed), in the
+            order of the merges; the nodes announce them on ``fused_landmark_updates``.
+
+        """
+        removed, self._removed = self._removed, []
+        return [(drop, self.tracker.resolve(keep)) for drop, keep in removed]
+
+    def removal_rows(self, removed: Sequence[tuple]) -> Tuple[MapSnapshot, NDArray[np.int64]]:
+        """
+        Return the rows that announce removed landmarks, and what each went into.
+
+        Parameters
+        ----------
+        removed : sequence of (int, int)
+            ``take_removed()``.
+
+        Returns
+        -------
+        rows : MapSnapshot
+            Per removed landmark whose landmark is confirmed, in order: its ID, the
+            estimate of the landmark it went into, 0 observations.
+        merged_into : ndarray of int64, shape (K,)
+            The landmark each went into.
+
+        """
+        kept = self.map.snapshot(np.array([keep for _, keep in removed], np.int64))
+        where = {landmark_id: k for k, landmark_id in enumerate(kept.ids.tolist())}
+        pairs = [(drop, keep) for drop, keep in removed if keep in where]
+        rows = np.array([where[keep] for _, keep in pairs], np.int64)
+        merged_into = np.array([keep for _, keep in pairs], np.int64)
+        return type(kept)(np.array([drop for drop, _ in pairs], np.int64), kept.m[rows],
+                          kept.P[rows], kept.P_dep[rows],
+                          np.zeros(len(pairs), np.int64)), merged_into
+
     def take_updates(self) -> MapSnapshot:
         """
         Return the confirmed landmarks that changed since the last call.
@@ -414,6 +467,7 @@ class Fuser:
         for state in self.sources.values():
             state.queue.clear()
         self._updated = []
+        self._removed = []
         self.map_changed = False
         self.unsaved = True
         return count
@@ -472,6 +526,7 @@ class Fuser:
                 record['class'] = self.tracker.classes.get(record['id'], 0)
             map_file.save(self.config.map_file, records, self.config.world_frame,
                           self.config.fusion, next_id=self.tracker.next_id,
+                          tracks=self.tracker.to_dict(),
                           waiting_views=self.views.waiting_records())
         except (OSError, ValueError) as error:
             self.counters.add('save_failed', 1, f'cannot save {self.config.map_file}: {error}')
@@ -504,6 +559,13 @@ class Fuser:
             for record in document['landmarks']:
                 if record.get('class', 0):
                     self.tracker.classes[record['id']] = record['class']
+            try:
+                self.tracker.restore(document.get('tracks'), self.map)
+            except ValueError:
+                self.map.reset()
+                self.tracker.reset()
+                self.views.reset()
+                raise
         except FileNotFoundError:
             self.logger.info(f'no map file {path} yet: starting with an empty map')
             return

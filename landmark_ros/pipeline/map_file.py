@@ -21,7 +21,7 @@ class MapFileError(ValueError):
 
 
 def save(path: str, records: Sequence[Mapping[str, Any]], world_frame: str, fusion: str,
-         next_id: Optional[int] = None,
+         next_id: Optional[int] = None, tracks: Optional[Mapping[str, Any]] = None,
          waiting_views: Optional[Sequence[Mapping[str, Any]]] = None) -> None:
     """
     Write the map to ``path`` atomically.
@@ -39,6 +39,10 @@ def save(path: str, records: Sequence[Mapping[str, Any]], world_frame: str, fusi
     next_id : int, optional
         The next landmark ID the fuser allocates to landmarks found without an ID
         (kept so that an ID is never given twice, across restarts); omitted when None.
+    tracks : dict, optional
+        The tracks of landmarks found without IDs (``pipeline.tracks.Tracker.to_dict``:
+        tentative tracks and their rows, merge bookkeeping), so that a restart resumes
+        them; omitted when None (files without it load with no tracks).
     waiting_views : list of dict, optional
         Range-only and bearing-only views of landmarks not placed yet
         (``pipeline.views.PartialViews.waiting_records``), so that a restart keeps
@@ -55,6 +59,8 @@ def save(path: str, records: Sequence[Mapping[str, Any]], world_frame: str, fusi
     }
     if next_id is not None:
         document['next_id'] = int(next_id)
+    if tracks is not None:
+        document['tracks'] = dict(tracks)
     if waiting_views:
         document['waiting_views'] = list(waiting_views)
     directory = os.path.dirname(os.path.abspath(path))

@@ -13,6 +13,12 @@ confirmation by ``min_observations`` agreeing rows and the fusion stay one
 implementation. A tentative track not confirmed within ``tentative_timeout_s`` (of
 observation stamps) is deleted (``LandmarkMap.forget``).
 
+Determinism. Expiry and merging are checked per message without an ID, in the fuser's
+sequence order (expiry before its association, against the newest stamp fused so far,
+``now_ns``; merging after its update, for the landmarks it changed), never at the
+boundaries of a ``fuse_queued`` batch: the map depends on the order of the messages
+only, not on when the fuser's timer fused them (the nodes and the offline replay agree).
+
 Symbols
 -------
 z : unlabelled rows of one message in the world, shape (N, 2) [m].
@@ -21,8 +27,8 @@ C_z : their joint covariance, shape (2N, 2N) [m^2] (``association.scan_covarianc
 """
 
 from collections import Counter
-from dataclasses import dataclass
-from typing import Dict, List, Optional, Set, Tuple
+from dataclasses import dataclass, field
+from typing import Any, Dict, List, Optional, Set, Tuple
 
 from landmark_ros.core.association import (Association, Candidates, candidates,
                                            global_nearest_neighbour, jcbb,
@@ -35,9 +41,43 @@ from landmark_ros.pipeline.rows import MAX_LABEL_ID, UNKNOWN_ID
 import numpy as np
 from numpy.typing import NDArray
 
+TRACK_ROWS_KEPT = 16
+"""Rows of a tentative track kept for the map file (the newest; what a restart replays)."""
+
 ASSOCIATION_COUNTERS = ('associated', 'new_tentative', 'confirmed', 'deleted', 'merged',
                         'ambiguous', 'jcbb_fallback')
 """Per-source counters of the association (throughput, not rejections)."""
+
+
+def shard_of_position(m: NDArray[np.float64], cell_m: float,
+                      shard_count: int) -> NDArray[np.int64]:
+    """
+    Return the shard of each row without an ID, from its world position.
+
+    Square cells of side ``cell_m``: ``(floor(x / cell_m) + 31 floor(y / cell_m))``
+    modulo ``shard_count``. A non-finite position (a row the checks reject anyway)
+    goes to shard 0.
+
+    Parameters
+    ----------
+    m : ndarray, shape (N, 2) [m]
+        Positions in the world.
+    cell_m : float
+        Side of a cell [m].
+    shard_count : int
+        Number of shards.
+
+    Returns
+    -------
+    ndarray of int64, shape (N,)
+
+    """
+    m = np.asarray(m, np.float64).reshape(-1, 2)
+    finite = np.isfinite(m).all(axis=1)
+    cells = np.zeros((len(m), 2))
+    cells[finite] = np.floor(np.clip(m[finite] / cell_m, -1e15, 1e15))
+    return ((cells[:, 0].astype(np.int64) + 31 * cells[:, 1].astype(np.int64))
+            % int(shard_count)).astype(np.int64)
 
 
 @dataclass(frozen=True)
@@ -73,6 +113,9 @@ class _Track:
     landmark_class: int
     first_ns: int
     source: str
+    rows: List[tuple] = field(default_factory=list)
+    """``(m, P, P_dep, source, stamp_ns)`` of the rows it got (the newest
+    ``TRACK_ROWS_KEPT``): what the map holds for it, saved in the map file."""
 
 
 class Tracker:
@@ -105,6 +148,8 @@ class Tracker:
         """Pairs of owned IDs that rows of one message went to: never merged."""
         self.merged_into: Dict[int, int] = {}
         """A merged (retired) ID -> the ID it was merged into."""
+        self.now_ns: Optional[int] = None
+        """The newest observation stamp fused so far [ns] (the clock of expiry)."""
 
     def reset(self) -> None:
         """Forget the tracks and classes; the allocator goes on (IDs are never reused)."""
@@ -113,7 +158,14 @@ class Tracker:
         self.owned.clear()
         self.together.clear()
         self.merged_into.clear()
+        self.now_ns = None
         self.dirty = True
+
+    def advance(self, stamp_ns: int) -> int:
+        """Move the expiry clock to ``stamp_ns`` if it is newer; return the clock [ns]."""
+        if self.now_ns is None or stamp_ns > self.now_ns:
+            self.now_ns = int(stamp_ns)
+        return self.now_ns
 
     def class_of(self, ids: NDArray[np.int64]) -> NDArray[np.int64]:
         """Return the class of each landmark ID, shape (K,) (0 when none was given)."""
@@ -132,14 +184,21 @@ class Tracker:
         """
         Return a new landmark ID: never given before, unknown to the map.
 
+        With ``shard_count`` > 1 only IDs equal to ``shard_index`` modulo
+        ``shard_count`` are given (the labelled rule: each shard owns its IDs).
+
         Raises
         ------
         ValueError
             If the IDs up to ``MAX_LABEL_ID`` are used up.
 
         """
+        count, index = self.config.shard_count, self.config.shard_index
+        if count > 1 and self.next_id % count != index:
+            # A shard gives IDs of its own residue only: shards never give one ID twice.
+            self.next_id += (index - self.next_id) % count
         while landmark_map.known(np.array([self.next_id], np.int64))[0]:
-            self.next_id += 1
+            self.next_id += count if count > 1 else 1
         if self.next_id > MAX_LABEL_ID:
             raise ValueError('no landmark ID left to allocate')
         landmark_id = self.next_id
@@ -228,15 +287,18 @@ class Tracker:
             self.together.update((a, b) for b in seen[k + 1:])
         return ids
 
-    def merge(self, landmark_map: LandmarkMap, counts: Counter) -> List[Tuple[int, int]]:
+    def merge(self, landmark_map: LandmarkMap, counts: Counter,
+              changed: Optional[NDArray[np.int64]] = None) -> List[Tuple[int, int]]:
         """
         Merge confirmed tracks of one class that became compatible and never met.
 
         Two confirmed landmarks this tracker allocated, of the same class, whose means
         pass the gate ``d2 <= chi2_threshold(2, association_gate_probability)`` with
         ``S = P_a + P_b`` and that no message saw together, are one landmark: the one
-        with fewer observations is taken out of the map (``LandmarkMap.retire``) and
-        its ID recorded in ``merged_into``; its observations are not moved over.
+        with fewer observations is fused into the other and taken out of the map
+        (``LandmarkMap.merge``: with split CI its per-source sums are added to the
+        other's, as if its rows had gone there) and its ID recorded in
+        ``merged_into``.
 
         Parameters
         ----------
@@ -244,6 +306,10 @@ class Tracker:
             The map.
         counts : collections.Counter
             Counters where ``merged`` is counted.
+        changed : ndarray of int, shape (C,), optional
+            Only pairs with one of these landmarks are checked (the fuser passes what
+            an update changed: a pair becomes compatible only when one of its two
+            changes); all pairs by default.
 
         Returns
         -------
@@ -257,28 +323,134 @@ class Tracker:
             return []
         ids, m, P = snapshot.ids[mine], snapshot.m[mine], snapshot.P[mine]
         observations = snapshot.observations[mine]
+        queries = np.arange(len(ids))
+        if changed is not None:
+            queries = np.flatnonzero(np.isin(ids, np.asarray(changed, np.int64)))
+            if not len(queries):
+                return []
         index = LandmarkIndex(m, P, self.class_of(ids))
-        cands = candidates(index, m, P, self.class_of(ids),
+        cands = candidates(index, m[queries], P[queries], self.class_of(ids[queries]),
                            self.config.association_gate_probability)
         threshold = chi2_threshold(2, self.config.association_gate_probability)
         merged, retired = [], set()
-        for a, b, d2 in zip(cands.rows.tolist(), cands.landmarks.tolist(), cands.d2.tolist()):
-            if a >= b or a in retired or b in retired or d2 > threshold:
+        pairs: Dict[Tuple[int, int], float] = {}
+        for a, b, d2 in zip(queries[cands.rows].tolist(), cands.landmarks.tolist(),
+                            cands.d2.tolist()):
+            if a != b:
+                key = (min(a, b), max(a, b))
+                pairs[key] = min(d2, pairs.get(key, d2))
+        for (a, b), d2 in sorted(pairs.items()):
+            if a in retired or b in retired or d2 > threshold:
                 continue
             pair = (int(ids[a]), int(ids[b]))
             if pair in self.together:
                 continue
             keep, drop = (a, b) if observations[a] >= observations[b] else (b, a)
+            if not landmark_map.merge(int(ids[keep]), int(ids[drop])):
+                continue
             retired.add(drop)
             merged.append((int(ids[drop]), int(ids[keep])))
+            self.merged_into[int(ids[drop])] = int(ids[keep])
+            self.owned.discard(int(ids[drop]))
         if merged:
-            landmark_map.retire(np.array([drop for drop, _ in merged], np.int64))
-            for drop, keep in merged:
-                self.merged_into[drop] = keep
-                self.owned.discard(drop)
             counts['merged'] += len(merged)
             self.dirty = True
         return merged
+
+    def note_rows(self, ids: NDArray[np.int64], m: NDArray[np.float64],
+                  P: NDArray[np.float64], P_dep: NDArray[np.float64], source: str,
+                  stamp_ns: int) -> None:
+        """Keep the rows of one message that went to tentative tracks (for the map file)."""
+        for i, landmark_id in enumerate(np.asarray(ids).tolist()):
+            track = self.tentative.get(landmark_id)
+            if track is not None:
+                track.rows.append((m[i].copy(), P[i].copy(), P_dep[i].copy(), source,
+                                   int(stamp_ns)))
+                del track.rows[:-TRACK_ROWS_KEPT]
+
+    def to_dict(self) -> Dict[str, Any]:
+        """
+        Return what a restart needs to resume the tracks, as plain JSON data.
+
+        ``tentative`` (per track: ``id``, ``class``, ``first_stamp_ns``, ``source`` and
+        its ``rows``, each ``mean``, ``covariance``, ``covariance_dependent``,
+        ``source``, ``stamp_ns``), ``owned`` (the IDs this tracker allocated that are
+        still landmarks or tracks), ``together`` (pairs of them a message saw
+        together: never merged), ``merged_into`` (``[retired, kept]`` pairs) and
+        ``now_ns`` (the expiry clock, or null).
+        """
+        return {
+            'tentative': [{
+                'id': int(landmark_id), 'class': int(track.landmark_class),
+                'first_stamp_ns': int(track.first_ns), 'source': track.source,
+                'rows': [{'mean': m.tolist(), 'covariance': P.tolist(),
+                          'covariance_dependent': P_dep.tolist(), 'source': source,
+                          'stamp_ns': int(stamp)}
+                         for m, P, P_dep, source, stamp in track.rows]}
+                for landmark_id, track in sorted(self.tentative.items())],
+            'owned': sorted(int(i) for i in self.owned),
+            'together': sorted([int(a), int(b)] for a, b in self.together),
+            'merged_into': sorted([int(a), int(b)] for a, b in self.merged_into.items()),
+            'now_ns': None if self.now_ns is None else int(self.now_ns)}
+
+    def restore(self, document: Optional[Dict[str, Any]], landmark_map: LandmarkMap) -> int:
+        """
+        Resume the tracks of a map file (``to_dict``); return the tentative tracks resumed.
+
+        The rows of each tentative track go through ``LandmarkMap.update`` again, so
+        the map buffers them as it did before the restart. A file without tracks (an
+        older one) resumes none.
+
+        Raises
+        ------
+        ValueError
+            If the section is malformed (a field missing or of the wrong type, an ID
+            outside 0..2^32 - 2).
+
+        """
+        if document is None:
+            return 0
+        try:
+            def ident(value):
+                if isinstance(value, bool) or not isinstance(value, int) or not (
+                        0 <= value <= MAX_LABEL_ID):
+                    raise ValueError(f'{value!r} is not a landmark ID')
+                return value
+            owned = {ident(i) for i in document.get('owned', [])}
+            together = {(ident(a), ident(b)) for a, b in document.get('together', [])}
+            merged = {ident(a): ident(b) for a, b in document.get('merged_into', [])}
+            now_ns = document.get('now_ns')
+            if now_ns is not None and (isinstance(now_ns, bool) or not isinstance(now_ns, int)):
+                raise ValueError(f'now_ns {now_ns!r} is not an integer')
+            tracks, rows = {}, []
+            for entry in document.get('tentative', []):
+                landmark_id = ident(entry['id'])
+                track_rows = [(np.array(r['mean'], np.float64).reshape(2),
+                               np.array(r['covariance'], np.float64).reshape(2, 2),
+                               np.array(r['covariance_dependent'], np.float64).reshape(2, 2),
+                               str(r['source']), int(r['stamp_ns'])) for r in entry['rows']]
+                if not track_rows:
+                    raise ValueError(f'tentative track {landmark_id} has no row')
+                last = track_rows[-1]
+                tracks[landmark_id] = _Track(last[0], last[1], int(entry['class']),
+                                             int(entry['first_stamp_ns']),
+                                             str(entry['source']), track_rows)
+                rows += [(landmark_id, *row) for row in track_rows]
+        except (KeyError, TypeError, ValueError) as error:
+            raise ValueError(f'tracks section: {error}') from error
+        rows.sort(key=lambda row: row[5])
+        if rows:
+            landmark_map.update(np.array([r[0] for r in rows], np.int64),
+                                np.array([r[1] for r in rows]), np.array([r[2] for r in rows]),
+                                np.array([r[3] for r in rows]), np.array([r[4] for r in rows]),
+                                np.array([r[5] for r in rows], np.int64))
+        self.owned, self.together, self.merged_into = owned | set(tracks), together, merged
+        self.tentative, self.now_ns = tracks, now_ns
+        for landmark_id, track in tracks.items():
+            if track.landmark_class:
+                self.classes[landmark_id] = track.landmark_class
+        self.dirty = True
+        return len(tracks)
 
     def resolve(self, landmark_id: int) -> int:
         """Return the ID a landmark ended up as, following merges."""
@@ -339,7 +511,8 @@ class Tracker:
         landmark_map : LandmarkMap
             Where their buffered rows are forgotten.
         now_ns : int
-            The newest observation stamp fused [ns].
+            The newest observation stamp fused [ns] (the clock ``now_ns`` moves to it
+            if it is newer; the clock is what counts).
         counts_of : dict of str to collections.Counter
             Counters by source; ``deleted`` is counted on the source that started a track.
 
@@ -348,6 +521,7 @@ class Tracker:
         list of int
 
         """
+        now_ns = self.advance(now_ns)
         timeout_ns = self.config.tentative_timeout_s * 1e9
         if not self.tentative or timeout_ns <= 0.0:
             return []

@@ -77,6 +77,14 @@ def landmark_markers(header, ids, m, P_m, sigma, lifetime_s=0.0, rgb=(0.1, 0.6, 
     return MarkerArray(markers=markers)
 
 
+def delete_markers(header, ids, prefix=''):
+    """Return a MarkerArray that deletes the ellipse and label of each landmark ID."""
+    return MarkerArray(markers=[
+        Marker(header=header, ns=prefix + ns, id=marker_id(int(landmark_id)),
+               action=Marker.DELETE)
+        for landmark_id in ids for ns in ('ellipses', 'labels')])
+
+
 def delete_all(header):
     """Return a MarkerArray that clears every marker of the topic."""
     return MarkerArray(markers=[Marker(header=header, action=Marker.DELETEALL)])

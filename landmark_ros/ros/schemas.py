@@ -27,6 +27,11 @@ when the observer models a sensor bias. Readers take each group all or none.
 
 ``fused_landmarks`` (fuser out): the landmark fields then ``observations`` UINT32 and
 ``class`` UINT32.
+``fused_landmark_updates`` (fuser out): as ``fused_landmarks``; a message that
+announces landmarks taken out of the map (a duplicate track merged into another) also
+has ``merged_into`` UINT32 after ``class``: a removed landmark's row has
+``observations`` 0, ``merged_into`` the landmark it went into and that landmark's
+estimate; every other row has ``merged_into`` ``UNKNOWN_ID`` (``read_removed``).
 """
 
 from typing import NamedTuple
@@ -84,6 +89,11 @@ CONSTRAINT_FIELDS = tuple(
 CONSTRAINT_WRITER = CloudWriter(CONSTRAINT_SCHEMA)
 LANDMARK_WRITER = CloudWriter(LANDMARK_SCHEMA)
 FUSED_WRITER = CloudWriter(FUSED_SCHEMA)
+_REMOVED_WRITER = CloudWriter(FUSED_SCHEMA + (('merged_into', np.uint32),))
+REMOVED_FIELDS = (FieldSpec('id', INTEGER_TYPES), FieldSpec('observations', INTEGER_TYPES),
+                  FieldSpec('merged_into', INTEGER_TYPES, required=False))
+NOT_MERGED = 4294967295
+"""``merged_into`` of a row that announces no removal (``UNKNOWN_ID``)."""
 _CLASS_WRITER = CloudWriter(LANDMARK_SCHEMA + (('class', np.uint32),))
 _SCAN_WRITER = CloudWriter(LANDMARK_SCHEMA + (('class', np.uint32),) + tuple(
     (name, np.float64) for name in SCAN_FIELDS))
@@ -181,7 +191,7 @@ def observation_message(header, ids, z, R=None):
 
 
 def landmark_message(header, ids, m, P_m, P_dep=None, observations=None, out=None,
-                     classes=None, scan=None):
+                     classes=None, scan=None, merged_into=None):
     """
     Return a ``landmarks`` cloud, or a ``fused_landmarks`` one with ``observations``.
 
@@ -206,6 +216,9 @@ def landmark_message(header, ids, m, P_m, P_dep=None, observations=None, out=Non
     scan : landmark_ros.pipeline.tracks.Scan, optional
         Robot pose terms of the message, written to every row (``SCAN_FIELDS``, and
         ``BIAS_FIELDS`` when it has a bias); not with ``observations``.
+    merged_into : array_like of int, shape (N,), optional
+        With ``observations``: per row the landmark a removed landmark went into,
+        ``NOT_MERGED`` for the others (``fused_landmark_updates``).
 
     Returns
     -------
@@ -215,7 +228,7 @@ def landmark_message(header, ids, m, P_m, P_dep=None, observations=None, out=Non
     m = np.asarray(m, dtype=np.float64).reshape(-1, 2)
     P_m = np.asarray(P_m, dtype=np.float64).reshape(-1, 2, 2)
     if observations is not None:
-        writer = FUSED_WRITER
+        writer = FUSED_WRITER if merged_into is None else _REMOVED_WRITER
     elif scan is not None:
         writer = _SCAN_WRITER if scan.R_bias is None else _BIAS_WRITER
     else:
@@ -232,6 +245,8 @@ def landmark_message(header, ids, m, P_m, P_dep=None, observations=None, out=Non
         rows['observations'] = np.asarray(observations).reshape(-1)
     if classes is not None:
         rows['class'] = np.asarray(classes).reshape(-1)
+    if merged_into is not None and observations is not None:
+        rows['merged_into'] = np.asarray(merged_into).reshape(-1)
     if scan is not None:
         rows['robot_x'], rows['robot_y'] = scan.robot_xy
         P = scan.P_pose
@@ -242,6 +257,35 @@ def landmark_message(header, ids, m, P_m, P_dep=None, observations=None, out=Non
             rows['bias_cov_bb'] = scan.R_bias[1, 1]
             rows['sensor_x'], rows['sensor_y'] = scan.sensor_xy
     return writer.message(header, rows, out)
+
+
+def read_removed(msg):
+    """
+    Return the landmarks a ``fused_landmark_updates`` message announces as removed.
+
+    Parameters
+    ----------
+    msg : sensor_msgs.msg.PointCloud2
+        The message to read.
+
+    Returns
+    -------
+    removed : ndarray of int64, shape (K,)
+        Landmark IDs taken out of the map.
+    merged_into : ndarray of int64, shape (K,)
+        The landmark each went into.
+
+    Raises
+    ------
+    landmark_ros.ros.cloud.CloudError
+        As ``read_columns``.
+
+    """
+    columns = read_columns(msg, REMOVED_FIELDS)
+    if 'merged_into' not in columns:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    removed = (columns['observations'] == 0) & (columns['merged_into'] != NOT_MERGED)
+    return columns['id'][removed], columns['merged_into'][removed]
 
 
 def read_landmarks(msg):

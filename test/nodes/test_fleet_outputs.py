@@ -54,3 +54,49 @@ def test_two_shard_nodes_split_the_landmarks_by_id(ros_env):
     maps = [rig.wait_map(lambda rows: len(rows.ids) == 3).ids.tolist() for rig in shards]
     assert maps == [[0, 2, 4], [1, 3, 5]]
     assert shards[0].counts('a/landmarks')['other_shard'] == 3
+
+
+def test_a_merged_track_is_announced_on_the_updates_and_its_markers_deleted(env):
+    from landmark_ros.pipeline.rows import UNKNOWN_ID
+    from landmark_ros.ros.schemas import read_removed
+    rig = FuserRig(env, min_observations=1, updates_rate_hz=50.0)
+    updates = Collector(rig.tester, PointCloud2, f'{rig.ns}/fused_landmark_updates', RELIABLE)
+    markers = Collector(rig.tester, MarkerArray, f'{rig.ns}/fused_markers', LATCHED)
+    assert env.spin_until(lambda: updates.subscription.get_publisher_count()
+                          and rig.node.marker_pub.get_subscription_count(), DEADLINE_S)
+    # Two tracks found without IDs, 5 cm apart, never in one message (set up in the
+    # node's own pipeline objects, as association over several messages leaves them).
+    fuser = rig.node.fuser
+    a, b = fuser.tracker.allocate(fuser.map), fuser.tracker.allocate(fuser.map)
+    P = np.broadcast_to(0.01 * np.eye(2), (3, 2, 2)).copy()
+    fuser.map.update([a, a, a], np.zeros((3, 2)), P, 0 * P, 'x', 1)
+    fuser.map.update([b, b], np.array([[0.05, 0.0]] * 2), P[:2], 0 * P[:2], 'x', 1)
+    fuser.map_changed = True
+    assert env.spin_until(lambda: markers.messages
+                          and marker_ids(markers.messages[-1]) == sorted(
+                              [a - (1 << 32), b - (1 << 32)] if a >= 1 << 31 else [a, b]),
+                          DEADLINE_S)
+    seen_updates, seen_markers = len(updates.messages), len(markers.messages)
+    # A row without an ID next to b: b changes, the merge check folds b into a.
+    rig.send('a/landmarks', [UNKNOWN_ID], [[0.05, 0.0]], [C])
+    assert env.spin_until(lambda: any(len(read_removed(msg)[0]) for msg in
+                                      updates.messages[seen_updates:]), DEADLINE_S)
+    message = next(msg for msg in updates.messages[seen_updates:] if len(read_removed(msg)[0]))
+    removed, into = read_removed(message)
+    assert removed.tolist() == [b] and into.tolist() == [a]
+    rows = decode(message)
+    kept = rows.ids.tolist().index(a)
+    gone = rows.ids.tolist().index(b)
+    assert rows.observations[gone] == 0 and rows.observations[kept] >= 5
+    np.testing.assert_array_equal(rows.m[gone], rows.m[kept])
+    assert np.isfinite(rows.P).all()
+    ok = env.spin_until(lambda: any(
+        m.action == Marker.DELETE and m.ns == 'ellipses' for array in
+        markers.messages[seen_markers:] for m in array.markers), DEADLINE_S)
+    assert ok, [[(m.ns, m.id, m.action) for m in array.markers] for array in markers.messages]
+    assert rig.wait_map(lambda rows: rows.ids.tolist() == [a]).observations.tolist()[0] >= 5
+    # Plain updates keep the plain schema (no merged_into field).
+    seen_updates = len(updates.messages)
+    rig.send('a/landmarks', [UNKNOWN_ID], [[0.0, 0.01]], [C])
+    assert env.spin_until(lambda: len(updates.messages) > seen_updates, DEADLINE_S)
+    assert 'merged_into' not in [f.name for f in updates.messages[-1].fields]

@@ -1,5 +1,6 @@
 """Tests of landmarks without IDs: pipeline.tracks through Observer and Fuser, without ROS."""
 
+from collections import Counter
 import json
 
 from landmark_ros.pipeline.config import FuserConfig, ObserverConfig
@@ -242,3 +243,188 @@ def test_partial_rows_without_an_id_are_rejected_by_the_observer():
     (batch,) = observer.add_observations([ObservationMessage(S, columns)], S)
     assert len(batch.ids) == 0 and len(batch.constraints) == 0
     assert observer.counters.counts['partial_without_id'] == 2
+
+
+def _batch_independent_run(chunks):
+    """Fuse a fixed sequence of unlabelled messages, calling fuse_queued after ``chunks``."""
+    fuser = Fuser(FuserConfig(tentative_timeout_s=5.0), SOURCES)
+    R = np.broadcast_to(0.01 * np.eye(2), (1, 2, 2)).copy()
+    scan = Scan(np.zeros(2), np.zeros((3, 3)))
+    # A: a track at (0, 0); B, far away, moves the clock past A's timeout; C comes
+    # back to (0, 0) with an older stamp from the other robot (A must be gone, however
+    # the messages were batched); then D..G confirm a track from both sources.
+    sequence = [(SOURCES[0], 1.0, (0.0, 0.0)), (SOURCES[1], 6.5, (50.0, 0.0)),
+                (SOURCES[0], 6.2, (0.01, 0.0)), (SOURCES[0], 7.0, (20.0, 0.0)),
+                (SOURCES[0], 7.1, (20.0, 0.0)), (SOURCES[1], 7.2, (20.05, 0.0)),
+                (SOURCES[1], 7.3, (20.05, 0.0)), (SOURCES[0], 7.4, (30.0, 0.0))]
+    for k, (source, t, point) in enumerate(sequence):
+        fuser.add_landmarks(source, int(t * S), [UNKNOWN_ID], np.array([point]), R, 0.5 * R,
+                            scan=scan)
+        if k in chunks:
+            fuser.fuse_queued()
+    fuser.fuse_queued()
+    counts = sum((state.counts for state in fuser.sources.values()), Counter())
+    return fuser, counts
+
+
+def test_expiry_and_merging_do_not_depend_on_where_fuse_batches_end():
+    runs = [_batch_independent_run(chunks) for chunks in (
+        set(range(8)), set(), {1}, {2, 5}, {0, 3, 4, 6})]
+    first, counts = runs[0]
+    # The clock reached 6.5 s before C: A's track (started at 1 s) was deleted, C
+    # started its own.
+    assert counts['deleted'] >= 1 and counts['confirmed'] == 1
+    assert first.snapshot().ids.tolist() == [FIRST + 3]
+    for fuser, other in runs[1:]:
+        for a, b in zip(first.snapshot(), fuser.snapshot(), strict=True):
+            np.testing.assert_array_equal(a, b)
+        assert fuser.tracker.next_id == first.tracker.next_id
+        assert sorted(fuser.tracker.tentative) == sorted(first.tracker.tentative)
+        assert fuser.tracker.merged_into == first.tracker.merged_into
+        assert {k: other[k] for k in ('deleted', 'merged', 'confirmed', 'new_tentative')} == {
+            k: counts[k] for k in ('deleted', 'merged', 'confirmed', 'new_tentative')}
+
+
+@pytest.mark.parametrize('fusion', ['independent', 'split_covariance_intersection'])
+def test_a_merge_fuses_the_retired_track_into_the_kept_one(fusion, rng):
+    fuser = Fuser(FuserConfig(fusion=fusion), SOURCES[:1])
+    tracker = fuser.tracker
+    a, b = tracker.allocate(fuser.map), tracker.allocate(fuser.map)
+    z = np.array([[0.0, 0.0], [0.02, -0.01], [-0.01, 0.02], [0.05, 0.0], [0.04, 0.01]])
+    R = np.array([np.diag(d) for d in rng.uniform(0.005, 0.02, (5, 2))])
+    R_dep = 0.3 * R
+    sources = np.array(['r1', 'r2', 'r1', 'r2', 'r2'])
+    fuser.map.update([a, a, a], z[:3], R[:3], R_dep[:3], sources[:3], S)
+    fuser.map.update([b, b], z[3:], R[3:], R_dep[3:], sources[3:], S)
+    merged = tracker.merge(fuser.map, Counter())
+    assert merged == [(b, a)]
+    # The same rows all under one ID, in one map: what the kept landmark must hold.
+    from landmark_ros.core.landmark_map import LandmarkMap
+    reference = LandmarkMap(fusion, 0.999, 2, 5)
+    reference.update([a, a, a], z[:3], R[:3], R_dep[:3], sources[:3], S)
+    reference.update([a, a], z[3:], R[3:], R_dep[3:], sources[3:], S)
+    got, want = fuser.map.snapshot(), reference.snapshot()
+    assert got.ids.tolist() == [a] and got.observations.tolist() == [5]
+    np.testing.assert_allclose(got.m, want.m, atol=1e-12)
+    np.testing.assert_allclose(got.P, want.P, atol=1e-12)
+    np.testing.assert_allclose(got.P_dep, want.P_dep, atol=1e-12)
+    assert fuser.map.known(np.array([b]))[0] and tracker.resolve(b) == a
+
+
+def test_merges_are_announced_once_with_the_kept_landmark_updated():
+    fuser = Fuser(FuserConfig(), SOURCES[:1])
+    tracker, C = fuser.tracker, np.broadcast_to(0.01 * np.eye(2), (3, 2, 2)).copy()
+    a, b = tracker.allocate(fuser.map), tracker.allocate(fuser.map)
+    fuser.map.update([a, a, a], np.array([[0.0, 0.0]] * 3), C, 0 * C, 'r', S)
+    fuser.map.update([b, b], np.array([[0.05, 0.0]] * 2), C[:2], 0 * C[:2], 'r', S)
+    fuser.take_updates()
+    # A message without an ID that changes b runs the merge check.
+    fuser.add_landmarks(SOURCES[0], 2 * S, [UNKNOWN_ID], np.array([[0.05, 0.0]]), C[:1],
+                        0 * C[:1], scan=Scan(np.zeros(2), np.zeros((3, 3))))
+    fuser.fuse_queued()
+    assert fuser.take_removed() == [(b, a)] and fuser.take_removed() == []
+    assert a in fuser.take_updates().ids.tolist()
+    assert fuser.snapshot().ids.tolist() == [a]
+
+
+def _unlabelled_messages(rng, count=40):
+    """Messages without IDs: 6 landmarks, rows from two sources, noise 0.05 m."""
+    truth = np.array([[0.0, 0.0], [3.0, 0.0], [0.0, 3.0], [3.0, 3.0], [6.0, 0.0], [6.0, 3.0]])
+    R = np.broadcast_to(0.0025 * np.eye(2), (2, 2, 2)).copy()
+    for k in range(count):
+        seen = rng.choice(len(truth), 2, replace=False)
+        m = truth[seen] + rng.normal(0.0, 0.05, (2, 2))
+        yield SOURCES[k % 2], (k + 1) * S, m, R
+
+
+def _feed_unlabelled(fuser, messages):
+    for source, stamp, m, R in messages:
+        fuser.add_landmarks(source, stamp, [UNKNOWN_ID] * len(m), m, R, 0.2 * R,
+                            scan=Scan(np.zeros(2), np.zeros((3, 3))))
+        fuser.fuse_queued()
+
+
+def test_a_restart_resumes_tentative_tracks_and_merge_bookkeeping(tmp_path, rng):
+    path = str(tmp_path / 'map.json')
+    config = FuserConfig(min_observations=4, map_file=path)
+    messages = list(_unlabelled_messages(rng))
+    running = Fuser(config, SOURCES)
+    _feed_unlabelled(running, messages[:13])
+    assert running.tracker.tentative and running.tracker.together
+    running.tracker.merged_into[FIRST + 999] = FIRST    # bookkeeping of an earlier merge
+    assert running.save()
+    document = json.loads((tmp_path / 'map.json').read_text())
+    assert {t['id'] for t in document['tracks']['tentative']} == set(running.tracker.tentative)
+    restarted = Fuser(config, SOURCES)
+    restarted.load()
+    for name in ('owned', 'together', 'merged_into', 'now_ns', 'next_id'):
+        assert getattr(restarted.tracker, name) == getattr(running.tracker, name), name
+    assert sorted(restarted.tracker.tentative) == sorted(running.tracker.tentative)
+    # Both go on with the same messages: the restarted one is the running one.
+    _feed_unlabelled(running, messages[13:])
+    _feed_unlabelled(restarted, messages[13:])
+    for a, b in zip(running.snapshot(), restarted.snapshot(), strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert sorted(restarted.tracker.tentative) == sorted(running.tracker.tentative)
+    assert restarted.tracker.next_id == running.tracker.next_id
+
+
+def test_a_file_without_tracks_loads_and_a_bad_tracks_section_is_moved_aside(tmp_path, rng):
+    path = tmp_path / 'map.json'
+    config = FuserConfig(min_observations=4, map_file=str(path))
+    fuser = Fuser(config, SOURCES)
+    _feed_unlabelled(fuser, list(_unlabelled_messages(rng))[:13])
+    assert fuser.save()
+    document = json.loads(path.read_text())
+    landmarks = len(document['landmarks'])
+    del document['tracks']
+    path.write_text(json.dumps(document))
+    old = Fuser(config, SOURCES)
+    old.load()
+    assert len(old.map) == landmarks and not old.tracker.tentative
+    document['tracks'] = {'tentative': [{'id': -3, 'class': 0, 'first_stamp_ns': 1,
+                                         'source': 'x', 'rows': []}]}
+    path.write_text(json.dumps(document))
+    bad = Fuser(config, SOURCES)
+    bad.load()
+    assert len(bad.map) == 0 and not bad.tracker.tentative
+    assert bad.counters.counts['map_file_rejected'] == 1 and not path.exists()
+
+
+def test_shard_of_position_numbers_the_cells():
+    from landmark_ros.pipeline.tracks import shard_of_position
+    m = np.array([[5.0, 5.0], [25.0, 5.0], [-5.0, 5.0], [5.0, 25.0], [np.nan, 1.0]])
+    # Cells (0, 0), (1, 0), (-1, 0), (0, 1); side 20 m; 3 shards.
+    assert shard_of_position(m, 20.0, 3).tolist() == [0, 1, 2, 31 % 3, 0]
+
+
+def test_shards_split_rows_without_ids_by_cell_and_own_their_ids(rng):
+    centres = np.array([[5.0, 5.0], [25.0, 5.0], [45.0, 5.0], [5.0, 25.0], [25.0, 25.0]])
+    one = Fuser(FuserConfig(), SOURCES)
+    shards = [Fuser(FuserConfig(shard_count=2, shard_index=k), SOURCES) for k in range(2)]
+    R = np.broadcast_to(0.0025 * np.eye(2), (5, 2, 2)).copy()
+    for k in range(6):
+        m = centres + rng.normal(0.0, 0.05, (5, 2))
+        for fuser in [one] + shards:
+            fuser.add_landmarks(SOURCES[k % 2], (k + 1) * S, [UNKNOWN_ID] * 5, m, R, 0.2 * R,
+                                scan=Scan(np.zeros(2), np.zeros((3, 3))))
+            fuser.fuse_queued()
+    whole = one.snapshot()
+    parts = [shard.snapshot() for shard in shards]
+    assert len(whole.ids) == 5 == sum(len(p.ids) for p in parts)
+    for k, part in enumerate(parts):
+        assert all(i % 2 == k for i in part.ids.tolist())     # each shard's own IDs
+    # The same landmarks, estimated from the same rows.
+    order = np.lexsort(whole.m.T)
+    joined = np.concatenate([p.m for p in parts])
+    np.testing.assert_allclose(joined[np.lexsort(joined.T)], whole.m[order], atol=1e-12)
+    in_shard = [int((shard_of(centres) == k).sum()) for k in range(2)]
+    for k, shard in enumerate(shards):
+        counts = sum((state.counts for state in shard.sources.values()), Counter())
+        assert counts['other_shard'] == 6 * (5 - in_shard[k])
+
+
+def shard_of(m):
+    """Return the shard (of 2, 20 m cells) of positions."""
+    from landmark_ros.pipeline.tracks import shard_of_position
+    return shard_of_position(m, 20.0, 2)

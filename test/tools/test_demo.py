@@ -20,6 +20,7 @@ import time
 from landmark_ros.demo.launcher import (Launcher, ManagedProcess, mapped_by_anyone,
                                         ProcessExitedError, ros_module_command, SHM_DIR,
                                         shm_files_of, write_params_file)
+import numpy as np
 import pytest
 import yaml
 
@@ -312,3 +313,38 @@ def test_demo_fails_cleanly_when_a_node_dies(tmp_path):
     assert not (tmp_path / 'demo.png').exists()
     assert len(children) == 5, children
     assert_nothing_left(children, shm, domain_of(output), ports_before)
+
+
+def test_short_demo_run_without_ids_matches_tracks_by_position(tmp_path):
+    ports_before = set().union(*(port_files(d) for d in range(150, 200)))
+    code, output, children, shm = run_demo(
+        tmp_path, '--duration', '4', '--landmarks', '8', '--seed', '10', '--no-ids',
+        '--no-plot')
+    assert code == 0, output
+    match = re.search(r'without IDs: (\d+) tracks confirmed, (\d+) matched to a true '
+                      r'landmark \(of (\d+) measured\), 0 extra; GOSPA (\d+\.\d+) m', output)
+    assert match, output
+    tracks, matched, measured = (int(g) for g in match.groups()[:3])
+    assert tracks == matched == measured >= 3, output
+    # The matched tracks are reported under the IDs of their true landmarks (1 .. 8).
+    rows = re.findall(r'^\s+(\d+)\s+-?\d+\.\d{3}\s+-?\d+\.\d{3}\s', output, re.M)
+    assert sorted(int(r) for r in rows) == sorted({int(r) for r in rows})
+    assert all(1 <= int(r) <= 8 for r in rows) and len(rows) == matched, output
+    assert 'OK: all' in output
+    assert_nothing_left(children, shm, domain_of(output), ports_before)
+
+
+def test_tracks_are_matched_to_the_truth_by_position():
+    from collections import namedtuple
+    from landmark_ros.demo.run import match_tracks_to_truth
+    Cloud = namedtuple('Cloud', 'ids m observations')
+    truth = Cloud(np.array([1, 2, 3]), np.array([[0.0, 0.0], [2.0, 0.0], [9.0, 9.0]]),
+                  np.array([10, 6, 0]))
+    fused = Cloud(np.array([1000000000, 1000000001, 1000000002]),
+                  np.array([[2.05, 0.0], [0.0, 0.1], [5.0, 5.0]]), np.array([8, 10, 3]))
+    result = match_tracks_to_truth(fused, truth)
+    assert result['track_to_true'] == {1000000000: 2, 1000000001: 1}
+    assert result['tracks'] == 3 and result['extra_tracks'] == 1
+    # min(10, 10) + min(8, 6) of 16 sightings.
+    assert result['observations_matched'] == pytest.approx(16 / 16)
+    assert result['gospa_m'] == pytest.approx(np.sqrt(0.05 ** 2 + 0.1 ** 2 + 1.0 ** 2 / 2))
