@@ -629,7 +629,8 @@ class InitialiseParams:
     ambiguity_chi2 : float
         A second local minimum whose cost (sum of squared normalised residuals) is
         within this of the best makes the landmark ambiguous (two circles: two points).
-        The default is the 99.9 % point of chi-square with 1 dof.
+        The default is the 99.9 % point of chi-square with 1 dof. A second minimum
+        that passes the ``consistency_probability`` test is ambiguous too.
     consistency_probability : float or None
         With more views than unknowns, wait (``inconsistent``) when the cost exceeds
         the chi-square quantile with ``N - 2`` dof at this probability; ``None`` skips.
@@ -919,7 +920,11 @@ def initialise(views: Views, params: InitialiseParams = InitialiseParams(),
     the covariance); each distinct minimum is then fitted again with the weights
     evaluated there. The best solution
     wins unless a distinct one (Mahalanobis distance above 1 under the best's
-    covariance) has a cost within ``ambiguity_chi2`` (two circles meet twice). The
+    covariance) has a cost within ``ambiguity_chi2`` of it or itself passes the
+    goodness-of-fit test of ``consistency_probability``: the data cannot reject it
+    (two circles meet twice; ranges from a nearly straight path fit the mirror image
+    of the landmark almost as well, and which one fits best is then down to the
+    noise). The
     covariance is the inverse of the information of the normal equations,
     ``P_m = (J^T W J)^-1`` (Hartley and Zisserman, *Multiple View Geometry*, 2nd ed.,
     2003, sec. 5.2.3), and its dependent part
@@ -975,9 +980,15 @@ def initialise(views: Views, params: InitialiseParams = InitialiseParams(),
     best = solutions[0]
     eigenvalues = np.linalg.eigvalsh(best.information)
     condition = eigenvalues[1] / eigenvalues[0] if eigenvalues[0] > 0.0 else math.inf
+    # A distinct minimum the data cannot reject: its cost is close to the best's, or
+    # it passes the goodness-of-fit test itself.
+    plausible = params.ambiguity_chi2
+    if params.consistency_probability is not None and n > 2:
+        plausible = max(plausible, chi2_threshold(n - 2, params.consistency_probability)
+                        - best.cost)
     for other in solutions[1:]:
         d = other.m - best.m
-        if d @ best.information @ d > 1.0 and other.cost - best.cost < params.ambiguity_chi2:
+        if d @ best.information @ d > 1.0 and other.cost - best.cost < plausible:
             return wait('ambiguous', best, condition)
     if not condition <= params.max_condition:
         return wait('ill_conditioned', best, condition)

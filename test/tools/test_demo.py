@@ -348,3 +348,41 @@ def test_tracks_are_matched_to_the_truth_by_position():
     # min(10, 10) + min(8, 6) of 16 sightings.
     assert result['observations_matched'] == pytest.approx(16 / 16)
     assert result['gospa_m'] == pytest.approx(np.sqrt(0.05 ** 2 + 0.1 ** 2 + 1.0 ** 2 / 2))
+
+
+def test_short_demo_run_with_a_mixed_team(tmp_path):
+    # Robot 1 range-bearing, robot 2 range-only, robot 3 bearing-only: the partial
+    # robots' views go through landmark_constraints to the fuser's constraint topics.
+    ports_before = set().union(*(port_files(d) for d in range(150, 200)))
+    code, output, children, shm = run_demo(
+        tmp_path, '--duration', '10', '--sensors', 'rb,range,bearing', '--no-plot')
+    assert code == 0, output
+    assert 'sensors rb,range,bearing' in output
+    counts = {kind: (int(a), int(b)) for kind, a, b in re.findall(
+        r'^(rb|range|bearing): (\d+) landmarks measured, (\d+) of them in the map', output,
+        re.M)}
+    assert set(counts) == {'rb', 'range', 'bearing'}, output
+    assert counts['rb'][0] == counts['rb'][1] > 0, output
+    # Views placed landmarks that no range-bearing robot saw.
+    match = re.search(r'^(\d+) landmarks seen by range-only or bearing-only robots only: '
+                      r'(\d+) placed', output, re.M)
+    assert match and int(match.group(2)) >= 1, output
+    params = yaml.safe_load((tmp_path / 'log' / 'demo' / 'params.yaml').read_text())
+    fuser = params['/landmark_fuser']['ros__parameters']
+    assert fuser['constraint_topics'] == ['/robot2/landmark_constraints',
+                                          '/robot3/landmark_constraints']
+    assert re.search(r'average NEES .*: consistent', output), output
+    assert_nothing_left(children, shm, domain_of(output), ports_before)
+
+
+def test_sensor_kinds_on_the_command_line():
+    from landmark_ros.demo.run import parse_args, partial_robots, sim_config
+    args = parse_args(['--sensors', 'range,rb'])
+    assert args.sensors == ('range', 'rb')
+    config = sim_config(args)
+    assert [config.sensor_kind(i) for i in range(3)] == ['range', 'rb', 'range']
+    assert partial_robots(config) == [0, 2]
+    for bad in (['--sensors', 'rb,lidar'], ['--sensors', 'range', '--no-ids']):
+        with pytest.raises(SystemExit) as exit_info:
+            parse_args(bad)
+        assert exit_info.value.code == 2
