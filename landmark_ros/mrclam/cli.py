@@ -214,8 +214,8 @@ def main(argv=None):
                                    'dataset': dataset_dict(dataset)})
         return 0
     methods = [args.fusion] if args.fusion else list(FUSION_METHODS)
-    if args.through_nodes and args.sensor != 'rb':
-        print('landmark_mrclam: --sensor range/bearing runs offline only for now',
+    if args.through_nodes and args.sensor != 'rb' and args.hide_ids:
+        print('landmark_mrclam: --hide-ids needs --sensor rb through the nodes',
               file=sys.stderr)
         return 2
     t0 = time.monotonic()
@@ -238,7 +238,7 @@ def main(argv=None):
             results, info = run_through_nodes(
                 dataset, config, methods,
                 progress=False if args.no_progress else None, keep_logs=args.keep_logs,
-                domain_id=args.domain_id, hide_ids=args.hide_ids)
+                domain_id=args.domain_id, hide_ids=args.hide_ids, sensor=args.sensor)
         except RuntimeError as error:  # ReplayError too
             print(f'landmark_mrclam: {error}', file=sys.stderr)
             return 1
@@ -249,7 +249,8 @@ def main(argv=None):
         document['agreement'] = agreement(offline, results)
         fill_node_association(offline, results, document['agreement'])
         timing.update({k: info[k] for k in ('wall_s', 'startup_s', 'play_wall_s', 'speedup')})
-        document['nodes'] = {k: info[k] for k in ('clouds', 'rows', 'rows_out', 'barriers',
+        document['nodes'] = {k: info[k] for k in ('clouds', 'rows', 'rows_out',
+                                                  'constraint_rows_out', 'barriers',
                                                   'barrier_rounds', 'probes', 'fusers',
                                                   'observers', 'cloud_mismatch', 'cpu_s')}
     print()
