@@ -57,7 +57,9 @@ offline (default)
 ``--sensor range`` / ``--sensor bearing``
     The offline replay with the bearings (ranges) dropped: each observer turns the
     range-only (bearing-only) rows into ``landmark_constraints`` and the fusers place
-    the landmarks from those views (``pipeline.views``). Offline only so far.
+    the landmarks from those views (``pipeline.views``). With ``--through-nodes`` the
+    player publishes the clouds without the dropped field and the fusers also take
+    ``/robotN/landmark_constraints`` (``player.Player``); not with ``--hide-ids``.
 ``--hide-ids``
     Landmarks without IDs: the observation messages go without their ``id`` field
     (through the nodes: every row ``UNKNOWN_ID``),

@@ -36,7 +36,7 @@ def test_partial_sensor_through_nodes_agrees_with_offline(noisy_dataset, tmp_pat
     assert summary['landmarks_initialised'] == offline['landmarks_initialised'] > 0
     assert sorted(lm['id'] for lm in summary['landmarks']) == sorted(
         lm['id'] for lm in offline['landmarks'])
-    assert set(lm['id'] for lm in summary['landmarks']) <= set(LANDMARKS)
+    assert {lm['id'] for lm in summary['landmarks']} <= set(LANDMARKS)
     assert np.isfinite(summary['rmse_m'])
 
 
