@@ -57,7 +57,9 @@ offline (default)
 ``--sensor range`` / ``--sensor bearing``
     The offline replay with the bearings (ranges) dropped: each observer turns the
     range-only (bearing-only) rows into ``landmark_constraints`` and the fusers place
-    the landmarks from those views (``pipeline.views``). Offline only so far.
+    the landmarks from those views (``pipeline.views``). With ``--through-nodes`` the
+    player publishes the clouds without the dropped field and the fusers also take
+    ``/robotN/landmark_constraints`` (``player.Player``); not with ``--hide-ids``.
 ``--hide-ids``
     Landmarks without IDs: the observation messages go without their ``id`` field
     (through the nodes: every row ``UNKNOWN_ID``),
@@ -214,8 +216,8 @@ def main(argv=None):
                                    'dataset': dataset_dict(dataset)})
         return 0
     methods = [args.fusion] if args.fusion else list(FUSION_METHODS)
-    if args.through_nodes and args.sensor != 'rb':
-        print('landmark_mrclam: --sensor range/bearing runs offline only for now',
+    if args.through_nodes and args.sensor != 'rb' and args.hide_ids:
+        print('landmark_mrclam: --hide-ids needs --sensor rb through the nodes',
               file=sys.stderr)
         return 2
     t0 = time.monotonic()
@@ -238,7 +240,7 @@ def main(argv=None):
             results, info = run_through_nodes(
                 dataset, config, methods,
                 progress=False if args.no_progress else None, keep_logs=args.keep_logs,
-                domain_id=args.domain_id, hide_ids=args.hide_ids)
+                domain_id=args.domain_id, hide_ids=args.hide_ids, sensor=args.sensor)
         except RuntimeError as error:  # ReplayError too
             print(f'landmark_mrclam: {error}', file=sys.stderr)
             return 1
@@ -249,7 +251,8 @@ def main(argv=None):
         document['agreement'] = agreement(offline, results)
         fill_node_association(offline, results, document['agreement'])
         timing.update({k: info[k] for k in ('wall_s', 'startup_s', 'play_wall_s', 'speedup')})
-        document['nodes'] = {k: info[k] for k in ('clouds', 'rows', 'rows_out', 'barriers',
+        document['nodes'] = {k: info[k] for k in ('clouds', 'rows', 'rows_out',
+                                                  'constraint_rows_out', 'barriers',
                                                   'barrier_rounds', 'probes', 'fusers',
                                                   'observers', 'cloud_mismatch', 'cpu_s')}
     print()

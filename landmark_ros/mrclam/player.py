@@ -25,10 +25,13 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from landmark_ros.demo.launcher import Launcher, ProcessExitedError
 from landmark_ros.eval.metrics import evaluate_association
+from landmark_ros.mrclam.offline import observe
 from landmark_ros.mrclam.report import method_result
 from landmark_ros.pipeline import map_file
 from landmark_ros.pipeline.config import FuserConfig
+from landmark_ros.pipeline.observer import Observer
 from landmark_ros.pipeline.rows import UNKNOWN_ID
+from landmark_ros.ros.cloud import CloudWriter
 from landmark_ros.ros.conversions import stamp_ns
 from landmark_ros.ros.schemas import observation_message, pose_message
 from landmark_ros.ros.schemas import read_landmarks
@@ -110,11 +113,12 @@ def observer_arguments(robot, config_path):
     return arguments
 
 
-def fuser_arguments(method, topics, config_path, map_path):
-    """Return the ROS arguments of one fuser process."""
+def fuser_arguments(method, topics, config_path, map_path, constraint_topics=None):
+    """Return the ROS arguments of one fuser process (``constraint_topics``: if given)."""
     arguments = ['-r', f'__ns:=/mrclam/{method}', '--params-file', str(config_path)]
+    extra = {} if constraint_topics is None else {'constraint_topics': list(constraint_topics)}
     for name, value in dict(FUSER_TRANSPORT, input_topics=list(topics), fusion=method,
-                            map_file=str(map_path)).items():
+                            map_file=str(map_path), **extra).items():
         arguments += _param(name, value)
     return arguments
 
@@ -125,7 +129,17 @@ def stamp_msg(stamp_ns):
     return Time(sec=sec, nanosec=nanosec)
 
 
-def stamped_messages(stamp_ns, frame_id, pose, P_pose, ids, z):
+_PARTIAL_WRITERS = {'range': CloudWriter((('id', np.uint32), ('range', np.float64))),
+                    'bearing': CloudWriter((('id', np.uint32), ('bearing', np.float64)))}
+"""Observation clouds of one column, by the column kept (``--sensor range|bearing``)."""
+
+
+def constraint_topic(landmarks_topic):
+    """Return a robot's ``landmark_constraints`` topic beside its ``landmarks`` one."""
+    return landmarks_topic.rsplit('/', 1)[0] + '/landmark_constraints'
+
+
+def stamped_messages(stamp_ns, frame_id, pose, P_pose, ids, z, sensor='rb'):
     """
     Return a robot's pose and observation messages, both stamped ``stamp_ns``.
 
@@ -143,6 +157,10 @@ def stamped_messages(stamp_ns, frame_id, pose, P_pose, ids, z):
         Landmark IDs.
     z : ndarray, shape (N, 2)
         Range [m] and bearing [rad] per row.
+    sensor : str
+        ``rb`` sends both columns; ``range`` (``bearing``) sends a cloud without the
+        ``bearing`` (``range``) field, as the offline replay drops that column
+        (``offline.observe``): the observer's rows are then range-only (bearing-only).
 
     Returns
     -------
@@ -152,8 +170,41 @@ def stamped_messages(stamp_ns, frame_id, pose, P_pose, ids, z):
     """
     pose_msg = pose_message(0.0, pose, P_pose)
     pose_msg.header.stamp = stamp_msg(stamp_ns)
-    cloud = observation_message(Header(stamp=stamp_msg(stamp_ns), frame_id=frame_id), ids, z)
-    return pose_msg, cloud
+    header = Header(stamp=stamp_msg(stamp_ns), frame_id=frame_id)
+    if sensor == 'rb':
+        return pose_msg, observation_message(header, ids, z)
+    writer = _PARTIAL_WRITERS[sensor]
+    z = np.asarray(z, dtype=np.float64).reshape(-1, 2)
+    rows = writer.rows(len(z))
+    rows['id'] = np.asarray(ids).reshape(-1)
+    rows[sensor] = z[:, 0 if sensor == 'range' else 1]
+    return pose_msg, writer.message(header, rows)
+
+
+def expected_constraints(rows, config, sensor):
+    """
+    Return, per cloud, whether its observer publishes a ``landmark_constraints`` cloud.
+
+    The observers' own pipeline (``offline.observe``, fresh ``Observer`` objects of
+    the config) on the very clouds the player sends: a cloud gives constraints when
+    some of its partial rows pass the observer's checks.
+
+    Returns
+    -------
+    ndarray of bool, shape (K,)
+        In the order of ``rows.messages()``.
+
+    """
+    count = len(rows.messages()[0])
+    if sensor == 'rb':
+        return np.zeros(count, bool)
+    robots = int(rows.robot.max()) + 1 if len(rows) else 0
+    observers = [Observer(config.observer) for _ in range(robots)]
+    flags = [bool(len(batch.constraints))
+             for _, batch in observe(rows, observers, config.P_pose, sensor)]
+    if len(flags) != count:
+        raise ReplayError(f'the observers placed {len(flags)} of {count} clouds offline')
+    return np.array(flags, bool)
 
 
 def dependencies(rows, starts, ends):
@@ -287,10 +338,20 @@ class Player:
     Without IDs (``hide_ids``) the clouds carry ``UNKNOWN_ID`` in every row and each
     cloud follows the one before it (``sequential``): a barrier at every change of
     robot, so every fuser takes all the clouds in global time order, as offline.
+
+    With ``sensor`` ``range`` or ``bearing`` the clouds go without the dropped column
+    (``stamped_messages``), each observer publishes an empty ``landmarks`` cloud per
+    cloud (still the pace) and a ``landmark_constraints`` cloud when some partial rows
+    pass its checks (``expected_constraints``: the observers' pipeline run on the same
+    clouds), which the fusers take from ``constraint_topics``. The player subscribes
+    to those too (stamps checked as the outputs), and a cloud counts as out of its
+    observer only once both its outputs arrived; a barrier then covers both
+    subscriptions of every robot (each pass takes up to ``FUSER_BATCH`` waiting clouds
+    of each), so ``dependencies`` order each landmark's views across robots.
     """
 
     def __init__(self, node, executor, dataset, rows, config, methods, launcher,
-                 progress=None, stall_timeout_s=60.0, hide_ids=False):
+                 progress=None, stall_timeout_s=60.0, hide_ids=False, sensor='rb'):
         self.node, self.executor = node, executor
         self.dataset, self.rows, self.config = dataset, rows, config
         self.methods, self.launcher = list(methods), launcher
@@ -309,6 +370,14 @@ class Player:
         self.expected_ns = [[] for _ in self.robots]
         for j in range(len(self.starts)):
             self.expected_ns[self.msg_robot[j]].append(int(self.msg_stamps_ns[j]))
+        self.sensor = sensor
+        flags = expected_constraints(rows, config, sensor)
+        # Per robot: constraint stamps expected, and how many among its first k clouds.
+        self.constraint_ns = [self.msg_stamps_ns[self.msg_robot == r][
+            flags[self.msg_robot == r]].tolist() for r in range(len(self.robots))]
+        self.constraints_before = [np.concatenate(([0], np.cumsum(
+            flags[self.msg_robot == r]))).tolist() for r in range(len(self.robots))]
+        self.constraint_topics = [constraint_topic(r.landmarks_topic) for r in self.robots]
         reliable = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000,
                               reliability=ReliabilityPolicy.RELIABLE)
         latched = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
@@ -318,7 +387,7 @@ class Player:
         quiet_pub = {'event_callbacks': PublisherEventCallbacks(use_default_callbacks=False)}
         quiet_sub = {'event_callbacks': SubscriptionEventCallbacks(
             use_default_callbacks=False)}
-        self.pose_pubs, self.obs_pubs, self.out_subs = [], [], []
+        self.pose_pubs, self.obs_pubs, self.out_subs, self.constraint_subs = [], [], [], []
         for index, robot in enumerate(self.robots):
             self.pose_pubs.append(node.create_publisher(
                 PoseWithCovarianceStamped, f'/{robot.name}/pose', reliable, **quiet_pub))
@@ -327,6 +396,11 @@ class Player:
             self.out_subs.append(node.create_subscription(
                 PointCloud2, robot.landmarks_topic,
                 lambda msg, index=index: self._on_output(msg, index), reliable, **quiet_sub))
+            if sensor != 'rb':
+                self.constraint_subs.append(node.create_subscription(
+                    PointCloud2, self.constraint_topics[index],
+                    lambda msg, index=index: self._on_constraints(msg, index), reliable,
+                    **quiet_sub))
         self.fused = {}
         self.fused_subs, self.barrier_clients, self.save_clients = [], [], []
         for method in self.methods:
@@ -345,6 +419,9 @@ class Player:
         count = len(self.robots)
         self.sent = [0] * count
         self.out = [0] * count
+        self.landmarks_out = [0] * count
+        self.constraints_out = [0] * count
+        self.constraint_rows_out = 0
         self.taken = [0] * count
         self.probes_sent = [0] * count
         self.probes_out = [0] * count
@@ -364,14 +441,38 @@ class Player:
         if self._probe_stamp_ns is not None and stamp < self._data_start_ns:
             self.probes_out[index] += 1
             return
-        k = self.out[index]
+        k = self.landmarks_out[index]
         expected = self.expected_ns[index][k] if k < len(self.expected_ns[index]) else None
         if stamp != expected:
             raise ReplayError(f'{self.robots[index].name}: landmarks output stamped {stamp} '
                               f'ns, expected {expected} ns (cloud {k}): a cloud was lost')
-        self.out[index] += 1
+        self.landmarks_out[index] += 1
         self.rows_out += msg.width * msg.height
-        self._last_progress = time.monotonic()
+        self._advance(index)
+
+    def _on_constraints(self, msg, index):
+        stamp = stamp_ns(msg.header.stamp)
+        k = self.constraints_out[index]
+        expected = self.constraint_ns[index]
+        expected = expected[k] if k < len(expected) else None
+        if stamp != expected:
+            raise ReplayError(f'{self.robots[index].name}: constraints output stamped {stamp} '
+                              f'ns, expected {expected} ns (constraint cloud {k}): lost, or '
+                              'the observer node and its pipeline disagree')
+        self.constraints_out[index] += 1
+        self.constraint_rows_out += msg.width * msg.height
+        self._advance(index)
+
+    def _advance(self, index):
+        """Count the clouds whose outputs (landmarks, and constraints if any) all arrived."""
+        before = self.constraints_before[index]
+        out = self.out[index]
+        while (out < self.landmarks_out[index]
+               and before[out + 1] <= self.constraints_out[index]):
+            out += 1
+        if out != self.out[index]:
+            self.out[index] = out
+            self._last_progress = time.monotonic()
 
     def _on_diagnostics(self, msg):
         stamp = stamp_ns(msg.header.stamp)
@@ -414,6 +515,11 @@ class Player:
             if entry is None or entry[0] != main[0]:
                 return None
             sources[robot.landmarks_topic] = entry[1]
+        for topic in self.constraint_topics if self.constraint_subs else ():
+            entry = self.diagnostics.get(f'{name}: {topic}')
+            if entry is None or entry[0] != main[0]:
+                return None
+            sources[topic] = entry[1]
         return sources
 
     # Barrier ---------------------------------------------------------------------------
@@ -464,7 +570,7 @@ class Player:
         ids = np.full(b - a, UNKNOWN_ID, np.int64) if self.hide_ids else self.rows.ids[a:b]
         pose, cloud = stamped_messages(self.msg_stamps_ns[j], f'{self.robots[r].name}/camera',
                                        self.rows.poses[a], self.config.P_pose,
-                                       ids, self.rows.z[a:b])
+                                       ids, self.rows.z[a:b], self.sensor)
         self.pose_pubs[r].publish(pose)
         self.obs_pubs[r].publish(cloud)
         self.sent[r] += 1
@@ -519,11 +625,14 @@ class Player:
         """Wait for every publisher, subscription and service to be matched."""
         def matched():
             return (all(p.get_subscription_count() > 0 for p in self.pose_pubs + self.obs_pubs)
-                    and all(s.get_publisher_count() > 0 for s in self.out_subs + self.fused_subs)
+                    and all(s.get_publisher_count() > 0 for s in self.out_subs + self.fused_subs
+                            + self.constraint_subs)
                     and all(c.service_is_ready() for c in self.barrier_clients
                             + self.save_clients)
                     and all(self.node.count_subscribers(r.landmarks_topic) >= 1 + len(
-                        self.methods) for r in self.robots))
+                        self.methods) for r in self.robots)
+                    and all(self.node.count_subscribers(t) >= 1 + len(self.methods)
+                            for t in (self.constraint_topics if self.constraint_subs else ())))
         self.spin_until(matched, timeout_s, 'the nodes to start and match')
 
     def probe(self, timeout_s=60.0):
@@ -537,7 +646,8 @@ class Player:
             for method in self.methods:
                 sources = self.fuser_sources(method)
                 if sources is None or any(int(v.get('messages_in', 0)) < 1
-                                          for v in sources.values()):
+                                          for k, v in sources.items()
+                                          if k not in self.constraint_topics):
                     return False
             return True
 
@@ -616,9 +726,13 @@ class Player:
 
         """
         after = time.time_ns()
+        # Views wait in the fuser's view queue, which no diagnostics count: a status
+        # three fuse periods after the last take comes after a fuse of them.
+        views_after = after + (3 * int(FUSER_TRANSPORT['update_period_s'] * NS_PER_S)
+                               if self.constraint_subs else 0)
         for method in self.methods:
             def fused(method=method):
-                sources = self.fuser_sources(method, newer_than_ns=after)
+                sources = self.fuser_sources(method, newer_than_ns=views_after)
                 return sources is not None and all(
                     v.get('queued_messages') == '0' for v in sources.values())
             self.spin_until(fused, timeout_s, f'the {method} fuser to fuse its queue')
@@ -674,7 +788,7 @@ def domain_id_for(pid=None):
 
 
 def run_through_nodes(dataset, config, methods, progress=None, keep_logs=False, out=print,
-                      domain_id=None, hide_ids=False):
+                      domain_id=None, hide_ids=False, sensor='rb'):
     """
     Replay the dataset through the real nodes; return the results per method.
 
@@ -684,7 +798,10 @@ def run_through_nodes(dataset, config, methods, progress=None, keep_logs=False, 
     chooses the progress bar as in ``progress_bar`` (None: only on a terminal).
     ``hide_ids`` sends every row as ``UNKNOWN_ID`` (``Player``); each result then has
     its ``association`` (``hidden_association``) and its records take the IDs of the
-    true landmarks matched (``track_id`` keeps the fuser's).
+    true landmarks matched (``track_id`` keeps the fuser's). ``sensor`` ``range`` or
+    ``bearing`` drops a column of every cloud (``Player``) and gives each fuser the
+    ``constraint_topics`` ``/robotN/landmark_constraints``; the fusers' ``constraints_in``
+    must then equal the constraint rows the player received (else ``cloud_mismatch``).
 
     Returns
     -------
@@ -701,6 +818,7 @@ def run_through_nodes(dataset, config, methods, progress=None, keep_logs=False, 
     work = Path(tempfile.mkdtemp(prefix='landmark_mrclam_'))
     rows = dataset.rows()
     topics = [robot.landmarks_topic for robot in dataset.robots]
+    constraint_topics = None if sensor == 'rb' else [constraint_topic(t) for t in topics]
     config_path = Path(config.path).resolve()
     context = Context()
     node = executor = None
@@ -719,14 +837,14 @@ def run_through_nodes(dataset, config, methods, progress=None, keep_logs=False, 
             map_paths[method] = work / f'{method}.json'
             launcher.start_module(f'fuser_{method}', 'landmark_ros.nodes.fuser',
                                   fuser_arguments(method, topics, config_path,
-                                                  map_paths[method]))
+                                                  map_paths[method], constraint_topics))
         rclpy.init(args=['landmark_mrclam'], context=context, domain_id=domain)
         node = rclpy.create_node('landmark_mrclam_player', context=context,
                                  start_parameter_services=False)
         executor = SingleThreadedExecutor(context=context)
         executor.add_node(node)
         player = Player(node, executor, dataset, rows, config, methods, launcher, progress,
-                        hide_ids=hide_ids)
+                        hide_ids=hide_ids, sensor=sensor)
         t_connect = time.monotonic()
         cpu_player = time.process_time()
         try:
@@ -757,11 +875,21 @@ def run_through_nodes(dataset, config, methods, progress=None, keep_logs=False, 
             except ReplayError:
                 mismatch[method] = 'fused_landmarks never matched the saved map'
             sources = final[method]['sources']
-            used = sum(int(v.get('fused', 0)) for v in sources.values())
-            rejected = sum(int(v.get('gated_out', 0)) for v in sources.values())
+            used = sum(int(v.get('fused', 0)) + int(v.get('views_fused', 0))
+                       for v in sources.values())
+            rejected = sum(int(v.get('gated_out', 0)) + int(v.get('views_gated', 0))
+                           for v in sources.values())
             association = hidden_association(records, dataset.landmarks) if hide_ids else None
             results[method] = method_result(method, records, dataset.landmarks, used, rejected)
             results[method].association = association
+            results[method].sensor = sensor
+            results[method].landmarks_initialised = sum(
+                int(v.get('landmarks_initialised', 0)) for v in sources.values())
+            if constraint_topics:
+                taken = sum(int(sources[t].get('constraints_in', 0)) for t in constraint_topics)
+                if taken != player.constraint_rows_out:
+                    mismatch[method] = (f'constraints_in {taken}, constraint rows published '
+                                        f'{player.constraint_rows_out}')
         observers = {r.name: player.diagnostics[f'/{r.name}/landmark_observer'][1]
                      for r in dataset.robots}
         info = {
@@ -771,6 +899,7 @@ def run_through_nodes(dataset, config, methods, progress=None, keep_logs=False, 
             'speedup': dataset.duration / player.play_wall_s if player.play_wall_s else None,
             'clouds': int(len(player.starts)), 'rows': int(len(rows)),
             'rows_out': int(player.rows_out),
+            'constraint_rows_out': int(player.constraint_rows_out),
             'barriers': player.barriers, 'barrier_rounds': player.barrier_rounds,
             'probes': list(player.probes_sent),
             'fusers': {m: final[m]['sources'] for m in methods},
