@@ -662,11 +662,6 @@ def evaluate_run(monitor, rejections, no_ids=False):
     return results, summary, seen, unfused, association
 
 
-def results_ids(results):
-    """Return the landmark IDs of ``evaluate``'s per-landmark results."""
-    return [result.id for result in results]
-
-
 def match_tracks_to_truth(fused, truth):
     """
     Match tracks found without IDs to the true landmarks (``--no-ids``).
@@ -814,7 +809,7 @@ def run(args, started=None):
         # Range-only and bearing-only views place a landmark only once their geometry
         # fixes it: a landmark no range-bearing robot saw may rightly still wait.
         by_kind = landmarks_by_kind(config)
-        fused_set = {int(i) for i in results_ids(results)}
+        fused_set = {int(result.id) for result in results}
         for kind in SENSOR_KINDS:
             ids = by_kind[kind] & set(seen)
             if ids and kind in config.sensor_kinds:
