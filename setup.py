@@ -21,8 +21,10 @@ setup(
     # machine or from requirements-ros.txt in the dev venv; listing them here
     # would pull a second rclpy into an apt-installed Jazzy. landmark_bag reads and
     # writes bags with rosbags and shows progress with tqdm (pinned as in
-    # requirements-dev.txt: a new rosbags may change the bag format it writes).
-    install_requires=['numpy', 'scipy', 'pyyaml', 'rosbags==0.11.9', 'tqdm==4.70.1'],
+    # requirements-dev.txt: a new rosbags may change the bag format it writes). numba
+    # compiles the split-CI fold (core/_fold_kernel.py; the numpy fold serves without it).
+    install_requires=['numpy', 'scipy', 'pyyaml', 'rosbags==0.11.9', 'tqdm==4.70.1',
+                      'numba>=0.59'],
     extras_require={
         'plot': ['matplotlib'],
     },

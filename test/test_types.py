@@ -21,6 +21,7 @@ PACKAGES = ('landmark_ros/core', 'landmark_ros/pipeline')
 REQUIRED = [
     'landmark_ros.core',
     'landmark_ros.core._arrays',
+    'landmark_ros.core._fold_kernel',
     'landmark_ros.core.association',
     'landmark_ros.core.ellipse',
     'landmark_ros.core.gaussian',

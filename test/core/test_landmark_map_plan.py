@@ -17,6 +17,7 @@ from 0.5), whatever the history.
 from collections import Counter
 
 from conftest import random_spd
+from landmark_ros.core import _fold_kernel
 from landmark_ros.core import gaussian
 from landmark_ros.core import landmark_map as landmark_map_module
 from landmark_ros.core.landmark_map import LandmarkMap
@@ -25,6 +26,16 @@ import numpy as np
 import pytest
 
 FUSION = 'split_covariance_intersection'
+
+
+@pytest.fixture(autouse=True, params=['numpy', 'compiled'])
+def fold_path(request, monkeypatch):
+    """Run every test with the numpy fold and plan, and with the compiled kernel."""
+    if request.param == 'numpy':
+        monkeypatch.setattr(_fold_kernel, 'load', lambda: None)
+    elif _fold_kernel.load() is None:
+        pytest.skip('numba is not installed: no compiled kernel')
+    return request.param
 
 
 def stream(rng, count=1500, landmarks=40, sources=6, outliers=0.03, movers=2,
@@ -150,8 +161,10 @@ def test_batch_equals_rows_one_by_one_with_many_rejections(passes, rng, monkeypa
         assert_same_map(batched, one_by_one)
 
 
-def test_batch_equals_rows_one_by_one_when_the_plan_is_too_large(rng, monkeypatch):
+def test_batch_equals_rows_one_by_one_when_the_plan_is_too_large(rng, monkeypatch, fold_path):
     # One landmark with many rows next to many with one: folded round by round.
+    if fold_path == 'compiled':
+        pytest.skip('the compiled plan has no size limit')
     monkeypatch.setattr(landmark_map_module, '_PLAN_CELLS', 0)
     rows = stream(rng, count=1200, landmarks=60, outliers=0.02, movers=1)
     ids = rows[0].copy()

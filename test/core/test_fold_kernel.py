@@ -1,0 +1,125 @@
+"""The compiled split-CI fold and plan (``core._fold_kernel``) against the numpy ones."""
+
+from landmark_ros.core import _fold_kernel
+from landmark_ros.core import landmark_map as landmark_map_module
+from landmark_ros.core._arrays import mahalanobis_sq_2x2
+import numpy as np
+import pytest
+
+
+@pytest.fixture
+def compiled():
+    """Return the compiled fold; skip without numba."""
+    kernel = _fold_kernel.load()
+    if kernel is None:
+        pytest.skip('numba is not installed: no compiled kernel')
+    return kernel
+
+
+def random_sums(rng, count, width, extreme=False):
+    """Return per-source sums ``Y, y, Q, valid`` of ``count`` landmarks, ``width`` sources."""
+    A = rng.normal(0.0, 1.0, (count, width, 2, 2))
+    R = A @ np.swapaxes(A, -1, -2) + 0.01 * np.eye(2)
+    B = rng.normal(0.0, 1.0, (count, width, 2, 2))
+    D = B @ np.swapaxes(B, -1, -2) * rng.uniform(0.0, 2.0, (count, width, 1, 1))
+    if extreme:
+        R *= 10.0 ** rng.uniform(-6.0, 6.0, (count, width, 1, 1))
+    D[rng.uniform(size=(count, width)) < 0.1] = 0.0      # no dependent part
+    z = rng.normal(0.0, 100.0, (count, width, 2))
+    Y, y, Q = landmark_map_module._terms(z.reshape(-1, 2), R.reshape(-1, 2, 2),
+                                         D.reshape(-1, 2, 2))
+    n = rng.integers(1, 40, (count, width, 1))
+    Y, y, Q = Y.reshape(count, width, 3) * n, y.reshape(count, width, 2) * n, Q.reshape(
+        count, width, 4) * n
+    Q[rng.uniform(size=(count, width)) < 0.1, 1] *= -3.0   # indefinite sym(Y^-1 Q)
+    valid = rng.uniform(size=(count, width)) < 0.7
+    valid[np.arange(count), rng.integers(0, width, count)] = True
+    return Y, y, Q, valid
+
+
+@pytest.mark.parametrize('width', [1, 2, 5, 50])
+@pytest.mark.parametrize('extreme', [False, True])
+def test_compiled_fold_equals_numpy_bit_for_bit(compiled, rng, width, extreme):
+    Y, y, Q, valid = random_sums(rng, max(2000 // width, 20), width, extreme)
+    expected = landmark_map_module._fold_numpy(Y, y, Q, valid)
+    got = compiled(Y, y, Q, valid)
+    for a, b in zip(expected, got):
+        assert a.shape == b.shape
+        np.testing.assert_array_equal(a, b)
+
+
+def test_fold_dispatches_to_the_kernel(compiled, rng):
+    Y, y, Q, valid = random_sums(rng, 50, 4)
+    for a, b in zip(landmark_map_module._fold(Y, y, Q, valid), compiled(Y, y, Q, valid)):
+        np.testing.assert_array_equal(a, b)
+
+
+def fold_one(sums, valid, lo, hi):
+    """Return the packed numpy fold of the pairs ``lo:hi``."""
+    m, P_ind, P_dep = landmark_map_module._fold_numpy(
+        sums[None, lo:hi, :3], sums[None, lo:hi, 3:5], sums[None, lo:hi, 5:],
+        valid[None, lo:hi])
+    return np.concatenate([m[0], P_ind[0][[0, 0, 1], [0, 1, 1]], P_dep[0][[0, 0, 1], [0, 1, 1]]])
+
+
+def loop_plan(landmark, pair, terms, z, R, start, sums, valid, state, threshold):
+    """Row by row with the numpy gate and fold: what ``_fold_kernel.plan`` must give."""
+    out = np.full((len(landmark), 8), np.nan)
+    accepted = np.zeros(len(landmark), bool)
+    for i, k in enumerate(landmark.tolist()):
+        m = state[k]
+        S = (m[2:5] + m[5:8]) + R[i, :3] + R[i, 3:]
+        d2 = mahalanobis_sq_2x2(np.array(z[i, 0] - m[0]), np.array(z[i, 1] - m[1]), *S)
+        if not d2 <= threshold:
+            continue
+        accepted[i] = True
+        sums[pair[i]] += terms[i]
+        valid[pair[i]] = True
+        state[k] = fold_one(sums, valid, start[k], start[k + 1])
+        out[i] = state[k]
+    return out, accepted
+
+
+def test_plan_equals_gating_and_folding_row_by_row(compiled, rng):
+    landmarks, sources, count = 30, 5, 600
+    # Pairs: each landmark has 1 to 5 sources, some not observed yet.
+    width = rng.integers(1, sources + 1, landmarks)
+    start = np.concatenate([[0], np.cumsum(width)])
+    Y, y, Q, _ = random_sums(rng, int(start[-1]), 1)
+    sums = np.concatenate([Y[:, 0], y[:, 0], Q[:, 0]], axis=1)
+    valid = rng.uniform(size=len(sums)) < 0.7
+    valid[start[:-1]] = True
+    state = np.empty((landmarks, 8))
+    for k in range(landmarks):
+        state[k] = fold_one(sums, valid, start[k], start[k + 1])
+    landmark = rng.integers(0, landmarks, count)
+    pair = start[landmark] + rng.integers(0, 1 << 30, count) % width[landmark]
+    R_ind = np.stack([np.full(count, 0.04), rng.uniform(-0.01, 0.01, count),
+                      np.full(count, 0.05)], axis=1)
+    R_dep = R_ind * rng.uniform(0.0, 1.0, (count, 1))
+    R_full = np.zeros((count, 2, 2))
+    R_full[:, 0, 0], R_full[:, 0, 1], R_full[:, 1, 0], R_full[:, 1, 1] = (
+        R_ind[:, 0], R_ind[:, 1], R_ind[:, 1], R_ind[:, 2])
+    D_full = R_full * (R_dep[:, :1] / R_ind[:, :1])[:, :, None]
+    # About a third of the rows far off: rejected.
+    z = state[landmark, :2] + rng.normal(0.0, 0.2, (count, 2)) * np.where(
+        rng.uniform(size=(count, 1)) < 0.3, 30.0, 1.0)
+    terms = np.concatenate(landmark_map_module._terms(z, R_full - D_full, D_full), axis=1)
+    R = np.concatenate([R_ind - R_dep, R_dep], axis=1)
+    threshold = 9.21
+    args = (landmark, pair, terms, z, R, start)
+    expected = loop_plan(*args, sums.copy(), valid.copy(), state.copy(), threshold)
+    new_sums, new_valid, new_state = sums.copy(), valid.copy(), state.copy()
+    out, accepted = _fold_kernel.plan(*args, new_sums, new_valid, new_state, threshold)
+    assert 50 < accepted.sum() < count - 50     # both branches, many times
+    np.testing.assert_array_equal(accepted, expected[1])
+    np.testing.assert_array_equal(out[accepted], expected[0][accepted])
+
+
+def test_turned_off_by_the_environment(monkeypatch):
+    monkeypatch.setattr(_fold_kernel, '_tried', False)
+    monkeypatch.setattr(_fold_kernel, 'fold', None)
+    monkeypatch.setattr(_fold_kernel, 'AVAILABLE', False)
+    monkeypatch.setenv('LANDMARK_ROS_NUMBA', '0')
+    assert _fold_kernel.load() is None
+    assert not _fold_kernel.AVAILABLE
