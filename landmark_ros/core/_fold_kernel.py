@@ -42,7 +42,15 @@ try:
 except Exception:   # noqa: BLE001 - not installed, or broken for this numpy
     numba = None
 
-_EDGE_LO, _EDGE_HI = _OMEGA_BRACKET, 1.0 - _OMEGA_BRACKET
+
+def _limits():
+    """
+    Return the weight search's bracket, edge value and tolerance as one array.
+
+    Passed at each call rather than read as globals: numba freezes globals into its
+    on-disk cache, which would not see a change of ``core.gaussian``'s constants.
+    """
+    return np.array([_OMEGA_BRACKET, 1.0 - _OMEGA_BRACKET, OMEGA_EDGE, OMEGA_TOLERANCE])
 
 
 def _jit(function):
@@ -98,7 +106,8 @@ def _log2_det(a, b, c):
 
 
 @_jit
-def _omega_of(p1i0, p1i1, p1i2, p1d0, p1d1, p1d2, p2i0, p2i1, p2i2, p2d0, p2d1, p2d2):
+def _omega_of(p1i0, p1i1, p1i2, p1d0, p1d1, p1d2, p2i0, p2i1, p2i2, p2d0, p2d1, p2d2,
+              limits):
     s = _scale4(p1i0 + p1d0, p1i2 + p1d2, p2i0 + p2d0, p2i2 + p2d2)
     a0, a1, a2 = p1i0 / s, p1i1 / s, p1i2 / s
     b0, b1, b2 = p1d0 / s, p1d1 / s, p1d2 / s
@@ -108,7 +117,8 @@ def _omega_of(p1i0, p1i1, p1i2, p1d0, p1d1, p1d2, p2i0, p2i1, p2i2, p2d0, p2d1, 
     dd0, dd1, dd2 = e0 - b0, e1 - b1, e2 - b2
     two_det_1i = 2.0 * (a0 * a2 - a1 * a1)
     two_det_2i = 2.0 * (c0 * c2 - c1 * c1)
-    u, lo, hi = 0.5, _EDGE_LO, _EDGE_HI
+    edge_lo, edge_hi, edge, tolerance = limits[0], limits[1], limits[2], limits[3]
+    u, lo, hi = 0.5, edge_lo, edge_hi
     lo_seen, hi_seen = False, False
     for _ in range(200):
         v = 1.0 - u
@@ -140,17 +150,17 @@ def _omega_of(p1i0, p1i1, p1i2, p1d0, p1d1, p1d2, p2i0, p2i1, p2i2, p2d0, p2d1, 
         new = u - step
         if not math.isfinite(slope):
             return 0.5
-        if u <= _EDGE_LO and not positive:
-            return OMEGA_EDGE
-        if u >= _EDGE_HI and positive:
-            return 1.0 - OMEGA_EDGE
-        if abs(step) <= OMEGA_TOLERANCE or hi - lo <= OMEGA_TOLERANCE:
+        if u <= edge_lo and not positive:
+            return edge
+        if u >= edge_hi and positive:
+            return 1.0 - edge
+        if abs(step) <= tolerance or hi - lo <= tolerance:
             return new
         below, above = not (new > lo), not (new < hi)
         if below and not lo_seen:
-            new = _EDGE_LO
+            new = edge_lo
         elif above and not hi_seen:
-            new = _EDGE_HI
+            new = edge_hi
         if (below and lo_seen) or (above and hi_seen):
             new = 0.5 * (lo + hi)
         u = new
@@ -195,7 +205,7 @@ def _split_ci(first, second, omega, out):
 
 
 @_jit
-def _fold_one(Y, y, Q, valid, parts, size, order, first, second, out):
+def _fold_one(Y, y, Q, valid, parts, size, order, first, second, out, limits):
     # One landmark: Y (W, 3), y (W, 2), Q (W, 4), valid (W,) -> out (8,) packed.
     width = len(valid)
     for j in range(width):
@@ -225,13 +235,14 @@ def _fold_one(Y, y, Q, valid, parts, size, order, first, second, out):
         for i in range(8):
             second[i] = parts[order[j], i]
         omega = _omega_of(out[2], out[3], out[4], out[5], out[6], out[7],
-                          second[2], second[3], second[4], second[5], second[6], second[7])
+                          second[2], second[3], second[4], second[5], second[6], second[7],
+                          limits)
         first[:] = out
         _split_ci(first, second, omega, out)
 
 
 @_jit
-def _kernel(Y, y, Q, valid, out):
+def _kernel(Y, y, Q, valid, out, limits):
     count, width = valid.shape
     parts = np.empty((width, 8))
     size = np.empty(width)
@@ -239,7 +250,8 @@ def _kernel(Y, y, Q, valid, out):
     first = np.empty(8)
     second = np.empty(8)
     for k in range(count):
-        _fold_one(Y[k], y[k], Q[k], valid[k], parts, size, order, first, second, out[k])
+        _fold_one(Y[k], y[k], Q[k], valid[k], parts, size, order, first, second, out[k],
+                  limits)
 
 
 @_jit
@@ -253,7 +265,7 @@ def _mahalanobis_sq(dx, dy, a, b, c):
 
 @_jit
 def _plan_kernel(landmark, pair, terms, z, R, start, sums, valid, state, threshold, out,
-                 accepted):
+                 accepted, limits):
     width = 1
     for k in range(len(start) - 1):
         width = max(width, start[k + 1] - start[k])
@@ -278,7 +290,7 @@ def _plan_kernel(landmark, pair, terms, z, R, start, sums, valid, state, thresho
         valid[p] = True
         lo, hi = start[k], start[k + 1]
         _fold_one(sums[lo:hi, 0:3], sums[lo:hi, 3:5], sums[lo:hi, 5:9], valid[lo:hi],
-                  parts, size, order, first, second, m)
+                  parts, size, order, first, second, m, limits)
         out[i, :] = m
 
 
@@ -288,7 +300,7 @@ def _compiled_fold(Y, y, Q, valid):
     valid = np.ascontiguousarray(valid, dtype=np.bool_)
     out = np.empty((len(valid), 8))
     with np.errstate(all='ignore'):
-        _kernel(Y, y, Q, valid, out)
+        _kernel(Y, y, Q, valid, out, _limits())
     P_ind = np.empty((len(valid), 2, 2))
     P_dep = np.empty((len(valid), 2, 2))
     P_ind[:, 0, 0], P_ind[:, 0, 1], P_ind[:, 1, 0], P_ind[:, 1, 1] = \
@@ -348,7 +360,7 @@ def plan(landmark: NDArray[np.intp], pair: NDArray[np.intp], terms: NDArray[np.f
     accepted = np.empty(len(landmark), np.bool_)
     with np.errstate(all='ignore'):
         _plan_kernel(landmark, pair, terms, z, R, start, sums, valid, state, float(threshold),
-                     out, accepted)
+                     out, accepted, _limits())
     return out, accepted
 
 
