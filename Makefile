@@ -40,6 +40,8 @@ $(STAMP): setup.py setup.cfg package.xml requirements-ros.txt requirements-dev.t
 	@touch $@
 
 test: venv
+	@# compile the split-CI kernel into numba's disk cache once, before the nodes start
+	$(VPY) -c 'from landmark_ros.core import _fold_kernel; _fold_kernel.load()'
 	$(PYTEST) test $(PYTEST_ARGS)
 
 lint: venv

@@ -5,12 +5,15 @@ The split-CI fold of ``landmark_map`` compiled with numba, when numba is install
 in a compiled loop instead of one numpy operation per step over all landmarks: the
 same IEEE operations in the same order (no fast-math, no fused multiply-add), so the
 results are the numpy fold's bit for bit (``test/core/test_fold_kernel.py`` checks
-it). Each (landmark, source) step costs about 0.1 us here instead of about 1.5 us.
+it). ``plan`` gates and folds a batch's rows one after the other (``LandmarkMap``'s
+split-CI batch plan). A (landmark, source) step costs about a tenth of the numpy
+fold's.
 
-``load()`` compiles it on first use; it returns None when numba cannot be imported
-(or fails to compile the kernel for this numpy), and ``landmark_map`` then uses the
-numpy fold. The environment variable
-``LANDMARK_ROS_NUMBA=0`` turns the kernel off (for comparisons).
+``load()`` imports numba and compiles the kernel on first use (a process that never
+folds does not load numba: about 80 MB and a second; compiling without numba's disk
+cache takes about 10 s). It returns None when numba cannot be imported or fails to
+compile the kernel for this numpy, and ``landmark_map`` then uses the numpy fold. The
+environment variable ``LANDMARK_ROS_NUMBA=0`` turns the kernel off (for comparisons).
 
 Sources: split covariance intersection, Julier and Uhlmann, "General decentralized
 data fusion with covariance intersection", Handbook of Multisensor Data Fusion, 2001;
@@ -21,7 +24,8 @@ the weight search and the closed forms are ``core.gaussian``'s
 
 import math
 import os
-from typing import Any, Callable, Optional, Tuple
+import sys
+from typing import Callable, Optional, Tuple
 
 from landmark_ros.core.gaussian import _OMEGA_BRACKET, OMEGA_EDGE, OMEGA_TOLERANCE
 import numpy as np
@@ -36,13 +40,6 @@ AVAILABLE = False
 """Whether ``fold`` is the compiled kernel."""
 
 
-numba: Any
-try:
-    import numba
-except Exception:   # noqa: BLE001 - not installed, or broken for this numpy
-    numba = None
-
-
 def _limits():
     """
     Return the weight search's bracket, edge value and tolerance as one array.
@@ -53,14 +50,6 @@ def _limits():
     return np.array([_OMEGA_BRACKET, 1.0 - _OMEGA_BRACKET, OMEGA_EDGE, OMEGA_TOLERANCE])
 
 
-def _jit(function):
-    """Compile ``function`` with numba (cached on disk, IEEE semantics), if numba is there."""
-    if numba is None:
-        return function
-    return numba.njit(cache=True, error_model='numpy', fastmath=False, nogil=True)(function)
-
-
-@_jit
 def _scale4(d0, d1, d2, d3):
     # power_of_4_scale: NaN anywhere gives 1, as np.maximum then isfinite do.
     largest = abs(d0)
@@ -76,7 +65,6 @@ def _scale4(d0, d1, d2, d3):
     return math.ldexp(1.0, exponent - (exponent & 1))
 
 
-@_jit
 def _inverse(a, b, c):
     s = _scale4(a, c, 0.0, 0.0)
     a, b, c = a / s, b / s, c / s
@@ -84,7 +72,6 @@ def _inverse(a, b, c):
     return c * inv_det, -b * inv_det, a * inv_det
 
 
-@_jit
 def _psd(a, b, c):
     if a >= 0.0 and c >= 0.0 and a * c >= b * b:
         return a, b, c
@@ -96,7 +83,6 @@ def _psd(a, b, c):
     return scale * (a - low), scale * b, scale * (c - low)
 
 
-@_jit
 def _log2_det(a, b, c):
     s = _scale4(a, c, 0.0, 0.0)
     mantissa, exponent = math.frexp((a / s) * (c / s) - (b / s) * (b / s))
@@ -105,7 +91,6 @@ def _log2_det(a, b, c):
     return exponent + 2 * (math.frexp(s)[1] - 1) + 2.0 * (mantissa - 0.5)
 
 
-@_jit
 def _omega_of(p1i0, p1i1, p1i2, p1d0, p1d1, p1d2, p2i0, p2i1, p2i2, p2d0, p2d1, p2d2,
               limits):
     s = _scale4(p1i0 + p1d0, p1i2 + p1d2, p2i0 + p2d0, p2i2 + p2d2)
@@ -167,14 +152,12 @@ def _omega_of(p1i0, p1i1, p1i2, p1d0, p1d1, p1d2, p2i0, p2i1, p2i2, p2d0, p2d1, 
     return u
 
 
-@_jit
 def _congruence(k00, k01, k10, k11, a, b, c):
     r00, r01 = k00 * a + k01 * b, k00 * b + k01 * c
     r10, r11 = k10 * a + k11 * b, k10 * b + k11 * c
     return r00 * k00 + r01 * k01, r00 * k10 + r01 * k11, r10 * k10 + r11 * k11
 
 
-@_jit
 def _split_ci(first, second, omega, out):
     # split_ci_2x2_entries on packed (x, y, ind xx, xy, yy, dep xx, xy, yy).
     s = _scale4(first[2] + first[5], first[4] + first[7],
@@ -204,7 +187,6 @@ def _split_ci(first, second, omega, out):
     out[5], out[6], out[7] = (c1[0] + c2[0]) * s, (c1[1] + c2[1]) * s, (c1[2] + c2[2]) * s
 
 
-@_jit
 def _fold_one(Y, y, Q, valid, parts, size, order, first, second, out, limits):
     # One landmark: Y (W, 3), y (W, 2), Q (W, 4), valid (W,) -> out (8,) packed.
     width = len(valid)
@@ -241,7 +223,6 @@ def _fold_one(Y, y, Q, valid, parts, size, order, first, second, out, limits):
         _split_ci(first, second, omega, out)
 
 
-@_jit
 def _kernel(Y, y, Q, valid, out, limits):
     count, width = valid.shape
     parts = np.empty((width, 8))
@@ -254,7 +235,6 @@ def _kernel(Y, y, Q, valid, out, limits):
                   limits)
 
 
-@_jit
 def _mahalanobis_sq(dx, dy, a, b, c):
     # mahalanobis_sq_2x2, the same operations.
     s = _scale4(a, c, 0.0, 0.0)
@@ -263,7 +243,6 @@ def _mahalanobis_sq(dx, dy, a, b, c):
     return (c * dx * dx - 2.0 * b * dx * dy + a * dy * dy) / (a * c - b * b)
 
 
-@_jit
 def _plan_kernel(landmark, pair, terms, z, R, start, sums, valid, state, threshold, out,
                  accepted, limits):
     width = 1
@@ -376,9 +355,16 @@ def load() -> Optional[Callable[..., FoldResult]]:
     if _tried:
         return fold
     _tried = True
-    if numba is None or os.environ.get('LANDMARK_ROS_NUMBA', '1') == '0':
+    if os.environ.get('LANDMARK_ROS_NUMBA', '1') == '0':
         return None
     try:
+        import numba
+        jit = numba.njit(cache=True, error_model='numpy', fastmath=False, nogil=True)
+        module = sys.modules[__name__]
+        # Callees first: a compiled function calls the compiled versions of its
+        # callees, which it finds among the module's globals.
+        for name in _COMPILED:
+            setattr(module, name, jit(getattr(module, name)))
         eye = np.array([[[1.0, 0.0, 1.0]]])
         _compiled_fold(eye, np.zeros((1, 1, 2)), np.zeros((1, 1, 4)), np.ones((1, 1), bool))
     except Exception:   # noqa: BLE001 - any failure: the numpy fold serves
@@ -388,3 +374,7 @@ def load() -> Optional[Callable[..., FoldResult]]:
 
 
 _tried = False
+
+_COMPILED = ('_scale4', '_inverse', '_psd', '_log2_det', '_omega_of', '_congruence', '_split_ci',
+             '_fold_one', '_kernel', '_mahalanobis_sq', '_plan_kernel')
+"""The functions ``load`` compiles, callees before callers."""

@@ -439,6 +439,8 @@ class LandmarkMap:
             raise ValueError('min_observations and max_consecutive_rejections must be >= 1')
         self.fusion = fusion
         self._method = _STRATEGIES[fusion]()
+        if fusion == 'split_covariance_intersection':
+            _fold_kernel.load()     # compile now rather than in the first update
         self.threshold = chi2_threshold(2, gate_probability)
         self.min_observations = int(min_observations)
         self.max_consecutive_rejections = int(max_consecutive_rejections)
