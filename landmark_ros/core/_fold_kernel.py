@@ -187,21 +187,43 @@ def _split_ci(first, second, omega, out):
     out[5], out[6], out[7] = (c1[0] + c2[0]) * s, (c1[1] + c2[1]) * s, (c1[2] + c2[2]) * s
 
 
-def _fold_one(Y, y, Q, valid, parts, size, order, first, second, out, limits):
+def _source_part(Y, y, Q, valid, part):
+    # One source's estimate (``landmark_map._estimate``) packed into ``part``; its size.
+    a, b, c = _inverse(Y[0], Y[1], Y[2])
+    part[0] = a * y[0] + b * y[1]
+    part[1] = b * y[0] + c * y[1]
+    da, db, dc = _psd(a * Q[0] + b * Q[2], 0.5 * (a * Q[1] + b * Q[3] + b * Q[0] + c * Q[2]),
+                      b * Q[1] + c * Q[3])
+    part[2], part[3], part[4] = a, b, c
+    part[5], part[6], part[7] = da, db, dc
+    return _log2_det(a + da, b + db, c + dc) if valid else math.inf
+
+
+def _fold_from(parts, order, n, prefix, j0, second, limits):
+    # prefix[j] = the fold of the sources order[0..j]; recomputed from j0 on.
+    if j0 == 0:
+        for i in range(8):
+            prefix[0, i] = parts[order[0], i]
+        j0 = 1
+    for j in range(j0, n):
+        for i in range(8):
+            second[i] = parts[order[j], i]
+        first = prefix[j - 1]
+        omega = _omega_of(first[2], first[3], first[4], first[5], first[6], first[7],
+                          second[2], second[3], second[4], second[5], second[6], second[7],
+                          limits)
+        _split_ci(first, second, omega, prefix[j])
+
+
+def _fold_one(Y, y, Q, valid, parts, size, order, prefix, second, out, limits):
     # One landmark: Y (W, 3), y (W, 2), Q (W, 4), valid (W,) -> out (8,) packed.
     width = len(valid)
-    for j in range(width):
-        a, b, c = _inverse(Y[j, 0], Y[j, 1], Y[j, 2])
-        parts[j, 0] = a * y[j, 0] + b * y[j, 1]
-        parts[j, 1] = b * y[j, 0] + c * y[j, 1]
-        da, db, dc = _psd(a * Q[j, 0] + b * Q[j, 2],
-                          0.5 * (a * Q[j, 1] + b * Q[j, 3] + b * Q[j, 0] + c * Q[j, 2]),
-                          b * Q[j, 1] + c * Q[j, 3])
-        parts[j, 2], parts[j, 3], parts[j, 4] = a, b, c
-        parts[j, 5], parts[j, 6], parts[j, 7] = da, db, dc
-        size[j] = _log2_det(a + da, b + db, c + dc) if valid[j] else math.inf
-    # Stable insertion sort of the columns by size (few sources per landmark).
     n = 0
+    for j in range(width):
+        size[j] = _source_part(Y[j], y[j], Q[j], valid[j], parts[j])
+        if valid[j]:
+            n += 1
+    # Stable insertion sort of the columns by size (few sources per landmark).
     for j in range(width):
         key = size[j]
         i = j
@@ -209,18 +231,9 @@ def _fold_one(Y, y, Q, valid, parts, size, order, first, second, out, limits):
             order[i] = order[i - 1]
             i -= 1
         order[i] = j
-        if valid[j]:
-            n += 1
+    _fold_from(parts, order, n, prefix, 0, second, limits)
     for i in range(8):
-        out[i] = parts[order[0], i]
-    for j in range(1, n):
-        for i in range(8):
-            second[i] = parts[order[j], i]
-        omega = _omega_of(out[2], out[3], out[4], out[5], out[6], out[7],
-                          second[2], second[3], second[4], second[5], second[6], second[7],
-                          limits)
-        first[:] = out
-        _split_ci(first, second, omega, out)
+        out[i] = prefix[n - 1, i]
 
 
 def _kernel(Y, y, Q, valid, out, limits):
@@ -228,10 +241,10 @@ def _kernel(Y, y, Q, valid, out, limits):
     parts = np.empty((width, 8))
     size = np.empty(width)
     order = np.empty(width, np.int64)
-    first = np.empty(8)
+    prefix = np.empty((width, 8))
     second = np.empty(8)
     for k in range(count):
-        _fold_one(Y[k], y[k], Q[k], valid[k], parts, size, order, first, second, out[k],
+        _fold_one(Y[k], y[k], Q[k], valid[k], parts, size, order, prefix, second, out[k],
                   limits)
 
 
@@ -245,14 +258,16 @@ def _mahalanobis_sq(dx, dy, a, b, c):
 
 def _plan_kernel(landmark, pair, terms, z, R, start, sums, valid, state, threshold, out,
                  accepted, limits):
-    width = 1
-    for k in range(len(start) - 1):
-        width = max(width, start[k + 1] - start[k])
-    parts = np.empty((width, 8))
-    size = np.empty(width)
-    order = np.empty(width, np.int64)
-    first = np.empty(8)
+    # Per pair (landmark k's at start[k]:start[k + 1]): its source estimate, its size,
+    # the landmark's fold order (local indices) and the prefix folds in that order.
+    count = len(sums)
+    parts = np.empty((count, 8))
+    size = np.empty(count)
+    order = np.empty(count, np.int64)
+    prefix = np.empty((count, 8))
     second = np.empty(8)
+    ready = np.zeros(len(start) - 1, np.bool_)
+    n_valid = np.zeros(len(start) - 1, np.int64)
     for i in range(len(landmark)):
         k = landmark[i]
         m = state[k]
@@ -266,10 +281,47 @@ def _plan_kernel(landmark, pair, terms, z, R, start, sums, valid, state, thresho
         p = pair[i]
         for j in range(9):
             sums[p, j] += terms[i, j]
-        valid[p] = True
         lo, hi = start[k], start[k + 1]
-        _fold_one(sums[lo:hi, 0:3], sums[lo:hi, 3:5], sums[lo:hi, 5:9], valid[lo:hi],
-                  parts, size, order, first, second, m, limits)
+        if not valid[p] and ready[k]:
+            n_valid[k] += 1
+        valid[p] = True
+        if not ready[k]:
+            # First row of this landmark: the whole fold, as _fold_one.
+            _fold_one(sums[lo:hi, 0:3], sums[lo:hi, 3:5], sums[lo:hi, 5:9], valid[lo:hi],
+                      parts[lo:hi], size[lo:hi], order[lo:hi], prefix[lo:hi], second, m,
+                      limits)
+            ready[k] = True
+            n = 0
+            for j in range(lo, hi):
+                if valid[j]:
+                    n += 1
+            n_valid[k] = n
+        else:
+            # Only pair q changed: move it to its place in the stable order by size and
+            # fold again from the first place that changed.
+            q = p - lo
+            local = order[lo:hi]
+            width = hi - lo
+            old = 0
+            while local[old] != q:
+                old += 1
+            size[p] = _source_part(sums[p, 0:3], sums[p, 3:5], sums[p, 5:9], True, parts[p])
+            key = size[p]
+            for j in range(old, width - 1):
+                local[j] = local[j + 1]
+            new = width - 1
+            for j in range(width - 1):
+                other = local[j]
+                if size[lo + other] > key or (size[lo + other] == key and other > q):
+                    new = j
+                    break
+            for j in range(width - 1, new, -1):
+                local[j] = local[j - 1]
+            local[new] = q
+            _fold_from(parts[lo:hi], local, n_valid[k], prefix[lo:hi], min(old, new), second,
+                       limits)
+            for j in range(8):
+                m[j] = prefix[lo + n_valid[k] - 1, j]
         out[i, :] = m
 
 
@@ -376,5 +428,6 @@ def load() -> Optional[Callable[..., FoldResult]]:
 _tried = False
 
 _COMPILED = ('_scale4', '_inverse', '_psd', '_log2_det', '_omega_of', '_congruence', '_split_ci',
-             '_fold_one', '_kernel', '_mahalanobis_sq', '_plan_kernel')
+             '_source_part', '_fold_from', '_fold_one', '_kernel', '_mahalanobis_sq',
+             '_plan_kernel')
 """The functions ``load`` compiles, callees before callers."""

@@ -80,8 +80,10 @@ def loop_plan(landmark, pair, terms, z, R, start, sums, valid, state, threshold)
     return out, accepted
 
 
-def test_plan_equals_gating_and_folding_row_by_row(compiled, rng):
-    landmarks, sources, count = 30, 5, 600
+@pytest.mark.parametrize('sources', [5, 50])
+def test_plan_equals_gating_and_folding_row_by_row(compiled, rng, sources):
+    # The plan refolds a landmark from the first source whose place changed.
+    landmarks, count = 30, 600
     # Pairs: each landmark has 1 to 5 sources, some not observed yet.
     width = rng.integers(1, sources + 1, landmarks)
     start = np.concatenate([[0], np.cumsum(width)])
