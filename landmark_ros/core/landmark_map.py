@@ -174,8 +174,13 @@ class _Independent:
         m, P = fuse_2x2(m, _entries(P_ind + P_dep), z, _entries(R_ind + R_dep))
         return m, P, np.zeros_like(P)
 
-    def prepare(self, landmark_map, rows, batch, positions):
-        """Get ready for the rows of confirmed landmarks of a batch (nothing here)."""
+    def prepare(self, landmark_map, rows, batch, positions, result, changed):
+        """
+        Get ready for the rows of confirmed landmarks of a batch (nothing here).
+
+        Returns True when it fused them itself (the rounds are then skipped).
+        """
+        return False
 
     def finish(self):
         """Forget what ``prepare`` found (nothing here)."""
@@ -248,7 +253,7 @@ class _SplitCovarianceIntersection(_Independent):
     _PLAN_PASSES = 8
     """Most passes of ``prepare`` (each rules out one more rejected row per landmark)."""
 
-    def prepare(self, landmark_map, rows, batch, positions):
+    def prepare(self, landmark_map, rows, batch, positions, result, changed):
         """
         Find the estimates after each row of confirmed landmarks of a batch at once.
 
@@ -261,11 +266,15 @@ class _SplitCovarianceIntersection(_Independent):
         the others itself. Only worth it when some landmark has several rows.
         """
         self.planned = None
-        if len(rows) < 2 or len(np.unique(rows)) == len(rows):
-            return
         if _fold_kernel.load() is not None:
-            self.planned = self.parts.sequential_plan(landmark_map, rows, batch, positions)
-            return
+            run = self.parts.run(landmark_map, rows, batch, positions)
+            if landmark_map._apply_run(rows, batch, positions, run, result, changed):
+                self.parts.store(run)
+                return True
+            self.planned = self.parts.planned(run, len(batch.codes), positions)
+            return False
+        if len(rows) < 2 or len(np.unique(rows)) == len(rows):
+            return False
         count = len(rows)
         codes = batch.codes[positions]
         z, R_ind, R_dep = batch.z[positions], batch.R_ind[positions], batch.R_dep[positions]
@@ -282,7 +291,7 @@ class _SplitCovarianceIntersection(_Independent):
         for _ in range(self._PLAN_PASSES):
             states = self.parts.plan(rows[todo], codes[todo], terms[todo], include[todo])
             if states is None:
-                return
+                return False
             m[todo], P_ind[todo], P_dep[todo] = states
             # Each row against the state before it (the map's for a landmark's first).
             held = np.where(include[order], np.arange(count), -1)
@@ -670,10 +679,10 @@ class LandmarkMap:
         # keeps each landmark's own order while fusing the rows of a round together.
         if known.any():
             index = np.flatnonzero(known)
-            self._method.prepare(self, rows[index], batch, index)
-            for positions in _levels(rows[index]):
-                self._update_confirmed(rows[index[positions]], batch, index[positions],
-                                       result, changed)
+            if not self._method.prepare(self, rows[index], batch, index, result, changed):
+                for positions in _levels(rows[index]):
+                    self._update_confirmed(rows[index[positions]], batch, index[positions],
+                                           result, changed)
         for i in np.flatnonzero(~known).tolist():
             if self.confirmed[rows[i]]:  # confirmed earlier in this batch
                 self._update_confirmed(rows[i:i + 1], batch, np.array([i]), result, changed)
@@ -682,6 +691,66 @@ class LandmarkMap:
         if changed:
             result.changed_ids = np.unique(self.ids[np.concatenate(changed)])
         return result
+
+    def _apply_run(self, rows, batch, positions, run, result, changed):
+        """
+        Take the outcome of rows gated and folded one by one (``_SourceParts.run``).
+
+        Does what the rounds of ``_update_confirmed`` would do with the same decisions:
+        estimates, counts, stamps, sources seen, buffers of recent rejections. Returns
+        False, changing nothing, when some landmark would reach
+        ``max_consecutive_rejections`` in the batch (the rounds rebuild it then).
+        """
+        accepted, landmark, landmarks = run['accepted'], run['landmark'], run['landmarks']
+        order = np.argsort(landmark, kind='stable')
+        group = landmark[order]
+        taken = accepted[order]
+        start = np.searchsorted(group, group)
+        index = np.arange(len(order))
+        last = np.maximum.accumulate(np.where(taken, index, -1))
+        leading = last < start
+        streak = index - np.where(leading, start - 1, last) + np.where(
+            leading, self.consecutive[landmarks[group]], 0)
+        if (streak >= self.max_consecutive_rejections).any():
+            return False
+        # Per landmark: accepted rows, the last one, the streak of rejections at the end.
+        ends = np.searchsorted(group, np.arange(len(landmarks)), side='right') - 1
+        hits = np.bincount(landmark[accepted], minlength=len(landmarks))
+        good = landmarks[hits > 0]
+        state = run['state'][hits > 0]
+        self.mean[good] = state[:, :2]
+        self.cov_ind[good] = symmetric_2x2(state[:, 2], state[:, 3], state[:, 4])
+        self.cov_dep[good] = symmetric_2x2(state[:, 5], state[:, 6], state[:, 7])
+        self.observations[landmarks] += hits
+        self.consecutive[landmarks] = streak[ends]
+        last_row = np.full(len(landmarks), -1)
+        np.maximum.at(last_row, landmark[accepted], np.flatnonzero(accepted))
+        self.last_stamp_ns[good] = batch.stamps_ns[positions[last_row[hits > 0]]]
+        codes = batch.codes[positions]
+        for code, count in enumerate(np.bincount(codes[accepted]).tolist()):
+            if count:
+                name = batch.names[code]
+                self._seen(name)[rows[accepted & (codes == code)]] = True
+                result.accepted[name] += count
+        if len(good):
+            changed.append(good)
+        rejected = np.flatnonzero(~accepted)
+        if len(rejected):
+            np.add.at(self.rejections, rows[rejected], 1)
+            for code, count in enumerate(np.bincount(codes[rejected]).tolist()):
+                if count:
+                    result.rejected[batch.names[code]] += count
+        if self._buffers:
+            for row in self._buffers.keys() & set(good.tolist()):
+                del self._buffers[row]
+        # Recent rejections: those after a landmark's last accepted row.
+        after = np.full(len(landmarks), -1)
+        after[hits > 0] = last_row[hits > 0]
+        for i in rejected[rejected > after[landmark[rejected]]].tolist():
+            recent = self._buffers.setdefault(
+                int(rows[i]), deque(maxlen=self.max_consecutive_rejections))
+            recent.append(batch.observation(positions[i]))
+        return True
 
     def _update_confirmed(self, rows, batch, positions, result, changed):
         """Gate and fuse rows of confirmed landmarks, each landmark at most once."""
@@ -1268,16 +1337,21 @@ class _SourceParts:
                 _fold(values[..., :3], values[..., 3:5], values[..., 5:], part >= 0)
         return m, P_ind, P_dep
 
-    def sequential_plan(self, landmark_map, rows, batch, positions):
+    def run(self, landmark_map, rows, batch, positions):
         """
-        Return ``prepare``'s plan found row after row by the compiled kernel.
+        Gate and fold the rows of confirmed landmarks one by one (``_fold_kernel.plan``).
 
-        ``_fold_kernel.plan`` gates each row against the estimate before it and folds
-        the landmark again after each accepted row, on a copy of the sums of the
-        batch's landmarks: one pass, no re-planning. Rows the kernel rejected are not
-        planned (``update`` folds them itself should the map accept one).
+        On a copy of the sums of the batch's landmarks; nothing here changes.
+
+        Returns
+        -------
+        dict
+            ``accepted`` (N,) the gate's decisions, ``out`` (N, 8) the packed estimate
+            after each accepted row, ``landmarks`` the distinct rows and ``landmark``
+            each row's index in them, ``state`` (K, 8) their estimates after the
+            batch, ``keys``, ``sums``, ``valid`` the (landmark, source) pairs after it.
+
         """
-        count = len(rows)
         codes = batch.codes[positions]
         keys = (rows << _SOURCE_BITS) | codes
         landmarks, landmark = np.unique(rows, return_inverse=True)
@@ -1301,20 +1375,39 @@ class _SourceParts:
                                axis=1)
         out, accepted = _fold_kernel.plan(landmark, np.searchsorted(all_keys, keys), terms, z, R,
                                           start, sums, valid, state, landmark_map.threshold)
-        at = np.full(len(batch.codes), -1, np.int64)
+        return {'accepted': accepted, 'out': out, 'landmarks': landmarks, 'landmark': landmark,
+                'state': state, 'keys': all_keys, 'sums': sums, 'valid': valid}
+
+    def store(self, run):
+        """Take the sums of a ``run`` whose rows the map accepted as they were decided."""
+        keys = run['keys'][run['valid']]
+        slots = self._pairs(keys >> _SOURCE_BITS, keys & ((1 << _SOURCE_BITS) - 1))
+        sums = run['sums'][run['valid']]
+        self.Y[slots], self.y[slots], self.Q[slots] = sums[:, :3], sums[:, 3:5], sums[:, 5:]
+
+    @staticmethod
+    def planned(run, size, positions):
+        """
+        Return a ``run`` as ``prepare``'s plan, for the rounds to take from.
+
+        Rows the kernel rejected are not planned (``update`` folds them itself should
+        the map accept one).
+        """
+        accepted, landmark, out = run['accepted'], run['landmark'], run['out']
+        at = np.full(size, -1, np.int64)
         at[positions[accepted]] = np.flatnonzero(accepted)
         order = np.argsort(landmark, kind='stable')
         first = np.searchsorted(landmark[order], landmark[order])
         taken = accepted[order].astype(np.int64)
         included: NDArray[np.int64] = np.cumsum(taken) - taken
-        accepted_before = np.empty(count, np.int64)
+        accepted_before = np.empty(len(landmark), np.int64)
         accepted_before[order] = included - included[first]
         return {'m': out[:, :2], 'P_ind': symmetric_2x2(out[:, 2], out[:, 3], out[:, 4]),
                 'P_dep': symmetric_2x2(out[:, 5], out[:, 6], out[:, 7]), 'at': at,
-                'landmarks': landmarks, 'landmark': landmark,
+                'landmarks': run['landmarks'], 'landmark': landmark,
                 'accepted_before': accepted_before,
-                'accepted': np.zeros(len(landmarks), np.int64),
-                'broken': np.zeros(len(landmarks), bool)}
+                'accepted': np.zeros(len(run['landmarks']), np.int64),
+                'broken': np.zeros(len(run['landmarks']), bool)}
 
     def records(self, row, names):
         """Return the sums of one landmark as plain data, sorted by source name."""

@@ -125,3 +125,28 @@ def test_turned_off_by_the_environment(monkeypatch):
     monkeypatch.setenv('LANDMARK_ROS_NUMBA', '0')
     assert _fold_kernel.load() is None
     assert not _fold_kernel.AVAILABLE
+
+
+def test_a_clean_batch_is_taken_at_once_and_a_rebuild_goes_round_by_round(compiled, rng,
+                                                                           monkeypatch):
+    taken = []
+    original = landmark_map_module.LandmarkMap._apply_run
+
+    def spy(self, *args):
+        taken.append(original(self, *args))
+        return taken[-1]
+    monkeypatch.setattr(landmark_map_module.LandmarkMap, '_apply_run', spy)
+    landmark_map = landmark_map_module.LandmarkMap(max_consecutive_rejections=2)
+    truth = rng.uniform(-20.0, 20.0, (10, 2))
+    ids = np.repeat(np.arange(10), 4)
+    R = np.tile(0.01 * np.eye(2), (len(ids), 1, 1))
+    names = [f'robot{k % 3}' for k in range(len(ids))]
+    z = truth[ids] + rng.normal(0.0, 0.1, (len(ids), 2))
+    landmark_map.update(ids, z, R, 0.5 * R, names, 1)          # confirms all ten
+    assert len(landmark_map) == 10 and not taken
+    z = truth[ids] + rng.normal(0.0, 0.1, (len(ids), 2))
+    result = landmark_map.update(ids, z, R, 0.5 * R, names, 2)
+    assert taken == [True] and sum(result.accepted.values()) == len(ids)
+    z[ids == 3] += 5.0                                          # landmark 3 moved
+    result = landmark_map.update(ids, z, R, 0.5 * R, names, 3)
+    assert taken == [True, False] and result.reinitialised == [3]

@@ -93,6 +93,18 @@ def assert_same_map(a, b):
     for x, y in zip(a.snapshot(), b.snapshot()):
         np.testing.assert_array_equal(x, y)
     assert a.to_records() == b.to_records()
+    # What later batches depend on: rejection streaks and the recent rejections kept
+    # (by ID: a batch allocates the rows of new IDs in ID order, row by row in arrival
+    # order).
+    rows_a, rows_b = (np.argsort(m.ids[:m._count], kind='stable') for m in (a, b))
+    np.testing.assert_array_equal(a.ids[rows_a], b.ids[rows_b])
+    for name in ('consecutive', 'rejections', 'last_stamp_ns', 'observations', 'confirmed'):
+        np.testing.assert_array_equal(getattr(a, name)[rows_a], getattr(b, name)[rows_b])
+
+    def recent(m):
+        return {int(m.ids[row]): [(o.z.tolist(), o.source, o.stamp_ns) for o in kept]
+                for row, kept in m._buffers.items()}
+    assert recent(a) == recent(b)
 
 
 @pytest.mark.parametrize('size', [50, 400, 1500])
