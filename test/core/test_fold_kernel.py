@@ -127,8 +127,8 @@ def test_turned_off_by_the_environment(monkeypatch):
     assert not _fold_kernel.AVAILABLE
 
 
-def test_a_clean_batch_is_taken_at_once_and_a_rebuild_goes_round_by_round(compiled, rng,
-                                                                           monkeypatch):
+def test_a_clean_batch_is_taken_at_once_and_a_rebuild_goes_round_by_round(
+        compiled, rng, monkeypatch):
     taken = []
     original = landmark_map_module.LandmarkMap._apply_run
 
