@@ -1376,14 +1376,22 @@ class _SourceParts:
         out, accepted = _fold_kernel.plan(landmark, np.searchsorted(all_keys, keys), terms, z, R,
                                           start, sums, valid, state, landmark_map.threshold)
         return {'accepted': accepted, 'out': out, 'landmarks': landmarks, 'landmark': landmark,
-                'state': state, 'keys': all_keys, 'sums': sums, 'valid': valid}
+                'state': state, 'keys': all_keys, 'sums': sums, 'valid': valid,
+                'at_known': at_known, 'slots': slots}
 
     def store(self, run):
         """Take the sums of a ``run`` whose rows the map accepted as they were decided."""
-        keys = run['keys'][run['valid']]
-        slots = self._pairs(keys >> _SOURCE_BITS, keys & ((1 << _SOURCE_BITS) - 1))
-        sums = run['sums'][run['valid']]
-        self.Y[slots], self.y[slots], self.Q[slots] = sums[:, :3], sums[:, 3:5], sums[:, 5:]
+        sums, valid = run['sums'], run['valid'].copy()
+        known = run['at_known']
+        slots = run['slots']
+        self.Y[slots], self.y[slots], self.Q[slots] = (sums[known, :3], sums[known, 3:5],
+                                                       sums[known, 5:])
+        valid[known] = False                   # the new pairs the batch observed
+        if valid.any():
+            keys = run['keys'][valid]
+            slots = self._pairs(keys >> _SOURCE_BITS, keys & ((1 << _SOURCE_BITS) - 1))
+            self.Y[slots], self.y[slots], self.Q[slots] = (sums[valid, :3], sums[valid, 3:5],
+                                                           sums[valid, 5:])
 
     @staticmethod
     def planned(run, size, positions):
