@@ -100,6 +100,43 @@ class FrameError:
         """
         return frame_covariance(pose, self.Sigma)
 
+    def point_error(self, points):
+        """
+        Return the error of points as the shifted frame places them, ``R(eps) l + tau - l``.
+
+        Parameters
+        ----------
+        points : array_like, shape (2,) or (N, 2)
+            True positions [m].
+
+        Returns
+        -------
+        ndarray, shape (2,) or (N, 2) [m]
+
+        """
+        points = np.asarray(points, dtype=np.float64)
+        c, s = math.cos(self.eps), math.sin(self.eps)
+        return points @ np.array([[c - 1.0, s], [-s, c - 1.0]]) + self.tau
+
+    def point_covariance(self, points):
+        """
+        Return the first-order covariance of ``point_error``, ``Cov(tau + eps J l)``.
+
+        Parameters
+        ----------
+        points : array_like, shape (2,) or (N, 2)
+            Positions [m].
+
+        Returns
+        -------
+        ndarray, shape (2, 2) or (N, 2, 2) [m^2]
+            ``s_t^2 I + s_r^2 (J l)(J l)^T``.
+
+        """
+        points = np.asarray(points, dtype=np.float64)
+        return frame_covariance(np.concatenate([points, np.zeros(points.shape[:-1] + (1,))],
+                                               axis=-1), self.Sigma)[..., :2, :2]
+
 
 def frame_covariance(pose, Sigma):
     """
