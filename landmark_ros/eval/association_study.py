@@ -85,7 +85,7 @@ import time
 from typing import Dict, List, Optional, Sequence
 
 from landmark_ros.eval.metrics import anees_interval, evaluate, match_tracks
-from landmark_ros.eval.montecarlo import fuse_simulation, SCENARIOS
+from landmark_ros.eval.montecarlo import frame_averaged_nees, fuse_simulation, SCENARIOS
 from landmark_ros.pipeline.config import FuserConfig
 from landmark_ros.pipeline.rows import UNKNOWN_ID
 from landmark_ros.sim import simulation
@@ -166,6 +166,9 @@ class Score:
     """Messages whose rows did not all reach the fuser (left out of the accuracy)."""
     nees: List[float] = field(default_factory=list)
     seed_anees: List[float] = field(default_factory=list)
+    frame_seed_anees: List[float] = field(default_factory=list)
+    """Per seed, with a frame error: the frame-averaged ANEES of the matched tracks
+    (``eval.montecarlo.frame_averaged_nees``)."""
 
     def add(self, other: 'Score') -> None:
         """Add another score's counts to this one."""
@@ -175,6 +178,7 @@ class Score:
             setattr(self, name, getattr(self, name) + getattr(other, name))
         self.nees += other.nees
         self.seed_anees += other.seed_anees
+        self.frame_seed_anees += other.frame_seed_anees
 
     def summary(self) -> Dict[str, object]:
         """Return the rates: precision, recall, accuracy, ANEES and their intervals."""
@@ -184,6 +188,13 @@ class Score:
         half = (1.96 * float(np.std(self.seed_anees, ddof=1)) / np.sqrt(seeds)
                 if seeds > 1 else float('nan'))
         low, high = anees_interval(len(self.nees)) if self.nees else (float('nan'),) * 2
+        frame = {}
+        if self.frame_seed_anees:
+            frame_seeds = len(self.frame_seed_anees)
+            frame = {'frame_anees_mean': float(np.mean(self.frame_seed_anees)),
+                     'frame_anees_half_width': (
+                         1.96 * float(np.std(self.frame_seed_anees, ddof=1))
+                         / np.sqrt(frame_seeds) if frame_seeds > 1 else float('nan'))}
         return {
             'precision': self.matched / self.tracks if self.tracks else 1.0,
             'recall': self.found / self.observable if self.observable else 1.0,
@@ -194,7 +205,7 @@ class Score:
                                  if self.clutter_rows else 0.0),
             'anees': anees, 'anees_interval': [low, high],
             'seed_anees_mean': mean, 'seed_anees_half_width': half,
-            'seeds': seeds, 'unscored_messages': self.unscored_messages}
+            'seeds': seeds, 'unscored_messages': self.unscored_messages, **frame}
 
 
 def score_fuser(fuser, measurements: Dict[tuple, NDArray[np.int64]], world: simulation.World,
@@ -334,9 +345,17 @@ def run_case(spacing: float, clutter_rate: float, seed: int,
         status = observer.status()
         if status.level != 'ok':
             raise RuntimeError(f'observer of robot{robot + 1}: {status.message}')
-    return {name: score_fuser(fuser, measurements, world, spacing,
-                              configs[name].min_observations)
-            for name, fuser in fusers.items()}
+    scores = {name: score_fuser(fuser, measurements, world, spacing,
+                                configs[name].min_observations)
+              for name, fuser in fusers.items()}
+    if sim.frame_error is not None:
+        for name, fuser in fusers.items():
+            ids, m, P = fuser.snapshot()[:3]
+            match = match_tracks(m, world.positions, min(0.5, 0.5 * spacing))
+            if (match >= 0).any():
+                scores[name].frame_seed_anees = [float(np.mean(frame_averaged_nees(
+                    sim, world.ids[match[match >= 0]], m[match >= 0], P[match >= 0])))]
+    return scores
 
 
 def frame_configs(method: str = FuserConfig().association) -> Dict[str, FuserConfig]:
@@ -449,7 +468,9 @@ def run(seeds: int = 50, table_seeds: int = 10, duration_s: float = 20.0,
         print(f'headline in scenario {FRAME_SCENARIO} ({default}, study setting; the '
               'fusion methods):', file=out)
         for name, summary in result['frame_headline'].items():
-            print(_line(HEADLINE['spacing'], HEADLINE['clutter_rate'], name, summary),
+            mean, half = summary['frame_anees_mean'], summary['frame_anees_half_width']
+            print(_line(HEADLINE['spacing'], HEADLINE['clutter_rate'], name, summary)
+                  + f'  frame-averaged {mean:5.2f} [{mean - half:5.2f}, {mean + half:5.2f}]',
                   file=out)
     print(f'targets ({default}, study setting): ' + ', '.join(
         f"{name} {'met' if ok else 'NOT met'}" for name, ok in met.items()), file=out)
