@@ -168,6 +168,7 @@ def draw(generator, xy_stddev, yaw_stddev):
     Parameters
     ----------
     generator : numpy.random.Generator
+        Source of the three standard normal draws.
     xy_stddev : float
         ``s_t`` [m].
     yaw_stddev : float
