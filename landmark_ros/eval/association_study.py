@@ -33,7 +33,8 @@ and association errors would push it up; split CI must not be above 2. The headl
 case is also run in the ``shared_frame`` scenario of ``eval.montecarlo``
 (``FRAME_SCENARIO``: the team's map frame off by one rigid transform per run, no white
 pose error), where split CI's model is exact: its ANEES must contain 2 there
-(``independent`` fusion is over-confident there, CI conservative).
+(``independent`` fusion is over-confident there); the frame-averaged ANEES of the matched
+tracks (``eval.montecarlo.frame_averaged_nees``) is reported next to it.
 
 World
 -----
