@@ -154,11 +154,13 @@ class LandmarkSim(Node):
         """Publish pose ``k`` of every robot: reported and true."""
         for robot, (pose_pub, true_pub) in enumerate(zip(self.pose_pubs,
                                                          self.true_pose_pubs)):
-            stamp, true, pose, _ = self.sim.reported_pose(robot, k)
+            stamp, true, pose, P_pose = self.sim.reported_pose(robot, k)
             header = self._header(stamp, self.config.frame)
             msg = PoseWithCovarianceStamped(header=header)
             set_planar_pose(msg.pose.pose, pose)
-            msg.pose.covariance = self._pose_covariance
+            # With a shared frame error the covariance depends on the pose.
+            msg.pose.covariance = (self._pose_covariance if self.sim.frame_error is None
+                                   else planar_pose_covariance(P_pose))
             pose_pub.publish(msg)
             true_msg = PoseStamped(header=header)
             set_planar_pose(true_msg.pose, true)

@@ -23,6 +23,14 @@ two poses that bracket an observation carry the same error: interpolating them
 gives the true pose at the observation plus exactly one N(0, P_pose) sample,
 independent between observations (when ``observation_rate_hz <= pose_rate_hz / 2``;
 at higher observation rates two observations can share a pose pair).
+
+Shared map frame (``frame_xy_stddev``, ``frame_yaw_stddev``; 0 by default: off). The
+team's map frame is off by a rigid transform drawn once per run
+(``Simulation.frame_error``): every reported pose is the true pose moved by it, plus the
+white error above, and its reported covariance is the white ``P_pose`` plus the frame
+error's first-order covariance at the reported pose (3x3, with translation-heading cross
+terms). Every robot's observation of a landmark then carries the same error: the model
+split CI assumes (derivation in ``sim.frame_error``).
 """
 
 from dataclasses import dataclass
@@ -32,6 +40,7 @@ from landmark_ros.core import pose2
 from landmark_ros.core.sensors import MIN_RANGE
 from landmark_ros.pipeline.config import ConfigBase, param
 from landmark_ros.pipeline.rows import UNKNOWN_ID
+from landmark_ros.sim import frame_error
 import numpy as np
 
 MAX_ID = 2 ** 32 - 1
@@ -40,7 +49,7 @@ MAX_ID = 2 ** 32 - 1
 SENSOR_KINDS = ('rb', 'range', 'bearing')
 """Values of ``SimConfig.sensor_kinds``."""
 
-_WORLD, _PATH, _BIAS, _POSE, _NOISE, _DETECTION, _CLUTTER = range(7)
+_WORLD, _PATH, _BIAS, _POSE, _NOISE, _DETECTION, _CLUTTER, _FRAME = range(8)
 """Stream numbers of the random draws (part of each draw's seed)."""
 
 
@@ -90,6 +99,13 @@ class SimConfig(ConfigBase):
         low=0.0, high=1000.0)
     pose_yaw_stddev: float = param(0.01, 'Standard deviation of the reported heading [rad].',
                                    read_only=True, low=0.0, high=math.pi)
+    frame_xy_stddev: float = param(
+        0.0, 'Standard deviation of the translation of the shared map frame error, drawn '
+        'once per run and the same for every robot [m]; 0 (and frame_yaw_stddev 0): no '
+        'frame error.', read_only=True, low=0.0, high=1000.0)
+    frame_yaw_stddev: float = param(
+        0.0, 'Standard deviation of the rotation (about the origin) of the shared map '
+        'frame error [rad].', read_only=True, low=0.0, high=0.5)
     detection_probability: float = param(
         1.0, 'Probability that a visible landmark is measured.', read_only=True,
         low=0.0, high=1.0)
@@ -491,6 +507,12 @@ class Simulation:
             for i in range(config.robots)]).reshape(-1, 2)
         """Per-robot ``(range [m], bearing [rad])`` bias, shape (robots, 2)."""
         self.P_pose = config.P_pose
+        """Covariance of the white part of the pose errors, shape (3, 3)."""
+        self.frame_error = None
+        """The shared map frame error (``frame_error.FrameError``), None when off."""
+        if config.frame_xy_stddev or config.frame_yaw_stddev:
+            self.frame_error = frame_error.draw(rng(config.seed, _FRAME),
+                                                config.frame_xy_stddev, config.frame_yaw_stddev)
         self._L_pose = np.sqrt(np.diag(self.P_pose))  # diagonal: its Cholesky factor
         self.pose_period_ns = config.pose_period_ns
         self.observation_period_ns = config.observation_period_ns
@@ -571,15 +593,20 @@ class Simulation:
         stamp_ns : int
         true_pose : ndarray, shape (3,)
         pose : ndarray, shape (3,)
-            ``true_pose`` plus a sample of ``P_pose`` (heading wrapped).
+            ``true_pose`` plus a sample of ``P_pose`` (heading wrapped); with a frame
+            error, ``true_pose`` moved by ``frame_error`` plus that sample.
         P_pose : ndarray, shape (3, 3)
+            The white ``P_pose``, plus the frame error's covariance at ``pose``.
 
         """
         stamp = self.pose_stamp_ns(k)
         true = self.true_pose(robot, stamp * 1e-9)
-        pose = true + self.pose_error(robot, stamp)
+        pose = true if self.frame_error is None else self.frame_error.apply(true)
+        pose = pose + self.pose_error(robot, stamp)
         pose[2] = pose2.wrap_angle(float(pose[2]))
-        return stamp, true, pose, self.P_pose.copy()
+        if self.frame_error is None:
+            return stamp, true, pose, self.P_pose.copy()
+        return stamp, true, pose, self.P_pose + self.frame_error.covariance(pose)
 
     # Measurements ---------------------------------------------------------------------
 

@@ -81,3 +81,21 @@ def test_one_short_case_scores_every_row_of_every_fuser():
         assert (score.sightings, score.clutter_rows) == rows, name
         assert score.matched + score.duplicates + score.false_tracks == score.tracks, name
     assert rows[0] > 0 and rows[1] > 0
+
+
+def test_the_shared_frame_case_scores_the_frame_averaged_anees():
+    configs = study.frame_configs()
+    assert [c.fusion for c in configs.values()] == [
+        'split_covariance_intersection', 'independent', 'covariance_intersection']
+    assert all(c.association == FuserConfig().association for c in configs.values())
+    framed = study.run_case(1.0, 0.0, seed=1, configs=configs, duration_s=3.0, pairs=4,
+                            scenario=study.FRAME_SCENARIO)
+    for name, score in framed.items():
+        assert len(score.frame_seed_anees) == 1 and score.matched >= 1, name
+        assert 'frame_anees_mean' in score.summary()
+    # The product of Gaussians averages the shared frame error down.
+    assert (framed['independent'].frame_seed_anees[0]
+            > 2.0 * framed[FuserConfig().association].frame_seed_anees[0])
+    plain = study.run_case(1.0, 0.0, seed=1, configs=configs, duration_s=3.0, pairs=4)
+    assert all(not score.frame_seed_anees and 'frame_anees_mean' not in score.summary()
+               for score in plain.values())

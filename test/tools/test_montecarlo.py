@@ -2,7 +2,11 @@
 
 import io
 
+from landmark_ros.core.landmarks import nees
 from landmark_ros.eval import montecarlo
+from landmark_ros.sim import frame_error
+from landmark_ros.sim.simulation import _FRAME, rng, SimConfig, Simulation
+import numpy as np
 
 
 def test_each_method_is_as_consistent_as_theory_says():
@@ -35,3 +39,54 @@ def test_each_sensor_kind_is_near_consistent_with_the_plain_ekf():
     assert all(row['landmarks'] >= 15 for row in rows), out.getvalue()
     assert all(1.0 < row['seed_mean'] < 5.0 for row in rows), out.getvalue()
     assert all(row['expected'] == 'inside' for row in rows)
+
+
+def test_split_ci_is_exact_under_a_shared_map_frame():
+    """
+    Scenario ``shared_frame``: split CI's model holds, its frame-averaged NEES is 2.
+
+    One frame draw per run makes the plain per-seed NEES spread widely (checked loosely);
+    the frame-averaged NEES has the same expectation and little spread (measured with 50
+    seeds x 20 s: 2.00; with white pose errors instead, split CI is at 0.22).
+    """
+    out = io.StringIO()
+    rows = montecarlo.run(seeds=3, duration_s=10.0, scenarios=('shared_frame',), out=out)
+    by_fusion = {row['fusion']: row for row in rows}
+    split = by_fusion['split_covariance_intersection']
+    independent = by_fusion['independent']
+    ci = by_fusion['covariance_intersection']
+    assert all(row['landmarks'] >= 30 for row in rows), out.getvalue()
+    assert abs(split['frame_mean'] - 2.0) <= 0.2, out.getvalue()
+    assert 0.2 < split['seed_mean'] < 8.0, out.getvalue()
+    # Product of Gaussians averages the shared error down: over-confident.
+    assert independent['frame_mean'] > 5.0 * split['frame_mean'], out.getvalue()
+    assert independent['seed_mean'] > 3.0 * split['seed_mean'], out.getvalue()
+    # CI is consistent whatever the correlation.
+    assert ci['frame_mean'] < 2.5, out.getvalue()
+    assert montecarlo.run(seeds=1, duration_s=1.0, scenarios=('white',),
+                          methods=('independent',), out=out)[0]['frame_mean'] is None
+
+
+def test_frame_averaged_nees_has_the_expectation_of_the_nees():
+    # Fused estimates with a fixed non-frame error n: over many frame draws the plain
+    # NEES averages to the frame-averaged one, which every draw gives alike.
+    sim = Simulation(SimConfig(seed=2, landmarks=5, frame_xy_stddev=0.05,
+                               frame_yaw_stddev=0.01))
+    generator = np.random.default_rng(1)
+    truth = sim.world.positions
+    n = generator.normal(0.0, 0.02, truth.shape)
+    P = np.array([[[0.004, 0.001], [0.001, 0.003]]] * len(truth))
+    plain, averaged = [], []
+    for draw in range(2000):
+        sim.frame_error = frame_error.draw(rng(draw, _FRAME), 0.05, 0.01)
+        m = truth + sim.frame_error.point_error(truth) + n
+        plain.append(nees(m, P, truth))
+        averaged.append(montecarlo.frame_averaged_nees(sim, sim.world.ids, m, P))
+    plain, averaged = np.array(plain), np.array(averaged)
+    np.testing.assert_allclose(averaged, np.broadcast_to(averaged[0], averaged.shape),
+                               rtol=1e-9)
+    standard_error = plain.std(axis=0, ddof=1) / np.sqrt(len(plain))
+    assert np.all(np.abs(plain.mean(axis=0) - averaged[0]) <= 5.0 * standard_error)
+    # The bound can fail: without the frame term the same samples are far off.
+    without_frame = np.einsum('ki,ki->k', n, np.linalg.solve(P, n[..., None])[..., 0])
+    assert np.all(np.abs(plain.mean(axis=0) - without_frame) > 5.0 * standard_error)

@@ -352,9 +352,13 @@ def env():
     ros.close()
 
 
-def test_node_publishes_poses_observations_and_ground_truth(env):
+@pytest.mark.parametrize('frame_error', [False, True])
+def test_node_publishes_poses_observations_and_ground_truth(env, frame_error):
+    # With a shared frame error each pose carries its own covariance.
     duration_s, robots = 1.0, 2
-    sim = env.add(LandmarkSim(context=env.context, parameter_overrides=[
+    frame = [Parameter('frame_xy_stddev', value=0.05),
+             Parameter('frame_yaw_stddev', value=0.01)] if frame_error else []
+    sim = env.add(LandmarkSim(context=env.context, parameter_overrides=frame + [
         Parameter('robots', value=robots), Parameter('seed', value=4),
         Parameter('fov', value=2.0 * math.pi), Parameter('duration_s', value=duration_s),
         Parameter('time_scale', value=2.0), Parameter('wait_for_subscribers_s', value=10.0),
@@ -393,6 +397,7 @@ def test_node_publishes_poses_observations_and_ground_truth(env):
             got, got_P = pose_from_msg(msg, 'map')
             np.testing.assert_allclose(got, pose, atol=1e-9)
             np.testing.assert_allclose(got_P, P_pose)
+            assert (abs(P_pose[0, 2]) > 0.0) == frame_error
             position, q = true_msg.pose.position, true_msg.pose.orientation
             np.testing.assert_allclose(
                 [position.x, position.y, yaw_from_quaternion(q.x, q.y, q.z, q.w)], true,
