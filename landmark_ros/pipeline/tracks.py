@@ -512,11 +512,12 @@ class Tracker:
                         0 <= value <= MAX_LABEL_ID):
                     raise ValueError(f'{value!r} is not a landmark ID')
                 return value
-            owned = {ident(i) for i in document.get('owned', [])}
+
             def count(value):
                 if isinstance(value, bool) or not isinstance(value, int) or value < 0:
                     raise ValueError(f'{value!r} is not a count')
                 return value
+            owned = {ident(i) for i in document.get('owned', [])}
             sightings = {ident(a): count(n) for a, n in document.get('sightings', [])}
             together: Dict[int, Dict[int, int]] = {}
             for entry in document.get('together', []):
