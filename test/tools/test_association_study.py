@@ -81,3 +81,13 @@ def test_one_short_case_scores_every_row_of_every_fuser():
         assert (score.sightings, score.clutter_rows) == rows, name
         assert score.matched + score.duplicates + score.false_tracks == score.tracks, name
     assert rows[0] > 0 and rows[1] > 0
+
+
+def test_the_study_setting_gives_the_fusers_the_simulated_p_D():
+    configs = study.study_configs(references=True)
+    p_D = study.HEADLINE['detection_probability']
+    for name in (*study.METHODS, 'independent'):
+        assert configs[name].detection_probability == p_D, name
+        assert configs[name].min_observations == study.STUDY_SETTING['min_observations']
+    # The package defaults: p_D unknown, tracks once seen together never merged.
+    assert configs['defaults'] == FuserConfig() and configs['defaults'].detection_probability == 0
