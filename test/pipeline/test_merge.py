@@ -25,7 +25,7 @@ def test_together_log_likelihood_ratio_is_the_binomial_ratio(k, n, same, distinc
 
 
 def _two_confirmed_tracks(config):
-    """A fuser with two owned confirmed tracks 5 cm apart (compatible): a, then b."""
+    """Return a fuser with two owned confirmed tracks 5 cm apart (compatible), a and b."""
     fuser = Fuser(config, [SOURCE])
     tracker, C = fuser.tracker, np.broadcast_to(0.01 * np.eye(2), (3, 2, 2)).copy()
     a, b = tracker.allocate(fuser.map), tracker.allocate(fuser.map)
