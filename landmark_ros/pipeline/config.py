@@ -296,6 +296,15 @@ class FuserConfig(ConfigBase):
     tentative_timeout_s: float = param(
         30.0, 'A track started by a row without an ID and not confirmed within this time '
         '(of observation stamps) is deleted [s].', low=0.0, high=86400.0)
+    detection_probability: float = param(
+        0.0, 'Probability that a landmark in view gets a row in a message (p_D), for '
+        'merging tracks seen in one message: two distinct landmarks are seen together in '
+        'about p_D / (2 - p_D) of the messages seeing either. 0: unknown, tracks once seen '
+        'together are never merged.', low=0.0, high=0.999)
+    merge_together_same: float = param(
+        0.01, 'Fraction of the messages seeing either of two tracks of one landmark that '
+        'give rows to both (a clutter or mis-associated row beside it), for merging.',
+        low=1e-6, high=0.5)
     ambiguous_rows: str = param(
         'assign', 'Rows without an ID that the association could pair with several '
         "landmarks: 'assign' uses the chosen pairing, 'skip' drops them.")
@@ -306,6 +315,12 @@ class FuserConfig(ConfigBase):
         methods = ('nearest_neighbour', 'global_nearest_neighbour', 'jcbb')
         if self.association not in methods:
             raise ValueError(f'association must be one of {methods}, got {self.association!r}')
+        distinct = self.detection_probability / (2.0 - self.detection_probability)
+        if self.detection_probability > 0.0 and not self.merge_together_same < distinct:
+            raise ValueError(
+                f'merge_together_same ({self.merge_together_same}) must be below '
+                f'p_D / (2 - p_D) = {distinct:.4g} (detection_probability '
+                f'{self.detection_probability})')
         if self.ambiguous_rows not in ('skip', 'assign'):
             raise ValueError(f"ambiguous_rows must be 'skip' or 'assign', got "
                              f'{self.ambiguous_rows!r}')

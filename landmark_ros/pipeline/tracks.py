@@ -35,7 +35,7 @@ from landmark_ros.core.association import (Association, Candidates, candidates,
                                            LandmarkIndex, nearest_neighbour,
                                            scan_covariance)
 from landmark_ros.core.gaussian import chi2_threshold
-from landmark_ros.core.landmark_map import LandmarkMap, UpdateResult
+from landmark_ros.core.landmark_map import LandmarkMap, MapSnapshot, UpdateResult
 from landmark_ros.pipeline.config import FuserConfig
 from landmark_ros.pipeline.rows import MAX_LABEL_ID, UNKNOWN_ID
 import numpy as np
@@ -144,8 +144,11 @@ class Tracker:
         """``(LandmarkIndex, IDs)`` of the confirmed landmarks, then of the tentative tracks."""
         self.owned: Set[int] = set()
         """IDs this tracker allocated (only these are ever merged)."""
-        self.together: Set[Tuple[int, int]] = set()
-        """Pairs of owned IDs that rows of one message went to: never merged."""
+        self.sightings: Dict[int, int] = {}
+        """Messages with a row that went to each owned ID (the merge test)."""
+        self.together: Dict[int, Dict[int, int]] = {}
+        """``together[a][b]``: messages with rows that went to both owned IDs ``a`` and
+        ``b`` (symmetric; pairs never seen together are absent)."""
         self.merged_into: Dict[int, int] = {}
         """A merged (retired) ID -> the ID it was merged into."""
         self.now_ns: Optional[int] = None
@@ -156,6 +159,7 @@ class Tracker:
         self.classes.clear()
         self.tentative.clear()
         self.owned.clear()
+        self.sightings.clear()
         self.together.clear()
         self.merged_into.clear()
         self.now_ns = None
@@ -282,19 +286,65 @@ class Tracker:
                                                  int(stamp_ns), source)
             counts['new_tentative'] += 1
             self.dirty = True
-        seen = sorted({i for i in ids.tolist() if i in self.owned})
-        for k, a in enumerate(seen):
-            self.together.update((a, b) for b in seen[k + 1:])
+        self.note_sightings(ids)
         return ids
+
+    def note_sightings(self, ids: NDArray[np.int64]) -> None:
+        """
+        Count one message's sightings of owned IDs, alone and by pairs (the merge test).
+
+        Parameters
+        ----------
+        ids : ndarray of int, shape (N,)
+            The IDs the message's rows went to (others than owned ones are ignored;
+            an ID given to several rows counts once).
+
+        """
+        seen = sorted({i for i in np.asarray(ids).tolist() if i in self.owned})
+        for a in seen:
+            self.sightings[a] = self.sightings.get(a, 0) + 1
+            for b in seen:
+                if b != a:
+                    partners = self.together.setdefault(a, {})
+                    partners[b] = partners.get(b, 0) + 1
+
+    def _forget_counts(self, landmark_id: int) -> None:
+        """Drop the sighting counts of an ID that left (deleted or merged)."""
+        self.sightings.pop(landmark_id, None)
+        for other in self.together.pop(landmark_id, {}):
+            self.together[other].pop(landmark_id, None)
+            if not self.together[other]:
+                del self.together[other]
+
+    def _merge_counts(self, keep: int, drop: int) -> None:
+        """
+        Move the counts of ``drop`` to ``keep``, merged into it.
+
+        The sightings of the merged track are those of either (the messages that saw
+        both counted once); its co-occurrences with a third track add up, an upper
+        bound (a message that saw all three counts twice), which errs on the side of
+        keeping tracks apart.
+        """
+        both = self.together.get(keep, {}).get(drop, 0)
+        self.sightings[keep] = (self.sightings.get(keep, 0) + self.sightings.get(drop, 0)
+                                - both)
+        for other, count in self.together.get(drop, {}).items():
+            if other != keep:
+                partners = self.together.setdefault(keep, {})
+                partners[other] = partners.get(other, 0) + count
+                self.together[other][keep] = partners[other]
+        self._forget_counts(drop)
 
     def merge(self, landmark_map: LandmarkMap, counts: Counter,
               changed: Optional[NDArray[np.int64]] = None) -> List[Tuple[int, int]]:
         """
-        Merge confirmed tracks of one class that became compatible and never met.
+        Merge confirmed tracks of one class that became compatible and rarely met.
 
         Two confirmed landmarks this tracker allocated, of the same class, whose means
         pass the gate ``d2 <= chi2_threshold(2, association_gate_probability)`` with
-        ``S = P_a + P_b`` and that no message saw together, are one landmark: the one
+        ``S = P_a + P_b`` (``compatible_pairs``) and whose sightings favour one landmark
+        (``one_landmark``: never, or, with ``detection_probability`` given, seldom
+        both in one message for how often they were seen) are one landmark: the one
         with fewer observations is fused into the other and taken out of the map
         (``LandmarkMap.merge``: with split CI its per-source sums are added to the
         other's, as if its rows had gone there) and its ID recorded in
@@ -318,11 +368,53 @@ class Tracker:
 
         """
         snapshot = landmark_map.snapshot()
-        mine = np.isin(snapshot.ids, np.fromiter(self.owned, np.int64, len(self.owned)))
-        if mine.sum() < 2:
+        ids, observations = snapshot.ids, snapshot.observations
+        merged, retired = [], set()
+        for a, b, _ in self.compatible_pairs(snapshot, changed):
+            if a in retired or b in retired:
+                continue
+            pair = (int(ids[a]), int(ids[b]))
+            if not self.one_landmark(*pair):
+                continue
+            keep, drop = (a, b) if observations[a] >= observations[b] else (b, a)
+            if not landmark_map.merge(int(ids[keep]), int(ids[drop])):
+                continue
+            retired.add(drop)
+            merged.append((int(ids[drop]), int(ids[keep])))
+            self.merged_into[int(ids[drop])] = int(ids[keep])
+            self.owned.discard(int(ids[drop]))
+            self._merge_counts(int(ids[keep]), int(ids[drop]))
+        if merged:
+            counts['merged'] += len(merged)
+            self.dirty = True
+        return merged
+
+    def compatible_pairs(self, snapshot: MapSnapshot,
+                         changed: Optional[NDArray[np.int64]] = None
+                         ) -> List[Tuple[int, int, float]]:
+        """
+        Return the pairs of owned confirmed landmarks of one class inside each other's gate.
+
+        Parameters
+        ----------
+        snapshot : MapSnapshot
+            The confirmed map.
+        changed : ndarray of int, shape (C,), optional
+            Only pairs with one of these landmarks; all pairs by default.
+
+        Returns
+        -------
+        list of (int, int, float)
+            ``(a, b, d2)``: rows ``a < b`` of ``snapshot`` and the squared Mahalanobis
+            distance of their means on ``P_a + P_b``, at most the gate
+            ``chi2_threshold(2, association_gate_probability)``; sorted by rows.
+
+        """
+        owned = np.fromiter(self.owned, np.int64, len(self.owned))
+        mine = np.flatnonzero(np.isin(snapshot.ids, owned))
+        if len(mine) < 2:
             return []
         ids, m, P = snapshot.ids[mine], snapshot.m[mine], snapshot.P[mine]
-        observations = snapshot.observations[mine]
         queries = np.arange(len(ids))
         if changed is not None:
             queries = np.flatnonzero(np.isin(ids, np.asarray(changed, np.int64)))
@@ -332,30 +424,31 @@ class Tracker:
         cands = candidates(index, m[queries], P[queries], self.class_of(ids[queries]),
                            self.config.association_gate_probability)
         threshold = chi2_threshold(2, self.config.association_gate_probability)
-        merged, retired = [], set()
         pairs: Dict[Tuple[int, int], float] = {}
         for a, b, d2 in zip(queries[cands.rows].tolist(), cands.landmarks.tolist(),
                             cands.d2.tolist()):
-            if a != b:
+            if a != b and d2 <= threshold:
                 key = (min(a, b), max(a, b))
                 pairs[key] = min(d2, pairs.get(key, d2))
-        for (a, b), d2 in sorted(pairs.items()):
-            if a in retired or b in retired or d2 > threshold:
-                continue
-            pair = (int(ids[a]), int(ids[b]))
-            if pair in self.together:
-                continue
-            keep, drop = (a, b) if observations[a] >= observations[b] else (b, a)
-            if not landmark_map.merge(int(ids[keep]), int(ids[drop])):
-                continue
-            retired.add(drop)
-            merged.append((int(ids[drop]), int(ids[keep])))
-            self.merged_into[int(ids[drop])] = int(ids[keep])
-            self.owned.discard(int(ids[drop]))
-        if merged:
-            counts['merged'] += len(merged)
-            self.dirty = True
-        return merged
+        return [(int(mine[a]), int(mine[b]), d2) for (a, b), d2 in sorted(pairs.items())]
+
+    def one_landmark(self, a: int, b: int) -> bool:
+        """
+        Decide whether two compatible owned tracks are one landmark, from their sightings.
+
+        Of the ``n`` messages that gave a row to either, ``k`` gave rows to both. With
+        ``detection_probability`` unknown (0), one landmark when ``k = 0``; else when
+        ``together_log_likelihood_ratio(k, n, merge_together_same, p_D / (2 - p_D))``
+        is positive (two distinct landmarks in view are both seen in about
+        ``p_D^2 / (1 - (1 - p_D)^2)`` of the messages seeing either).
+        """
+        k = self.together.get(a, {}).get(b, 0)
+        p_D = self.config.detection_probability
+        if k == 0 or p_D <= 0.0:
+            return k == 0
+        n = max(self.sightings.get(a, 0) + self.sightings.get(b, 0) - k, k)
+        return together_log_likelihood_ratio(
+            k, n, self.config.merge_together_same, p_D / (2.0 - p_D)) > 0.0
 
     def note_rows(self, ids: NDArray[np.int64], m: NDArray[np.float64],
                   P: NDArray[np.float64], P_dep: NDArray[np.float64], source: str,
@@ -375,8 +468,9 @@ class Tracker:
         ``tentative`` (per track: ``id``, ``class``, ``first_stamp_ns``, ``source`` and
         its ``rows``, each ``mean``, ``covariance``, ``covariance_dependent``,
         ``source``, ``stamp_ns``), ``owned`` (the IDs this tracker allocated that are
-        still landmarks or tracks), ``together`` (pairs of them a message saw
-        together: never merged), ``merged_into`` (``[retired, kept]`` pairs) and
+        still landmarks or tracks), ``sightings`` (``[id, messages]`` for each of them
+        a message saw), ``together`` (``[a, b, messages]``, ``a < b``, for each pair of
+        them a message saw together), ``merged_into`` (``[retired, kept]`` pairs) and
         ``now_ns`` (the expiry clock, or null).
         """
         return {
@@ -389,7 +483,9 @@ class Tracker:
                          for m, P, P_dep, source, stamp in track.rows]}
                 for landmark_id, track in sorted(self.tentative.items())],
             'owned': sorted(int(i) for i in self.owned),
-            'together': sorted([int(a), int(b)] for a, b in self.together),
+            'sightings': sorted([int(a), int(n)] for a, n in self.sightings.items()),
+            'together': sorted([int(a), int(b), int(k)] for a, partners in self.together.items()
+                               for b, k in partners.items() if a < b),
             'merged_into': sorted([int(a), int(b)] for a, b in self.merged_into.items()),
             'now_ns': None if self.now_ns is None else int(self.now_ns)}
 
@@ -416,8 +512,19 @@ class Tracker:
                         0 <= value <= MAX_LABEL_ID):
                     raise ValueError(f'{value!r} is not a landmark ID')
                 return value
+
+            def count(value):
+                if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+                    raise ValueError(f'{value!r} is not a count')
+                return value
             owned = {ident(i) for i in document.get('owned', [])}
-            together = {(ident(a), ident(b)) for a, b in document.get('together', [])}
+            sightings = {ident(a): count(n) for a, n in document.get('sightings', [])}
+            together: Dict[int, Dict[int, int]] = {}
+            for entry in document.get('together', []):
+                # [a, b, messages]; an older file's [a, b] counts once.
+                a, b, k = (*entry, 1) if len(entry) == 2 else entry
+                a, b, k = ident(a), ident(b), count(k)
+                together.setdefault(a, {})[b] = together.setdefault(b, {})[a] = k
             merged = {ident(a): ident(b) for a, b in document.get('merged_into', [])}
             now_ns = document.get('now_ns')
             if now_ns is not None and (isinstance(now_ns, bool) or not isinstance(now_ns, int)):
@@ -444,7 +551,8 @@ class Tracker:
                                 np.array([r[1] for r in rows]), np.array([r[2] for r in rows]),
                                 np.array([r[3] for r in rows]), np.array([r[4] for r in rows]),
                                 np.array([r[5] for r in rows], np.int64))
-        self.owned, self.together, self.merged_into = owned | set(tracks), together, merged
+        self.owned, self.merged_into = owned | set(tracks), merged
+        self.sightings, self.together = sightings, together
         self.tentative, self.now_ns = tracks, now_ns
         for landmark_id, track in tracks.items():
             if track.landmark_class:
@@ -531,8 +639,44 @@ class Tracker:
             landmark_map.forget(np.array(old, np.int64))
             for landmark_id in old:
                 counts_of[self.tentative.pop(landmark_id).source]['deleted'] += 1
+                self.owned.discard(landmark_id)
+                self._forget_counts(landmark_id)
             self.dirty = True
         return old
+
+
+def together_log_likelihood_ratio(k: int, n: int, same: float, distinct: float) -> float:
+    """
+    Return the log likelihood ratio of one landmark against two, from co-occurrences.
+
+    Of ``n`` messages that gave a row to either of two tracks, ``k`` gave rows to both.
+    Two distinct landmarks close enough to pass each other's gate are seen together in
+    a fraction ``distinct`` of such messages (about ``p_D / (2 - p_D)`` when both are
+    in view), two tracks of one landmark in a fraction ``same`` (a clutter row or a
+    mis-associated row beside it). With ``k ~ Binomial(n, rate)``:
+    ``k log(same / distinct) + (n - k) log((1 - same) / (1 - distinct))``; positive
+    favours one landmark. ``k = 0`` always favours it (the rule "never seen together"),
+    each co-occurrence costs ``log(distinct / same)``, each message that saw only one of
+    them gains ``log((1 - same) / (1 - distinct))``: asymptotically, one landmark when
+    ``k / n`` is below ``log((1 - same) / (1 - distinct)) / log(distinct (1 - same) /
+    (same (1 - distinct)))``.
+
+    Parameters
+    ----------
+    k : int
+        Messages that saw both.
+    n : int
+        Messages that saw either, ``n >= k``.
+    same, distinct : float
+        The two rates, ``0 < same < distinct < 1``.
+
+    Returns
+    -------
+    float
+
+    """
+    return float(k * np.log(same / distinct)
+                 + (n - k) * (np.log1p(-same) - np.log1p(-distinct)))
 
 
 def _open_ambiguity(cands: Candidates, result: Association) -> NDArray[np.intp]:

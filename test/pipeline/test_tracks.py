@@ -226,7 +226,7 @@ def test_compatible_tracks_that_never_met_are_merged(met):
     fuser.map.update([a, a, a], np.array([[0.0, 0.0]] * 3), C, 0 * C, 'r', S)
     fuser.map.update([b, b], np.array([[0.05, 0.0]] * 2), C[:2], 0 * C[:2], 'r', S)
     if met:
-        tracker.together.add((a, b))
+        tracker.note_sightings(np.array([a, b]))
     counts = fuser.sources[SOURCES[0]].counts
     merged = tracker.merge(fuser.map, counts)
     if met:
@@ -357,7 +357,7 @@ def test_a_restart_resumes_tentative_tracks_and_merge_bookkeeping(tmp_path, rng)
     assert {t['id'] for t in document['tracks']['tentative']} == set(running.tracker.tentative)
     restarted = Fuser(config, SOURCES)
     restarted.load()
-    for name in ('owned', 'together', 'merged_into', 'now_ns', 'next_id'):
+    for name in ('owned', 'sightings', 'together', 'merged_into', 'now_ns', 'next_id'):
         assert getattr(restarted.tracker, name) == getattr(running.tracker, name), name
     assert sorted(restarted.tracker.tentative) == sorted(running.tracker.tentative)
     # Both go on with the same messages: the restarted one is the running one.

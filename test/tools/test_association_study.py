@@ -99,3 +99,13 @@ def test_the_shared_frame_case_scores_the_frame_averaged_anees():
     plain = study.run_case(1.0, 0.0, seed=1, configs=configs, duration_s=3.0, pairs=4)
     assert all(not score.frame_seed_anees and 'frame_anees_mean' not in score.summary()
                for score in plain.values())
+
+
+def test_the_study_setting_gives_the_fusers_the_simulated_p_D():
+    configs = study.study_configs(references=True)
+    p_D = study.HEADLINE['detection_probability']
+    for name in (*study.METHODS, 'independent'):
+        assert configs[name].detection_probability == p_D, name
+        assert configs[name].min_observations == study.STUDY_SETTING['min_observations']
+    # The package defaults: p_D unknown, tracks once seen together never merged.
+    assert configs['defaults'] == FuserConfig() and configs['defaults'].detection_probability == 0

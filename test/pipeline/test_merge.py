@@ -1,0 +1,196 @@
+"""Merging the tracks of landmarks without IDs: the co-occurrence test (pipeline.tracks)."""
+
+from collections import Counter
+import json
+
+from landmark_ros.pipeline.config import FuserConfig
+from landmark_ros.pipeline.fuser import Fuser
+from landmark_ros.pipeline.rows import UNKNOWN_ID
+from landmark_ros.pipeline.tracks import Scan, together_log_likelihood_ratio
+import numpy as np
+import pytest
+from scipy import stats
+
+S = 1_000_000_000
+SOURCE = '/robot1/landmarks'
+CERTAIN = Scan(np.zeros(2), np.zeros((3, 3)))
+
+
+@pytest.mark.parametrize('k, n, same, distinct', [
+    (0, 0, 0.01, 0.8), (0, 12, 0.01, 0.8), (1, 40, 0.01, 0.818), (2, 33, 0.05, 0.2),
+    (7, 9, 0.001, 0.5), (30, 30, 0.2, 0.9)])
+def test_together_log_likelihood_ratio_is_the_binomial_ratio(k, n, same, distinct):
+    want = stats.binom.logpmf(k, n, same) - stats.binom.logpmf(k, n, distinct)
+    assert together_log_likelihood_ratio(k, n, same, distinct) == pytest.approx(want, abs=1e-12)
+
+
+def _two_confirmed_tracks(config):
+    """Return a fuser with two owned confirmed tracks 5 cm apart (compatible), a and b."""
+    fuser = Fuser(config, [SOURCE])
+    tracker, C = fuser.tracker, np.broadcast_to(0.01 * np.eye(2), (3, 2, 2)).copy()
+    a, b = tracker.allocate(fuser.map), tracker.allocate(fuser.map)
+    fuser.map.update([a, a, a], np.array([[0.0, 0.0]] * 3), C, 0 * C, 'r', S)
+    fuser.map.update([b, b], np.array([[0.05, 0.0]] * 2), C[:2], 0 * C[:2], 'r', S)
+    return fuser, a, b
+
+
+def _sightings(tracker, a, b, alone_a, alone_b, both):
+    for ids in [[a]] * alone_a + [[b]] * alone_b + [[a, b]] * both:
+        tracker.note_sightings(np.array(ids, np.int64))
+
+
+@pytest.mark.parametrize('p_D, alone_a, alone_b, both, merged', [
+    # A duplicate: once in one message with its landmark's first track (a clutter row
+    # beside it), 40 messages saw only one of the two. Merged when p_D is known.
+    (0.9, 30, 10, 1, True),
+    (0.0, 30, 10, 1, False),          # p_D unknown: once together, never merged
+    # Two landmarks seen together as often as p_D says (0.82 of the messages): apart.
+    (0.9, 5, 4, 30, False),
+    # MRCLAM's worst real pair while compatible (19 and 20: 2 of 33 messages), with the
+    # package default: apart.
+    (0.0, 16, 15, 2, False),
+    # Never together: merged, whatever p_D (the rule without co-occurrence).
+    (0.0, 3, 2, 0, True), (0.9, 3, 2, 0, True)])
+def test_compatible_tracks_merge_when_their_co_occurrence_says_one_landmark(
+        p_D, alone_a, alone_b, both, merged):
+    fuser, a, b = _two_confirmed_tracks(FuserConfig(detection_probability=p_D))
+    tracker, counts = fuser.tracker, Counter()
+    _sightings(tracker, a, b, alone_a, alone_b, both)
+    result = tracker.merge(fuser.map, counts)
+    if merged:
+        assert result == [(b, a)] and counts['merged'] == 1
+        assert fuser.snapshot().ids.tolist() == [a] and tracker.resolve(b) == a
+        # The merged track was seen in every message that saw either.
+        assert tracker.sightings == {a: alone_a + alone_b + both} and tracker.together == {}
+    else:
+        assert result == [] and counts['merged'] == 0
+        assert fuser.snapshot().ids.tolist() == [a, b]
+
+
+def test_the_test_needs_evidence_the_co_occurrence_is_rare():
+    # Once together, then messages that saw one of them: the ratio turns positive
+    # when (n - k) log((1 - same) / (1 - q)) outweighs k log(q / same).
+    config = FuserConfig(detection_probability=0.9)
+    q = 0.9 / 1.1
+    needed = int(np.ceil(np.log(q / 0.01) / (np.log(0.99) - np.log(1 - q))))
+    fuser, a, b = _two_confirmed_tracks(config)
+    _sightings(fuser.tracker, a, b, needed - 1, 0, 1)
+    assert fuser.tracker.merge(fuser.map, Counter()) == []
+    fuser.tracker.note_sightings(np.array([b]))
+    assert fuser.tracker.merge(fuser.map, Counter()) == [(b, a)]
+
+
+def _duplicate_run(config):
+    """
+    Feed one landmark at the origin and a clutter row beside it, twice, then the landmark.
+
+    Returns the fuser and its counters. The first two messages confirm track A; two
+    messages with a second row 12 cm off (clutter, or a mis-associated row) start and
+    confirm track B, seen twice with A; then 30 messages of the landmark alone.
+    """
+    fuser = Fuser(config, [SOURCE])
+    R = 0.01 * np.eye(2)
+    rows = [[(0.0, 0.0)], [(0.02, 0.0)], [(0.0, 0.01), (0.12, 0.0)],
+            [(0.0, -0.01), (0.11, 0.01)]] + [[(0.01 * (-1) ** k, 0.0)] for k in range(30)]
+    for k, message in enumerate(rows):
+        m = np.array(message)
+        P = np.broadcast_to(R, (len(m), 2, 2)).copy()
+        fuser.add_landmarks(SOURCE, (k + 1) * S, [UNKNOWN_ID] * len(m), m, P, 0.2 * P,
+                            scan=CERTAIN)
+        fuser.fuse_queued()
+    return fuser, fuser.sources[SOURCE].counts
+
+
+def test_a_duplicate_started_beside_its_landmark_is_merged_when_p_D_is_known():
+    fuser, counts = _duplicate_run(FuserConfig(detection_probability=0.9))
+    assert counts['confirmed'] == 2 and counts['merged'] == 1
+    (kept,) = fuser.snapshot().ids.tolist()
+    assert fuser.take_removed() == [(kept + 1, kept)]
+    assert fuser.tracker.sightings == {kept: 34} and fuser.tracker.together == {}
+    # The package default (p_D unknown): the two tracks were seen together, kept apart.
+    fuser, counts = _duplicate_run(FuserConfig())
+    assert counts['confirmed'] == 2 and counts['merged'] == 0
+    assert len(fuser.snapshot().ids) == 2
+
+
+def test_an_mrclam_like_close_pair_is_never_merged(rng):
+    # Two landmarks 18 cm apart (an MRCLAM barcode pair), rows with 8 cm of noise so
+    # that young tracks of the two are compatible; each message sees each with
+    # probability 0.35 (both in about 20 % of the messages seeing either, as on
+    # dataset 6). Package defaults.
+    truth = np.array([[2.0, 1.0], [2.18, 1.0]])
+    fuser = Fuser(FuserConfig(), [SOURCE])
+    R = 0.0064 * np.eye(2)
+    for k in range(400):
+        seen = np.flatnonzero(rng.random(2) < 0.35)
+        if not len(seen):
+            continue
+        m = truth[seen] + rng.normal(0.0, 0.08, (len(seen), 2))
+        P = np.broadcast_to(R, (len(m), 2, 2)).copy()
+        fuser.add_landmarks(SOURCE, (k + 1) * S, [UNKNOWN_ID] * len(m), m, P, 0.2 * P,
+                            scan=CERTAIN)
+        fuser.fuse_queued()
+    counts = fuser.sources[SOURCE].counts
+    ids, m = fuser.snapshot()[:2]
+    assert counts['merged'] == 0 and len(ids) == 2
+    nearest = np.linalg.norm(m[:, None] - truth[None], axis=-1).argmin(axis=1)
+    assert sorted(nearest.tolist()) == [0, 1]
+
+
+def test_counts_follow_merges_and_deletions_and_survive_a_restart(tmp_path):
+    config = FuserConfig(map_file=str(tmp_path / 'map.json'), detection_probability=0.9)
+    fuser, a, b = _two_confirmed_tracks(config)
+    tracker = fuser.tracker
+    c = tracker.allocate(fuser.map)
+    fuser.map.update([c, c], np.array([[5.0, 5.0]] * 2), 0.01 * np.eye(2)[None].repeat(2, 0),
+                     np.zeros((2, 2, 2)), 'r', S)
+    # An ID given to two rows of one message counts once; IDs not owned are ignored.
+    tracker.note_sightings(np.array([a, a, c, 7], np.int64))
+    _sightings(tracker, a, b, 20, 5, 1)
+    tracker.note_sightings(np.array([b, c], np.int64))
+    assert tracker.sightings == {a: 22, b: 7, c: 2}
+    assert tracker.together == {a: {b: 1, c: 1}, b: {a: 1, c: 1}, c: {a: 1, b: 1}}
+    assert tracker.merge(fuser.map, Counter()) == [(b, a)]
+    # a and b seen in 22 + 7 - 1 messages; with c: 1 + 1 (an upper bound).
+    assert tracker.sightings == {a: 28, c: 2}
+    assert tracker.together == {a: {c: 2}, c: {a: 2}}
+    assert fuser.save()
+    document = json.loads((tmp_path / 'map.json').read_text())['tracks']
+    assert document['sightings'] == [[a, 28], [c, 2]]
+    assert document['together'] == [[a, c, 2]]
+    restarted = Fuser(config, [SOURCE])
+    restarted.load()
+    assert restarted.tracker.sightings == tracker.sightings
+    assert restarted.tracker.together == tracker.together
+    # An older file: pairs without counts count once, no sightings.
+    document = json.loads((tmp_path / 'map.json').read_text())
+    document['tracks']['together'] = [[a, c]]
+    del document['tracks']['sightings']
+    (tmp_path / 'map.json').write_text(json.dumps(document))
+    older = Fuser(config, [SOURCE])
+    older.load()
+    assert older.tracker.together == {a: {c: 1}, c: {a: 1}} and older.tracker.sightings == {}
+    assert older.counters.counts['map_file_rejected'] == 0
+
+
+def test_a_deleted_tentative_track_takes_its_counts_along():
+    fuser = Fuser(FuserConfig(tentative_timeout_s=1.0), [SOURCE])
+    R = np.broadcast_to(0.01 * np.eye(2), (2, 2, 2)).copy()
+    fuser.add_landmarks(SOURCE, S, [UNKNOWN_ID] * 2, np.array([[0.0, 0.0], [9.0, 0.0]]), R,
+                        0 * R, scan=CERTAIN)
+    fuser.fuse_queued()
+    a, b = sorted(fuser.tracker.tentative)
+    assert fuser.tracker.sightings == {a: 1, b: 1} and fuser.tracker.together[a] == {b: 1}
+    fuser.add_landmarks(SOURCE, 3 * S, [UNKNOWN_ID], np.array([[20.0, 0.0]]), R[:1], 0 * R[:1],
+                        scan=CERTAIN)
+    fuser.fuse_queued()
+    counts = fuser.sources[SOURCE].counts
+    assert counts['deleted'] == 2 and a not in fuser.tracker.owned
+    (c,) = fuser.tracker.tentative
+    assert fuser.tracker.sightings == {c: 1} and fuser.tracker.together == {}
+
+
+def test_p_D_must_make_distinct_landmarks_co_occur_more_than_duplicates():
+    FuserConfig(detection_probability=0.05, merge_together_same=0.02)   # q = 0.026
+    with pytest.raises(ValueError, match='merge_together_same'):
+        FuserConfig(detection_probability=0.02, merge_together_same=0.02)   # q = 0.010
