@@ -44,8 +44,10 @@ def test_hessians_batch_like_single_items_and_refuse_a_landmark_on_the_sensor():
 
 def _model_curvatures(f, m, R, step=1e-4):
     """
-    Reference: accelerations of the whitened model ``f`` (values of N views at ``m``)
-    from central second differences along each direction, split by the tangent plane.
+    Return the reference curvatures of the whitened model ``f`` (N views at ``m``).
+
+    Accelerations from central second differences along each direction, split by the
+    tangent plane.
     """
     w = 1.0 / np.sqrt(R)
     J = numerical_jacobian(lambda x: f(x) * w, m)

@@ -558,7 +558,7 @@ def test_a_mirror_image_the_data_cannot_reject_waits():
 
 
 def _approach_path(n=50):
-    """A robot driving towards a landmark on a gently curving path (simulator seed 9)."""
+    """Return poses of a robot driving at a landmark on a gently curving path (seed 9)."""
     anchor = np.array([[0.07, -5.91], [0.66, -5.35], [1.34, -4.69], [1.86, -3.84],
                        [2.3, -2.75], [2.57, -2.2]])
     u, k = np.linspace(0.0, 1.0, n), np.linspace(0.0, 1.0, len(anchor))
