@@ -23,6 +23,7 @@ REQUIRED = [
     'landmark_ros.core._arrays',
     'landmark_ros.core._fold_kernel',
     'landmark_ros.core.association',
+    'landmark_ros.core.curvature',
     'landmark_ros.core.ellipse',
     'landmark_ros.core.gaussian',
     'landmark_ros.core.landmark_map',

@@ -42,5 +42,6 @@ gaussian   Product of Gaussians, covariance intersection, Mahalanobis gate.
 landmarks  The chapter's operations with full uncertainty propagation.
 ellipse    Geometry of the k-sigma contour of a 2D Gaussian.
 landmark_map  ``LandmarkMap``: fusion by landmark ID, gating, confirmation.
+curvature  Second derivatives of range and bearing; relative curvatures of a fit.
 
 """

@@ -37,6 +37,8 @@ import math
 from typing import Any, Iterable, List, Optional, Tuple, TYPE_CHECKING, Union
 
 from landmark_ros.core import sensors
+from landmark_ros.core.curvature import CONFIDENCE_RADIUS_95, observe_hessians, \
+    relative_curvatures
 from landmark_ros.core.gaussian import chi2_threshold
 from landmark_ros.core.landmarks import sensor_in_world
 from landmark_ros.core.pose2 import wrap_angle
@@ -57,7 +59,8 @@ OK = 'ok'
 WAIT = 'wait'
 WAIT_REASONS = (
     'too_few_views', 'rays_do_not_cross', 'small_crossing_angle', 'no_intersection',
-    'no_convergence', 'ambiguous', 'ill_conditioned', 'too_uncertain', 'inconsistent')
+    'no_convergence', 'ambiguous', 'ill_conditioned', 'too_uncertain', 'too_curved',
+    'inconsistent')
 """Why ``initialise`` waits for more views, as counters and logs name it."""
 
 UPDATED = 0
@@ -626,6 +629,13 @@ class InitialiseParams:
         ``h`` at the estimate, which holds only while the uncertainty is small
         against the range (the linearity condition of delayed initialisation,
         Bailey, ICRA 2003). Beyond, wait (``too_uncertain``).
+    max_curvature_ratio : float or None
+        Largest ratio of the radius of the 95 % confidence region (2.45 standard
+        deviations) to the radius of curvature of the fit, parameter effects or
+        intrinsic (``curvature.relative_curvatures``): beyond, the Gaussian
+        ``P_m`` does not describe the error (a curved valley of ranges from a short
+        stretch of path) and the landmark waits (``too_curved``). 0.5 is Bates and
+        Watts' rule (1980); ``None`` skips.
     ambiguity_chi2 : float
         A second local minimum whose cost (sum of squared normalised residuals) is
         within this of the best makes the landmark ambiguous (two circles: two points).
@@ -651,6 +661,7 @@ class InitialiseParams:
     max_condition: float = 1e6
     max_stddev: float = 10.0
     max_relative_stddev: float = 0.1
+    max_curvature_ratio: Optional[float] = 0.5
     ambiguity_chi2: float = 10.827566170662733
     consistency_probability: Optional[float] = 0.999
     loss: str = 'linear'
@@ -666,6 +677,9 @@ class InitialiseParams:
         for name in ('max_stddev', 'max_relative_stddev', 'ambiguity_chi2', 'f_scale'):
             if not getattr(self, name) > 0.0:
                 raise ValueError(f'{name} must be positive, got {getattr(self, name)!r}')
+        if self.max_curvature_ratio is not None and not self.max_curvature_ratio > 0.0:
+            raise ValueError('max_curvature_ratio must be positive or None, got '
+                             f'{self.max_curvature_ratio!r}')
         p = self.consistency_probability
         if p is not None and not 0.0 < p < 1.0:
             raise ValueError(f'consistency_probability must lie in (0, 1) or be None, got {p!r}')
@@ -954,7 +968,8 @@ def initialise(views: Views, params: InitialiseParams = InitialiseParams(),
     Initialisation
         ``status`` ``'wait'`` with a ``reason`` when the geometry does not determine
         the landmark: too few views, rays that do not cross or cross at too small an
-        angle, an ambiguous or ill-conditioned solution, a too uncertain one, or
+        angle, an ambiguous or ill-conditioned solution, a too uncertain or too
+        curved one (``max_curvature_ratio``), or
         residuals inconsistent with the declared variances.
 
     """
@@ -996,6 +1011,11 @@ def initialise(views: Views, params: InitialiseParams = InitialiseParams(),
     if not 1.0 / eigenvalues[0] <= min(params.max_stddev,
                                        params.max_relative_stddev * nearest) ** 2:
         return wait('too_uncertain', best, condition)
+    if params.max_curvature_ratio is not None:
+        H_h_m = observe_hessians(views.s, best.m)[np.arange(n), views.kind]
+        curvature = max(relative_curvatures(best.lin.J_h_m[:, 0, :], H_h_m, best.lin.R_eff))
+        if not curvature * CONFIDENCE_RADIUS_95 <= params.max_curvature_ratio:
+            return wait('too_curved', best, condition)
     if (params.consistency_probability is not None and n > 2
             and best.cost > chi2_threshold(n - 2, params.consistency_probability)):
         return wait('inconsistent', best, condition)

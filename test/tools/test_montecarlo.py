@@ -27,10 +27,11 @@ def test_each_sensor_kind_is_near_consistent_with_the_plain_ekf():
     """
     Range-only, bearing-only and a mixed team through the views: the EKF's ANEES.
 
-    Theory (first order) puts it at 2. Measured with 10 seeds x 15 s: bearing-only 2.41
-    (inside), range-only 3.72 (over-confident: linearised range updates); before the
-    linearity condition of the placement, range-only was in the thousands. The test
-    checks the computation runs every kind through the views and stays near 2.
+    Theory (first order) puts it at 2. Before the curvature rule of the placement
+    (10 seeds x 15 s) range-only was 3.67 (over-confident: landmarks placed on a curved
+    valley of ranges), before the linearity condition in the thousands; README has
+    the current figures. The test checks the computation runs every kind through the
+    views and stays near 2.
     """
     out = io.StringIO()
     rows = montecarlo.run(seeds=3, duration_s=8.0, scenarios=('range', 'bearing', 'mixed'),
