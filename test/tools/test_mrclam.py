@@ -489,7 +489,7 @@ def test_offline_with_one_column_dropped_places_every_landmark_from_views(
     if sensor == 'bearing':
         assert entry['landmarks_initialised'] == len(LANDMARKS)
     else:
-        assert entry['landmarks_initialised'] <= 2  # the others wait: 'too_curved' (core.curvature)
+        assert entry['landmarks_initialised'] <= 2  # others wait: 'too_curved' (core.curvature)
     # Placed where the covariance says (a far one from two close robots: 0.6 m, NEES 2.5).
     assert all(landmark['error_m'] < 1.0 and landmark['nees'] < 13.8
                for landmark in entry['landmarks'])
