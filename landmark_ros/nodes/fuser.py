@@ -15,7 +15,7 @@ import sys
 
 from diagnostic_msgs.msg import DiagnosticArray
 from landmark_ros.pipeline.config import FuserConfig
-from landmark_ros.pipeline.fuser import Fuser
+from landmark_ros.pipeline.fuser import Fuser, LandmarkMessage
 from landmark_ros.ros import diagnostics, guard, qos, runner
 from landmark_ros.ros.cloud import CloudError
 from landmark_ros.ros.conversions import stamp_ns
@@ -118,6 +118,7 @@ class LandmarkFuser(Node):
         """Decode landmark clouds (this one and those waiting) and queue their rows."""
         source = self._source_of[topic]
         now = self.get_clock().now().nanoseconds
+        messages = []
         for cloud in [msg] + take_waiting(self._subscriptions_by_topic[topic], PointCloud2,
                                           self.config.max_batch_messages - 1):
             try:
@@ -126,9 +127,11 @@ class LandmarkFuser(Node):
                 self.fuser.reject(source, 'messages_in')
                 self.fuser.reject(source, error.reason, 1, f'message dropped: {error}')
                 continue
-            self.fuser.add_landmarks(source, stamp_ns(cloud.header.stamp), rows.ids, rows.m,
-                                     rows.P, rows.P_dep, cloud.header.frame_id, now,
-                                     extras.classes, extras.scan)
+            messages.append(LandmarkMessage(stamp_ns(cloud.header.stamp), rows.ids, rows.m,
+                                            rows.P, rows.P_dep, cloud.header.frame_id,
+                                            extras.classes, extras.scan))
+        # One row check for the burst (``Fuser.add_landmark_messages``).
+        self.fuser.add_landmark_messages(source, messages, now)
 
     def on_constraints(self, msg, topic):
         """Decode constraint clouds (this one and those waiting) and queue their views."""

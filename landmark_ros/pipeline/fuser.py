@@ -14,7 +14,7 @@ give one by one). Partial views (range-only, bearing-only rows of the constraint
 from collections import Counter, deque
 from dataclasses import dataclass, field
 import itertools
-from typing import Any, Deque, Dict, List, Optional, Sequence, Tuple
+from typing import Any, Deque, Dict, List, NamedTuple, Optional, Sequence, Tuple
 
 from landmark_ros.core.landmark_map import LandmarkMap, MapSnapshot, UpdateResult
 from landmark_ros.pipeline import map_file
@@ -56,6 +56,19 @@ class _Queued:
     classes: Optional[NDArray[np.int64]] = None
     scan: Optional[Scan] = None
     unlabelled: bool = False
+
+
+class LandmarkMessage(NamedTuple):
+    """One landmark message of a source, as ``Fuser.add_landmarks`` takes it (same fields)."""
+
+    stamp_ns: int
+    ids: NDArray[Any]
+    m: NDArray[np.float64]
+    P: NDArray[np.float64]
+    P_dep: NDArray[np.float64]
+    frame_id: Optional[str] = None
+    classes: Optional[NDArray[Any]] = None
+    scan: Optional[Scan] = None
 
 
 @dataclass
@@ -160,6 +173,8 @@ class Fuser:
         """
         Check the rows of one landmark message and queue the valid ones.
 
+        ``add_landmark_messages`` with one message.
+
         Parameters
         ----------
         source : str
@@ -190,39 +205,86 @@ class Fuser:
             The rows queued.
 
         """
-        state = self._arrive(source, frame_id, now_ns, 'landmarks')
-        if state is None:
+        return self.add_landmark_messages(source, [LandmarkMessage(
+            stamp_ns, ids, m, P, P_dep, frame_id, classes, scan)], now_ns)
+
+    def add_landmark_messages(self, source: str, messages: Sequence['LandmarkMessage'],
+                              now_ns: Optional[int] = None) -> int:
+        """
+        Check the rows of several landmark messages of one source and queue the valid ones.
+
+        The messages are taken in order, each as ``add_landmarks`` takes one (its own
+        frame check, stamp and queue entry), but their rows are checked together: one
+        ``rows.landmark_row_problems`` over all of them, so a burst of small messages
+        pays the checks' fixed cost once. Rejected rows are counted and logged once
+        per reason for the burst.
+
+        Parameters
+        ----------
+        source : str
+            One of the sources.
+        messages : sequence of LandmarkMessage
+            The messages, oldest first.
+        now_ns : int, optional
+            Arrival time [ns], for the stale-source check.
+
+        Returns
+        -------
+        int
+            The rows queued.
+
+        """
+        kept = [message for message in messages
+                if self._arrive(source, message.frame_id, now_ns, 'landmarks') is not None]
+        if not kept:
             return 0
-        ids = np.asarray(ids)
-        state.counts['observations_in'] += len(ids)
+        state = self.sources[source]
+        sizes = [len(np.asarray(message.ids)) for message in kept]
+        state.counts['observations_in'] += sum(sizes)
+        if len(kept) == 1:
+            only = kept[0]
+            ids, m, P, P_dep = np.asarray(only.ids), only.m, only.P, only.P_dep
+        else:
+            ids = np.concatenate([np.asarray(message.ids) for message in kept])
+            m, P, P_dep = (np.concatenate([np.asarray(getattr(message, name), np.float64)
+                                           for message in kept])
+                           for name in ('m', 'P', 'P_dep'))
         valid, reasons = landmark_row_problems(ids, m, P, P_dep)
-        unlabelled = ids == UNKNOWN_ID
         if self.config.shard_count > 1:
             # Rows without an ID go to the shard of their cell (``shard_of_position``).
             cells = shard_of_position(np.asarray(m, np.float64).reshape(-1, 2),
                                       self.config.shard_cell_m, self.config.shard_count)
-            other = valid & np.where(unlabelled, cells != self.config.shard_index,
+            other = valid & np.where(ids == UNKNOWN_ID, cells != self.config.shard_index,
                                      ids % self.config.shard_count != self.config.shard_index)
             if other.any():
                 state.counts['other_shard'] += int(other.sum())
                 valid &= ~other
         for reason, count in reasons.items():
             self.reject(source, reason, count, f'{count} of {len(valid)} rows rejected')
+        queued, offset = 0, 0
+        for message, size in zip(kept, sizes):
+            part = slice(offset, offset + size)
+            offset += size
+            queued += self._queue(state, message, valid[part])
+        return queued
+
+    def _queue(self, state: Source, message: 'LandmarkMessage', valid: NDArray[np.bool_]) -> int:
+        """Queue the ``valid`` rows of one message (dropping the oldest of a full queue)."""
         if not valid.any():
             return 0
         if len(state.queue) >= self.config.max_queue_messages:
             dropped = state.queue.popleft()
-            self.reject(source, 'queue_overflow', len(dropped.ids),
+            self.reject(state.name, 'queue_overflow', len(dropped.ids),
                         f'more than {self.config.max_queue_messages} messages waiting: '
                         'dropped the oldest')
-        if classes is not None:
-            classes = np.asarray(classes, np.int64)
+        ids, m, P, P_dep = np.asarray(message.ids), message.m, message.P, message.P_dep
+        classes = None if message.classes is None else np.asarray(message.classes, np.int64)
         if not valid.all():
             ids, m, P, P_dep = ids[valid], m[valid], P[valid], P_dep[valid]
-            unlabelled = unlabelled[valid]
             classes = None if classes is None else classes[valid]
         state.queue.append(_Queued(next(self._sequence), ids.astype(np.int64), m, P, P_dep,
-                                   int(stamp_ns), classes, scan, bool(unlabelled.any())))
+                                   int(message.stamp_ns), classes, message.scan,
+                                   bool((ids == UNKNOWN_ID).any())))
         return int(valid.sum())
 
     def add_constraints(self, source: str, stamp_ns: int, columns: Dict[str, NDArray[Any]],

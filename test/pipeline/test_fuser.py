@@ -6,7 +6,8 @@ import logging
 from landmark_ros.core.landmark_map import LandmarkMap
 from landmark_ros.pipeline import map_file
 from landmark_ros.pipeline.config import FuserConfig
-from landmark_ros.pipeline.fuser import check_records, Fuser
+from landmark_ros.pipeline.fuser import check_records, Fuser, LandmarkMessage
+from landmark_ros.pipeline.rows import UNKNOWN_ID
 import numpy as np
 import pytest
 
@@ -67,6 +68,50 @@ def test_wrong_frame_and_queue_overflow(rng):
         fuser.add_landmarks(SOURCES[1], S + k, *rows(3, rng), frame_id='map')
     assert fuser.queued_messages() == 2
     assert problems(fuser) == {'wrong_frame': 1, 'queue_overflow': 3}
+
+
+def burst(rng):
+    """Return six messages: bad rows, a wrong frame, an all-bad one, one without an ID."""
+    messages = []
+    for k in range(6):
+        ids, m, P, P_dep = rows(4, rng)
+        if k == 1:
+            m[1, 0], P[2] = np.nan, -P[2]
+        if k == 3:
+            ids[:] = -5
+        if k == 5:
+            ids[0] = UNKNOWN_ID
+        messages.append(LandmarkMessage((k + 1) * S, ids, m, P, P_dep,
+                                        'odom' if k == 2 else 'map', np.full(4, k)))
+    return messages
+
+
+@pytest.mark.parametrize('depth', [2, 100])
+def test_a_burst_is_queued_as_its_messages_one_by_one(depth, rng):
+    # add_landmark_messages checks the rows of a burst together; the queues, counters
+    # and the fused map must be those of add_landmarks called message by message.
+    messages = burst(rng)
+    one, many = (Fuser(FuserConfig(max_queue_messages=depth), SOURCES) for _ in range(2))
+    queued = sum(one.add_landmarks(SOURCES[0], message.stamp_ns, message.ids, message.m,
+                                   message.P, message.P_dep, message.frame_id, 7,
+                                   message.classes) for message in messages)
+    assert many.add_landmark_messages(SOURCES[0], messages, 7) == queued
+    assert queued == 4 + 2 + 4 + 4
+    assert many.queued_messages() == min(depth, 4)
+    assert one.sources[SOURCES[0]].counts == many.sources[SOURCES[0]].counts
+    assert one.sources[SOURCES[0]].last_message_ns == many.sources[SOURCES[0]].last_message_ns
+    assert problems(one) == problems(many) != {}
+    for a, b in zip(one.sources[SOURCES[0]].queue, many.sources[SOURCES[0]].queue,
+                    strict=True):
+        assert (a.stamp_ns, a.unlabelled) == (b.stamp_ns, b.unlabelled)
+        for x, y in zip((a.ids, a.m, a.P, a.P_dep, a.classes),
+                        (b.ids, b.m, b.P, b.P_dep, b.classes), strict=True):
+            np.testing.assert_array_equal(x, y)
+    one.fuse_queued(), many.fuse_queued()
+    for a, b in zip(one.snapshot(), many.snapshot(), strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert len(one.map) > 0
+    assert many.add_landmark_messages(SOURCES[0], []) == 0
 
 
 def test_statuses_name_stale_sources_and_new_problems(rng):
