@@ -6,9 +6,10 @@ warmed through a ``pipeline.fuser.Fuser`` (source ``warmup``: 100-row messages w
 two consistent observations of each of 1,000 landmarks, until all are confirmed) and
 its records loaded into a ``Fuser`` with one other source, as the nodes of part 2
 load them; that fuser is fed 100-row messages of random landmarks: timed per message,
-``Fuser.add_landmarks`` (row checks, queue) and ``Fuser.fuse_queued`` called every
-``--fuse-every`` messages (about one ``update_period_s`` at the node's rates), its
-time divided by the messages it fused. The observations are realistic and
+``Fuser.add_landmark_messages`` (row checks, queue; ``max_batch_messages`` messages
+per call, as the node takes them from its subscription) and ``Fuser.fuse_queued``
+called every ``--fuse-every`` messages (about one ``update_period_s`` at the node's
+rates), its time divided by the messages it fused. The observations are realistic and
 consistent: a robot 2-20 m from the landmark, its pose estimate drawn from a full
 3x3 pose covariance, range and bearing noise from a full 2x2 ``R``, placed with
 ``landmark_to_world_dependent`` (total covariance and dependent part). Thread CPU
@@ -72,7 +73,7 @@ from landmark_ros.core.landmark_map import FUSION_METHODS  # noqa: E402
 from landmark_ros.core.landmarks import landmark_to_world_dependent  # noqa: E402
 from landmark_ros.nodes.fuser import LandmarkFuser  # noqa: E402
 from landmark_ros.pipeline.config import FuserConfig  # noqa: E402
-from landmark_ros.pipeline.fuser import Fuser  # noqa: E402
+from landmark_ros.pipeline.fuser import Fuser, LandmarkMessage  # noqa: E402
 from landmark_ros.ros import qos  # noqa: E402
 from landmark_ros.ros.schemas import landmark_message, make_header, read_landmarks  # noqa: E402
 import numpy as np  # noqa: E402
@@ -224,9 +225,17 @@ def warm_fuser(fusion, truth, seed):
 
 # --- Part 1: the pipeline object. --------------------------------------------------
 
+def add_bursts(fuser, messages):
+    """Queue ``messages`` as the node does: ``max_batch_messages`` per row check."""
+    burst = FuserConfig().max_batch_messages
+    for k in range(0, len(messages), burst):
+        fuser.add_landmark_messages(SOURCE, [LandmarkMessage(*message)
+                                             for message in messages[k:k + burst]])
+
+
 def pipeline(args, truth):
     """
-    Time ``Fuser.add_landmarks`` and ``Fuser.fuse_queued`` per message, each method.
+    Time ``Fuser.add_landmark_messages`` and ``Fuser.fuse_queued`` per message, each method.
 
     Returns
     -------
@@ -252,8 +261,7 @@ def pipeline(args, truth):
             add_s = fuse_s = 0.0
             for k in range(0, len(messages), per):
                 start = time.thread_time()
-                for message in messages[k:k + per]:
-                    fuser.add_landmarks(SOURCE, *message)
+                add_bursts(fuser, messages[k:k + per])
                 middle = time.thread_time()
                 fuser.fuse_queued()
                 add_s += middle - start
@@ -270,8 +278,7 @@ def pipeline(args, truth):
             fuser = copy.deepcopy(warmed)
 
             def step(i, fuser=fuser):
-                for message in messages[(i * per) % len(messages):][:per]:
-                    fuser.add_landmarks(SOURCE, *message)
+                add_bursts(fuser, messages[(i * per) % len(messages):][:per])
                 fuser.fuse_queued()
 
             functions, packages, total, calls = _common.profile_calls(
@@ -686,7 +693,7 @@ def main(argv=None):
         f'part 1, pipeline, no ROS: thread CPU us per {ROWS_PER_MESSAGE}-row message, best '
         f'of {args.blocks} passes over {POOL_MESSAGES} messages; fuse_queued every '
         f'{args.fuse_every} messages, divided by the messages it fused',
-        'method                        | add_landmarks | fuse_queued | total | gated out',
+        'method                        | add (burst)   | fuse_queued | total | gated out',
     ]
     for method in FUSION_METHODS:
         cell = own[method]

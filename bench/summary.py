@@ -117,7 +117,8 @@ def rows_for(results):
         if key in fuser:
             rows.append(('pipeline', f'Fuser, {name}, 100 rows/msg',
                          f'{_num(fuser[key] + fuser.get(f"pipeline_{short}_fuse_us", 0.0))} '
-                         'us/msg', f'thread CPU time: add_landmarks {_num(fuser[key])} us + '
+                         'us/msg', 'thread CPU time: add_landmark_messages (16 messages per '
+                         f'call) {_num(fuser[key])} us + '
                          f'fuse_queued {_num(fuser.get(f"pipeline_{short}_fuse_us"))} us',
                          'bench_fuser'))
     for rows_per_msg in (1, 10, 100):
