@@ -434,7 +434,7 @@ class Monitor:
                 views = self.latest[observer].get('constraints_out', '0')
                 source = f'/landmark_fuser: /{robot}/landmark_constraints'
                 if not self._settled(source, lambda v: v.get('constraints_in', '0') == views,
-                                     lambda v: v.get('queued_messages') == '0',
+                                     lambda v: v.get('queued_views') == '0',
                                      'constraints_in'):
                     return False
         fused = sum(int(v.get('fused', 0)) for v in self.source_statuses().values())

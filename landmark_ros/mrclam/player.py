@@ -726,15 +726,14 @@ class Player:
 
         """
         after = time.time_ns()
-        # Views wait in the fuser's view queue, which no diagnostics count: a status
-        # three fuse periods after the last take comes after a fuse of them.
-        views_after = after + (3 * int(FUSER_TRANSPORT['update_period_s'] * NS_PER_S)
-                               if self.constraint_subs else 0)
+        # A status after the last take with nothing queued (clouds and views) comes
+        # after the fuse of everything played.
         for method in self.methods:
             def fused(method=method):
-                sources = self.fuser_sources(method, newer_than_ns=views_after)
+                sources = self.fuser_sources(method, newer_than_ns=after)
                 return sources is not None and all(
-                    v.get('queued_messages') == '0' for v in sources.values())
+                    v.get('queued_messages') == '0' and v.get('queued_views') == '0'
+                    for v in sources.values())
             self.spin_until(fused, timeout_s, f'the {method} fuser to fuse its queue')
         final = {}
         for method, client in zip(self.methods, self.save_clients):

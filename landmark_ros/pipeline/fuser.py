@@ -551,6 +551,7 @@ class Fuser:
         """
         statuses = []
         stale = []
+        views_waiting = Counter(entry[0] for entry in self.views.queue)
         for state in self.sources.values():
             age = None if state.last_message_ns is None else (
                 now_ns - state.last_message_ns) * 1e-9
@@ -559,7 +560,8 @@ class Fuser:
             if is_stale:
                 stale.append(state.name)
             extra = {'age_s': 'never' if age is None else f'{age:.3f}',
-                     'stale': str(is_stale).lower(), 'queued_messages': len(state.queue)}
+                     'stale': str(is_stale).lower(), 'queued_messages': len(state.queue),
+                     'queued_views': views_waiting[state.name]}
             statuses.append(Status('warn' if is_stale else 'ok',
                                    'stale' if is_stale else 'ok', dict(state.counts), extra,
                                    state.name))

@@ -120,6 +120,22 @@ def test_two_exact_bearings_give_the_intersection(fusion):
     assert f.sources[VIEWS[0]].counts['views_fused'] == 1
 
 
+def test_statuses_count_the_views_waiting_per_source():
+    m = np.array([3.0, 4.0])
+    f = fuser()
+    for k, s in enumerate(([0.0, 0.0, 0.3], [6.0, 0.0, -0.2], [1.0, 1.0, 0.0])):
+        f.add_constraints(VIEWS[k % 2], (k + 1) * S, columns(7, BEARING, bearing_to(s, m), s,
+                                                             P_s=P_POSE))
+
+    def waiting():
+        return {status.name: status.extra['queued_views'] for status in f.statuses(4 * S)
+                if status.name}
+
+    assert {name: waiting()[name] for name in VIEWS[:2]} == {VIEWS[0]: 2, VIEWS[1]: 1}
+    f.fuse_queued()
+    assert set(waiting().values()) == {0}
+
+
 def test_three_exact_ranges_give_the_point():
     m = np.array([-1.0, 2.5])
     f = fuser()
