@@ -115,12 +115,28 @@ class LandmarkFuser(Node):
     # Input ---------------------------------------------------------------------
 
     def on_landmarks(self, msg, topic):
-        """Decode landmark clouds (this one and those waiting) and queue their rows."""
-        source = self._source_of[topic]
+        """
+        Decode landmark clouds (this one, those waiting) and queue their rows.
+
+        The clouds already waiting on the other input topics are taken too: with many
+        robots, one callback then serves a burst of all of them (one executor dispatch,
+        one row check per source), not one cloud each.
+        """
         now = self.get_clock().now().nanoseconds
+        burst = self.config.max_batch_messages
+        self._queue_landmarks(topic, [msg] + take_waiting(
+            self._subscriptions_by_topic[topic], PointCloud2, burst - 1), now)
+        for other, subscription in self._subscriptions_by_topic.items():
+            if other != topic:
+                waiting = take_waiting(subscription, PointCloud2, burst)
+                if waiting:
+                    self._queue_landmarks(other, waiting, now)
+
+    def _queue_landmarks(self, topic, clouds, now):
+        """Decode the clouds of one input topic and queue them with one row check."""
+        source = self._source_of[topic]
         messages = []
-        for cloud in [msg] + take_waiting(self._subscriptions_by_topic[topic], PointCloud2,
-                                          self.config.max_batch_messages - 1):
+        for cloud in clouds:
             try:
                 rows, extras = read_landmark_cloud(cloud)
             except CloudError as error:

@@ -809,3 +809,39 @@ def test_input_topics_that_resolve_to_one_topic_are_refused_or_fused_once(env):
     ids, m, P, _, observations = node.fuser.map.snapshot()
     assert ids.tolist() == [1] and observations.tolist() == [1], 'fused more than once'
     np.testing.assert_array_equal(P[0], C)
+
+
+@pytest.mark.parametrize('burst', [1, 16])
+def test_one_callback_takes_the_clouds_waiting_on_every_input_topic(env, monkeypatch, burst):
+    import landmark_ros.nodes.fuser as fuser_module
+    a, b, c = 'a/landmarks', 'b/landmarks', 'c/landmarks'
+    rig = FuserRig(env, topics=(a, b, c), min_observations=1, max_batch_messages=burst)
+    subscription = rig.node._subscriptions_by_topic
+
+    def cloud(stamp, landmark):
+        return landmark_message(header(stamp, 'map'), [landmark], [[1.0 * landmark, 0.0]], [C])
+
+    # Stand-in for the subscriptions' queues while a's callback runs: two clouds wait
+    # on a, two on b, none on c.
+    waiting = {subscription[a]: [cloud(2.0, 2), cloud(3.0, 3)],
+               subscription[b]: [cloud(1.5, 12), cloud(2.5, 13)]}
+    taken = []
+
+    def take_waiting(sub, msg_type, limit):
+        taken.append((sub, limit))
+        queue = waiting.get(sub, [])
+        out, waiting[sub] = queue[:limit], queue[limit:]
+        return out
+
+    monkeypatch.setattr(fuser_module, 'take_waiting', take_waiting)
+    rig.node.on_landmarks(cloud(1.0, 1), a)
+    sources = rig.node.sources
+    expected = {a: [1] + [2, 3][:burst - 1], b: [12, 13][:burst], c: []}
+    assert {topic: [int(item.ids[0]) for item in sources[topic].queue]
+            for topic in (a, b, c)} == expected
+    assert {topic: sources[topic].counts['messages_in'] for topic in (a, b, c)} == {
+        topic: len(ids) for topic, ids in expected.items()}
+    assert taken == [(subscription[a], burst - 1), (subscription[b], burst),
+                     (subscription[c], burst)]
+    rig.node.fuse_queued()
+    assert sorted(rig.node.fuser.snapshot()[0].tolist()) == sorted(sum(expected.values(), []))
