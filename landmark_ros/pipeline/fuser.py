@@ -59,7 +59,30 @@ class _Queued:
 
 
 class LandmarkMessage(NamedTuple):
-    """One landmark message of a source, as ``Fuser.add_landmarks`` takes it (same fields)."""
+    """
+    One landmark message of a source, as ``Fuser.add_landmarks`` takes it.
+
+    Attributes
+    ----------
+    stamp_ns : int
+        The message stamp [ns].
+    ids : ndarray of int, shape (N,)
+        Landmark IDs (``UNKNOWN_ID`` for rows without one).
+    m : ndarray, shape (N, 2)
+        Positions in ``world_frame`` [m].
+    P : ndarray, shape (N, 2, 2)
+        Total covariances [m^2].
+    P_dep : ndarray, shape (N, 2, 2)
+        Their dependent parts (zeros when the source does not say).
+    frame_id : str, optional
+        The message's frame, checked against ``world_frame``; None skips the check.
+    classes : ndarray of int, shape (N,), optional
+        Landmark classes (0 when absent).
+    scan : Scan, optional
+        The message's robot pose terms, for the association of rows without an ID
+        (without it they are associated as independent rows).
+
+    """
 
     stamp_ns: int
     ids: NDArray[Any]
@@ -173,42 +196,15 @@ class Fuser:
         """
         Check the rows of one landmark message and queue the valid ones.
 
-        ``add_landmark_messages`` with one message.
-
-        Parameters
-        ----------
-        source : str
-            One of the sources.
-        stamp_ns : int
-            The message stamp [ns].
-        ids : ndarray of int, shape (N,)
-            Landmark IDs.
-        m : ndarray, shape (N, 2)
-            Positions in ``world_frame`` [m].
-        P : ndarray, shape (N, 2, 2)
-            Total covariances [m^2].
-        P_dep : ndarray, shape (N, 2, 2)
-            Their dependent parts (zeros when the source does not say).
-        frame_id : str, optional
-            The message's frame, checked against ``world_frame``; None skips the check.
-        now_ns : int, optional
-            Arrival time [ns], for the stale-source check.
-        classes : ndarray of int, shape (N,), optional
-            Landmark classes (0 when absent).
-        scan : Scan, optional
-            The message's robot pose terms, for the association of rows whose ID is
-            ``UNKNOWN_ID`` (without it they are associated as independent rows).
-
-        Returns
-        -------
-        int
-            The rows queued.
-
+        ``add_landmark_messages`` with one message: the arguments are
+        ``LandmarkMessage``'s fields (shapes and units there), after the ``source``
+        (one of the sources), and ``now_ns``, the arrival time [ns] for the
+        stale-source check. Returns the number of rows queued.
         """
         return self.add_landmark_messages(source, [LandmarkMessage(
             stamp_ns, ids, m, P, P_dep, frame_id, classes, scan)], now_ns)
 
-    def add_landmark_messages(self, source: str, messages: Sequence['LandmarkMessage'],
+    def add_landmark_messages(self, source: str, messages: Sequence[LandmarkMessage],
                               now_ns: Optional[int] = None) -> int:
         """
         Check the rows of several landmark messages of one source and queue the valid ones.
@@ -241,14 +237,9 @@ class Fuser:
         state = self.sources[source]
         sizes = [len(np.asarray(message.ids)) for message in kept]
         state.counts['observations_in'] += sum(sizes)
-        if len(kept) == 1:
-            only = kept[0]
-            ids, m, P, P_dep = np.asarray(only.ids), only.m, only.P, only.P_dep
-        else:
-            ids = np.concatenate([np.asarray(message.ids) for message in kept])
-            m, P, P_dep = (np.concatenate([np.asarray(getattr(message, name), np.float64)
-                                           for message in kept])
-                           for name in ('m', 'P', 'P_dep'))
+        ids = np.concatenate([np.asarray(message.ids) for message in kept])
+        m, P, P_dep = (np.concatenate([np.asarray(getattr(message, name), np.float64)
+                                       for message in kept]) for name in ('m', 'P', 'P_dep'))
         valid, reasons = landmark_row_problems(ids, m, P, P_dep)
         if self.config.shard_count > 1:
             # Rows without an ID go to the shard of their cell (``shard_of_position``).
@@ -268,7 +259,7 @@ class Fuser:
             queued += self._queue(state, message, valid[part])
         return queued
 
-    def _queue(self, state: Source, message: 'LandmarkMessage', valid: NDArray[np.bool_]) -> int:
+    def _queue(self, state: Source, message: LandmarkMessage, valid: NDArray[np.bool_]) -> int:
         """Queue the ``valid`` rows of one message (dropping the oldest of a full queue)."""
         if not valid.any():
             return 0
