@@ -1,7 +1,7 @@
 """
 The split-CI fold of ``landmark_map`` compiled with numba, when numba is installed.
 
-``fold(Y, y, Q, valid)`` does what ``landmark_map._fold`` does, one landmark at a time
+``fold(Y, y, Q, valid)`` does what ``_source_sums._fold`` does, one landmark at a time
 in a compiled loop instead of one numpy operation per step over all landmarks: the
 same IEEE operations in the same order (no fast-math, no fused multiply-add), so the
 results are the numpy fold's bit for bit (``test/core/test_fold_kernel.py`` checks
@@ -19,7 +19,7 @@ Sources: split covariance intersection, Julier and Uhlmann, "General decentraliz
 data fusion with covariance intersection", Handbook of Multisensor Data Fusion, 2001;
 the weight search and the closed forms are ``core.gaussian``'s
 (``sci_omega_2x2``, ``split_ci_2x2_entries``), the per-source estimate and the order
-``landmark_map``'s (``_estimate``, ``_log2_det``).
+``_source_sums``' (``_estimate``, ``_log2_det``).
 """
 
 import math
@@ -188,7 +188,7 @@ def _split_ci(first, second, omega, out):
 
 
 def _source_part(Y, y, Q, valid, part):
-    # One source's estimate (``landmark_map._estimate``) packed into ``part``; its size.
+    # One source's estimate (``_source_sums._estimate``) packed into ``part``; its size.
     a, b, c = _inverse(Y[0], Y[1], Y[2])
     part[0] = a * y[0] + b * y[1]
     part[1] = b * y[0] + c * y[1]

@@ -1,6 +1,7 @@
 """The compiled split-CI fold and plan (``core._fold_kernel``) against the numpy ones."""
 
 from landmark_ros.core import _fold_kernel
+from landmark_ros.core import _source_sums
 from landmark_ros.core import landmark_map as landmark_map_module
 from landmark_ros.core._arrays import mahalanobis_sq_2x2
 import numpy as np
@@ -26,8 +27,8 @@ def random_sums(rng, count, width, extreme=False):
         R *= 10.0 ** rng.uniform(-6.0, 6.0, (count, width, 1, 1))
     D[rng.uniform(size=(count, width)) < 0.1] = 0.0      # no dependent part
     z = rng.normal(0.0, 100.0, (count, width, 2))
-    Y, y, Q = landmark_map_module._terms(z.reshape(-1, 2), R.reshape(-1, 2, 2),
-                                         D.reshape(-1, 2, 2))
+    Y, y, Q = _source_sums._terms(z.reshape(-1, 2), R.reshape(-1, 2, 2),
+                                  D.reshape(-1, 2, 2))
     n = rng.integers(1, 40, (count, width, 1))
     Y, y, Q = Y.reshape(count, width, 3) * n, y.reshape(count, width, 2) * n, Q.reshape(
         count, width, 4) * n
@@ -41,7 +42,7 @@ def random_sums(rng, count, width, extreme=False):
 @pytest.mark.parametrize('extreme', [False, True])
 def test_compiled_fold_equals_numpy_bit_for_bit(compiled, rng, width, extreme):
     Y, y, Q, valid = random_sums(rng, max(2000 // width, 20), width, extreme)
-    expected = landmark_map_module._fold_numpy(Y, y, Q, valid)
+    expected = _source_sums._fold_numpy(Y, y, Q, valid)
     got = compiled(Y, y, Q, valid)
     for a, b in zip(expected, got):
         assert a.shape == b.shape
@@ -50,13 +51,13 @@ def test_compiled_fold_equals_numpy_bit_for_bit(compiled, rng, width, extreme):
 
 def test_fold_dispatches_to_the_kernel(compiled, rng):
     Y, y, Q, valid = random_sums(rng, 50, 4)
-    for a, b in zip(landmark_map_module._fold(Y, y, Q, valid), compiled(Y, y, Q, valid)):
+    for a, b in zip(_source_sums._fold(Y, y, Q, valid), compiled(Y, y, Q, valid)):
         np.testing.assert_array_equal(a, b)
 
 
 def fold_one(sums, valid, lo, hi):
     """Return the packed numpy fold of the pairs ``lo:hi``."""
-    m, P_ind, P_dep = landmark_map_module._fold_numpy(
+    m, P_ind, P_dep = _source_sums._fold_numpy(
         sums[None, lo:hi, :3], sums[None, lo:hi, 3:5], sums[None, lo:hi, 5:],
         valid[None, lo:hi])
     return np.concatenate([m[0], P_ind[0][[0, 0, 1], [0, 1, 1]], P_dep[0][[0, 0, 1], [0, 1, 1]]])
@@ -106,7 +107,7 @@ def test_plan_equals_gating_and_folding_row_by_row(compiled, rng, sources):
     # About a third of the rows far off: rejected.
     z = state[landmark, :2] + rng.normal(0.0, 0.2, (count, 2)) * np.where(
         rng.uniform(size=(count, 1)) < 0.3, 30.0, 1.0)
-    terms = np.concatenate(landmark_map_module._terms(z, R_full - D_full, D_full), axis=1)
+    terms = np.concatenate(_source_sums._terms(z, R_full - D_full, D_full), axis=1)
     R = np.concatenate([R_ind - R_dep, R_dep], axis=1)
     threshold = 9.21
     args = (landmark, pair, terms, z, R, start)

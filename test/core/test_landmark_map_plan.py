@@ -18,6 +18,7 @@ from collections import Counter
 
 from conftest import random_spd
 from landmark_ros.core import _fold_kernel
+from landmark_ros.core import _source_sums
 from landmark_ros.core import gaussian
 from landmark_ros.core import landmark_map as landmark_map_module
 from landmark_ros.core.landmark_map import LandmarkMap
@@ -177,7 +178,7 @@ def test_batch_equals_rows_one_by_one_when_the_plan_is_too_large(rng, monkeypatc
     # One landmark with many rows next to many with one: folded round by round.
     if fold_path == 'compiled':
         pytest.skip('the compiled plan has no size limit')
-    monkeypatch.setattr(landmark_map_module, '_PLAN_CELLS', 0)
+    monkeypatch.setattr(_source_sums, '_PLAN_CELLS', 0)
     rows = stream(rng, count=1200, landmarks=60, outliers=0.02, movers=1)
     ids = rows[0].copy()
     ids[900::2] = ids[900]
@@ -220,7 +221,7 @@ def test_a_plan_folded_in_parts_is_the_same(rng, monkeypatch):
     rows = stream(rng, count=500, landmarks=12)
     count = len(rows[0])
     whole, expected = feed(LandmarkMap, rows, chunked(count, 250))
-    monkeypatch.setattr(landmark_map_module, '_FOLD_CELLS', 7)
+    monkeypatch.setattr(_source_sums, '_FOLD_CELLS', 7)
     parts, result = feed(LandmarkMap, rows, chunked(count, 250))
     assert result == expected
     assert_same_map(parts, whole)

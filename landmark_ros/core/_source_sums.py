@@ -1,0 +1,506 @@
+"""
+Per (landmark, source) sums for split covariance intersection, and their fold.
+
+``LandmarkMap``'s split-CI strategy keeps, per (landmark, source) pair, the
+information sums of the source's observations (``_SourceParts``); a landmark's
+estimate is the split-CI fold of its sources' estimates, from the tightest source
+up (``_fold``: the compiled kernel of ``_fold_kernel`` when numba is there, else
+``_fold_numpy``). ``_SourceParts.plan`` and ``run`` fold a batch's rows as the map
+would take them one by one. Private to ``core``: ``landmark_map`` is the interface.
+
+Sources: split covariance intersection, Julier and Uhlmann, "General decentralized
+data fusion with covariance intersection", Handbook of Multisensor Data Fusion, 2001.
+"""
+
+from landmark_ros.core import _fold_kernel
+from landmark_ros.core._arrays import (inverse_2x2, power_of_4_scale, psd_projection_2x2,
+                                       symmetric_2x2)
+from landmark_ros.core.gaussian import information, sci_omega_2x2, split_ci_2x2_entries
+import numpy as np
+from numpy.typing import NDArray
+
+_SOURCE_BITS = 24
+"""A (landmark row, source) pair is the key ``row << 24 | source code``."""
+
+_FOLD_CELLS = 1 << 16
+"""(Landmark, source) cells folded at once by a batch plan (bounds its memory)."""
+
+_PLAN_CELLS = 1 << 20
+"""Cells of a batch plan's table of states allowed beyond 16 per row and source."""
+
+
+def _entries(P):
+    """Return ``(xx, xy, yy)`` of symmetric 2x2 matrices (views, no averaging)."""
+    return P[..., 0, 0], P[..., 0, 1], P[..., 1, 1]
+
+
+# --- Per-source sums for split CI ------------------------------------------------------------
+
+class _SourceParts:
+    """
+    Per (landmark, source) information sums for split covariance intersection.
+
+    A source's estimate of a landmark is ``m_s = Y^-1 y`` with ``Y = sum R_ind_i^-1``
+    and ``y = sum R_ind_i^-1 z_i`` (independent parts as information), covariance
+    ``Y^-1 + D`` where ``D`` is ``sym(Y^-1 Q)`` projected onto the positive
+    semi-definite matrices (``psd_projection_2x2``), ``Q = sum R_ind_i^-1 R_dep_i``: the
+    information-weighted mean of the dependent parts, a shared error that averaging
+    does not reduce. Pairs are found by binary search in a sorted array of keys
+    ``row << 24 | source code``, so a landmark's pairs are contiguous, in source-code
+    order; their sums live in flat arrays indexed by a slot.
+
+    A landmark's estimate is a pure function of its sums (``_fold``, no state carried
+    from one fold to the next), so the estimates after each row of a batch can be
+    found all at once (``plan``) and equal, bit for bit, those found one row at a time.
+    """
+
+    def __init__(self):
+        self.keys = np.empty(0, np.int64)     # sorted
+        self.slots = np.empty(0, np.int64)    # slot of each key
+        self.count = 0
+        self.Y = np.zeros((64, 3))            # (xx, xy, yy) of the information sum
+        self.y = np.zeros((64, 2))
+        self.Q = np.zeros((64, 4))            # (00, 01, 10, 11) of sum R_ind^-1 R_dep
+
+    def _pairs(self, rows, codes):
+        """Return the slots of (row, code) pairs, creating the new ones."""
+        keys = (rows << _SOURCE_BITS) | codes
+        position = np.searchsorted(self.keys, keys)
+        found = position < len(self.keys)
+        found[found] = self.keys[position[found]] == keys[found]
+        if not found.all():
+            new = np.unique(keys[~found])
+            slots = np.arange(self.count, self.count + len(new))
+            self.count += len(new)
+            if self.count > len(self.Y):
+                size = max(self.count, 2 * len(self.Y))
+                for name in ('Y', 'y', 'Q'):
+                    old = getattr(self, name)
+                    grown = np.zeros((size,) + old.shape[1:])
+                    grown[:len(old)] = old
+                    setattr(self, name, grown)
+            at = np.searchsorted(self.keys, new)
+            self.keys = np.insert(self.keys, at, new)
+            self.slots = np.insert(self.slots, at, slots)
+            position = np.searchsorted(self.keys, keys)
+        return self.slots[position]
+
+    def _ranges(self, rows):
+        """Return the positions in ``keys`` of the pairs of ``rows``, concatenated."""
+        lo = np.searchsorted(self.keys, rows << _SOURCE_BITS)
+        hi = np.searchsorted(self.keys, (rows + 1) << _SOURCE_BITS)
+        counts = hi - lo
+        starts = np.repeat(lo - np.cumsum(counts) + counts, counts)
+        return starts + np.arange(int(counts.sum()))
+
+    def add(self, rows, codes, z, R_ind, R_dep, unique=False):
+        """
+        Add observations to the sums of their (landmark row, source code) pairs.
+
+        Rows of one call that share a pair are added in order (``np.add.at``); with
+        ``unique`` (every pair once, as in a round) by plain indexing.
+        """
+        slots = self._pairs(rows, codes)
+        Y, y, Q = _terms(z, R_ind, R_dep)
+        if unique:
+            self.Y[slots] += Y
+            self.y[slots] += y
+            self.Q[slots] += Q
+        else:
+            np.add.at(self.Y, slots, Y)
+            np.add.at(self.y, slots, y)
+            np.add.at(self.Q, slots, Q)
+
+    def checkpoint(self, rows):
+        """Return the index and the sums of every pair of ``rows`` (for ``restore``)."""
+        slots = self.slots[self._ranges(rows)]
+        return (self.keys.copy(), self.slots.copy(), self.count, slots,
+                self.Y[slots].copy(), self.y[slots].copy(), self.Q[slots].copy())
+
+    def restore(self, state):
+        """Undo every change since ``checkpoint``."""
+        keys, slots_of_keys, count, slots, Y, y, Q = state
+        for sums in (self.Y, self.y, self.Q):     # new slots are taken as zero sums
+            sums[count:self.count] = 0.0
+        self.keys, self.slots, self.count = keys, slots_of_keys, count
+        self.Y[slots], self.y[slots], self.Q[slots] = Y, y, Q
+
+    def merge_into(self, keep: int, drop: int) -> None:
+        """
+        Add the sums of landmark row ``drop`` to those of row ``keep``, source by source.
+
+        The sums are linear in the observations: ``keep`` then holds what it would
+        hold had the observations of ``drop`` been added to it.
+        """
+        lo, hi = np.searchsorted(self.keys, [drop << _SOURCE_BITS, (drop + 1) << _SOURCE_BITS])
+        if lo == hi:
+            return
+        codes = self.keys[lo:hi] & ((1 << _SOURCE_BITS) - 1)
+        sources = self.slots[lo:hi].copy()
+        targets = self._pairs(np.full(len(codes), keep, np.int64), codes)
+        for name in ('Y', 'y', 'Q'):
+            values = getattr(self, name)
+            values[targets] += values[sources]
+
+    def clear(self, row):
+        """Forget the sources of one landmark."""
+        lo, hi = np.searchsorted(self.keys, [row << _SOURCE_BITS, (row + 1) << _SOURCE_BITS])
+        self.keys = np.delete(self.keys, np.s_[lo:hi])
+        self.slots = np.delete(self.slots, np.s_[lo:hi])
+
+    def combine(self, rows):
+        """
+        Fuse the source estimates of each landmark of ``rows`` by split CI (``_fold``).
+
+        Returns
+        -------
+        m : ndarray, shape (K, 2)
+        P_ind, P_dep : ndarray, shape (K, 2, 2)
+
+        """
+        lo = np.searchsorted(self.keys, rows << _SOURCE_BITS)
+        hi = np.searchsorted(self.keys, (rows + 1) << _SOURCE_BITS)
+        columns = np.arange(int((hi - lo).max()))
+        valid = columns < (hi - lo)[:, None]
+        slots = self.slots[np.minimum(lo[:, None] + columns, len(self.keys) - 1)]
+        return _fold(self.Y[slots], self.y[slots], self.Q[slots], valid)
+
+    def plan(self, rows, codes, terms, include):
+        """
+        Return each row's landmark estimate after that row, the included rows accepted.
+
+        What ``add`` then ``combine`` row after row would give, bit for bit (the sums
+        are accumulated in the same order; ``_fold`` is element-wise), in one fold of
+        all the rows at once instead of one per round.
+
+        Parameters
+        ----------
+        rows, codes : ndarray of int, shape (N,)
+            Landmark rows and source codes, in arrival order.
+        terms : ndarray, shape (N, 9)
+            Their ``_terms``, concatenated.
+        include : ndarray of bool, shape (N,)
+            The rows taken as accepted; the others leave the sums as they are.
+
+        Returns
+        -------
+        m : ndarray, shape (N, 2)
+        P_ind, P_dep : ndarray, shape (N, 2, 2)
+            Estimates after the included rows (rows not included: unspecified).
+
+        None when the table of states would be too large (a few landmarks with very
+        many rows next to many with few): fold round by round then.
+
+        """
+        count = len(rows)
+        m, P_ind, P_dep = np.zeros((count, 2)), np.zeros((count, 2, 2)), np.zeros((count, 2, 2))
+        if not include.any():
+            return m, P_ind, P_dep
+        keys = (rows << _SOURCE_BITS) | codes
+        landmarks, landmark = np.unique(rows, return_inverse=True)
+        landmark = landmark.reshape(-1)
+        occurrence = _rank(landmark)
+        # Every pair of these landmarks, the known ones and those new in the batch.
+        known = self._ranges(landmarks)
+        all_keys = np.union1d(self.keys[known], keys[include])
+        is_known = np.zeros(len(all_keys), bool)
+        is_known[np.searchsorted(all_keys, self.keys[known])] = True
+        owner = np.searchsorted(landmarks, all_keys >> _SOURCE_BITS)
+        column = np.arange(len(all_keys)) - np.searchsorted(owner, owner)
+        width, depth = int(column.max()) + 1, int(occurrence.max()) + 1
+        if len(landmarks) * depth * width > max(16 * count * width, _PLAN_CELLS):
+            return None
+        before = np.zeros((len(all_keys), 9))
+        slots = self.slots[known]
+        before[is_known] = np.concatenate([self.Y[slots], self.y[slots], self.Q[slots]], axis=1)
+        # The sums after each included row, pair by pair in arrival order, as ``add``
+        # makes them.
+        taken = np.flatnonzero(include)
+        pair = np.searchsorted(all_keys, keys[taken])
+        running = before.copy()
+        after = np.empty((len(taken), 9))
+        for level in _levels(pair):
+            running[pair[level]] += terms[taken[level]]
+            after[level] = running[pair[level]]
+        # Which sums each state holds: grid[landmark, occurrence, column] indexes the
+        # values [before..., after...]; the latest row so far of each pair wins.
+        small = len(all_keys) + len(taken) < np.iinfo(np.int32).max
+        grid = np.full((len(landmarks), depth, width), -1, np.int32 if small else np.int64)
+        known_pairs = np.flatnonzero(is_known)
+        grid[owner[known_pairs], :, column[known_pairs]] = known_pairs[:, None]
+        grid[landmark[taken], occurrence[taken], column[pair]] = len(all_keys) + np.arange(
+            len(taken))
+        np.maximum.accumulate(grid, axis=1, out=grid)
+        index = grid[landmark[taken], occurrence[taken]]
+        # A pair not seen yet in a state shows the state's own sums (masked out).
+        own = len(all_keys) + np.arange(len(taken))[:, None]
+        index = np.where(index >= 0, index, ~own)
+        sums = np.concatenate([before, after])
+        # In parts of about _FOLD_CELLS (state, source) cells: the fold's temporaries
+        # are a few dozen arrays of that size (element-wise: the same results).
+        step = max(_FOLD_CELLS // width, 1)
+        for lo in range(0, len(taken), step):
+            part = index[lo:lo + step]
+            values = sums[np.where(part >= 0, part, ~part)]
+            m[taken[lo:lo + step]], P_ind[taken[lo:lo + step]], P_dep[taken[lo:lo + step]] = \
+                _fold(values[..., :3], values[..., 3:5], values[..., 5:], part >= 0)
+        return m, P_ind, P_dep
+
+    def run(self, landmark_map, rows, batch, positions):
+        """
+        Gate and fold the rows of confirmed landmarks one by one (``_fold_kernel.plan``).
+
+        On a copy of the sums of the batch's landmarks; nothing here changes.
+
+        Returns
+        -------
+        dict
+            ``accepted`` (N,) the gate's decisions, ``out`` (N, 8) the packed estimate
+            after each accepted row, ``landmarks`` the distinct rows and ``landmark``
+            each row's index in them, ``state`` (K, 8) their estimates after the
+            batch, ``keys``, ``sums``, ``valid`` the (landmark, source) pairs after it.
+
+        """
+        codes = batch.codes[positions]
+        keys = (rows << _SOURCE_BITS) | codes
+        landmarks, landmark = np.unique(rows, return_inverse=True)
+        landmark = landmark.reshape(-1)
+        known = self._ranges(landmarks)
+        all_keys = np.union1d(self.keys[known], keys)
+        valid = np.zeros(len(all_keys), bool)
+        at_known = np.searchsorted(all_keys, self.keys[known])
+        valid[at_known] = True
+        sums = np.zeros((len(all_keys), 9))
+        slots = self.slots[known]
+        sums[at_known] = np.concatenate([self.Y[slots], self.y[slots], self.Q[slots]], axis=1)
+        owner = np.searchsorted(landmarks, all_keys >> _SOURCE_BITS)
+        start = np.searchsorted(owner, np.arange(len(landmarks) + 1))
+        z, R_ind, R_dep = batch.z[positions], batch.R_ind[positions], batch.R_dep[positions]
+        terms = np.concatenate(_terms(z, R_ind, R_dep), axis=1)
+        R = np.stack([*_entries(R_ind), *_entries(R_dep)], axis=1)
+        state = np.concatenate([landmark_map.mean[landmarks],
+                                np.stack(_entries(landmark_map.cov_ind[landmarks]), axis=1),
+                                np.stack(_entries(landmark_map.cov_dep[landmarks]), axis=1)],
+                               axis=1)
+        out, accepted = _fold_kernel.plan(landmark, np.searchsorted(all_keys, keys), terms, z, R,
+                                          start, sums, valid, state, landmark_map.threshold)
+        return {'accepted': accepted, 'out': out, 'landmarks': landmarks, 'landmark': landmark,
+                'state': state, 'keys': all_keys, 'sums': sums, 'valid': valid,
+                'at_known': at_known, 'slots': slots}
+
+    def store(self, run):
+        """Take the sums of a ``run`` whose rows the map accepted as they were decided."""
+        sums, valid = run['sums'], run['valid'].copy()
+        known = run['at_known']
+        slots = run['slots']
+        self.Y[slots], self.y[slots], self.Q[slots] = (sums[known, :3], sums[known, 3:5],
+                                                       sums[known, 5:])
+        valid[known] = False                   # the new pairs the batch observed
+        if valid.any():
+            keys = run['keys'][valid]
+            slots = self._pairs(keys >> _SOURCE_BITS, keys & ((1 << _SOURCE_BITS) - 1))
+            self.Y[slots], self.y[slots], self.Q[slots] = (sums[valid, :3], sums[valid, 3:5],
+                                                           sums[valid, 5:])
+
+    @staticmethod
+    def planned(run, size, positions):
+        """
+        Return a ``run`` as ``prepare``'s plan, for the rounds to take from.
+
+        Rows the kernel rejected are not planned (``update`` folds them itself should
+        the map accept one).
+        """
+        accepted, landmark, out = run['accepted'], run['landmark'], run['out']
+        at = np.full(size, -1, np.int64)
+        at[positions[accepted]] = np.flatnonzero(accepted)
+        order = np.argsort(landmark, kind='stable')
+        first = np.searchsorted(landmark[order], landmark[order])
+        taken = accepted[order].astype(np.int64)
+        included: NDArray[np.int64] = np.cumsum(taken) - taken
+        accepted_before = np.empty(len(landmark), np.int64)
+        accepted_before[order] = included - included[first]
+        return {'m': out[:, :2], 'P_ind': symmetric_2x2(out[:, 2], out[:, 3], out[:, 4]),
+                'P_dep': symmetric_2x2(out[:, 5], out[:, 6], out[:, 7]), 'at': at,
+                'landmarks': run['landmarks'], 'landmark': landmark,
+                'accepted_before': accepted_before,
+                'accepted': np.zeros(len(run['landmarks']), np.int64),
+                'broken': np.zeros(len(run['landmarks']), bool)}
+
+    def records(self, row, names):
+        """Return the sums of one landmark as plain data, sorted by source name."""
+        lo, hi = np.searchsorted(self.keys, [row << _SOURCE_BITS, (row + 1) << _SOURCE_BITS])
+        out = []
+        for key, slot in zip(self.keys[lo:hi].tolist(), self.slots[lo:hi].tolist()):
+            Y, Q = self.Y[slot].tolist(), self.Q[slot].tolist()
+            out.append({'source': names[key & ((1 << _SOURCE_BITS) - 1)],
+                        'information': [[Y[0], Y[1]], [Y[1], Y[2]]],
+                        'information_mean': self.y[slot].tolist(),
+                        'dependent_sum': [[Q[0], Q[1]], [Q[2], Q[3]]]})
+        return sorted(out, key=lambda record: record['source'])
+
+    def load(self, row, records, source_code):
+        """Restore the sums of one landmark from ``records`` (``source_code``: name to code)."""
+        codes = np.array([source_code(str(r['source'])) for r in records], np.int64)
+        slots = self._pairs(np.full(len(records), row, np.int64), codes)
+        for slot, record in zip(slots.tolist(), records):
+            Y = np.array(record['information'], dtype=np.float64).reshape(2, 2)
+            Q = np.array(record['dependent_sum'], dtype=np.float64).reshape(2, 2)
+            self.Y[slot] = Y[0, 0], 0.5 * (Y[0, 1] + Y[1, 0]), Y[1, 1]
+            self.y[slot] = np.array(record['information_mean'], dtype=np.float64).reshape(2)
+            self.Q[slot] = Q.reshape(4)
+
+
+def _terms(z, R_ind, R_dep):
+    """
+    Return what observations add to their pair's sums: ``Y``, ``y`` and ``Q`` terms.
+
+    Returns
+    -------
+    Y : ndarray, shape (N, 3)
+        ``(xx, xy, yy)`` of ``R_ind^-1``.
+    y : ndarray, shape (N, 2)
+        ``R_ind^-1 z``.
+    Q : ndarray, shape (N, 4)
+        ``(00, 01, 10, 11)`` of ``R_ind^-1 R_dep``.
+
+    """
+    a, b, c = _entries(R_ind)
+    # A positive definite independent part is needed for weights; a tiny floor
+    # keeps an all-dependent observation from dividing by zero.
+    trace = a + c
+    floor = 1e-12 * np.where(trace > 0.0, trace, R_dep[:, 0, 0] + R_dep[:, 1, 1])
+    ya, yb, yc = inverse_2x2(a + floor, b, c + floor)
+    Y = np.stack([ya, yb, yc], axis=1)
+    y = np.stack([ya * z[:, 0] + yb * z[:, 1], yb * z[:, 0] + yc * z[:, 1]], axis=1)
+    Q = np.stack([ya * R_dep[:, 0, 0] + yb * R_dep[:, 1, 0],
+                  ya * R_dep[:, 0, 1] + yb * R_dep[:, 1, 1],
+                  yb * R_dep[:, 0, 0] + yc * R_dep[:, 1, 0],
+                  yb * R_dep[:, 0, 1] + yc * R_dep[:, 1, 1]], axis=1)
+    return Y, y, Q
+
+
+def _estimate(Y, y, Q):
+    """Return the source estimates ``m, P_ind, P_dep`` of sums, as entries (``_SourceParts``)."""
+    P_ind = inverse_2x2(Y[..., 0], Y[..., 1], Y[..., 2])
+    a, b, c = P_ind
+    m = (a * y[..., 0] + b * y[..., 1], b * y[..., 0] + c * y[..., 1])
+    P_dep = (a * Q[..., 0] + b * Q[..., 2],
+             0.5 * (a * Q[..., 1] + b * Q[..., 3] + b * Q[..., 0] + c * Q[..., 2]),
+             b * Q[..., 1] + c * Q[..., 3])
+    # sym(Y^-1 Q) is indefinite when a source's rows have differently shaped
+    # dependent fractions; split CI needs a covariance there (its weight objective is
+    # concave only for positive semi-definite parts), so it is projected onto them.
+    return m, P_ind, psd_projection_2x2(*P_dep)
+
+
+def _fold(Y, y, Q, valid):
+    """
+    Fuse the source estimates of each landmark by split CI, the tightest first.
+
+    Split CI is not associative: folding the sources from the smallest covariance
+    (determinant) up makes the result independent of the order they arrived in.
+    Vectorised over the landmarks: step ``j`` folds the ``j``-th tightest source of
+    every landmark that has one. Every operation is element-wise and the weight search
+    starts from the same point every time, so a landmark's result depends on its own
+    sums only (not on the other rows, nor on earlier folds).
+
+    Parameters
+    ----------
+    Y, y, Q : ndarray, shape (K, W, 3), (K, W, 2), (K, W, 4)
+        Sums of up to ``W`` sources of ``K`` landmarks (``_SourceParts``).
+    valid : ndarray of bool, shape (K, W)
+        Which of them hold a source (at least one per landmark).
+
+    Returns
+    -------
+    m : ndarray, shape (K, 2)
+    P_ind, P_dep : ndarray, shape (K, 2, 2)
+
+    Notes
+    -----
+    The same fold compiled (``core._fold_kernel``, bit for bit the same results) runs
+    instead when numba is installed: a step costs about a tenth.
+
+    """
+    compiled = _fold_kernel.load()
+    if compiled is not None:
+        return compiled(Y, y, Q, valid)
+    return _fold_numpy(Y, y, Q, valid)
+
+
+def _fold_numpy(Y, y, Q, valid):
+    """Return ``_fold`` computed with numpy operations vectorised over the landmarks."""
+    m, P_ind, P_dep = _estimate(Y, y, Q)
+    size = np.where(valid, _log2_det(*(i + d for i, d in zip(P_ind, P_dep))), np.inf)
+    counts = valid.sum(axis=1)
+    # Landmarks with the most sources first: those still folding form a prefix.
+    by_count = np.argsort(-counts, kind='stable')
+    counts = counts[by_count]
+    order = np.argsort(size[by_count], axis=1, kind='stable')
+    parts = np.take_along_axis(np.stack([*m, *P_ind, *P_dep], axis=-1)[by_count],
+                               order[:, :, None], axis=1)         # (K, W, 8), tightest first
+    fused = parts[:, 0].copy()
+    steps = (counts[:, None] > np.arange(1, int(counts[0]))).sum(axis=0)
+    for j, k in enumerate(steps.tolist(), start=1):
+        first, second = fused[:k], parts[:k, j]
+        first_m, first_i, first_d = _split_entries(first)
+        second_m, second_i, second_d = _split_entries(second)
+        # From 0.5 every time, as ``split_covariance_intersection_omega``.
+        omega = sci_omega_2x2(first_i, first_d, second_i, second_d)
+        new_m, new_i, new_d = split_ci_2x2_entries(first_m, first_i, first_d, second_m,
+                                                   second_i, second_d, omega)
+        fused[:k] = np.stack([*new_m, *new_i, *new_d], axis=1)
+    fused[by_count] = fused.copy()
+    return (fused[:, :2].copy(), symmetric_2x2(fused[:, 2], fused[:, 3], fused[:, 4]),
+            symmetric_2x2(fused[:, 5], fused[:, 6], fused[:, 7]))
+
+
+def _split_entries(parts):
+    """Return ``(m, P_ind, P_dep)`` entry tuples of packed ``(K, 8)`` estimates."""
+    return ((parts[:, 0], parts[:, 1]), (parts[:, 2], parts[:, 3], parts[:, 4]),
+            (parts[:, 5], parts[:, 6], parts[:, 7]))
+
+
+def _rank(groups):
+    """Return how many earlier entries share each entry's group (its rank in it)."""
+    order = np.argsort(groups, kind='stable')
+    sorted_groups = groups[order]
+    starts = np.ones(len(groups), bool)
+    starts[1:] = sorted_groups[1:] != sorted_groups[:-1]
+    first = np.maximum.accumulate(np.where(starts, np.arange(len(groups)), 0))
+    rank = np.empty(len(groups), np.int64)
+    rank[order] = np.arange(len(groups)) - first
+    return rank
+
+
+def _levels(groups):
+    """Split entry positions into levels by rank: each group at most once per level."""
+    if not len(groups):
+        return []
+    rank = _rank(groups)
+    if rank.max() == 0:
+        return [np.arange(len(groups))]
+    by_rank = np.argsort(rank, kind='stable')
+    bounds = np.searchsorted(rank[by_rank], np.arange(rank.max() + 2))
+    return [by_rank[bounds[k]:bounds[k + 1]] for k in range(rank.max() + 1)]
+
+
+def _log2_det(a, b, c):
+    """
+    Return a key increasing with ``a c - b^2`` (about its base-2 logarithm), never inf.
+
+    From the scaled determinant's exact exponent and mantissa: it orders covariances
+    by size however large or small they are; -inf for a singular one.
+    """
+    s = power_of_4_scale(a, c)
+    mantissa, exponent = np.frexp((a / s) * (c / s) - (b / s) * (b / s))
+    key = exponent + 2 * (np.frexp(s)[1] - 1) + 2.0 * (mantissa - 0.5)
+    return np.where(mantissa > 0.0, key, -np.inf)
+
+
+def _one_source(mean, P_ind, P_dep):
+    """Return the per-source record of an estimate held as a single source."""
+    Y = information(P_ind)
+    return [{'source': 'loaded', 'information': Y.tolist(),
+             'information_mean': (Y @ mean).tolist(),
+             'dependent_sum': (Y @ P_dep).tolist()}]
