@@ -13,6 +13,7 @@ import os
 import signal
 import sys
 import tempfile
+import time
 
 import rclpy
 from rclpy.exceptions import ParameterException
@@ -135,6 +136,23 @@ def _init(args, name):
     return failure
 
 
+def _stopping(node, wait_s=1.0):
+    """
+    Return whether a stop signal is shutting the context down (after a failure in spin).
+
+    rclpy shuts the context down from its signal thread, so an error the signal
+    caused in the executor (a take interrupted in the middle: pybind11's "Unable to
+    convert call argument") can come just before ``rclpy.ok()`` turns False: wait up
+    to ``wait_s`` for it.
+    """
+    if node is None:
+        return False
+    deadline = time.monotonic() + wait_s
+    while rclpy.ok() and time.monotonic() < deadline:
+        time.sleep(0.01)
+    return not rclpy.ok()
+
+
 def run(node_class, name, args=None, startup_errors=(), what='invalid parameters'):
     """
     Run one node until shutdown, as every console script of the package does.
@@ -185,13 +203,13 @@ def run(node_class, name, args=None, startup_errors=(), what='invalid parameters
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except (ValueError, ParameterException, *startup_errors) as error:
-        if node is not None and not rclpy.ok():
+        if _stopping(node):
             return 0  # a stop signal during a callback: a clean stop all the same
         return _error(name, f'{what}: {error}')
     except Exception:  # noqa: B902 - see below
         # rclpy raises from inside the executor when a stop signal invalidates the
         # context in the middle of a take or a publish: that is a clean stop too.
-        if node is not None and not rclpy.ok():
+        if _stopping(node):
             return 0
         raise
     finally:
