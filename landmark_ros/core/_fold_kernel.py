@@ -5,8 +5,8 @@ The split-CI fold of ``landmark_map`` compiled with numba, when numba is install
 in a compiled loop instead of one numpy operation per step over all landmarks: the
 same IEEE operations in the same order (no fast-math, no fused multiply-add), so the
 results are the numpy fold's bit for bit (``test/core/test_fold_kernel.py`` checks
-it). ``plan`` gates and folds a batch's rows one after the other (``LandmarkMap``'s
-split-CI batch plan). A (landmark, source) step costs about a tenth of the numpy
+it). ``run`` gates and folds a batch's rows one after the other (``LandmarkMap``'s
+split-CI batch), keeping each landmark's fold between batches. A (landmark, source) step costs about a tenth of the numpy
 fold's.
 
 ``load()`` imports numba and compiles the kernel on first use (a process that never
@@ -256,18 +256,102 @@ def _mahalanobis_sq(dx, dy, a, b, c):
     return (c * dx * dx - 2.0 * b * dx * dy + a * dy * dy) / (a * c - b * b)
 
 
-def _plan_kernel(landmark, pair, terms, z, R, start, sums, valid, state, threshold, out,
-                 accepted, limits):
-    # Per pair (landmark k's at start[k]:start[k + 1]): its source estimate, its size,
-    # the landmark's fold order (local indices) and the prefix folds in that order.
-    count = len(sums)
-    parts = np.empty((count, 8))
-    size = np.empty(count)
-    order = np.empty(count, np.int64)
-    prefix = np.empty((count, 8))
-    second = np.empty(8)
-    ready = np.zeros(len(start) - 1, np.bool_)
-    n_valid = np.zeros(len(start) - 1, np.int64)
+# Columns of the per-slot table of ``run``: the sums (Y, y, Q), the source's packed
+# estimate (``_source_part``), the prefix fold at its rank, its size, its rank in the
+# fold order, and 1.0 when it holds observations. One row per slot: a landmark's
+# sources are read together.
+PART, PREFIX, SIZE, RANK, VALID, COLUMNS = 9, 17, 25, 26, 27, 28
+
+
+def _refold(lo, width, key_slots, table, order, limits):
+    # The whole fold of one landmark (pairs key_slots[lo:lo + width]), as _fold_one,
+    # kept per slot.
+    n = 0
+    for j in range(width):
+        t = table[key_slots[lo + j]]
+        if t[27] != 0.0:
+            t[25] = _source_part(t[0:3], t[3:5], t[5:9], True, t[9:17])
+            n += 1
+        else:
+            t[25] = math.inf
+            t[26] = -1.0
+    # Stable insertion sort of the pairs by size (key order breaks ties).
+    for j in range(width):
+        key = table[key_slots[lo + j], 25]
+        i = j
+        while i > 0 and table[key_slots[lo + order[i - 1]], 25] > key:
+            order[i] = order[i - 1]
+            i -= 1
+        order[i] = j
+    t = table[key_slots[lo + order[0]]]
+    for i in range(8):
+        t[17 + i] = t[9 + i]
+    t[26] = 0.0
+    for j in range(1, n):
+        t = table[key_slots[lo + order[j]]]
+        _fold_step(table[key_slots[lo + order[j - 1]], 17:25], t[9:17], t[17:25], limits)
+        t[26] = j
+    return key_slots[lo + order[n - 1]]
+
+
+def _fold_step(first, second, out, limits):
+    # out = split CI of the packed estimates first and second (weight searched from 0.5).
+    omega = _omega_of(first[2], first[3], first[4], first[5], first[6], first[7],
+                      second[2], second[3], second[4], second[5], second[6], second[7],
+                      limits)
+    _split_ci(first, second, omega, out)
+
+
+def _move(lo, width, q, key_slots, table, order, limits):
+    # Pair q (local index) of a landmark whose fold is kept changed: move it to its
+    # place in the order by size and fold again from the first place that changed.
+    p = key_slots[lo + q]
+    tp = table[p]
+    n = 0
+    for j in range(width):
+        s = key_slots[lo + j]
+        if s != p and table[s, 27] != 0.0:
+            n += 1
+    old = int(tp[26]) if tp[27] != 0.0 else n
+    tp[27] = 1.0
+    for j in range(width):
+        s = key_slots[lo + j]
+        if s != p and table[s, 27] != 0.0:
+            r = int(table[s, 26])
+            order[r if r < old else r - 1] = j
+    key = _source_part(tp[0:3], tp[3:5], tp[5:9], True, tp[9:17])
+    tp[25] = key
+    new = n
+    for j in range(n):
+        other = order[j]
+        value = table[key_slots[lo + other], 25]
+        if value > key or (value == key and other > q):
+            new = j
+            break
+    for j in range(n, new, -1):
+        order[j] = order[j - 1]
+    order[new] = q
+    n += 1
+    j0 = min(old, new)
+    if j0 == 0:
+        t = table[key_slots[lo + order[0]]]
+        for i in range(8):
+            t[17 + i] = t[9 + i]
+        t[26] = 0.0
+        j0 = 1
+    for j in range(j0, n):
+        t = table[key_slots[lo + order[j]]]
+        _fold_step(table[key_slots[lo + order[j - 1]], 17:25], t[9:17], t[17:25], limits)
+        t[26] = j
+    return key_slots[lo + order[n - 1]]
+
+
+def _run_kernel(landmark, position, terms, z, R, lo, hi, key_slots, table, kept, state,
+                threshold, out, accepted, limits):
+    width = 1
+    for k in range(len(lo)):
+        width = max(width, hi[k] - lo[k])
+    order = np.empty(width, np.int64)
     for i in range(len(landmark)):
         k = landmark[i]
         m = state[k]
@@ -278,50 +362,18 @@ def _plan_kernel(landmark, pair, terms, z, R, start, sums, valid, state, thresho
         accepted[i] = d2 <= threshold
         if not accepted[i]:
             continue
-        p = pair[i]
+        t = table[key_slots[position[i]]]
         for j in range(9):
-            sums[p, j] += terms[i, j]
-        lo, hi = start[k], start[k + 1]
-        if not valid[p] and ready[k]:
-            n_valid[k] += 1
-        valid[p] = True
-        if not ready[k]:
-            # First row of this landmark: the whole fold, as _fold_one.
-            _fold_one(sums[lo:hi, 0:3], sums[lo:hi, 3:5], sums[lo:hi, 5:9], valid[lo:hi],
-                      parts[lo:hi], size[lo:hi], order[lo:hi], prefix[lo:hi], second, m,
-                      limits)
-            ready[k] = True
-            n = 0
-            for j in range(lo, hi):
-                if valid[j]:
-                    n += 1
-            n_valid[k] = n
+            t[j] += terms[i, j]
+        if kept[k]:
+            last = _move(lo[k], hi[k] - lo[k], position[i] - lo[k], key_slots, table, order,
+                         limits)
         else:
-            # Only pair q changed: move it to its place in the stable order by size and
-            # fold again from the first place that changed.
-            q = p - lo
-            local = order[lo:hi]
-            width = hi - lo
-            old = 0
-            while local[old] != q:
-                old += 1
-            size[p] = _source_part(sums[p, 0:3], sums[p, 3:5], sums[p, 5:9], True, parts[p])
-            key = size[p]
-            for j in range(old, width - 1):
-                local[j] = local[j + 1]
-            new = width - 1
-            for j in range(width - 1):
-                other = local[j]
-                if size[lo + other] > key or (size[lo + other] == key and other > q):
-                    new = j
-                    break
-            for j in range(width - 1, new, -1):
-                local[j] = local[j - 1]
-            local[new] = q
-            _fold_from(parts[lo:hi], local, n_valid[k], prefix[lo:hi], min(old, new), second,
-                       limits)
-            for j in range(8):
-                m[j] = prefix[lo + n_valid[k] - 1, j]
+            t[27] = 1.0
+            last = _refold(lo[k], hi[k] - lo[k], key_slots, table, order, limits)
+            kept[k] = True
+        for j in range(8):
+            m[j] = table[last, 17 + j]
         out[i, :] = m
 
 
@@ -341,40 +393,51 @@ def _compiled_fold(Y, y, Q, valid):
     return out[:, :2].copy(), P_ind, P_dep
 
 
-def plan(landmark: NDArray[np.intp], pair: NDArray[np.intp], terms: NDArray[np.float64],
-         z: NDArray[np.float64], R: NDArray[np.float64], start: NDArray[np.intp],
-         sums: NDArray[np.float64], valid: NDArray[np.bool_], state: NDArray[np.float64],
-         threshold: float) -> Tuple[NDArray[np.float64], NDArray[np.bool_]]:
+def run(landmark: NDArray[np.intp], position: NDArray[np.intp], terms: NDArray[np.float64],
+        z: NDArray[np.float64], R: NDArray[np.float64], lo: NDArray[np.intp],
+        hi: NDArray[np.intp], key_slots: NDArray[np.intp], table: NDArray[np.float64],
+        kept: NDArray[np.bool_], state: NDArray[np.float64],
+        threshold: float) -> Tuple[NDArray[np.float64], NDArray[np.bool_]]:
     """
     Gate and fold the rows of a batch one after the other, as the map would.
 
     Row ``i`` (arrival order) observes landmark ``landmark[i]``, whose (landmark,
-    source) pairs are ``sums[start[k]:start[k + 1]]`` (key order; ``valid`` marks the
-    pairs that hold observations) and whose estimate is ``state[k]``. A row passes
-    when its squared Mahalanobis distance to the estimate (innovation covariance
-    ``P_ind + P_dep + R_ind + R_dep``) is at most ``threshold``; then its ``terms``
-    are added to ``sums[pair[i]]`` and the landmark is folded again. ``sums``,
-    ``valid`` and ``state`` are updated in place. Call only after ``load()`` returned
-    the kernel.
+    source) pairs are the slots ``key_slots[lo[k]:hi[k]]`` (in key order, that is by
+    source code) and whose estimate is ``state[k]``. A row passes when its squared
+    Mahalanobis distance to the estimate (innovation covariance ``P_ind + P_dep +
+    R_ind + R_dep``) is at most ``threshold``; then its ``terms`` are added to the sums
+    of the slot ``key_slots[position[i]]`` and the landmark is folded again.
+
+    A slot's row of ``table`` holds its sums and, for a landmark with ``kept[k]`` (its
+    fold up to date with its sums), its source's estimate, its size (``_log2_det`` of
+    the covariance), its rank in the fold order and the prefix fold up to that rank
+    (the columns ``PART`` to ``VALID``). Then a changed source moves to its new place
+    and the fold is redone from the first place that changed; otherwise the whole
+    fold is done and kept (``kept[k]`` is set). The results are those of ``_fold`` on
+    the sums after each row, bit for bit. ``table``, ``kept`` and ``state`` are
+    updated in place. Call only after ``load()`` returned the kernel.
 
     Parameters
     ----------
     landmark : ndarray of int, shape (N,)
-        Each row's landmark, an index into ``state``.
-    pair : ndarray of int, shape (N,)
-        Each row's (landmark, source) pair, an index into ``sums``.
+        Each row's landmark, an index into ``state``, ``lo``, ``hi``, ``kept``.
+    position : ndarray of int, shape (N,)
+        Each row's (landmark, source) pair, an index into ``key_slots``.
     terms : ndarray, shape (N, 9)
         ``_terms`` of the rows, concatenated (``Y``, ``y``, ``Q``).
     z : ndarray, shape (N, 2)
         Observed positions [m].
     R : ndarray, shape (N, 6)
         ``(xx, xy, yy)`` of ``R_ind`` then of ``R_dep`` [m^2].
-    start : ndarray of int, shape (K + 1,)
-        Landmark ``k``'s pairs are ``start[k]`` to ``start[k + 1]``.
-    sums : ndarray, shape (P, 9)
-        The pairs' sums, packed as ``terms``.
-    valid : ndarray of bool, shape (P,)
-        Which pairs hold observations.
+    lo, hi : ndarray of int, shape (K,)
+        Landmark ``k``'s pairs are ``key_slots[lo[k]:hi[k]]``.
+    key_slots : ndarray of int, shape (P,)
+        The slot of each pair.
+    table : ndarray, shape (S, COLUMNS)
+        Per slot: its sums packed as ``terms``, then the kept fold (see above); column
+        ``VALID`` is 1.0 for the slots that hold observations.
+    kept : ndarray of bool, shape (K,)
+        Whether a landmark's kept fold is up to date.
     state : ndarray, shape (K, 8)
         Packed estimates: mean, ``(xx, xy, yy)`` of ``P_ind``, of ``P_dep``.
     threshold : float
@@ -390,8 +453,8 @@ def plan(landmark: NDArray[np.intp], pair: NDArray[np.intp], terms: NDArray[np.f
     out = np.empty((len(landmark), 8))
     accepted = np.empty(len(landmark), np.bool_)
     with np.errstate(all='ignore'):
-        _plan_kernel(landmark, pair, terms, z, R, start, sums, valid, state, float(threshold),
-                     out, accepted, _limits())
+        _run_kernel(landmark, position, terms, z, R, lo, hi, key_slots, table, kept, state,
+                    float(threshold), out, accepted, _limits())
     return out, accepted
 
 
@@ -429,5 +492,5 @@ _tried = False
 
 _COMPILED = ('_scale4', '_inverse', '_psd', '_log2_det', '_omega_of', '_congruence', '_split_ci',
              '_source_part', '_fold_from', '_fold_one', '_kernel', '_mahalanobis_sq',
-             '_plan_kernel')
+             '_fold_step', '_refold', '_move', '_run_kernel')
 """The functions ``load`` compiles, callees before callers."""

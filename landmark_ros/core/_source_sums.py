@@ -47,20 +47,71 @@ class _SourceParts:
     information-weighted mean of the dependent parts, a shared error that averaging
     does not reduce. Pairs are found by binary search in a sorted array of keys
     ``row << 24 | source code``, so a landmark's pairs are contiguous, in source-code
-    order; their sums live in flat arrays indexed by a slot.
+    order; their sums live in flat arrays indexed by a slot. ``keys`` and ``slots`` are
+    replaced, never changed in place (a checkpoint holds the old arrays).
 
     A landmark's estimate is a pure function of its sums (``_fold``, no state carried
     from one fold to the next), so the estimates after each row of a batch can be
     found all at once (``plan``) and equal, bit for bit, those found one row at a time.
+    The compiled batch (``run``) also keeps each landmark's fold per slot (``size``,
+    ``rank``, ``prefix``; ``_fold_kernel.run``) while ``kept[row]`` says it matches the
+    sums: every other change of a landmark's sums clears that flag.
     """
 
     def __init__(self):
         self.keys = np.empty(0, np.int64)     # sorted
         self.slots = np.empty(0, np.int64)    # slot of each key
         self.count = 0
-        self.Y = np.zeros((64, 3))            # (xx, xy, yy) of the information sum
-        self.y = np.zeros((64, 2))
-        self.Q = np.zeros((64, 4))            # (00, 01, 10, 11) of sum R_ind^-1 R_dep
+        self.table = np.zeros((64, _fold_kernel.COLUMNS))    # per slot: sums, kept fold
+        self.kept = np.zeros(64, bool)        # per landmark row
+        self.journal = None                   # [(slots, their sums)] while a checkpoint holds
+        self.journal_count = 0                # slots from here on are new since it
+
+    # The sums of each slot: ``(xx, xy, yy)`` of the information sum, the information
+    # mean, ``(00, 01, 10, 11)`` of sum R_ind^-1 R_dep; views into ``table``.
+    sums = property(lambda self: self.table[:, 0:9])
+    Y = property(lambda self: self.table[:, 0:3])
+    y = property(lambda self: self.table[:, 3:5])
+    Q = property(lambda self: self.table[:, 5:9])
+
+    def _new_slots(self, count):
+        """Return ``count`` new slots (zero sums, not valid), growing the arrays."""
+        slots = np.arange(self.count, self.count + count)
+        self.count += count
+        if self.count > len(self.table):
+            grown = np.zeros((max(self.count, 2 * len(self.table)), self.table.shape[1]))
+            grown[:len(self.table)] = self.table
+            self.table = grown
+        return slots
+
+    def _insert(self, new, valid):
+        """Insert the sorted new keys ``new`` with new slots; return the slots."""
+        slots = self._new_slots(len(new))
+        self.table[slots, _fold_kernel.VALID] = 1.0 if valid else 0.0
+        at = np.searchsorted(self.keys, new)
+        self.keys = np.insert(self.keys, at, new)
+        self.slots = np.insert(self.slots, at, slots)
+        return slots
+
+    def _grow_kept(self, rows):
+        """Make ``kept`` cover landmark rows below ``rows``."""
+        if rows > len(self.kept):
+            grown = np.zeros(max(rows, 2 * len(self.kept)), bool)
+            grown[:len(self.kept)] = self.kept
+            self.kept = grown
+
+    def _changed(self, rows):
+        """Note that the sums of ``rows`` change outside ``run`` (their kept folds go)."""
+        rows = np.asarray(rows, np.int64)
+        if len(rows):
+            self._grow_kept(int(rows.max()) + 1)
+            self.kept[rows] = False
+
+    def _touch(self, slots):
+        """Journal the sums of ``slots`` before they change (while a checkpoint holds)."""
+        if self.journal is not None:
+            slots = slots[slots < self.journal_count]
+            self.journal.append((slots, self.sums[slots].copy()))
 
     def _pairs(self, rows, codes):
         """Return the slots of (row, code) pairs, creating the new ones."""
@@ -69,19 +120,7 @@ class _SourceParts:
         found = position < len(self.keys)
         found[found] = self.keys[position[found]] == keys[found]
         if not found.all():
-            new = np.unique(keys[~found])
-            slots = np.arange(self.count, self.count + len(new))
-            self.count += len(new)
-            if self.count > len(self.Y):
-                size = max(self.count, 2 * len(self.Y))
-                for name in ('Y', 'y', 'Q'):
-                    old = getattr(self, name)
-                    grown = np.zeros((size,) + old.shape[1:])
-                    grown[:len(old)] = old
-                    setattr(self, name, grown)
-            at = np.searchsorted(self.keys, new)
-            self.keys = np.insert(self.keys, at, new)
-            self.slots = np.insert(self.slots, at, slots)
+            self._insert(np.unique(keys[~found]), True)
             position = np.searchsorted(self.keys, keys)
         return self.slots[position]
 
@@ -101,6 +140,8 @@ class _SourceParts:
         ``unique`` (every pair once, as in a round) by plain indexing.
         """
         slots = self._pairs(rows, codes)
+        self._touch(slots)
+        self._changed(rows)
         Y, y, Q = _terms(z, R_ind, R_dep)
         if unique:
             self.Y[slots] += Y
@@ -112,18 +153,27 @@ class _SourceParts:
             np.add.at(self.Q, slots, Q)
 
     def checkpoint(self, rows):
-        """Return the index and the sums of every pair of ``rows`` (for ``restore``)."""
-        slots = self.slots[self._ranges(rows)]
-        return (self.keys.copy(), self.slots.copy(), self.count, slots,
-                self.Y[slots].copy(), self.y[slots].copy(), self.Q[slots].copy())
+        """
+        Start journaling changes to the sums; return what ``restore`` needs.
+
+        ``rows``: the landmarks the update may change (the journal covers any).
+        """
+        self.journal, self.journal_count = [], self.count
+        return self.keys, self.slots, self.count, self.journal
+
+    def finish(self):
+        """Stop journaling (the update the checkpoint was for is over)."""
+        self.journal = None
 
     def restore(self, state):
-        """Undo every change since ``checkpoint``."""
-        keys, slots_of_keys, count, slots, Y, y, Q = state
-        for sums in (self.Y, self.y, self.Q):     # new slots are taken as zero sums
-            sums[count:self.count] = 0.0
+        """Undo every change since ``checkpoint``; every kept fold is dropped."""
+        keys, slots_of_keys, count, journal = state
+        for slots, sums in reversed(journal):
+            self.sums[slots] = sums
+        self.table[count:self.count] = 0.0     # slots made since: unused again
         self.keys, self.slots, self.count = keys, slots_of_keys, count
-        self.Y[slots], self.y[slots], self.Q[slots] = Y, y, Q
+        self.kept[:] = False
+        self.journal = None
 
     def merge_into(self, keep: int, drop: int) -> None:
         """
@@ -138,12 +188,13 @@ class _SourceParts:
         codes = self.keys[lo:hi] & ((1 << _SOURCE_BITS) - 1)
         sources = self.slots[lo:hi].copy()
         targets = self._pairs(np.full(len(codes), keep, np.int64), codes)
-        for name in ('Y', 'y', 'Q'):
-            values = getattr(self, name)
-            values[targets] += values[sources]
+        self._touch(targets)
+        self._changed([keep, drop])
+        self.sums[targets] += self.sums[sources]
 
     def clear(self, row):
         """Forget the sources of one landmark."""
+        self._changed([row])
         lo, hi = np.searchsorted(self.keys, [row << _SOURCE_BITS, (row + 1) << _SOURCE_BITS])
         self.keys = np.delete(self.keys, np.s_[lo:hi])
         self.slots = np.delete(self.slots, np.s_[lo:hi])
@@ -248,9 +299,12 @@ class _SourceParts:
 
     def run(self, landmark_map, rows, batch, positions):
         """
-        Gate and fold the rows of confirmed landmarks one by one (``_fold_kernel.plan``).
+        Gate and fold the rows of confirmed landmarks one by one (``_fold_kernel.run``).
 
-        On a copy of the sums of the batch's landmarks; nothing here changes.
+        The sums and the kept folds change in place; ``commit`` then keeps the outcome
+        or ``rollback`` undoes it (the sums as they were, the folds of these landmarks
+        dropped). Pairs new in the batch get slots that hold no observation until a
+        row of theirs is accepted.
 
         Returns
         -------
@@ -258,23 +312,29 @@ class _SourceParts:
             ``accepted`` (N,) the gate's decisions, ``out`` (N, 8) the packed estimate
             after each accepted row, ``landmarks`` the distinct rows and ``landmark``
             each row's index in them, ``state`` (K, 8) their estimates after the
-            batch, ``keys``, ``sums``, ``valid`` the (landmark, source) pairs after it.
+            batch, and what ``commit`` and ``rollback`` need.
 
         """
         codes = batch.codes[positions]
         keys = (rows << _SOURCE_BITS) | codes
         landmarks, landmark = np.unique(rows, return_inverse=True)
         landmark = landmark.reshape(-1)
-        known = self._ranges(landmarks)
-        all_keys = np.union1d(self.keys[known], keys)
-        valid = np.zeros(len(all_keys), bool)
-        at_known = np.searchsorted(all_keys, self.keys[known])
-        valid[at_known] = True
-        sums = np.zeros((len(all_keys), 9))
-        slots = self.slots[known]
-        sums[at_known] = np.concatenate([self.Y[slots], self.y[slots], self.Q[slots]], axis=1)
-        owner = np.searchsorted(landmarks, all_keys >> _SOURCE_BITS)
-        start = np.searchsorted(owner, np.arange(len(landmarks) + 1))
+        self._grow_kept(int(landmarks[-1]) + 1)
+        before = (self.keys, self.slots, self.count)
+        position = np.searchsorted(self.keys, keys)
+        found = position < len(self.keys)
+        found[found] = self.keys[position[found]] == keys[found]
+        touched = np.unique(self.slots[position[found]])
+        saved = self.sums[touched].copy()
+        if self.journal is not None:
+            self.journal.append((touched[touched < self.journal_count], saved[
+                touched < self.journal_count]))
+        new = np.unique(keys[~found]) if not found.all() else keys[:0]
+        if len(new):
+            self._insert(new, False)
+            position = np.searchsorted(self.keys, keys)
+        lo = np.searchsorted(self.keys, landmarks << _SOURCE_BITS)
+        hi = np.searchsorted(self.keys, (landmarks + 1) << _SOURCE_BITS)
         z, R_ind, R_dep = batch.z[positions], batch.R_ind[positions], batch.R_dep[positions]
         terms = np.concatenate(_terms(z, R_ind, R_dep), axis=1)
         R = np.stack([*_entries(R_ind), *_entries(R_dep)], axis=1)
@@ -282,25 +342,31 @@ class _SourceParts:
                                 np.stack(_entries(landmark_map.cov_ind[landmarks]), axis=1),
                                 np.stack(_entries(landmark_map.cov_dep[landmarks]), axis=1)],
                                axis=1)
-        out, accepted = _fold_kernel.plan(landmark, np.searchsorted(all_keys, keys), terms, z, R,
-                                          start, sums, valid, state, landmark_map.threshold)
+        kept = self.kept[landmarks]
+        out, accepted = _fold_kernel.run(landmark, position, terms, z, R, lo, hi, self.slots,
+                                         self.table, kept, state, landmark_map.threshold)
+        self.kept[landmarks] = kept
         return {'accepted': accepted, 'out': out, 'landmarks': landmarks, 'landmark': landmark,
-                'state': state, 'keys': all_keys, 'sums': sums, 'valid': valid,
-                'at_known': at_known, 'slots': slots}
+                'state': state, 'before': before, 'new': new, 'touched': touched,
+                'saved': saved}
 
-    def store(self, run):
-        """Take the sums of a ``run`` whose rows the map accepted as they were decided."""
-        sums, valid = run['sums'], run['valid'].copy()
-        known = run['at_known']
-        slots = run['slots']
-        self.Y[slots], self.y[slots], self.Q[slots] = (sums[known, :3], sums[known, 3:5],
-                                                       sums[known, 5:])
-        valid[known] = False                   # the new pairs the batch observed
-        if valid.any():
-            keys = run['keys'][valid]
-            slots = self._pairs(keys >> _SOURCE_BITS, keys & ((1 << _SOURCE_BITS) - 1))
-            self.Y[slots], self.y[slots], self.Q[slots] = (sums[valid, :3], sums[valid, 3:5],
-                                                           sums[valid, 5:])
+    def commit(self, run):
+        """Keep a ``run``: drop the new pairs no accepted row observed."""
+        new = run['new']
+        if len(new):
+            at = np.searchsorted(self.keys, new)
+            unused = self.table[self.slots[at], _fold_kernel.VALID] == 0.0
+            if unused.any():
+                self.keys = np.delete(self.keys, at[unused])
+                self.slots = np.delete(self.slots, at[unused])
+
+    def rollback(self, run):
+        """Undo a ``run``: its sums and pairs as they were, the folds it kept dropped."""
+        keys, slots, count = run['before']
+        self.sums[run['touched']] = run['saved']
+        self.table[count:self.count] = 0.0
+        self.keys, self.slots = keys, slots
+        self.kept[run['landmarks']] = False
 
     @staticmethod
     def planned(run, size, positions):
@@ -342,6 +408,8 @@ class _SourceParts:
         """Restore the sums of one landmark from ``records`` (``source_code``: name to code)."""
         codes = np.array([source_code(str(r['source'])) for r in records], np.int64)
         slots = self._pairs(np.full(len(records), row, np.int64), codes)
+        self._touch(slots)
+        self._changed([row])
         for slot, record in zip(slots.tolist(), records):
             Y = np.array(record['information'], dtype=np.float64).reshape(2, 2)
             Q = np.array(record['dependent_sum'], dtype=np.float64).reshape(2, 2)

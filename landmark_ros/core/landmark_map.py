@@ -255,8 +255,9 @@ class _SplitCovarianceIntersection(_Independent):
         if _fold_kernel.load() is not None:
             run = self.parts.run(landmark_map, rows, batch, positions)
             if landmark_map._apply_run(rows, batch, positions, run, result, changed):
-                self.parts.store(run)
+                self.parts.commit(run)
                 return True
+            self.parts.rollback(run)
             self.planned = self.parts.planned(run, len(batch.codes), positions)
             return False
         if len(rows) < 2 or len(np.unique(rows)) == len(rows):
@@ -320,8 +321,9 @@ class _SplitCovarianceIntersection(_Independent):
                         'broken': np.zeros(len(landmarks), bool)}
 
     def finish(self):
-        """Forget what ``prepare`` found."""
+        """Forget what ``prepare`` found; the update is over."""
         self.planned = None
+        self.parts.finish()
 
     def fuse(self, m, P_ind, P_dep, z, R_ind, R_dep):
         """Fuse estimates with observations row by row (split CI, exact omega)."""

@@ -82,10 +82,11 @@ def loop_plan(landmark, pair, terms, z, R, start, sums, valid, state, threshold)
 
 
 @pytest.mark.parametrize('sources', [5, 50])
-def test_plan_equals_gating_and_folding_row_by_row(compiled, rng, sources):
-    # The plan refolds a landmark from the first source whose place changed.
-    landmarks, count = 30, 600
-    # Pairs: each landmark has 1 to 5 sources, some not observed yet.
+def test_run_equals_gating_and_folding_row_by_row_batch_after_batch(compiled, rng, sources):
+    # The run keeps each landmark's fold per slot between batches and refolds from
+    # the first source whose place changed; pairs are reached through a shuffled
+    # slot index, some hold no observation yet.
+    landmarks, count = 30, 300
     width = rng.integers(1, sources + 1, landmarks)
     start = np.concatenate([[0], np.cumsum(width)])
     Y, y, Q, _ = random_sums(rng, int(start[-1]), 1)
@@ -95,28 +96,39 @@ def test_plan_equals_gating_and_folding_row_by_row(compiled, rng, sources):
     state = np.empty((landmarks, 8))
     for k in range(landmarks):
         state[k] = fold_one(sums, valid, start[k], start[k + 1])
-    landmark = rng.integers(0, landmarks, count)
-    pair = start[landmark] + rng.integers(0, 1 << 30, count) % width[landmark]
-    R_ind = np.stack([np.full(count, 0.04), rng.uniform(-0.01, 0.01, count),
-                      np.full(count, 0.05)], axis=1)
-    R_dep = R_ind * rng.uniform(0.0, 1.0, (count, 1))
-    R_full = np.zeros((count, 2, 2))
-    R_full[:, 0, 0], R_full[:, 0, 1], R_full[:, 1, 0], R_full[:, 1, 1] = (
-        R_ind[:, 0], R_ind[:, 1], R_ind[:, 1], R_ind[:, 2])
-    D_full = R_full * (R_dep[:, :1] / R_ind[:, :1])[:, :, None]
-    # About a third of the rows far off: rejected.
-    z = state[landmark, :2] + rng.normal(0.0, 0.2, (count, 2)) * np.where(
-        rng.uniform(size=(count, 1)) < 0.3, 30.0, 1.0)
-    terms = np.concatenate(_source_sums._terms(z, R_full - D_full, D_full), axis=1)
-    R = np.concatenate([R_ind - R_dep, R_dep], axis=1)
+    key_slots = rng.permutation(len(sums) + 7)[:len(sums)]
+    table = np.full((len(sums) + 7, _fold_kernel.COLUMNS), np.nan)
+    table[key_slots, :9] = sums
+    table[key_slots, _fold_kernel.VALID] = valid
+    kept = np.zeros(landmarks, bool)
+    new_state = state.copy()
     threshold = 9.21
-    args = (landmark, pair, terms, z, R, start)
-    expected = loop_plan(*args, sums.copy(), valid.copy(), state.copy(), threshold)
-    new_sums, new_valid, new_state = sums.copy(), valid.copy(), state.copy()
-    out, accepted = _fold_kernel.plan(*args, new_sums, new_valid, new_state, threshold)
-    assert 50 < accepted.sum() < count - 50     # both branches, many times
-    np.testing.assert_array_equal(accepted, expected[1])
-    np.testing.assert_array_equal(out[accepted], expected[0][accepted])
+    for _ in range(3):
+        landmark = rng.integers(0, landmarks, count)
+        pair = start[landmark] + rng.integers(0, 1 << 30, count) % width[landmark]
+        R_ind = np.stack([np.full(count, 0.04), rng.uniform(-0.01, 0.01, count),
+                          np.full(count, 0.05)], axis=1)
+        R_dep = R_ind * rng.uniform(0.0, 1.0, (count, 1))
+        R_full = np.zeros((count, 2, 2))
+        R_full[:, 0, 0], R_full[:, 0, 1], R_full[:, 1, 0], R_full[:, 1, 1] = (
+            R_ind[:, 0], R_ind[:, 1], R_ind[:, 1], R_ind[:, 2])
+        D_full = R_full * (R_dep[:, :1] / R_ind[:, :1])[:, :, None]
+        # About a third of the rows far off: rejected.
+        z = state[landmark, :2] + rng.normal(0.0, 0.2, (count, 2)) * np.where(
+            rng.uniform(size=(count, 1)) < 0.3, 30.0, 1.0)
+        terms = np.concatenate(_source_sums._terms(z, R_full - D_full, D_full), axis=1)
+        R = np.concatenate([R_ind - R_dep, R_dep], axis=1)
+        args = (landmark, pair, terms, z, R, start)
+        expected = loop_plan(*args, sums, valid, state, threshold)
+        out, accepted = _fold_kernel.run(landmark, pair, terms, z, R, start[:-1], start[1:],
+                                         key_slots, table, kept, new_state, threshold)
+        assert 30 < accepted.sum() < count - 30     # both branches, many times
+        np.testing.assert_array_equal(accepted, expected[1])
+        np.testing.assert_array_equal(out[accepted], expected[0][accepted])
+        np.testing.assert_array_equal(new_state, state)
+        np.testing.assert_array_equal(table[key_slots, :9], sums)
+        np.testing.assert_array_equal(table[key_slots, _fold_kernel.VALID] != 0, valid)
+        assert kept[np.unique(landmark[accepted])].all()
 
 
 def test_turned_off_by_the_environment(monkeypatch):
