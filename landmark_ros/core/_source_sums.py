@@ -311,14 +311,23 @@ class _SourceParts:
         dict
             ``accepted`` (N,) the gate's decisions, ``out`` (N, 8) the packed estimate
             after each accepted row, ``landmarks`` the distinct rows and ``landmark``
-            each row's index in them, ``state`` (K, 8) their estimates after the
-            batch, and what ``commit`` and ``rollback`` need.
+            each row's index in them, ``order`` the rows sorted by landmark (stable),
+            ``state`` (K, 8) their estimates after the batch, and what ``commit`` and
+            ``rollback`` need.
 
         """
         codes = batch.codes[positions]
         keys = (rows << _SOURCE_BITS) | codes
-        landmarks, landmark = np.unique(rows, return_inverse=True)
-        landmark = landmark.reshape(-1)
+        # The distinct landmarks and each row's index in them, from one stable sort
+        # (``_apply_run`` groups the rows by landmark with the same order).
+        order = np.argsort(rows, kind='stable')
+        sorted_rows = rows[order]
+        first = np.empty(len(rows), bool)
+        first[:1] = True
+        np.not_equal(sorted_rows[1:], sorted_rows[:-1], out=first[1:])
+        landmarks = sorted_rows[first]
+        landmark = np.empty(len(rows), np.int64)
+        landmark[order] = np.cumsum(first) - 1
         self._grow_kept(int(landmarks[-1]) + 1)
         before = (self.keys, self.slots, self.count)
         position = np.searchsorted(self.keys, keys)
@@ -347,7 +356,7 @@ class _SourceParts:
                                          self.table, kept, state, landmark_map.threshold)
         self.kept[landmarks] = kept
         return {'accepted': accepted, 'out': out, 'landmarks': landmarks, 'landmark': landmark,
-                'state': state, 'before': before, 'new': new, 'touched': touched,
+                'order': order, 'state': state, 'before': before, 'new': new, 'touched': touched,
                 'saved': saved}
 
     def commit(self, run):
@@ -379,7 +388,7 @@ class _SourceParts:
         accepted, landmark, out = run['accepted'], run['landmark'], run['out']
         at = np.full(size, -1, np.int64)
         at[positions[accepted]] = np.flatnonzero(accepted)
-        order = np.argsort(landmark, kind='stable')
+        order = run['order']
         first = np.searchsorted(landmark[order], landmark[order])
         taken = accepted[order].astype(np.int64)
         included: NDArray[np.int64] = np.cumsum(taken) - taken

@@ -690,7 +690,7 @@ class LandmarkMap:
         ``max_consecutive_rejections`` in the batch (the rounds rebuild it then).
         """
         accepted, landmark, landmarks = run['accepted'], run['landmark'], run['landmarks']
-        order = np.argsort(landmark, kind='stable')
+        order = run['order']
         group = landmark[order]
         taken = accepted[order]
         start = np.searchsorted(group, group)
