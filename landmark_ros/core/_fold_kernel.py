@@ -6,8 +6,8 @@ in a compiled loop instead of one numpy operation per step over all landmarks: t
 same IEEE operations in the same order (no fast-math, no fused multiply-add), so the
 results are the numpy fold's bit for bit (``test/core/test_fold_kernel.py`` checks
 it). ``run`` gates and folds a batch's rows one after the other (``LandmarkMap``'s
-split-CI batch), keeping each landmark's fold between batches. A (landmark, source) step costs about a tenth of the numpy
-fold's.
+split-CI batch), keeping each landmark's fold between batches. A (landmark, source)
+step costs about a tenth of the numpy fold's.
 
 ``load()`` imports numba and compiles the kernel on first use (a process that never
 folds does not load numba: about 80 MB and a second; compiling without numba's disk
@@ -61,8 +61,14 @@ def _scale4(d0, d1, d2, d3):
             largest = a
     if not (largest > 0.0 and math.isfinite(largest)):
         largest = 1.0
-    exponent = math.frexp(largest)[1]
-    return math.ldexp(1.0, exponent - (exponent & 1))
+    # frexp's exponent and ldexp from the bits where the numbers are normal (the
+    # library calls cost more than the rest of a 2x2 inverse), the calls otherwise.
+    field = (np.float64(largest).view(np.int64) >> 52) & 0x7ff
+    exponent = field - 1022 if field > 0 else math.frexp(largest)[1]
+    power = exponent - (exponent & 1)
+    if -1022 <= power <= 1023:
+        return np.int64((power + 1023) << 52).view(np.float64)
+    return math.ldexp(1.0, power)
 
 
 def _inverse(a, b, c):

@@ -3,7 +3,7 @@
 from landmark_ros.core import _fold_kernel
 from landmark_ros.core import _source_sums
 from landmark_ros.core import landmark_map as landmark_map_module
-from landmark_ros.core._arrays import mahalanobis_sq_2x2
+from landmark_ros.core._arrays import mahalanobis_sq_2x2, power_of_4_scale
 import numpy as np
 import pytest
 
@@ -163,3 +163,20 @@ def test_a_clean_batch_is_taken_at_once_and_a_rebuild_goes_round_by_round(
     z[ids == 3] += 5.0                                          # landmark 3 moved
     result = landmark_map.update(ids, z, R, 0.5 * R, names, 3)
     assert taken == [True, False] and result.reinitialised == [3]
+
+
+def test_the_compiled_scale_is_the_numpy_scale_at_every_magnitude(compiled, rng):
+    # The kernel reads frexp's exponent from the bits of normal numbers and calls
+    # frexp / ldexp otherwise: subnormal, huge, zero, inf and NaN entries included.
+    special = np.array([0.0, 5e-324, 1e-310, 2.2250738585072014e-308, 1e-300, 0.3, 1.0, 3.0,
+                        4.0, 4.0000000000000001, 1e300, 1.7976931348623157e308, np.inf, np.nan,
+                        -2.5, -1e-320])
+    a = np.concatenate([np.repeat(special, len(special)), rng.normal(0, 1, 500) * 10.0 ** (
+        rng.uniform(-320, 308, 500))])
+    c = np.concatenate([np.tile(special, len(special)), rng.normal(0, 1, 500) * 10.0 ** (
+        rng.uniform(-320, 308, 500))])
+    with np.errstate(all='ignore'):
+        expected = power_of_4_scale(a, c)
+        got = np.array([_fold_kernel._scale4(x, y, 0.0, 0.0) for x, y in zip(a, c)])
+    np.testing.assert_array_equal(got, expected)
+    assert np.isinf(got).any() and (got < 2.3e-308).any()    # both ends reached
