@@ -352,25 +352,42 @@ def _move(lo, width, q, key_slots, table, order, limits):
     return key_slots[lo + order[n - 1]]
 
 
-def _run_kernel(landmark, position, terms, z, R, lo, hi, key_slots, table, kept, state,
-                threshold, out, accepted, limits):
+def _add_terms(t, z0, z1, R_ind, R_dep):
+    # t[0:9] += _source_sums._terms of one observation (the same operations).
+    a, b, c = R_ind[0, 0], R_ind[0, 1], R_ind[1, 1]
+    trace = a + c
+    floor = 1e-12 * (trace if trace > 0.0 else R_dep[0, 0] + R_dep[1, 1])
+    ya, yb, yc = _inverse(a + floor, b, c + floor)
+    t[0] += ya
+    t[1] += yb
+    t[2] += yc
+    t[3] += ya * z0 + yb * z1
+    t[4] += yb * z0 + yc * z1
+    t[5] += ya * R_dep[0, 0] + yb * R_dep[1, 0]
+    t[6] += ya * R_dep[0, 1] + yb * R_dep[1, 1]
+    t[7] += yb * R_dep[0, 0] + yc * R_dep[1, 0]
+    t[8] += yb * R_dep[0, 1] + yc * R_dep[1, 1]
+
+
+def _run_kernel(landmark, position, at, z, R_ind, R_dep, lo, hi, key_slots, table, kept,
+                state, threshold, out, accepted, limits):
     width = 1
     for k in range(len(lo)):
         width = max(width, hi[k] - lo[k])
     order = np.empty(width, np.int64)
     for i in range(len(landmark)):
         k = landmark[i]
+        x = at[i]
         m = state[k]
-        a = m[2] + m[5] + R[i, 0] + R[i, 3]
-        b = m[3] + m[6] + R[i, 1] + R[i, 4]
-        c = m[4] + m[7] + R[i, 2] + R[i, 5]
-        d2 = _mahalanobis_sq(z[i, 0] - m[0], z[i, 1] - m[1], a, b, c)
+        a = m[2] + m[5] + R_ind[x, 0, 0] + R_dep[x, 0, 0]
+        b = m[3] + m[6] + R_ind[x, 0, 1] + R_dep[x, 0, 1]
+        c = m[4] + m[7] + R_ind[x, 1, 1] + R_dep[x, 1, 1]
+        d2 = _mahalanobis_sq(z[x, 0] - m[0], z[x, 1] - m[1], a, b, c)
         accepted[i] = d2 <= threshold
         if not accepted[i]:
             continue
         t = table[key_slots[position[i]]]
-        for j in range(9):
-            t[j] += terms[i, j]
+        _add_terms(t, z[x, 0], z[x, 1], R_ind[x], R_dep[x])
         if kept[k]:
             last = _move(lo[k], hi[k] - lo[k], position[i] - lo[k], key_slots, table, order,
                          limits)
@@ -381,6 +398,39 @@ def _run_kernel(landmark, position, terms, z, R, lo, hi, key_slots, table, kept,
         for j in range(8):
             m[j] = table[last, 17 + j]
         out[i, :] = m
+
+
+def _group_kernel(rows, top, order, landmarks, landmark):
+    # Counting sort of rows (values below top): stable order, distinct rows, index.
+    index = np.full(top, -1, np.int64)
+    count = np.zeros(top, np.int64)
+    for r in rows:
+        count[r] += 1
+    distinct = 0
+    start = 0
+    for r in range(top):
+        if count[r]:
+            index[r] = distinct
+            landmarks[distinct] = r
+            count[r], start = start, start + count[r]
+            distinct += 1
+    for i in range(len(rows)):
+        r = rows[i]
+        landmark[i] = index[r]
+        order[count[r]] = i
+        count[r] += 1
+    return distinct
+
+
+def _locate_kernel(keys, lo, hi, landmark, wanted, position):
+    # position[i] = where keys[lo:hi] of row i's landmark holds wanted[i], else -1.
+    for i in range(len(wanted)):
+        k = landmark[i]
+        position[i] = -1
+        for p in range(lo[k], hi[k]):
+            if keys[p] == wanted[i]:
+                position[i] = p
+                break
 
 
 def _compiled_fold(Y, y, Q, valid):
@@ -399,10 +449,52 @@ def _compiled_fold(Y, y, Q, valid):
     return out[:, :2].copy(), P_ind, P_dep
 
 
-def run(landmark: NDArray[np.intp], position: NDArray[np.intp], terms: NDArray[np.float64],
-        z: NDArray[np.float64], R: NDArray[np.float64], lo: NDArray[np.intp],
-        hi: NDArray[np.intp], key_slots: NDArray[np.intp], table: NDArray[np.float64],
-        kept: NDArray[np.bool_], state: NDArray[np.float64],
+def group(rows: NDArray[np.intp]) -> Tuple[NDArray[np.intp], NDArray[np.intp],
+                                          NDArray[np.intp]]:
+    """
+    Group rows by value: what a stable argsort and ``np.unique`` give, in one pass.
+
+    Parameters
+    ----------
+    rows : ndarray of int, shape (N,)
+        Non-negative values (landmark rows).
+
+    Returns
+    -------
+    order : ndarray of int, shape (N,)
+        ``np.argsort(rows, kind='stable')``.
+    distinct : ndarray of int, shape (K,)
+        The distinct values, increasing.
+    index : ndarray of int, shape (N,)
+        Each row's index in ``distinct``.
+
+    """
+    rows = np.ascontiguousarray(rows, dtype=np.int64)
+    order = np.empty(len(rows), np.int64)
+    distinct = np.empty(len(rows), np.int64)
+    index = np.empty(len(rows), np.int64)
+    top = int(rows.max()) + 1 if len(rows) else 0
+    count = _group_kernel(rows, top, order, distinct, index)
+    return order, distinct[:count], index
+
+
+def locate(keys: NDArray[np.int64], lo: NDArray[np.intp], hi: NDArray[np.intp],
+           landmark: NDArray[np.intp], wanted: NDArray[np.int64]) -> NDArray[np.intp]:
+    """
+    Return where sorted ``keys`` hold ``wanted[i]`` within ``lo[k]:hi[k]``, ``k = landmark[i]``.
+
+    A scan of each landmark's few pairs instead of a binary search of all keys; -1
+    where the key is not there.
+    """
+    position = np.empty(len(wanted), np.int64)
+    _locate_kernel(keys, lo, hi, landmark, wanted, position)
+    return position
+
+
+def run(landmark: NDArray[np.intp], position: NDArray[np.intp], at: NDArray[np.intp],
+        z: NDArray[np.float64], R_ind: NDArray[np.float64], R_dep: NDArray[np.float64],
+        lo: NDArray[np.intp], hi: NDArray[np.intp], key_slots: NDArray[np.intp],
+        table: NDArray[np.float64], kept: NDArray[np.bool_], state: NDArray[np.float64],
         threshold: float) -> Tuple[NDArray[np.float64], NDArray[np.bool_]]:
     """
     Gate and fold the rows of a batch one after the other, as the map would.
@@ -411,8 +503,9 @@ def run(landmark: NDArray[np.intp], position: NDArray[np.intp], terms: NDArray[n
     source) pairs are the slots ``key_slots[lo[k]:hi[k]]`` (in key order, that is by
     source code) and whose estimate is ``state[k]``. A row passes when its squared
     Mahalanobis distance to the estimate (innovation covariance ``P_ind + P_dep +
-    R_ind + R_dep``) is at most ``threshold``; then its ``terms`` are added to the sums
-    of the slot ``key_slots[position[i]]`` and the landmark is folded again.
+    R_ind + R_dep``) is at most ``threshold``; then what it adds to the sums
+    (``_source_sums._terms``, the same operations) is added to those of the slot
+    ``key_slots[position[i]]`` and the landmark is folded again.
 
     A slot's row of ``table`` holds its sums and, for a landmark with ``kept[k]`` (its
     fold up to date with its sums), its source's estimate, its size (``_log2_det`` of
@@ -429,19 +522,19 @@ def run(landmark: NDArray[np.intp], position: NDArray[np.intp], terms: NDArray[n
         Each row's landmark, an index into ``state``, ``lo``, ``hi``, ``kept``.
     position : ndarray of int, shape (N,)
         Each row's (landmark, source) pair, an index into ``key_slots``.
-    terms : ndarray, shape (N, 9)
-        ``_terms`` of the rows, concatenated (``Y``, ``y``, ``Q``).
-    z : ndarray, shape (N, 2)
+    at : ndarray of int, shape (N,)
+        Each row's index in ``z``, ``R_ind``, ``R_dep``.
+    z : ndarray, shape (M, 2)
         Observed positions [m].
-    R : ndarray, shape (N, 6)
-        ``(xx, xy, yy)`` of ``R_ind`` then of ``R_dep`` [m^2].
+    R_ind, R_dep : ndarray, shape (M, 2, 2)
+        Independent and dependent parts of their covariances [m^2].
     lo, hi : ndarray of int, shape (K,)
         Landmark ``k``'s pairs are ``key_slots[lo[k]:hi[k]]``.
     key_slots : ndarray of int, shape (P,)
         The slot of each pair.
     table : ndarray, shape (S, COLUMNS)
-        Per slot: its sums packed as ``terms``, then the kept fold (see above); column
-        ``VALID`` is 1.0 for the slots that hold observations.
+        Per slot: its sums (``Y``, ``y``, ``Q``: 9 columns), then the kept fold (see
+        above); column ``VALID`` is 1.0 for the slots that hold observations.
     kept : ndarray of bool, shape (K,)
         Whether a landmark's kept fold is up to date.
     state : ndarray, shape (K, 8)
@@ -459,8 +552,8 @@ def run(landmark: NDArray[np.intp], position: NDArray[np.intp], terms: NDArray[n
     out = np.empty((len(landmark), 8))
     accepted = np.empty(len(landmark), np.bool_)
     with np.errstate(all='ignore'):
-        _run_kernel(landmark, position, terms, z, R, lo, hi, key_slots, table, kept, state,
-                    float(threshold), out, accepted, _limits())
+        _run_kernel(landmark, position, at, z, R_ind, R_dep, lo, hi, key_slots, table, kept,
+                    state, float(threshold), out, accepted, _limits())
     return out, accepted
 
 
@@ -498,5 +591,6 @@ _tried = False
 
 _COMPILED = ('_scale4', '_inverse', '_psd', '_log2_det', '_omega_of', '_congruence', '_split_ci',
              '_source_part', '_fold_from', '_fold_one', '_kernel', '_mahalanobis_sq',
-             '_fold_step', '_refold', '_move', '_run_kernel')
+             '_fold_step', '_refold', '_move', '_add_terms', '_run_kernel', '_group_kernel',
+             '_locate_kernel')
 """The functions ``load`` compiles, callees before callers."""

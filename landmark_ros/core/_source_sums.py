@@ -318,56 +318,51 @@ class _SourceParts:
         """
         codes = batch.codes[positions]
         keys = (rows << _SOURCE_BITS) | codes
-        # The distinct landmarks and each row's index in them, from one stable sort
-        # (``_apply_run`` groups the rows by landmark with the same order).
-        order = np.argsort(rows, kind='stable')
-        sorted_rows = rows[order]
-        first = np.empty(len(rows), bool)
-        first[:1] = True
-        np.not_equal(sorted_rows[1:], sorted_rows[:-1], out=first[1:])
-        landmarks = sorted_rows[first]
-        landmark = np.empty(len(rows), np.int64)
-        landmark[order] = np.cumsum(first) - 1
+        # The distinct landmarks, each row's index in them and the rows grouped by
+        # landmark in arrival order (``_apply_run`` and ``planned`` reuse it).
+        order, landmarks, landmark = _fold_kernel.group(rows)
         self._grow_kept(int(landmarks[-1]) + 1)
         before = (self.keys, self.slots, self.count)
-        position = np.searchsorted(self.keys, keys)
-        found = position < len(self.keys)
-        found[found] = self.keys[position[found]] == keys[found]
-        touched = np.unique(self.slots[position[found]])
-        saved = self.sums[touched].copy()
+        lo, hi = self._bounds(landmarks)
+        position = _fold_kernel.locate(self.keys, lo, hi, landmark, keys)
+        found = position >= 0
+        touched = self.slots[position[found]]   # repeats are harmless
+        saved = self.sums[touched]
         if self.journal is not None:
-            self.journal.append((touched[touched < self.journal_count], saved[
-                touched < self.journal_count]))
-        new = np.unique(keys[~found]) if not found.all() else keys[:0]
-        if len(new):
-            self._insert(new, False)
-            position = np.searchsorted(self.keys, keys)
-        lo = np.searchsorted(self.keys, landmarks << _SOURCE_BITS)
-        hi = np.searchsorted(self.keys, (landmarks + 1) << _SOURCE_BITS)
-        z, R_ind, R_dep = batch.z[positions], batch.R_ind[positions], batch.R_dep[positions]
-        terms = np.concatenate(_terms(z, R_ind, R_dep), axis=1)
-        R = np.stack([*_entries(R_ind), *_entries(R_dep)], axis=1)
+            old = touched < self.journal_count
+            self.journal.append((touched[old], saved[old]))
+        new, new_slots = keys[:0], keys[:0]
+        if not found.all():
+            new = np.unique(keys[~found])
+            new_slots = self._insert(new, False)
+            lo, hi = self._bounds(landmarks)
+            position = _fold_kernel.locate(self.keys, lo, hi, landmark, keys)
         state = np.concatenate([landmark_map.mean[landmarks],
                                 np.stack(_entries(landmark_map.cov_ind[landmarks]), axis=1),
                                 np.stack(_entries(landmark_map.cov_dep[landmarks]), axis=1)],
                                axis=1)
         kept = self.kept[landmarks]
-        out, accepted = _fold_kernel.run(landmark, position, terms, z, R, lo, hi, self.slots,
-                                         self.table, kept, state, landmark_map.threshold)
+        out, accepted = _fold_kernel.run(landmark, position, positions, batch.z, batch.R_ind,
+                                         batch.R_dep, lo, hi, self.slots, self.table, kept,
+                                         state, landmark_map.threshold)
         self.kept[landmarks] = kept
         return {'accepted': accepted, 'out': out, 'landmarks': landmarks, 'landmark': landmark,
-                'order': order, 'state': state, 'before': before, 'new': new, 'touched': touched,
+                'order': order, 'state': state, 'before': before, 'new': new,
+                'new_slots': new_slots, 'touched': touched,
                 'saved': saved}
+
+    def _bounds(self, rows):
+        """Return where the pairs of each of the sorted ``rows`` start and end in ``keys``."""
+        return (np.searchsorted(self.keys, rows << _SOURCE_BITS),
+                np.searchsorted(self.keys, (rows + 1) << _SOURCE_BITS))
 
     def commit(self, run):
         """Keep a ``run``: drop the new pairs no accepted row observed."""
-        new = run['new']
-        if len(new):
-            at = np.searchsorted(self.keys, new)
-            unused = self.table[self.slots[at], _fold_kernel.VALID] == 0.0
-            if unused.any():
-                self.keys = np.delete(self.keys, at[unused])
-                self.slots = np.delete(self.slots, at[unused])
+        unused = self.table[run['new_slots'], _fold_kernel.VALID] == 0.0
+        if unused.any():
+            at = np.searchsorted(self.keys, run['new'][unused])
+            self.keys = np.delete(self.keys, at)
+            self.slots = np.delete(self.slots, at)
 
     def rollback(self, run):
         """Undo a ``run``: its sums and pairs as they were, the folds it kept dropped."""

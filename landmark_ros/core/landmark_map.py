@@ -715,11 +715,15 @@ class LandmarkMap:
         np.maximum.at(last_row, landmark[accepted], np.flatnonzero(accepted))
         self.last_stamp_ns[good] = batch.stamps_ns[positions[last_row[hits > 0]]]
         codes = batch.codes[positions]
-        for code, count in enumerate(np.bincount(codes[accepted]).tolist()):
-            if count:
-                name = batch.names[code]
-                self._seen(name)[rows[accepted & (codes == code)]] = True
-                result.accepted[name] += count
+        # The accepted rows by source: one sort, a slice per source.
+        taken_rows = rows[accepted]
+        small = np.int16 if len(batch.names) < 1 << 15 else np.int64   # radix sort
+        by_code = np.argsort(codes[accepted].astype(small), kind='stable')
+        bounds = np.searchsorted(codes[accepted][by_code], np.arange(len(batch.names) + 1))
+        for code in np.flatnonzero(np.diff(bounds)).tolist():
+            name = batch.names[code]
+            self._seen(name)[taken_rows[by_code[bounds[code]:bounds[code + 1]]]] = True
+            result.accepted[name] += int(bounds[code + 1] - bounds[code])
         if len(good):
             changed.append(good)
         rejected = np.flatnonzero(~accepted)
@@ -729,7 +733,10 @@ class LandmarkMap:
                 if count:
                     result.rejected[batch.names[code]] += count
         if self._buffers:
-            for row in self._buffers.keys() & set(good.tolist()):
+            buffered = np.fromiter(self._buffers, np.int64, len(self._buffers))
+            hit = np.zeros(len(self.ids), bool)
+            hit[good] = True
+            for row in buffered[hit[buffered]].tolist():
                 del self._buffers[row]
         # Recent rejections: those after a landmark's last accepted row.
         after = np.full(len(landmarks), -1)

@@ -120,8 +120,12 @@ def test_run_equals_gating_and_folding_row_by_row_batch_after_batch(compiled, rn
         R = np.concatenate([R_ind - R_dep, R_dep], axis=1)
         args = (landmark, pair, terms, z, R, start)
         expected = loop_plan(*args, sums, valid, state, threshold)
-        out, accepted = _fold_kernel.run(landmark, pair, terms, z, R, start[:-1], start[1:],
-                                         key_slots, table, kept, new_state, threshold)
+        at = rng.permutation(count)         # the rows' places in the batch arrays
+        z_at, R_ind_at, R_dep_at = (np.empty_like(x) for x in (z, R_full, D_full))
+        z_at[at], R_ind_at[at], R_dep_at[at] = z, R_full - D_full, D_full
+        out, accepted = _fold_kernel.run(landmark, pair, at, z_at, R_ind_at, R_dep_at,
+                                         start[:-1], start[1:], key_slots, table, kept,
+                                         new_state, threshold)
         assert 30 < accepted.sum() < count - 30     # both branches, many times
         np.testing.assert_array_equal(accepted, expected[1])
         np.testing.assert_array_equal(out[accepted], expected[0][accepted])
@@ -129,6 +133,30 @@ def test_run_equals_gating_and_folding_row_by_row_batch_after_batch(compiled, rn
         np.testing.assert_array_equal(table[key_slots, :9], sums)
         np.testing.assert_array_equal(table[key_slots, _fold_kernel.VALID] != 0, valid)
         assert kept[np.unique(landmark[accepted])].all()
+
+
+def test_group_is_a_stable_argsort_and_unique(compiled, rng):
+    for rows in (rng.integers(0, 50, 1000), rng.integers(0, 100_000, 300), np.array([7]),
+                 np.zeros(5, np.int64)):
+        order, distinct, index = _fold_kernel.group(rows)
+        expected, inverse = np.unique(rows, return_inverse=True)
+        np.testing.assert_array_equal(order, np.argsort(rows, kind='stable'))
+        np.testing.assert_array_equal(distinct, expected)
+        np.testing.assert_array_equal(index, inverse.reshape(-1))
+
+
+def test_locate_finds_each_key_among_its_landmarks_pairs(compiled, rng):
+    keys = np.unique(rng.integers(0, 10_000, 3000))
+    rows = keys // 100
+    landmarks = np.unique(rows)
+    lo, hi = np.searchsorted(rows, landmarks), np.searchsorted(rows, landmarks, side='right')
+    landmark = rng.integers(0, len(landmarks), 2000)
+    wanted = landmarks[landmark] * 100 + rng.integers(0, 100, 2000)
+    position = _fold_kernel.locate(keys, lo, hi, landmark, wanted)
+    there = np.isin(wanted, keys)
+    assert there.any() and not there.all()
+    np.testing.assert_array_equal(position[~there], -1)
+    np.testing.assert_array_equal(keys[position[there]], wanted[there])
 
 
 def test_turned_off_by_the_environment(monkeypatch):
