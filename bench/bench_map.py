@@ -13,7 +13,10 @@ rotated per batch), so that a slow spell of the shared cores hits them alike. Ra
 rows / wall time of the best timed batch (after one untimed batch; on a shared
 machine the others wait for a core); the CPU-time rate of the best batch
 (``time.thread_time``) is printed too. The ratio to ``independent`` (and the targets)
-is the median over the batches of the CPU-time ratio on the same batch.
+is the median over the batches of the CPU-time ratio on the same batch; split CI's
+ratio batch by batch and the sources per landmark at the end are printed too: split
+CI's cost per row grows with a landmark's sources, so the ratio falls as the batches
+add sources (``--batches`` sets how many).
 Targets: ``split_covariance_intersection`` at least 50 % of ``independent`` and
 ``covariance_intersection`` at least 80 % of ``independent``, at both sizes.
 
@@ -142,7 +145,12 @@ def throughput(landmarks, sources, batches, seed):
                        'accepted': accepted[fusion] / rows,
                        # Against independent on the same batches: median of the ratios.
                        'ratio': float(np.median(np.array(cpus['independent'])
-                                                / np.array(cpus[fusion])))}
+                                                / np.array(cpus[fusion]))),
+                       'ratios': (np.array(cpus['independent']) / np.array(cpus[fusion])).tolist()}
+    # Sources per landmark at the end (split CI's cost per row grows with them).
+    sample = rng.choice(landmarks, min(landmarks, 500), replace=False).tolist()
+    out['sources_per_landmark'] = float(np.mean([
+        len(maps['split_covariance_intersection'].sources_of(i)) for i in sample]))
     return out
 
 
@@ -212,6 +220,12 @@ def main(argv=None):
                          f'{verdict}')
             result[f'{key}_obs_per_s'] = rate['obs_per_s']
             result[f'{key}_ratio'] = ratio
+        lines.append('  split CI / independent batch by batch: '
+                     + ', '.join(f'{r:.0%}' for r in rates['split_covariance_intersection'][
+                         'ratios'])
+                     + f'; sources per landmark at the end: '
+                     f'{rates["sources_per_landmark"]:.1f} (a row re-folds its landmark from '
+                     'the changed source on)')
         lines.append('')
     lines.append('memory, split_covariance_intersection map, 5 sources, fresh interpreter:')
     for landmarks, figures in mem.items():

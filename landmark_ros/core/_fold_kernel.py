@@ -369,13 +369,15 @@ def _add_terms(t, z0, z1, R_ind, R_dep):
     t[8] += yb * R_dep[0, 1] + yc * R_dep[1, 1]
 
 
-def _run_kernel(landmark, position, at, z, R_ind, R_dep, lo, hi, key_slots, table, kept,
-                state, threshold, out, accepted, limits):
+def _run_kernel(landmark, rows_in_order, position, at, z, R_ind, R_dep, lo, hi, key_slots,
+                table, kept, state, threshold, out, accepted, limits):
     width = 1
     for k in range(len(lo)):
         width = max(width, hi[k] - lo[k])
     order = np.empty(width, np.int64)
-    for i in range(len(landmark)):
+    # Landmark by landmark (each in arrival order): the landmarks do not interact,
+    # and a landmark's pairs stay in the cache for all its rows.
+    for i in rows_in_order:
         k = landmark[i]
         x = at[i]
         m = state[k]
@@ -433,6 +435,18 @@ def _locate_kernel(keys, lo, hi, landmark, wanted, position):
                 break
 
 
+def _merge_kernel(keys, slots, new, new_slots, out_keys, out_slots):
+    # Merge sorted keys and sorted new keys (none in keys), slots alongside.
+    i = j = 0
+    for k in range(len(out_keys)):
+        if j == len(new) or (i < len(keys) and keys[i] < new[j]):
+            out_keys[k], out_slots[k] = keys[i], slots[i]
+            i += 1
+        else:
+            out_keys[k], out_slots[k] = new[j], new_slots[j]
+            j += 1
+
+
 def _compiled_fold(Y, y, Q, valid):
     """Run the kernel on contiguous copies; return ``m, P_ind, P_dep`` as ``_fold``."""
     Y, y, Q = (np.ascontiguousarray(x, dtype=np.float64) for x in (Y, y, Q))
@@ -449,8 +463,7 @@ def _compiled_fold(Y, y, Q, valid):
     return out[:, :2].copy(), P_ind, P_dep
 
 
-def group(rows: NDArray[np.intp]) -> Tuple[NDArray[np.intp], NDArray[np.intp],
-                                          NDArray[np.intp]]:
+def group(rows: NDArray[np.intp]) -> Tuple[NDArray[np.intp], NDArray[np.intp], NDArray[np.intp]]:
     """
     Group rows by value: what a stable argsort and ``np.unique`` give, in one pass.
 
@@ -491,7 +504,22 @@ def locate(keys: NDArray[np.int64], lo: NDArray[np.intp], hi: NDArray[np.intp],
     return position
 
 
-def run(landmark: NDArray[np.intp], position: NDArray[np.intp], at: NDArray[np.intp],
+def merge(keys: NDArray[np.int64], slots: NDArray[np.int64], new: NDArray[np.int64],
+          new_slots: NDArray[np.int64]) -> Tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """
+    Return sorted ``keys`` with the sorted ``new`` keys (none already there) merged in.
+
+    What ``np.insert`` at ``np.searchsorted(keys, new)`` gives, in one linear pass;
+    ``slots`` and ``new_slots`` are carried alongside.
+    """
+    out_keys = np.empty(len(keys) + len(new), np.int64)
+    out_slots = np.empty(len(keys) + len(new), np.int64)
+    _merge_kernel(keys, slots, new, new_slots, out_keys, out_slots)
+    return out_keys, out_slots
+
+
+def run(landmark: NDArray[np.intp], order: NDArray[np.intp], position: NDArray[np.intp],
+        at: NDArray[np.intp],
         z: NDArray[np.float64], R_ind: NDArray[np.float64], R_dep: NDArray[np.float64],
         lo: NDArray[np.intp], hi: NDArray[np.intp], key_slots: NDArray[np.intp],
         table: NDArray[np.float64], kept: NDArray[np.bool_], state: NDArray[np.float64],
@@ -520,6 +548,9 @@ def run(landmark: NDArray[np.intp], position: NDArray[np.intp], at: NDArray[np.i
     ----------
     landmark : ndarray of int, shape (N,)
         Each row's landmark, an index into ``state``, ``lo``, ``hi``, ``kept``.
+    order : ndarray of int, shape (N,)
+        The rows grouped by landmark, each landmark's in arrival order (``group``):
+        the order they are taken in (landmarks do not interact).
     position : ndarray of int, shape (N,)
         Each row's (landmark, source) pair, an index into ``key_slots``.
     at : ndarray of int, shape (N,)
@@ -552,8 +583,8 @@ def run(landmark: NDArray[np.intp], position: NDArray[np.intp], at: NDArray[np.i
     out = np.empty((len(landmark), 8))
     accepted = np.empty(len(landmark), np.bool_)
     with np.errstate(all='ignore'):
-        _run_kernel(landmark, position, at, z, R_ind, R_dep, lo, hi, key_slots, table, kept,
-                    state, float(threshold), out, accepted, _limits())
+        _run_kernel(landmark, order, position, at, z, R_ind, R_dep, lo, hi, key_slots, table,
+                    kept, state, float(threshold), out, accepted, _limits())
     return out, accepted
 
 
@@ -592,5 +623,5 @@ _tried = False
 _COMPILED = ('_scale4', '_inverse', '_psd', '_log2_det', '_omega_of', '_congruence', '_split_ci',
              '_source_part', '_fold_from', '_fold_one', '_kernel', '_mahalanobis_sq',
              '_fold_step', '_refold', '_move', '_add_terms', '_run_kernel', '_group_kernel',
-             '_locate_kernel')
+             '_locate_kernel', '_merge_kernel')
 """The functions ``load`` compiles, callees before callers."""

@@ -79,18 +79,23 @@ class _SourceParts:
         slots = np.arange(self.count, self.count + count)
         self.count += count
         if self.count > len(self.table):
-            grown = np.zeros((max(self.count, 2 * len(self.table)), self.table.shape[1]))
-            grown[:len(self.table)] = self.table
-            self.table = grown
+            # In place (realloc: a large block is remapped, not copied; numpy zeroes the
+            # new rows, which touches them: hence a quarter more, not twice). No view of
+            # the table outlives a call, so none can dangle.
+            self.table.resize((max(self.count, len(self.table) * 5 // 4), self.table.shape[1]),
+                              refcheck=False)
         return slots
 
     def _insert(self, new, valid):
         """Insert the sorted new keys ``new`` with new slots; return the slots."""
         slots = self._new_slots(len(new))
         self.table[slots, _fold_kernel.VALID] = 1.0 if valid else 0.0
-        at = np.searchsorted(self.keys, new)
-        self.keys = np.insert(self.keys, at, new)
-        self.slots = np.insert(self.slots, at, slots)
+        if _fold_kernel.AVAILABLE:
+            self.keys, self.slots = _fold_kernel.merge(self.keys, self.slots, new, slots)
+        else:
+            at = np.searchsorted(self.keys, new)
+            self.keys = np.insert(self.keys, at, new)
+            self.slots = np.insert(self.slots, at, slots)
         return slots
 
     def _grow_kept(self, rows):
@@ -342,9 +347,9 @@ class _SourceParts:
                                 np.stack(_entries(landmark_map.cov_dep[landmarks]), axis=1)],
                                axis=1)
         kept = self.kept[landmarks]
-        out, accepted = _fold_kernel.run(landmark, position, positions, batch.z, batch.R_ind,
-                                         batch.R_dep, lo, hi, self.slots, self.table, kept,
-                                         state, landmark_map.threshold)
+        out, accepted = _fold_kernel.run(landmark, order, position, positions, batch.z,
+                                         batch.R_ind, batch.R_dep, lo, hi, self.slots,
+                                         self.table, kept, state, landmark_map.threshold)
         self.kept[landmarks] = kept
         return {'accepted': accepted, 'out': out, 'landmarks': landmarks, 'landmark': landmark,
                 'order': order, 'state': state, 'before': before, 'new': new,

@@ -123,7 +123,8 @@ def test_run_equals_gating_and_folding_row_by_row_batch_after_batch(compiled, rn
         at = rng.permutation(count)         # the rows' places in the batch arrays
         z_at, R_ind_at, R_dep_at = (np.empty_like(x) for x in (z, R_full, D_full))
         z_at[at], R_ind_at[at], R_dep_at[at] = z, R_full - D_full, D_full
-        out, accepted = _fold_kernel.run(landmark, pair, at, z_at, R_ind_at, R_dep_at,
+        order = np.argsort(landmark, kind='stable')
+        out, accepted = _fold_kernel.run(landmark, order, pair, at, z_at, R_ind_at, R_dep_at,
                                          start[:-1], start[1:], key_slots, table, kept,
                                          new_state, threshold)
         assert 30 < accepted.sum() < count - 30     # both branches, many times
@@ -157,6 +158,17 @@ def test_locate_finds_each_key_among_its_landmarks_pairs(compiled, rng):
     assert there.any() and not there.all()
     np.testing.assert_array_equal(position[~there], -1)
     np.testing.assert_array_equal(keys[position[there]], wanted[there])
+
+
+def test_merge_is_insert_at_the_sorted_places(compiled, rng):
+    for size, extra in ((0, 5), (1000, 0), (1000, 300), (10, 1000)):
+        both = rng.choice(1 << 40, size + extra, replace=False)
+        keys, new = np.sort(both[:size]), np.sort(both[size:])
+        slots, new_slots = rng.integers(0, 1 << 20, size), rng.integers(0, 1 << 20, extra)
+        got_keys, got_slots = _fold_kernel.merge(keys, slots, new, new_slots)
+        at = np.searchsorted(keys, new)
+        np.testing.assert_array_equal(got_keys, np.insert(keys, at, new))
+        np.testing.assert_array_equal(got_slots, np.insert(slots, at, new_slots))
 
 
 def test_turned_off_by_the_environment(monkeypatch):
