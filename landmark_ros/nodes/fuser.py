@@ -18,6 +18,7 @@ from landmark_ros.pipeline.config import FuserConfig
 from landmark_ros.pipeline.fuser import Fuser, LandmarkMessage
 from landmark_ros.ros import diagnostics, guard, qos, runner
 from landmark_ros.ros.cloud import CloudError
+from landmark_ros.ros.cloud_bytes import read_cloud_bytes
 from landmark_ros.ros.conversions import stamp_ns
 from landmark_ros.ros.markers import delete_all, delete_markers, landmark_markers
 from landmark_ros.ros.params import declare_config, keep_in_sync
@@ -56,10 +57,13 @@ class LandmarkFuser(Node):
         # them to the profile it is given: each subscription gets its own.
         overrides = QoSOverridingOptions.with_default_policies()
         for topic in config.input_topics:
+            # Raw: the clouds are read from their bytes (``cloud_bytes``), not built
+            # as Python messages first.
             self._subscriptions_by_topic[topic] = self.create_subscription(
                 PointCloud2, topic, self._guard(lambda msg, topic=topic: self.on_landmarks(
                     msg, topic), 'landmarks callback'),
-                qos.reliable_input(config.input_depth), qos_overriding_options=overrides)
+                qos.reliable_input(config.input_depth), qos_overriding_options=overrides,
+                raw=True)
         self._source_of = {topic: subscription.topic_name
                            for topic, subscription in self._subscriptions_by_topic.items()}
         self._constraint_subs = {}
@@ -125,19 +129,21 @@ class LandmarkFuser(Node):
         now = self.get_clock().now().nanoseconds
         burst = self.config.max_batch_messages
         self._queue_landmarks(topic, [msg] + take_waiting(
-            self._subscriptions_by_topic[topic], PointCloud2, burst - 1), now)
+            self._subscriptions_by_topic[topic], PointCloud2, burst - 1, raw=True), now)
         for other, subscription in self._subscriptions_by_topic.items():
             if other != topic:
-                waiting = take_waiting(subscription, PointCloud2, burst)
+                waiting = take_waiting(subscription, PointCloud2, burst, raw=True)
                 if waiting:
                     self._queue_landmarks(other, waiting, now)
 
     def _queue_landmarks(self, topic, clouds, now):
-        """Decode the clouds of one input topic and queue them with one row check."""
+        """Decode the clouds (serialized or messages) of one input topic; queue them."""
         source = self._source_of[topic]
         messages = []
         for cloud in clouds:
             try:
+                if isinstance(cloud, (bytes, bytearray, memoryview)):
+                    cloud = read_cloud_bytes(cloud)
                 rows, extras = read_landmark_cloud(cloud)
             except CloudError as error:
                 self.fuser.reject(source, 'messages_in')

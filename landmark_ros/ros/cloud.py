@@ -47,7 +47,9 @@ class FieldSpec:
 
 
 _DTYPES = {}
-"""Structured dtypes by cloud layout: a stream of clouds reuses one layout."""
+"""Structured dtypes by the ``specs`` object's id, then by cloud layout: a stream of
+clouds reuses one layout. Each entry holds its ``specs`` (an id is checked against
+the object it was made for), so the field specs are not hashed per message."""
 
 
 def read_columns(msg, specs):
@@ -74,13 +76,20 @@ def read_columns(msg, specs):
 
     """
     specs = tuple(specs)
-    layout = (tuple((f.name, f.offset, f.datatype, f.count) for f in msg.fields),
-              msg.point_step, msg.is_bigendian, specs)
-    dtype = _DTYPES.get(layout)
-    if dtype is None:
-        dtype = _DTYPES[layout] = _layout_dtype(msg, specs)
-        if len(_DTYPES) > 64:
+    entry = _DTYPES.get(id(specs))
+    if entry is None or entry[0] is not specs:
+        entry = _DTYPES[id(specs)] = (specs, {})
+        if len(_DTYPES) > 16:
             _DTYPES.pop(next(iter(_DTYPES)))
+    # ``cloud_bytes.Cloud`` carries its layout as tuples, made once per layout.
+    fields = getattr(msg, 'layout', None) or tuple(
+        (f.name, f.offset, f.datatype, f.count) for f in msg.fields)
+    layout = (fields, msg.point_step, msg.is_bigendian)
+    dtype = entry[1].get(layout)
+    if dtype is None:
+        dtype = entry[1][layout] = _layout_dtype(msg, specs)
+        if len(entry[1]) > 64:
+            entry[1].pop(next(iter(entry[1])))
     count = msg.width * msg.height
     if count and msg.row_step < msg.width * msg.point_step:
         raise CloudError('data_length_mismatch',

@@ -1,7 +1,7 @@
 """Take the messages already waiting on a subscription, to handle them in one batch."""
 
 
-def take_waiting(subscription, msg_type, limit):
+def take_waiting(subscription, msg_type, limit, raw=False):
     """
     Take up to ``limit`` messages already queued on ``subscription``, without waiting.
 
@@ -17,11 +17,13 @@ def take_waiting(subscription, msg_type, limit):
         Its message type.
     limit : int
         Most messages to take.
+    raw : bool
+        Take the serialized bytes (as a ``raw=True`` subscription delivers them).
 
     Returns
     -------
     list
-        The messages, oldest first.
+        The messages (or their bytes), oldest first.
 
     """
     taken = []
@@ -30,7 +32,7 @@ def take_waiting(subscription, msg_type, limit):
     handle = subscription.handle
     with handle:
         while len(taken) < limit:
-            message_and_info = handle.take_message(msg_type, False)
+            message_and_info = handle.take_message(msg_type, raw)
             if message_and_info is None:
                 break
             taken.append(message_and_info[0])

@@ -827,7 +827,7 @@ def test_one_callback_takes_the_clouds_waiting_on_every_input_topic(env, monkeyp
                subscription[b]: [cloud(1.5, 12), cloud(2.5, 13)]}
     taken = []
 
-    def take_waiting(sub, msg_type, limit):
+    def take_waiting(sub, msg_type, limit, raw=False):
         taken.append((sub, limit))
         queue = waiting.get(sub, [])
         out, waiting[sub] = queue[:limit], queue[limit:]
