@@ -19,6 +19,7 @@ from landmark_ros.ros.schemas import landmark_message, observation_message
 import numpy as np
 import pytest
 from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.serialization import serialize_message
 from rigs import DEADLINE_S, FuserRig, ObserverRig, unique_namespace
 from rosutil import header, pose_message, wait_for_match
 from sensor_msgs.msg import PointCloud2
@@ -65,6 +66,20 @@ def test_partial_dependent_field_group_is_a_named_rejection(env):
     msg.fields = [f for f in msg.fields if f.name not in ('cov_dep_xy', 'cov_dep_yy')]
     rig.send_msg('a/landmarks', msg)
     assert rig.counts('a/landmarks')['partial_field_group'] == 1
+    assert_alive_and_unchanged(rig, before)
+
+
+def test_bytes_that_are_no_cloud_are_a_named_rejection(env):
+    # The fuser takes its landmark topics raw: cut or random bytes on the wire are
+    # counted as malformed_message, and the next good cloud is fused.
+    rig = FuserRig(env)
+    before = good_map(rig)
+    good = serialize_message(landmark_message(header(1.0, 'map'), [1], [[1.0, 2.0]], [C]))
+    rng = np.random.default_rng(3)
+    bad = [good[:len(good) // 2], b'\x00\x01' + rng.integers(0, 256, 64, np.uint8).tobytes()]
+    for payload in bad:
+        rig.send_msg('a/landmarks', payload)
+    assert rig.counts('a/landmarks')['malformed_message'] == len(bad)
     assert_alive_and_unchanged(rig, before)
 
 
