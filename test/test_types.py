@@ -22,6 +22,7 @@ REQUIRED = [
     'landmark_ros.core',
     'landmark_ros.core._arrays',
     'landmark_ros.core._fold_kernel',
+    'landmark_ros.core._fusion_methods',
     'landmark_ros.core._source_sums',
     'landmark_ros.core.association',
     'landmark_ros.core.curvature',

@@ -137,7 +137,7 @@ def test_the_fold_equals_split_ci_with_the_public_functions(trial, rng):
     R_ind = random_spd(rng, 2, count, scale=0.2, eps=0.01)
     R_dep = random_spd(rng, 2, count, scale=0.2, eps=0.0) * rng.uniform(0, 1, (count, 1, 1))
     z = rng.normal(0.0, 0.3, (count, 2))
-    parts = landmark_map_module._SourceParts()
+    parts = _source_sums._SourceParts()
     rows = np.zeros(count, np.int64)
     parts.add(rows, np.arange(count), z, R_ind, R_dep)
     m, P_ind, P_dep = parts.combine(np.array([0]))
@@ -185,12 +185,12 @@ def test_batch_equals_rows_one_by_one_when_the_plan_is_too_large(rng, monkeypatc
     ids[900::2] = ids[900]
     rows = (ids,) + rows[1:]
     plans = []
-    original = landmark_map_module._SourceParts.plan
+    original = _source_sums._SourceParts.plan
 
     def spy(self, *args):
         plans.append(original(self, *args))
         return plans[-1]
-    monkeypatch.setattr(landmark_map_module._SourceParts, 'plan', spy)
+    monkeypatch.setattr(_source_sums._SourceParts, 'plan', spy)
     one_by_one, expected = feed(LandmarkMap, rows, [slice(0, 900)] + chunked(1200, 1)[900:])
     batched, result = feed(LandmarkMap, rows, [slice(0, 900), slice(900, 1200)])
     assert any(plan is None for plan in plans)
