@@ -10,10 +10,11 @@ in the saved map), ``checkpoint`` / ``restore`` (undo of a failed update) and
 Private to ``core``: ``landmark_map`` is the interface, and its module docstring
 says what each method assumes.
 
-Sources: the product of Gaussians and covariance intersection, Julier and Uhlmann,
-"A non-divergent estimation algorithm in the presence of unknown correlations",
-ACC 1997; split covariance intersection, Julier and Uhlmann, "General decentralized
-data fusion with covariance intersection", Handbook of Multisensor Data Fusion, 2001.
+Sources: the product of Gaussians, the textbook chapter; covariance intersection,
+Julier and Uhlmann, "A non-divergent estimation algorithm in the presence of unknown
+correlations", ACC 1997; split covariance intersection, Julier and Uhlmann, "General
+decentralized data fusion with covariance intersection", Handbook of Multisensor Data
+Fusion, 2001.
 """
 
 from landmark_ros.core import _fold_kernel
