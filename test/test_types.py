@@ -23,6 +23,10 @@ REQUIRED = [
     'landmark_ros.core._arrays',
     'landmark_ros.core._fold_kernel',
     'landmark_ros.core._fusion_methods',
+    'landmark_ros.core._partial_geometry',
+    'landmark_ros.core._partial_init',
+    'landmark_ros.core._partial_model',
+    'landmark_ros.core._partial_update',
     'landmark_ros.core._source_sums',
     'landmark_ros.core.association',
     'landmark_ros.core.curvature',
@@ -168,7 +172,7 @@ def test_public_functions_are_seen():
             'LandmarkMap.source_names', 'UpdateResult.changed'} <= seen[
         'landmark_ros.core.landmark_map']
     assert {'Views.__getitem__', 'Views.concatenate', 'update'} <= seen[
-        'landmark_ros.core.partial']
+        'landmark_ros.core._partial_model'] | seen['landmark_ros.core._partial_update']
     assert {'Fuser.fuse_queued', 'Fuser.snapshot'} <= seen['landmark_ros.pipeline.fuser']
     assert not any('._' in name and not name.endswith('__')
                    for names in seen.values() for name in names)

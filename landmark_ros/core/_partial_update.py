@@ -1,0 +1,238 @@
+"""
+EKF updates of a landmark with views (``partial.update``): plain, CI, split CI.
+
+One view at a time, each gated on its 1-dof innovation; CI and split CI find the
+weight omega that minimises the posterior determinant along a scalar direction.
+Private to ``core``: ``partial`` is the interface.
+"""
+
+from dataclasses import dataclass
+from typing import Optional
+
+from landmark_ros.core import sensors
+from landmark_ros.core._partial_model import (_OMEGA_STEPS, GATED, linearise, METHODS,
+                                              OMEGA_EDGE, TOO_CLOSE, UPDATED, Views)
+from landmark_ros.core.gaussian import chi2_threshold
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+
+@dataclass(frozen=True)
+class UpdateResult:
+    """
+    The result of ``update`` for ``N`` (landmark, view) pairs.
+
+    Attributes
+    ----------
+    m : ndarray, shape (N, 2) [m]
+        Updated landmarks (unchanged where not ``UPDATED``).
+    P_m : ndarray, shape (N, 2, 2) [m^2]
+        Updated covariances.
+    P_m_dep : ndarray, shape (N, 2, 2) [m^2]
+        Their dependent parts.
+    innovation : ndarray, shape (N,)
+        ``y - h(m)`` before the update, bearings wrapped; NaN where ``TOO_CLOSE``.
+    S : ndarray, shape (N,)
+        ``H P_m H^T + R_eff``.
+    mahalanobis_sq : ndarray, shape (N,)
+        ``innovation^2 / S``, compared with the 1-dof chi-square gate.
+    omega : ndarray, shape (N,)
+        Weight of the landmark in (split) covariance intersection; NaN for
+        ``independent``.
+    status : ndarray of int, shape (N,)
+        ``UPDATED``, ``GATED`` or ``TOO_CLOSE`` (``UPDATE_STATUS_NAMES``).
+
+    """
+
+    m: NDArray[np.float64]
+    P_m: NDArray[np.float64]
+    P_m_dep: NDArray[np.float64]
+    innovation: NDArray[np.float64]
+    S: NDArray[np.float64]
+    mahalanobis_sq: NDArray[np.float64]
+    omega: NDArray[np.float64]
+    status: NDArray[np.int64]
+
+    @property
+    def updated(self) -> NDArray[np.bool_]:
+        """Return a mask of the rows that were updated, shape (N,)."""
+        return self.status == UPDATED
+
+
+def _quadratic(H, P):
+    """Return ``H P H^T`` for rows ``H`` (N, 2) and matrices ``P`` (N, 2, 2)."""
+    return np.einsum('ni,nij,nj->n', H, P, H)
+
+
+def _posterior_log_det_slope(omega, H, P_ind, P_dep, R_ind, R_dep):
+    """Return d/d omega of ``log det`` of the split-CI posterior covariance."""
+    w = omega[:, None, None]
+    A = P_ind + P_dep / w
+    dA = -P_dep / (w * w)
+    det_A = A[:, 0, 0] * A[:, 1, 1] - A[:, 0, 1] * A[:, 1, 0]
+    trace = (A[:, 1, 1] * dA[:, 0, 0] + A[:, 0, 0] * dA[:, 1, 1]
+             - A[:, 0, 1] * dA[:, 1, 0] - A[:, 1, 0] * dA[:, 0, 1]) / det_A
+    v = 1.0 - omega
+    a = R_ind + R_dep / v
+    da = R_dep / (v * v)
+    return trace + da / a - (_quadratic(H, dA) + da) / (_quadratic(H, A) + a)
+
+
+def view_omega(H: NDArray[np.float64], P_m_ind: NDArray[np.float64], P_m_dep: NDArray[np.float64],
+               R_ind: NDArray[np.float64], R_dep: NDArray[np.float64]) -> NDArray[np.float64]:
+    """
+    Return the split-CI weight that minimises ``det`` of the updated covariance.
+
+    The landmark's covariance becomes ``A = P_m_ind + P_m_dep / omega`` and the view's
+    variance ``a = R_ind + R_dep / (1 - omega)``; the Kalman update with them gives
+    ``det P+ = det(A) a / (H A H^T + a)``. Its logarithm is convex in omega (the
+    posterior information ``A^-1 + H^T H / a`` is a sum of parallel sums of terms
+    linear in omega, hence operator concave), so its derivative, in closed form, has
+    one root: found by bisection in ``[OMEGA_EDGE, 1 - OMEGA_EDGE]``, vectorised.
+    An end is returned when the slope does not change sign there (for example a
+    landmark without a dependent part: ``OMEGA_EDGE``). Covariance intersection is
+    the case ``P_m_ind = 0``, ``R_ind = 0``. Source: split CI (Julier and Uhlmann,
+    "General decentralized data fusion with covariance intersection", *Handbook of
+    Multisensor Data Fusion*, 2001, ch. 12; Li, Nashashibi and Yang, "Split
+    covariance intersection filter", IEEE T-ITS 14(4), 2013) with a scalar,
+    rank-deficient observation in place of a full estimate.
+
+    Parameters
+    ----------
+    H : ndarray, shape (N, 2)
+        ``J_h_m`` rows.
+    P_m_ind, P_m_dep : ndarray, shape (N, 2, 2)
+        Independent and dependent parts of the landmark covariance.
+    R_ind, R_dep : ndarray, shape (N,)
+        Independent and dependent parts of the view's effective variance.
+
+    Returns
+    -------
+    omega : ndarray, shape (N,)
+
+    """
+    n = H.shape[0]
+    lo = np.full(n, OMEGA_EDGE)
+    hi = np.full(n, 1.0 - OMEGA_EDGE)
+    args = (H, P_m_ind, P_m_dep, R_ind, R_dep)
+    with np.errstate(divide='ignore', invalid='ignore'):
+        slope_lo = _posterior_log_det_slope(lo, *args)
+        slope_hi = _posterior_log_det_slope(hi, *args)
+        omega = np.where(slope_lo >= 0.0, lo, np.where(slope_hi <= 0.0, hi, 0.5))
+        inside = (slope_lo < 0.0) & (slope_hi > 0.0)
+        if inside.any():
+            sub = tuple(x[inside] for x in args)
+            a, b = lo[inside], hi[inside]
+            for _ in range(_OMEGA_STEPS):
+                mid = 0.5 * (a + b)
+                rising = _posterior_log_det_slope(mid, *sub) > 0.0
+                b = np.where(rising, mid, b)
+                a = np.where(rising, a, mid)
+            omega[inside] = 0.5 * (a + b)
+    return omega
+
+
+def update(m: ArrayLike, P_m: ArrayLike, views: Views, P_m_dep: Optional[ArrayLike] = None,
+           method: str = 'independent', gate_probability: float = 0.999,
+           omega: Optional[ArrayLike] = None) -> UpdateResult:
+    """
+    Update landmarks with one view each: the EKF with a scalar measurement.
+
+    With ``H = J_h_m`` at ``m``, the innovation ``y - h(m)`` (bearings wrapped) and
+    ``S = H P_m H^T + R_eff`` are gated with chi-square, 1 dof. Rows that pass are
+    updated with ``K = A H^T / (H A H^T + a)``, ``m+ = m + K (y - h(m))`` and the
+    Joseph form ``P+ = (I - K H) A (I - K H)^T + K a K^T`` (Bucy and Joseph, 1968;
+    Bar-Shalom, Li and Kirubarajan, 2001, sec. 5.2.3), applied to the independent
+    and the dependent parts separately. ``A`` and ``a`` depend on the method:
+
+    ``independent``
+        ``A = P_m``, ``a = R_eff`` (the plain EKF).
+    ``covariance_intersection``
+        ``A = P_m / omega``, ``a = R_eff / (1 - omega)`` (Julier and Uhlmann, ACC
+        1997); the inflation is booked as dependent. With a scalar view the
+        determinant-optimal omega ignores the view (omega near 1) unless
+        ``H P_m H^T > 2 R_eff``.
+    ``split_covariance_intersection``
+        ``A = P_ind + P_m_dep / omega``, ``a = R_ind + R_dep / (1 - omega)``.
+
+    omega minimises ``det P+`` (``view_omega``) unless given. Rows are independent
+    pairs: a landmark seen by several views is updated by calling again (or by a loop
+    over its views), not twice in one batch.
+
+    Parameters
+    ----------
+    m : array_like, shape (2,) or (N, 2) [m]
+        Landmarks, one per view (or one for all).
+    P_m : array_like, shape (2, 2) or (N, 2, 2) [m^2]
+        Their covariances.
+    views : Views
+        ``N`` views.
+    P_m_dep : array_like, shape (2, 2) or (N, 2, 2), optional
+        Dependent parts of ``P_m``; zero by default.
+    method : str
+        One of ``METHODS``.
+    gate_probability : float
+        In (0, 1): innovations beyond the chi-square quantile are ``GATED``.
+    omega : float or array_like, shape () or (N,), optional
+        Weight in (0, 1) for the intersections instead of the optimal one.
+
+    Returns
+    -------
+    UpdateResult
+
+    Raises
+    ------
+    ValueError
+        On an unknown method, a wrong shape, or ``omega`` outside (0, 1).
+
+    """
+    if method not in METHODS:
+        raise ValueError(f'method must be one of {METHODS}, got {method!r}')
+    n = len(views)
+    m = np.broadcast_to(np.asarray(m, dtype=np.float64), (n, 2)).copy()
+    P_m = np.broadcast_to(np.asarray(P_m, dtype=np.float64), (n, 2, 2)).copy()
+    P_dep = (np.zeros((n, 2, 2)) if P_m_dep is None
+             else np.broadcast_to(np.asarray(P_m_dep, dtype=np.float64), (n, 2, 2)).copy())
+    threshold = chi2_threshold(1, gate_probability)
+    xy = views.s[:, :2]
+    too_close = np.hypot(*(m - xy).T) < sensors.MIN_RANGE
+    lin = linearise(views, np.where(too_close[:, None], xy + [1.0, 0.0], m))
+    H = lin.J_h_m[:, 0, :]
+    innovation = np.where(too_close, np.nan, lin.residual)
+    S = _quadratic(H, P_m) + lin.R_eff
+    d2 = innovation ** 2 / S
+    status = np.where(too_close, TOO_CLOSE, np.where(d2 <= threshold, UPDATED, GATED))
+    P_ind = P_m - P_dep
+    R_ind = views.R
+    if method == 'independent':
+        omega = np.full(n, np.nan)
+        A_dep, a_dep = P_dep, lin.R_dep
+    else:
+        if omega is None:
+            if method == 'covariance_intersection':
+                omega = view_omega(H, np.zeros_like(P_m), P_m, np.zeros(n), lin.R_eff)
+            else:
+                omega = view_omega(H, P_ind, P_dep, R_ind, lin.R_dep)
+        omega = np.broadcast_to(np.asarray(omega, dtype=np.float64), (n,)).copy()
+        if not np.all((omega > 0.0) & (omega < 1.0)):
+            raise ValueError(f'omega must lie strictly between 0 and 1, got {omega}')
+        w = omega[:, None, None]
+        if method == 'covariance_intersection':
+            A_dep = P_m / w - P_ind
+            a_dep = lin.R_eff / (1.0 - omega) - R_ind
+        else:
+            A_dep = P_dep / w
+            a_dep = lin.R_dep / (1.0 - omega)
+    A = P_ind + A_dep
+    K = (A @ H[:, :, None])[:, :, 0] / (_quadratic(H, A) + R_ind + a_dep)[:, None]
+    L = np.eye(2) - K[:, :, None] * H[:, None, :]
+    KK = K[:, :, None] * K[:, None, :]
+    new_ind = L @ P_ind @ np.swapaxes(L, -1, -2) + KK * R_ind[:, None, None]
+    new_dep = L @ A_dep @ np.swapaxes(L, -1, -2) + KK * a_dep[:, None, None]
+    new_ind = 0.5 * (new_ind + np.swapaxes(new_ind, -1, -2))
+    new_dep = 0.5 * (new_dep + np.swapaxes(new_dep, -1, -2))
+    keep = status == UPDATED
+    m_new = np.where(keep[:, None], m + K * np.where(keep, innovation, 0.0)[:, None], m)
+    P_new = np.where(keep[:, None, None], new_ind + new_dep, P_m)
+    dep_new = np.where(keep[:, None, None], new_dep, P_dep)
+    return UpdateResult(m_new, P_new, dep_new, innovation, S, d2, omega, status)
