@@ -158,7 +158,7 @@ class Fuser:
         ``(source, stamp_ns, ids)``: the ID each such row got (-1: dropped as ambiguous)."""
         self.views = PartialViews(self.map, config.min_triangulation_angle_deg,
                                   config.max_views_per_landmark, config.gate_probability,
-                                  config.max_consecutive_rejections)
+                                  config.max_consecutive_rejections, config.max_curvature_ratio)
 
     def reconfigure(self, config: FuserConfig) -> None:
         """Apply new parameters (those that may change at run time)."""

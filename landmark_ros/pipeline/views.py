@@ -435,6 +435,8 @@ class PartialViews:
         its recent views (``max_views`` of them, gated or not), counted
         ``landmarks_reinitialised``: a range-only landmark placed on the mirror side of
         a straight robot path, or a moved one.
+    max_curvature_ratio : float
+        ``core.partial.InitialiseParams.max_curvature_ratio``; 0 turns the rule off.
 
     Notes
     -----
@@ -448,9 +450,10 @@ class PartialViews:
 
     def __init__(self, landmark_map: LandmarkMap, min_triangulation_angle_deg: float = 5.0,
                  max_views: int = 50, gate_probability: float = 0.999,
-                 max_consecutive_rejections: int = 5) -> None:
+                 max_consecutive_rejections: int = 5, max_curvature_ratio: float = 0.5) -> None:
         self.map = landmark_map
-        self.params = InitialiseParams(min_triangulation_angle_deg=min_triangulation_angle_deg)
+        self.params = InitialiseParams(min_triangulation_angle_deg=min_triangulation_angle_deg,
+                                       max_curvature_ratio=max_curvature_ratio or None)
         self.max_views = int(max_views)
         self.gate_probability = gate_probability
         self.max_consecutive_rejections = int(max_consecutive_rejections)

@@ -456,3 +456,9 @@ def test_a_bad_waiting_view_moves_the_map_file_aside(tmp_path, field, value):
     assert len(again.map) == 0 and not again.views.waiting
     assert again.counters['map_file_rejected'] == 1
     assert len(list(tmp_path.glob('map.json.bad-*'))) == 1
+
+
+@pytest.mark.parametrize('ratio, expected', [(0.5, 0.5), (2.0, 2.0), (0.0, None)])
+def test_the_fusers_curvature_rule_is_a_parameter(ratio, expected):
+    # max_curvature_ratio reaches the placement; 0 turns the rule off (None).
+    assert fuser(max_curvature_ratio=ratio).views.params.max_curvature_ratio == expected
