@@ -225,7 +225,7 @@ class FuserConfig(ConfigBase):
         5.0, 'Smallest angle two bearing rays must cross at before the views of a '
         'landmark may place it [deg].', read_only=True, low=0.0, high=90.0)
     max_curvature_ratio: float = param(
-        0.5, "The views of a landmark place it only once 2.45 standard deviations (its 95 % "
+        0.5, 'The views of a landmark place it only once 2.45 standard deviations (its 95 % '
         "region) are at most this fraction of the fit's radius of curvature (Bates and "
         "Watts' relative curvature; else it waits, too_curved); 0 turns the rule off.",
         read_only=True, low=0.0, high=1e6)
