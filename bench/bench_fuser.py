@@ -24,7 +24,10 @@ one private ROS domain: ``LandmarkFuser`` with ``split_covariance_intersection``
 (subscribes PointCloud2 on ``landmarks`` and republishes it unchanged); then a
 split-CI ``LandmarkFuser`` with 50 input topics (``input_topics`` ``landmarks_00`` to
 ``landmarks_49``: 50 sources) and a relay subscribed to the same 50 topics, the driver
-publishing on the 50 topics in turn (one process for all the robots). Each fuser is
+publishing on the 50 topics in turn (one process for all the robots): every robot
+sees every landmark (the worst case for split CI, whose cost per row grows with a
+landmark's sources), and again with each robot seeing its 100 nearest landmarks
+(robots at random places: about 5 robots per landmark). Each fuser is
 compared with the relay on the same topics. The fusers' maps are loaded with the
 warmed maps of part 1 (1,000 confirmed landmarks). Input QoS is the fuser's:
 reliable, keep last, depth ``input_depth`` (100).
@@ -102,22 +105,31 @@ RELAY_OUTPUT_DEPTH = 10
 MANY_SOURCES = 50
 """Input topics of the many-sources runs (one driver process publishing on all)."""
 
-KINDS = ('relay', 'split_covariance_intersection', 'independent', 'relay_many', 'split_many')
+LOCAL_LANDMARKS = 100
+"""Landmarks each robot of the local-fleet run sees: its nearest ones, so that a landmark
+is seen by ``MANY_SOURCES * LOCAL_LANDMARKS / LANDMARKS`` (5) robots on average."""
+
+KINDS = ('relay', 'split_covariance_intersection', 'independent', 'relay_many', 'split_many',
+         'split_local')
 """Nodes under test: the relay and the fuser with two fusion methods on one input topic,
-and a relay and a split-CI fuser on ``MANY_SOURCES`` input topics."""
+and a relay and two split-CI fusers on ``MANY_SOURCES`` input topics: every robot
+seeing every landmark (the worst case), and each robot its ``LOCAL_LANDMARKS``
+nearest landmarks (a fleet spread over the area)."""
 RELAY_OF = {'split_covariance_intersection': 'relay', 'independent': 'relay',
-            'split_many': 'relay_many'}
+            'split_many': 'relay_many', 'split_local': 'relay_many'}
 """Each fuser's reference relay (the same input topics)."""
 FUSION_OF = {'split_covariance_intersection': 'split_covariance_intersection',
-             'independent': 'independent', 'split_many': 'split_covariance_intersection'}
+             'independent': 'independent', 'split_many': 'split_covariance_intersection',
+             'split_local': 'split_covariance_intersection'}
 NAMESPACES = {'relay': 'bench_relay', 'split_covariance_intersection': 'bench_fuser_sci',
               'independent': 'bench_fuser_ind', 'relay_many': 'bench_relay_many',
-              'split_many': 'bench_fuser_sci_many'}
+              'split_many': 'bench_fuser_sci_many', 'split_local': 'bench_fuser_sci_local'}
 LABELS = {'relay': 'relay', 'split_covariance_intersection': 'fuser split CI',
           'independent': 'fuser independent', 'relay_many': f'relay {MANY_SOURCES} src',
-          'split_many': f'split CI {MANY_SOURCES} src'}
+          'split_many': f'split CI {MANY_SOURCES} src', 'split_local': 'split CI local'}
 SHORT = {'split_covariance_intersection': 'split_ci', 'covariance_intersection': 'ci',
-         'independent': 'independent', 'split_many': f'split_ci_{MANY_SOURCES}_sources'}
+         'independent': 'independent', 'split_many': f'split_ci_{MANY_SOURCES}_sources',
+         'split_local': f'split_ci_{MANY_SOURCES}_sources_local'}
 
 POOL_MESSAGES = 400
 """Distinct messages fed in turn (pipeline part and driver)."""
@@ -299,7 +311,7 @@ FIELDS = 7
 
 def input_topics(kind):
     """Return the input topics of a node under test (relative to its namespace)."""
-    if kind in ('relay_many', 'split_many'):
+    if kind in ('relay_many', 'split_many', 'split_local'):
         return [f'landmarks_{k:02d}' for k in range(MANY_SOURCES)]
     return ['landmarks']
 
@@ -429,6 +441,27 @@ def landmark_payloads(truth, count, seed):
     return result
 
 
+def local_payloads(truth, count, seed):
+    """
+    Return ``count`` serialized messages, message ``k`` from robot ``k % MANY_SOURCES``.
+
+    The robots stand at random places in the area; each sees its ``LOCAL_LANDMARKS``
+    nearest landmarks, and its messages hold random rows of those. The driver sends
+    message ``k`` on topic ``k % MANY_SOURCES`` (``count`` is a multiple of it).
+    """
+    rng = np.random.default_rng(seed)
+    robots = rng.uniform(-50.0, 50.0, (MANY_SOURCES, 2))
+    distance = np.linalg.norm(truth[None, :, :] - robots[:, None, :], axis=2)
+    seen = np.argsort(distance, axis=1)[:, :LOCAL_LANDMARKS]
+    result = []
+    for k in range(count):
+        ids = rng.choice(seen[k % MANY_SOURCES], ROWS_PER_MESSAGE)
+        m, P, P_dep = observe(truth, ids, rng)
+        result.append(serialize_message(landmark_message(
+            make_header(1000.0 + 0.01 * k, WORLD_FRAME), ids, m, P, P_dep)))
+    return result
+
+
 def probe_payload(landmark_id):
     """Return a serialized message of two agreeing rows of a new landmark."""
     m = np.array([[60.0 + landmark_id % 100, 60.0]] * 2)
@@ -444,9 +477,10 @@ class RoundRobin:
         self.publishers = publishers
         self.sent = 0
 
-    def publish(self, payload):
-        """Publish on the next publisher."""
-        self.publishers[self.sent % len(self.publishers)].publish(payload)
+    def publish(self, payload, index=None):
+        """Publish on publisher ``index`` (modulo their number), else on the next one."""
+        turn = self.sent if index is None else index
+        self.publishers[turn % len(self.publishers)].publish(payload)
         self.sent += 1
 
     def get_subscription_count(self):
@@ -498,7 +532,9 @@ def run_window(target, server, payloads, window, warmup_s, measure_s, probe_id):
 
     def refill():
         while state['sent'] - handled() < window:
-            target.publisher.publish(payloads[state['sent'] % len(payloads)])
+            # Payload k always on topic k modulo the topics (``local_payloads``).
+            index = state['sent'] % len(payloads)
+            target.publisher.publish(payloads[index], index)
             state['sent'] += 1
 
     start = time.perf_counter()
@@ -608,6 +644,7 @@ def node_rates(args, servers, domain_id, truth, deadline_s):
     runs = {kind: [] for kind in KINDS}
     try:
         payloads = landmark_payloads(truth, POOL_MESSAGES, args.seed + 2)
+        local = local_payloads(truth, POOL_MESSAGES, args.seed + 3)
         node = rclpy.create_node('bench_fuser_driver', context=context)
         targets = {kind: make_target(node, kind, args.input_depth, args.window)
                    for kind in KINDS}
@@ -619,7 +656,8 @@ def node_rates(args, servers, domain_id, truth, deadline_s):
             for kind in (KINDS if rep % 2 == 0 else KINDS[::-1]):
                 probe = None if kind not in RELAY_OF else probe_id
                 probe_id += kind in RELAY_OF
-                runs[kind].append(run_window(targets[kind], servers[kind], payloads,
+                runs[kind].append(run_window(targets[kind], servers[kind],
+                                             local if kind == 'split_local' else payloads,
                                              args.window, args.warmup, args.measure, probe))
             if time.perf_counter() > deadline_s and 2 <= rep + 1 < args.reps:
                 print(f'(time budget reached after {rep + 1} rounds)')
