@@ -16,7 +16,7 @@ consistent: a robot 2-20 m from the landmark, its pose estimate drawn from a ful
 time, best of blocks; then a cProfile of the same loop for the default method.
 (``LandmarkMap.update`` throughput on big batches is ``bench_map.py``'s.)
 
-Part 2, node level over DDS, side by side in one run. Five nodes under test, each
+Part 2, node level over DDS, side by side in one run. Six nodes under test, each
 in its own process (``multiprocessing``, 'spawn') with its own
 ``SingleThreadedExecutor``, all alive for the whole run, in their own namespaces of
 one private ROS domain: ``LandmarkFuser`` with ``split_covariance_intersection``
@@ -24,10 +24,10 @@ one private ROS domain: ``LandmarkFuser`` with ``split_covariance_intersection``
 (subscribes PointCloud2 on ``landmarks`` and republishes it unchanged); then a
 split-CI ``LandmarkFuser`` with 50 input topics (``input_topics`` ``landmarks_00`` to
 ``landmarks_49``: 50 sources) and a relay subscribed to the same 50 topics, the driver
-publishing on the 50 topics in turn (one process for all the robots): every robot
-sees every landmark (the worst case for split CI, whose cost per row grows with a
-landmark's sources), and again with each robot seeing its 100 nearest landmarks
-(robots at random places: about 5 robots per landmark). Each fuser is
+publishing on the 50 topics in turn (one process for all the robots), every robot
+seeing every landmark (the worst case for split CI, whose cost per row grows with a
+landmark's sources); and a second such fuser fed by robots that each see their 100
+nearest landmarks (robots at random places: about 5 robots per landmark). Each fuser is
 compared with the relay on the same topics. The fusers' maps are loaded with the
 warmed maps of part 1 (1,000 confirmed landmarks). Input QoS is the fuser's:
 reliable, keep last, depth ``input_depth`` (100).
