@@ -292,3 +292,24 @@ def test_kept_folds_stay_current_through_every_other_change(rng, monkeypatch, fo
         kept.append(assert_kept_folds_are_current(landmark_map))
     assert True in outcomes and False in outcomes       # kept and rolled back
     assert sum(k > 20 for k in kept) >= 8
+
+
+def test_a_long_stream_of_many_sources_is_the_same_compiled_numpy_and_row_by_row(
+        rng, monkeypatch, fold_path):
+    # 30 sources, rebuilds and outliers, cut at random places: the compiled batch
+    # with its kept folds, the numpy batch and the rows one by one give the same map,
+    # bit for bit, and the same decisions.
+    if fold_path == 'numpy':
+        pytest.skip('compares both paths itself')
+    rows = stream(rng, count=2000, landmarks=40, sources=30, outliers=0.05, movers=3)
+    cuts = np.sort(rng.choice(np.arange(1, 2000), 25, replace=False))
+    chunks = [slice(a, b) for a, b in zip(np.r_[0, cuts], np.r_[cuts, 2000])]
+    compiled, expected = feed(LandmarkMap, rows, chunks, max_consecutive_rejections=3)
+    one_by_one, result = feed(LandmarkMap, rows, chunked(2000, 1), max_consecutive_rejections=3)
+    assert result == expected and sum(expected[1].values()) >= 50 and expected[3]
+    assert_same_map(compiled, one_by_one)
+    monkeypatch.setattr(_fold_kernel, 'load', lambda: None)
+    monkeypatch.setattr(_fold_kernel, 'AVAILABLE', False)
+    numpy_map, result = feed(LandmarkMap, rows, chunks, max_consecutive_rejections=3)
+    assert result == expected
+    assert_same_map(numpy_map, compiled)
