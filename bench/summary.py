@@ -145,6 +145,18 @@ def rows_for(results):
                          'last input -> queues empty after a fusion (in the node); end to end to '
                          f'fused_landmarks {_num(fuser.get(f"e2e_lag_{short}_ms"))} ms',
                          'bench_fuser'))
+    for short, name in (('split_ci_50_sources', 'split CI, 50 input topics, every robot '
+                         'seeing every landmark'),
+                        ('split_ci_50_sources_local', 'split CI, 50 input topics, each robot '
+                         'seeing its 100 nearest landmarks')):
+        key = f'fuser_{short}_msg_per_s_100'
+        if key in fuser:
+            rows.append(('node', f'landmark_fuser, {name}, 100 rows/msg',
+                         si(fuser[key], 'msg/s'),
+                         f'{_num(fuser.get(f"ratio_{short}_100"))} x relay on the 50 topics '
+                         f'({si(fuser.get("relay_50_sources_msg_per_s_100"), "msg/s")}); '
+                         f'CPU-time ratio relay/fuser {_num(fuser.get(f"cpu_ratio_{short}"))}',
+                         'bench_fuser'))
     for name, values in results.items():
         for key, value in values.items():
             if SPEED_UP_KEY.search(key):
