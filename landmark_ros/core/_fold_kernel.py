@@ -205,23 +205,15 @@ def _source_part(Y, y, Q, valid, part):
     return _log2_det(a + da, b + db, c + dc) if valid else math.inf
 
 
-def _fold_from(parts, order, n, prefix, j0, second, limits):
-    # prefix[j] = the fold of the sources order[0..j]; recomputed from j0 on.
-    if j0 == 0:
-        for i in range(8):
-            prefix[0, i] = parts[order[0], i]
-        j0 = 1
-    for j in range(j0, n):
-        for i in range(8):
-            second[i] = parts[order[j], i]
-        first = prefix[j - 1]
-        omega = _omega_of(first[2], first[3], first[4], first[5], first[6], first[7],
-                          second[2], second[3], second[4], second[5], second[6], second[7],
-                          limits)
-        _split_ci(first, second, omega, prefix[j])
+def _fold_all(parts, order, n, prefix, limits):
+    # prefix[j] = the fold of the sources order[0..j].
+    for i in range(8):
+        prefix[0, i] = parts[order[0], i]
+    for j in range(1, n):
+        _fold_step(prefix[j - 1], parts[order[j]], prefix[j], limits)
 
 
-def _fold_one(Y, y, Q, valid, parts, size, order, prefix, second, out, limits):
+def _fold_one(Y, y, Q, valid, parts, size, order, prefix, out, limits):
     # One landmark: Y (W, 3), y (W, 2), Q (W, 4), valid (W,) -> out (8,) packed.
     width = len(valid)
     n = 0
@@ -237,7 +229,7 @@ def _fold_one(Y, y, Q, valid, parts, size, order, prefix, second, out, limits):
             order[i] = order[i - 1]
             i -= 1
         order[i] = j
-    _fold_from(parts, order, n, prefix, 0, second, limits)
+    _fold_all(parts, order, n, prefix, limits)
     for i in range(8):
         out[i] = prefix[n - 1, i]
 
@@ -248,10 +240,8 @@ def _kernel(Y, y, Q, valid, out, limits):
     size = np.empty(width)
     order = np.empty(width, np.int64)
     prefix = np.empty((width, 8))
-    second = np.empty(8)
     for k in range(count):
-        _fold_one(Y[k], y[k], Q[k], valid[k], parts, size, order, prefix, second, out[k],
-                  limits)
+        _fold_one(Y[k], y[k], Q[k], valid[k], parts, size, order, prefix, out[k], limits)
 
 
 def _mahalanobis_sq(dx, dy, a, b, c):
@@ -621,7 +611,7 @@ def load() -> Optional[Callable[..., FoldResult]]:
 _tried = False
 
 _COMPILED = ('_scale4', '_inverse', '_psd', '_log2_det', '_omega_of', '_congruence', '_split_ci',
-             '_source_part', '_fold_from', '_fold_one', '_kernel', '_mahalanobis_sq',
-             '_fold_step', '_refold', '_move', '_add_terms', '_run_kernel', '_group_kernel',
+             '_source_part', '_fold_step', '_fold_all', '_fold_one', '_kernel',
+             '_mahalanobis_sq', '_refold', '_move', '_add_terms', '_run_kernel', '_group_kernel',
              '_locate_kernel', '_merge_kernel')
 """The functions ``load`` compiles, callees before callers."""
