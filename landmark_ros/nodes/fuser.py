@@ -124,20 +124,23 @@ class LandmarkFuser(Node):
 
         The clouds already waiting on the other input topics are taken too: with many
         robots, one callback then serves a burst of all of them (one executor dispatch,
-        one row check per source), not one cloud each.
+        one row check, ``Fuser.add_landmark_bursts``), not one cloud each.
         """
         now = self.get_clock().now().nanoseconds
         burst = self.config.max_batch_messages
-        self._queue_landmarks(topic, [msg] + take_waiting(
-            self._subscriptions_by_topic[topic], PointCloud2, burst - 1, raw=True), now)
+        bursts = [(topic, [msg] + take_waiting(
+            self._subscriptions_by_topic[topic], PointCloud2, burst - 1, raw=True))]
         for other, subscription in self._subscriptions_by_topic.items():
             if other != topic:
                 waiting = take_waiting(subscription, PointCloud2, burst, raw=True)
                 if waiting:
-                    self._queue_landmarks(other, waiting, now)
+                    bursts.append((other, waiting))
+        self.fuser.add_landmark_bursts(
+            [(self._source_of[name], self._decode_landmarks(name, clouds))
+             for name, clouds in bursts], now)
 
-    def _queue_landmarks(self, topic, clouds, now):
-        """Decode the clouds (serialized or messages) of one input topic; queue them."""
+    def _decode_landmarks(self, topic, clouds):
+        """Return the clouds (serialized or messages) of one input topic as messages."""
         source = self._source_of[topic]
         messages = []
         for cloud in clouds:
@@ -152,8 +155,7 @@ class LandmarkFuser(Node):
             messages.append(LandmarkMessage(stamp_ns(cloud.header.stamp), rows.ids, rows.m,
                                             rows.P, rows.P_dep, cloud.header.frame_id,
                                             extras.classes, extras.scan))
-        # One row check for the burst (``Fuser.add_landmark_messages``).
-        self.fuser.add_landmark_messages(source, messages, now)
+        return messages
 
     def on_constraints(self, msg, topic):
         """Decode constraint clouds (this one and those waiting) and queue their views."""

@@ -213,7 +213,7 @@ class Fuser:
         frame check, stamp and queue entry), but their rows are checked together: one
         ``rows.landmark_row_problems`` over all of them, so a burst of small messages
         pays the checks' fixed cost once. Rejected rows are counted and logged once
-        per reason for the burst.
+        per reason for the burst. (``add_landmark_bursts`` with one source.)
 
         Parameters
         ----------
@@ -230,17 +230,60 @@ class Fuser:
             The rows queued.
 
         """
-        kept = [message for message in messages
-                if self._arrive(source, message.frame_id, now_ns, 'landmarks') is not None]
-        if not kept:
+        return self.add_landmark_bursts([(source, messages)], now_ns)
+
+    def add_landmark_bursts(self, bursts: Sequence[Tuple[str, Sequence[LandmarkMessage]]],
+                            now_ns: Optional[int] = None) -> int:
+        """
+        Check and queue the landmark messages of several sources with one row check.
+
+        What ``add_landmark_messages`` does for each ``(source, messages)`` in turn,
+        with the rows of all of them checked in one ``rows.landmark_row_problems``: a
+        callback that takes a few messages from each of many robots pays the checks'
+        fixed cost once, not once per robot. A source with rejected rows has them
+        checked again on their own, so counters and logs stay per source.
+
+        Parameters
+        ----------
+        bursts : sequence of (str, sequence of LandmarkMessage)
+            Sources (each one of the sources) and their messages, oldest first.
+        now_ns : int, optional
+            Arrival time [ns], for the stale-source check.
+
+        Returns
+        -------
+        int
+            The rows queued.
+
+        """
+        taken = []
+        for source, messages in bursts:
+            kept = [message for message in messages if self._arrive(
+                source, message.frame_id, now_ns, 'landmarks') is not None]
+            if kept:
+                taken.append((source, kept, [len(np.asarray(message.ids)) for message in kept]))
+        if not taken:
             return 0
-        state = self.sources[source]
-        sizes = [len(np.asarray(message.ids)) for message in kept]
-        state.counts['observations_in'] += sum(sizes)
-        ids = np.concatenate([np.asarray(message.ids) for message in kept])
+        every = [message for _, kept, _ in taken for message in kept]
+        ids = np.concatenate([np.asarray(message.ids) for message in every])
         m, P, P_dep = (np.concatenate([np.asarray(getattr(message, name), np.float64)
-                                       for message in kept]) for name in ('m', 'P', 'P_dep'))
-        valid, reasons = landmark_row_problems(ids, m, P, P_dep)
+                                       for message in every]) for name in ('m', 'P', 'P_dep'))
+        valid, _ = landmark_row_problems(ids, m, P, P_dep)
+        queued, start = 0, 0
+        for source, kept, sizes in taken:
+            part = slice(start, start + sum(sizes))
+            start = part.stop
+            # The reasons per source: the rows of a source with problems checked again.
+            reasons = None if valid[part].all() else landmark_row_problems(
+                ids[part], m[part], P[part], P_dep[part])[1]
+            queued += self._queue_checked(source, kept, sizes, ids[part], m[part],
+                                          valid[part].copy(), reasons)
+        return queued
+
+    def _queue_checked(self, source, kept, sizes, ids, m, valid, reasons):
+        """Count, shard, reject and queue one source's checked rows (``add_landmark_bursts``)."""
+        state = self.sources[source]
+        state.counts['observations_in'] += len(ids)
         if self.config.shard_count > 1:
             # Rows without an ID go to the shard of their cell (``shard_of_position``).
             cells = shard_of_position(np.asarray(m, np.float64).reshape(-1, 2),
@@ -250,7 +293,7 @@ class Fuser:
             if other.any():
                 state.counts['other_shard'] += int(other.sum())
                 valid &= ~other
-        for reason, count in reasons.items():
+        for reason, count in (reasons or {}).items():
             self.reject(source, reason, count, f'{count} of {len(valid)} rows rejected')
         queued, offset = 0, 0
         for message, size in zip(kept, sizes):

@@ -114,6 +114,31 @@ def test_a_burst_is_queued_as_its_messages_one_by_one(depth, rng):
     assert many.add_landmark_messages(SOURCES[0], []) == 0
 
 
+@pytest.mark.parametrize('shards', [1, 2])
+def test_bursts_of_several_sources_are_queued_as_each_source_alone(shards, rng):
+    # add_landmark_bursts checks the rows of all sources together; queues, counters
+    # (per source) and the fused map must be those of add_landmark_messages per source.
+    clean = [LandmarkMessage((k + 1) * S, *rows(4, rng), 'map') for k in range(3)]
+    bursts = [(SOURCES[0], burst(rng)), (SOURCES[1], clean), (SOURCES[0], clean[:1])]
+    config = FuserConfig(shard_count=shards)
+    alone, together = (Fuser(config, SOURCES) for _ in range(2))
+    queued = sum(alone.add_landmark_messages(source, messages, 7)
+                 for source, messages in bursts)
+    assert together.add_landmark_bursts(bursts, 7) == queued > 0
+    for source in SOURCES:
+        assert alone.sources[source].counts == together.sources[source].counts
+        for a, b in zip(alone.sources[source].queue, together.sources[source].queue,
+                        strict=True):
+            assert (a.sequence, a.stamp_ns) == (b.sequence, b.stamp_ns)
+            np.testing.assert_array_equal(a.ids, b.ids)
+            np.testing.assert_array_equal(a.P, b.P)
+    assert problems(alone) == problems(together) != {}
+    alone.fuse_queued(), together.fuse_queued()
+    for a, b in zip(alone.snapshot(), together.snapshot(), strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert together.add_landmark_bursts([]) == 0
+
+
 def test_statuses_name_stale_sources_and_new_problems(rng):
     fuser = Fuser(FuserConfig(source_timeout_s=1.0), SOURCES)
     fuser.add_landmarks(SOURCES[0], S, *rows(2, rng), now_ns=10 * S)
