@@ -136,6 +136,16 @@ def _init(args, name):
     return failure
 
 
+_STOPS = []
+"""The SIGINTs received (``_stop_requested``): one before rclpy's handler is there
+must still stop the node."""
+
+
+def _stop_requested(signum, frame):
+    """Python's part of SIGINT: note it (rclpy's handler shuts the context down)."""
+    _STOPS.append(signum)
+
+
 def _stopping(node, wait_s=1.0):
     """
     Return whether a stop signal is shutting the context down (after a failure in spin).
@@ -145,8 +155,8 @@ def _stopping(node, wait_s=1.0):
     convert call argument") can come just before ``rclpy.ok()`` turns False: wait up
     to ``wait_s`` for it.
     """
-    if node is None:
-        return False
+    if node is None:     # failed while being built: stopped if the context is down
+        return not rclpy.ok()
     deadline = time.monotonic() + wait_s
     while rclpy.ok() and time.monotonic() < deadline:
         time.sleep(0.01)
@@ -189,13 +199,20 @@ def run(node_class, name, args=None, startup_errors=(), what='invalid parameters
     for flag, value in zip(ros, ros[1:]):
         if flag == '--params-file' and not os.path.isfile(value):
             return _error(name, f'parameter file not found: {value}')
-    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
-        # Started in the background of a script: SIGINT (what launchers send to stop
-        # a node) would otherwise be ignored.
-        signal.signal(signal.SIGINT, signal.default_int_handler)
+    # SIGINT stops the node through rclpy, whose handler (installed by init, on top
+    # of this one) shuts the context down: spin then ends. Python's own handler would
+    # also raise KeyboardInterrupt wherever the main thread is, inside a pybind11 take
+    # or a garbage-collected llvmlite object's __del__ ("Exception ignored" and a
+    # traceback on stderr); this one does not raise. (It also replaces SIG_IGN, which
+    # a node started in the background of a script would otherwise keep.)
+    _STOPS.clear()
+    signal.signal(signal.SIGINT, _stop_requested)
     failure = _init(argv, name)
     if failure is not None:
         return _error(name, f'bad command line: {failure}')
+    if _STOPS:      # before rclpy's handler was installed: nobody shut the context down
+        rclpy.try_shutdown()
+        return 0
     node = None
     try:
         node = node_class()

@@ -89,3 +89,24 @@ def test_a_string_for_a_double_says_what_to_write():
     assert result.returncode == 2
     assert result.stderr == ('landmark_observer: invalid parameters: range_stddev is of type '
                              "double, got the string 'wide': write e.g. range_stddev:=0.1\n")
+
+
+def test_a_stop_signal_before_rclpy_handles_signals_ends_the_run(monkeypatch):
+    # The runner's SIGINT handler does not raise (rclpy's, installed by init, stops
+    # the node); a SIGINT that comes before rclpy's handler is there still ends the
+    # run, with exit code 0 and no node built.
+    import signal
+    from landmark_ros.ros import runner
+    built, shut = [], []
+
+    def init(argv, name):
+        os.kill(os.getpid(), signal.SIGINT)      # the handler runs before this returns
+        return None
+    monkeypatch.setattr(runner, '_init', init)
+    monkeypatch.setattr(runner.rclpy, 'try_shutdown', lambda *args: shut.append(1))
+    previous = signal.getsignal(signal.SIGINT)
+    try:
+        assert runner.run(lambda: built.append(1), 'landmark_fuser', ['landmark_fuser']) == 0
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    assert built == [] and shut == [1]
