@@ -209,26 +209,8 @@ class Fuser:
         """
         Check the rows of several landmark messages of one source and queue the valid ones.
 
-        The messages are taken in order, each as ``add_landmarks`` takes one (its own
-        frame check, stamp and queue entry), but their rows are checked together: one
-        ``rows.landmark_row_problems`` over all of them, so a burst of small messages
-        pays the checks' fixed cost once. Rejected rows are counted and logged once
-        per reason for the burst. (``add_landmark_bursts`` with one source.)
-
-        Parameters
-        ----------
-        source : str
-            One of the sources.
-        messages : sequence of LandmarkMessage
-            The messages, oldest first.
-        now_ns : int, optional
-            Arrival time [ns], for the stale-source check.
-
-        Returns
-        -------
-        int
-            The rows queued.
-
+        ``add_landmark_bursts`` with one source (parameters and result there): each
+        message gets its own frame check, stamp and queue entry, their rows one check.
         """
         return self.add_landmark_bursts([(source, messages)], now_ns)
 
@@ -642,7 +624,7 @@ class Fuser:
             self.logger.info(f'removed {stale}, left by an interrupted save')
         try:
             document = map_file.load(path, self.config.world_frame)
-            check_records(document['landmarks'])
+            map_file.check_records(document['landmarks'])
             next_id = document.get('next_id', self.config.first_new_id)
             if isinstance(next_id, bool) or not isinstance(next_id, int) or not (
                     0 <= next_id <= MAX_LABEL_ID + 1):
@@ -682,50 +664,6 @@ class Fuser:
                 f'fuser uses {self.config.fusion!r}')
         self.map_changed = True
         self.logger.info(f'loaded {len(self.map)} landmarks from {path}')
-
-
-def check_records(records: Sequence[Dict[str, Any]]) -> None:
-    """
-    Check saved landmark records with exactly the checks a live landmark row passes.
-
-    Parameters
-    ----------
-    records : sequence of dict
-        As ``LandmarkMap.to_records`` writes them.
-
-    Raises
-    ------
-    ValueError
-        Naming the first bad record and why: a malformed field, an ID that is not an
-        integer in [0, 2^32 - 1], or a row reason of ``rows.landmark_row_problems``.
-
-    """
-    count = len(records)
-    ids = np.zeros(count, np.int64)
-    m = np.zeros((count, 2))
-    P = np.zeros((count, 2, 2))
-    P_dep = np.zeros((count, 2, 2))
-    for i, record in enumerate(records):
-        try:
-            raw = record['id']
-            if isinstance(raw, bool) or not isinstance(raw, int) or not 0 <= raw <= MAX_LABEL_ID:
-                raise ValueError(f'id {raw!r} is not an integer in [0, {MAX_LABEL_ID}]')
-            landmark_class = record.get('class', 0)
-            if isinstance(landmark_class, bool) or not isinstance(landmark_class, int):
-                raise ValueError(f'class {landmark_class!r} is not an integer')
-            ids[i] = raw
-            m[i] = np.array(record['mean'], dtype=np.float64).reshape(2)
-            P[i] = np.array(record['covariance'], dtype=np.float64).reshape(2, 2)
-            P_dep[i] = np.array(record['covariance_dependent'], dtype=np.float64).reshape(2, 2)
-        except (KeyError, TypeError, ValueError) as error:
-            raise ValueError(f'landmark record {i}: {error}') from error
-    valid, _ = landmark_row_problems(ids, m, P, P_dep)
-    if not valid.all():
-        bad = int(np.flatnonzero(~valid)[0])
-        one = slice(bad, bad + 1)
-        _, reasons = landmark_row_problems(ids[one], m[one], P[one], P_dep[one])
-        raise ValueError(f'landmark record {bad} (id {int(ids[bad])}): rejected as '
-                         f"{', '.join(sorted(reasons))}")
 
 
 def _combine(results: Sequence[UpdateResult]) -> UpdateResult:

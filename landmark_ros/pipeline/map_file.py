@@ -3,7 +3,8 @@ Save and load the fused map as versioned, human-readable JSON, atomically (ROS-f
 
 A save writes a temporary file in the same directory, flushes and fsyncs it, then
 renames it over the map file (and fsyncs the directory), so a crash at any moment
-leaves either the previous map or the new one, never a torn file.
+leaves either the previous map or the new one, never a torn file. ``check_records``
+checks loaded landmark records exactly as live landmark rows are checked.
 """
 
 import datetime
@@ -11,6 +12,9 @@ import json
 import os
 import tempfile
 from typing import Any, Dict, List, Mapping, Optional, Sequence
+
+from landmark_ros.pipeline.rows import landmark_row_problems, MAX_LABEL_ID
+import numpy as np
 
 FORMAT = 'landmark_ros/map'
 VERSION = 1
@@ -205,3 +209,47 @@ def move_aside(path: str, now: Optional[datetime.datetime] = None) -> str:
         target, counter = f'{base}-{counter}', counter + 1
     os.replace(path, target)
     return target
+
+
+def check_records(records: Sequence[Dict[str, Any]]) -> None:
+    """
+    Check saved landmark records with exactly the checks a live landmark row passes.
+
+    Parameters
+    ----------
+    records : sequence of dict
+        As ``LandmarkMap.to_records`` writes them.
+
+    Raises
+    ------
+    ValueError
+        Naming the first bad record and why: a malformed field, an ID that is not an
+        integer in [0, 2^32 - 1], or a row reason of ``rows.landmark_row_problems``.
+
+    """
+    count = len(records)
+    ids = np.zeros(count, np.int64)
+    m = np.zeros((count, 2))
+    P = np.zeros((count, 2, 2))
+    P_dep = np.zeros((count, 2, 2))
+    for i, record in enumerate(records):
+        try:
+            raw = record['id']
+            if isinstance(raw, bool) or not isinstance(raw, int) or not 0 <= raw <= MAX_LABEL_ID:
+                raise ValueError(f'id {raw!r} is not an integer in [0, {MAX_LABEL_ID}]')
+            landmark_class = record.get('class', 0)
+            if isinstance(landmark_class, bool) or not isinstance(landmark_class, int):
+                raise ValueError(f'class {landmark_class!r} is not an integer')
+            ids[i] = raw
+            m[i] = np.array(record['mean'], dtype=np.float64).reshape(2)
+            P[i] = np.array(record['covariance'], dtype=np.float64).reshape(2, 2)
+            P_dep[i] = np.array(record['covariance_dependent'], dtype=np.float64).reshape(2, 2)
+        except (KeyError, TypeError, ValueError) as error:
+            raise ValueError(f'landmark record {i}: {error}') from error
+    valid, _ = landmark_row_problems(ids, m, P, P_dep)
+    if not valid.all():
+        bad = int(np.flatnonzero(~valid)[0])
+        one = slice(bad, bad + 1)
+        _, reasons = landmark_row_problems(ids[one], m[one], P[one], P_dep[one])
+        raise ValueError(f'landmark record {bad} (id {int(ids[bad])}): rejected as '
+                         f"{', '.join(sorted(reasons))}")
