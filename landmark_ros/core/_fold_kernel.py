@@ -5,9 +5,10 @@ The split-CI fold of ``landmark_map`` compiled with numba, when numba is install
 in a compiled loop instead of one numpy operation per step over all landmarks: the
 same IEEE operations in the same order (no fast-math, no fused multiply-add), so the
 results are the numpy fold's bit for bit (``test/core/test_fold_kernel.py`` checks
-it). ``run`` gates and folds a batch's rows one after the other (``LandmarkMap``'s
-split-CI batch), keeping each landmark's fold between batches. A (landmark, source)
-step costs about a tenth of the numpy fold's.
+it). ``run`` gates a batch's rows one after the other against the landmarks' gate
+references and folds each landmark once after its last row and at its refreshes
+(``gate_due``), keeping each landmark's fold between batches (``LandmarkMap``'s
+split-CI batch). A (landmark, source) step costs about a tenth of the numpy fold's.
 
 ``load()`` imports numba and compiles the kernel on first use (a process that never
 folds does not load numba: about 80 MB and a second; compiling without numba's disk
@@ -258,6 +259,11 @@ def _mahalanobis_sq(dx, dy, a, b, c):
 # sources are read together.
 PART, PREFIX, SIZE, RANK, VALID, COLUMNS = 9, 17, 25, 26, 27, 28
 
+GATE_BITS = 3
+"""A landmark's gate reference is refreshed 2 ** GATE_BITS times per doubling of its
+observations (every observation up to 2 ** (GATE_BITS + 1) - 1): it then holds at
+least 8/9 of the information of the current estimate."""
+
 
 def _refold(lo, width, key_slots, table, order, limits):
     # The whole fold of one landmark (pairs key_slots[lo:lo + width]), as _fold_one,
@@ -359,37 +365,75 @@ def _add_terms(t, z0, z1, R_ind, R_dep):
     t[8] += yb * R_dep[0, 1] + yc * R_dep[1, 1]
 
 
+def _gate_due(n):
+    # Whether the gate reference is refreshed after a landmark's n-th observation:
+    # every one up to 2 ** (GATE_BITS + 1) - 1, then 2 ** GATE_BITS per doubling.
+    step = 1
+    top = n >> (GATE_BITS + 1)
+    while top > 0:
+        top >>= 1
+        step <<= 1
+    return n % step == 0
+
+
+def _settle(k, single, lo, hi, key_slots, table, kept, order, state, limits):
+    # Fold landmark k again after its sums changed: only pair ``single`` (when >= 0
+    # and the fold is kept) or several (all flagged VALID) -> state[k].
+    width = hi[k] - lo[k]
+    if kept[k] and single >= 0:
+        last = _move(lo[k], width, single - lo[k], key_slots, table, order, limits)
+    else:
+        if single >= 0:
+            table[key_slots[single], 27] = 1.0
+        last = _refold(lo[k], width, key_slots, table, order, limits)
+        kept[k] = True
+    for j in range(8):
+        state[k, j] = table[last, 17 + j]
+
+
 def _run_kernel(landmark, rows_in_order, position, at, z, R_ind, R_dep, lo, hi, key_slots,
-                table, kept, state, threshold, out, accepted, limits):
+                table, kept, state, gate, observations, threshold, accepted, limits):
     width = 1
     for k in range(len(lo)):
         width = max(width, hi[k] - lo[k])
     order = np.empty(width, np.int64)
+    count = len(rows_in_order)
     # Landmark by landmark (each in arrival order): the landmarks do not interact,
-    # and a landmark's pairs stay in the cache for all its rows.
-    for i in rows_in_order:
+    # and a landmark's pairs stay in the cache for all its rows. ``single``: the one
+    # pair whose sums changed since the landmark was last folded (-1 none, -2 more).
+    single = -1
+    for index in range(count):
+        i = rows_in_order[index]
         k = landmark[i]
         x = at[i]
-        m = state[k]
-        a = m[2] + m[5] + R_ind[x, 0, 0] + R_dep[x, 0, 0]
-        b = m[3] + m[6] + R_ind[x, 0, 1] + R_dep[x, 0, 1]
-        c = m[4] + m[7] + R_ind[x, 1, 1] + R_dep[x, 1, 1]
-        d2 = _mahalanobis_sq(z[x, 0] - m[0], z[x, 1] - m[1], a, b, c)
+        g = gate[k]
+        a = g[2] + R_ind[x, 0, 0] + R_dep[x, 0, 0]
+        b = g[3] + R_ind[x, 0, 1] + R_dep[x, 0, 1]
+        c = g[4] + R_ind[x, 1, 1] + R_dep[x, 1, 1]
+        d2 = _mahalanobis_sq(z[x, 0] - g[0], z[x, 1] - g[1], a, b, c)
         accepted[i] = d2 <= threshold
-        if not accepted[i]:
-            continue
-        t = table[key_slots[position[i]]]
-        _add_terms(t, z[x, 0], z[x, 1], R_ind[x], R_dep[x])
-        if kept[k]:
-            last = _move(lo[k], hi[k] - lo[k], position[i] - lo[k], key_slots, table, order,
-                         limits)
-        else:
-            t[27] = 1.0
-            last = _refold(lo[k], hi[k] - lo[k], key_slots, table, order, limits)
-            kept[k] = True
-        for j in range(8):
-            m[j] = table[last, 17 + j]
-        out[i, :] = m
+        if accepted[i]:
+            p = position[i]
+            t = table[key_slots[p]]
+            _add_terms(t, z[x, 0], z[x, 1], R_ind[x], R_dep[x])
+            if single == -1:
+                single = p
+            elif single != p:
+                if single >= 0:
+                    table[key_slots[single], 27] = 1.0
+                single = -2
+            if single == -2:
+                t[27] = 1.0
+            observations[k] += 1
+            if _gate_due(observations[k]):
+                _settle(k, single, lo, hi, key_slots, table, kept, order, state, limits)
+                single = -1
+                m = state[k]
+                g[0], g[1] = m[0], m[1]
+                g[2], g[3], g[4] = m[2] + m[5], m[3] + m[6], m[4] + m[7]
+        if single != -1 and (index + 1 == count or landmark[rows_in_order[index + 1]] != k):
+            _settle(k, single, lo, hi, key_slots, table, kept, order, state, limits)
+            single = -1
 
 
 def _group_kernel(rows, top, order, landmarks, landmark):
@@ -513,31 +557,36 @@ def run(landmark: NDArray[np.intp], order: NDArray[np.intp], position: NDArray[n
         z: NDArray[np.float64], R_ind: NDArray[np.float64], R_dep: NDArray[np.float64],
         lo: NDArray[np.intp], hi: NDArray[np.intp], key_slots: NDArray[np.intp],
         table: NDArray[np.float64], kept: NDArray[np.bool_], state: NDArray[np.float64],
-        threshold: float) -> Tuple[NDArray[np.float64], NDArray[np.bool_]]:
+        gate: NDArray[np.float64], observations: NDArray[np.int64],
+        threshold: float) -> NDArray[np.bool_]:
     """
-    Gate and fold the rows of a batch one after the other, as the map would.
+    Gate the rows of a batch one after the other and fold their landmarks, as the map would.
 
     Row ``i`` (arrival order) observes landmark ``landmark[i]``, whose (landmark,
     source) pairs are the slots ``key_slots[lo[k]:hi[k]]`` (in key order, that is by
-    source code) and whose estimate is ``state[k]``. A row passes when its squared
-    Mahalanobis distance to the estimate (innovation covariance ``P_ind + P_dep +
-    R_ind + R_dep``) is at most ``threshold``; then what it adds to the sums
-    (``_source_sums._terms``, the same operations) is added to those of the slot
-    ``key_slots[position[i]]`` and the landmark is folded again.
+    source code), whose estimate is ``state[k]`` and whose gate reference is
+    ``gate[k]``. A row passes when its squared Mahalanobis distance to the reference
+    (innovation covariance ``P + R_ind + R_dep``) is at most ``threshold``; then what
+    it adds to the sums (``_source_sums._terms``, the same operations) is added to
+    those of the slot ``key_slots[position[i]]`` and the landmark's count
+    ``observations[k]`` goes up. When the count reaches a refresh point
+    (``GATE_BITS``) the landmark is folded and its reference becomes the new
+    estimate; after its last row in the batch it is folded if its sums changed.
 
     A slot's row of ``table`` holds its sums and, for a landmark with ``kept[k]`` (its
     fold up to date with its sums), its source's estimate, its size (``_log2_det`` of
     the covariance), its rank in the fold order and the prefix fold up to that rank
-    (the columns ``PART`` to ``VALID``). Then a changed source moves to its new place
-    and the fold is redone from the first place that changed; otherwise the whole
-    fold is done and kept (``kept[k]`` is set). The results are those of ``_fold`` on
-    the sums after each row, bit for bit. ``table``, ``kept`` and ``state`` are
-    updated in place. Call only after ``load()`` returned the kernel.
+    (the columns ``PART`` to ``VALID``). When one source changed, it moves to its new
+    place and the fold is redone from the first place that changed; otherwise the
+    whole fold is done and kept (``kept[k]`` is set). The estimates are those of
+    ``_fold`` on the sums, bit for bit. ``table``, ``kept``, ``state``, ``gate`` and
+    ``observations`` are updated in place. Call only after ``load()`` returned the
+    kernel.
 
     Parameters
     ----------
     landmark : ndarray of int, shape (N,)
-        Each row's landmark, an index into ``state``, ``lo``, ``hi``, ``kept``.
+        Each row's landmark, an index into ``state``, ``gate``, ``lo``, ``hi``, ``kept``.
     order : ndarray of int, shape (N,)
         The rows grouped by landmark, each landmark's in arrival order (``group``):
         the order they are taken in (landmarks do not interact).
@@ -560,22 +609,38 @@ def run(landmark: NDArray[np.intp], order: NDArray[np.intp], position: NDArray[n
         Whether a landmark's kept fold is up to date.
     state : ndarray, shape (K, 8)
         Packed estimates: mean, ``(xx, xy, yy)`` of ``P_ind``, of ``P_dep``.
+    gate : ndarray, shape (K, 5)
+        Gate references: mean, ``(xx, xy, yy)`` of ``P_ind + P_dep``.
+    observations : ndarray of int64, shape (K,)
+        Observations fused into each landmark so far.
     threshold : float
         Gate on the squared Mahalanobis distance.
 
     Returns
     -------
-    out : ndarray, shape (N, 8)
-        The packed estimate after each accepted row (rejected rows: unspecified).
     accepted : ndarray of bool, shape (N,)
 
     """
-    out = np.empty((len(landmark), 8))
     accepted = np.empty(len(landmark), np.bool_)
     with np.errstate(all='ignore'):
         _run_kernel(landmark, order, position, at, z, R_ind, R_dep, lo, hi, key_slots, table,
-                    kept, state, float(threshold), out, accepted, _limits())
-    return out, accepted
+                    kept, state, gate, observations, float(threshold), accepted, _limits())
+    return accepted
+
+
+def gate_due(observations: NDArray[np.int64]) -> NDArray[np.bool_]:
+    """
+    Return whether a landmark's gate reference is refreshed once it has ``observations``.
+
+    Every observation up to ``2 ** (GATE_BITS + 1) - 1``, then ``2 ** GATE_BITS`` times
+    per doubling: the reference holds at least 8/9 of the current information, and
+    refreshing it (a fold) costs next to nothing per observation for a landmark seen
+    thousands of times. What ``_gate_due`` computes in the kernel.
+    """
+    n = np.asarray(observations, dtype=np.int64)
+    length = np.frexp(np.maximum(n, 1).astype(np.float64))[1].astype(np.int64)  # bit length
+    step = np.left_shift(1, np.maximum(length - (GATE_BITS + 1), 0))
+    return n % step == 0
 
 
 def load() -> Optional[Callable[..., FoldResult]]:
@@ -612,6 +677,7 @@ _tried = False
 
 _COMPILED = ('_scale4', '_inverse', '_psd', '_log2_det', '_omega_of', '_congruence', '_split_ci',
              '_source_part', '_fold_step', '_fold_all', '_fold_one', '_kernel',
-             '_mahalanobis_sq', '_refold', '_move', '_add_terms', '_run_kernel', '_group_kernel',
+             '_mahalanobis_sq', '_refold', '_move', '_add_terms', '_gate_due', '_settle',
+             '_run_kernel', '_group_kernel',
              '_locate_kernel', '_merge_kernel')
 """The functions ``load`` compiles, callees before callers."""

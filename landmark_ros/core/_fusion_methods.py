@@ -18,8 +18,7 @@ Fusion, 2001.
 """
 
 from landmark_ros.core import _fold_kernel
-from landmark_ros.core._arrays import mahalanobis_sq_2x2
-from landmark_ros.core._source_sums import _entries, _one_source, _rank, _SourceParts, _terms
+from landmark_ros.core._source_sums import _entries, _one_source, _SourceParts
 from landmark_ros.core.gaussian import (ci_2x2, covariance_intersection, fuse_2x2,
                                         split_covariance_intersection)
 import numpy as np
@@ -120,95 +119,29 @@ class _SplitCovarianceIntersection(_Independent):
     def reset(self):
         """Forget every landmark."""
         self.parts = _SourceParts()
-        self.planned = None
-
-    _PLAN_PASSES = 8
-    """Most passes of ``prepare`` (each rules out one more rejected row per landmark)."""
 
     def prepare(self, landmark_map, rows, batch, positions, result, changed):
         """
-        Find the estimates after each row of confirmed landmarks of a batch at once.
+        Gate and fold the rows of confirmed landmarks of a batch in the compiled kernel.
 
-        ``rows`` (landmark rows, in arrival order) at ``positions`` in the batch. The
-        rows are gated here as ``LandmarkMap`` will gate them (same numbers, same
-        decisions): a first pass takes every row as accepted; each further pass, for
-        the landmarks that had one, leaves out the first row that failed its gate and
-        folds their rows again. ``update`` then takes these estimates while the map's
-        decisions match (a reinitialisation in between breaks the landmark) and folds
-        the others itself. Only worth it when some landmark has several rows.
+        ``rows`` (landmark rows, in arrival order) at ``positions`` in the batch, gated
+        as ``LandmarkMap``'s rounds would gate them (same numbers, same decisions),
+        each landmark folded once after its last row and at its gate refreshes. The
+        map takes the outcome at once unless a landmark would be rebuilt in the batch;
+        then nothing changed and the rounds take the rows (False). False also when
+        numba is missing.
         """
-        self.planned = None
-        if _fold_kernel.load() is not None:
-            run = self.parts.run(landmark_map, rows, batch, positions)
-            if landmark_map._apply_run(rows, batch, positions, run, result, changed):
-                self.parts.commit(run)
-                return True
-            self.parts.rollback(run)
-            self.planned = self.parts.planned(run, len(batch.codes), positions)
+        if _fold_kernel.load() is None:
             return False
-        if len(rows) < 2 or len(np.unique(rows)) == len(rows):
-            return False
-        count = len(rows)
-        codes = batch.codes[positions]
-        z, R_ind, R_dep = batch.z[positions], batch.R_ind[positions], batch.R_dep[positions]
-        terms = np.concatenate(_terms(z, R_ind, R_dep), axis=1)
-        landmarks, landmark = np.unique(rows, return_inverse=True)
-        landmark = landmark.reshape(-1)
-        # Rows by landmark, in arrival order within each: the previous included row.
-        order = np.argsort(landmark, kind='stable')
-        start = np.searchsorted(landmark[order], landmark[order])
-        include = np.ones(count, bool)
-        planned = np.ones(count, bool)
-        m, P_ind, P_dep = np.zeros((count, 2)), np.zeros((count, 2, 2)), np.zeros((count, 2, 2))
-        todo = np.arange(count)
-        for _ in range(self._PLAN_PASSES):
-            states = self.parts.plan(rows[todo], codes[todo], terms[todo], include[todo])
-            if states is None:
-                return False
-            m[todo], P_ind[todo], P_dep[todo] = states
-            # Each row against the state before it (the map's for a landmark's first).
-            held = np.where(include[order], np.arange(count), -1)
-            previous = np.full(count, -1)
-            previous[1:] = np.maximum.accumulate(held)[:-1]
-            previous = np.where(previous >= start, previous, -1)
-            before = np.full(count, -1)
-            before[order] = np.where(previous >= 0, order[np.maximum(previous, 0)], -1)
-            first = before < 0
-            mean, cov_ind, cov_dep = m[before], P_ind[before], P_dep[before]
-            mean[first] = landmark_map.mean[rows[first]]
-            cov_ind[first] = landmark_map.cov_ind[rows[first]]
-            cov_dep[first] = landmark_map.cov_dep[rows[first]]
-            S = cov_ind + cov_dep + R_ind + R_dep
-            d = z - mean
-            d2 = mahalanobis_sq_2x2(d[:, 0], d[:, 1], *_entries(S))
-            failed = include & ~(d2 <= landmark_map.threshold)
-            if not failed.any():
-                break
-            # The first failing row of each landmark is rejected for sure.
-            first_failed = np.full(len(landmarks), count)
-            np.minimum.at(first_failed, landmark[failed], _rank(landmark)[failed])
-            hit = first_failed[landmark] == _rank(landmark)
-            include[hit] = False
-            again = np.zeros(len(landmarks), bool)
-            again[landmark[hit]] = True
-            todo = np.flatnonzero(again[landmark])
-        else:
-            planned[todo] = False
-        size = len(batch.codes)
-        at = np.full(size, -1, np.int64)
-        at[positions[planned]] = np.flatnonzero(planned)
-        included = np.cumsum(include[order]) - include[order]
-        accepted_before = np.empty(count, np.int64)
-        accepted_before[order] = included - included[start]
-        self.planned = {'m': m, 'P_ind': P_ind, 'P_dep': P_dep, 'at': at,
-                        'landmarks': landmarks, 'landmark': landmark,
-                        'accepted_before': accepted_before,
-                        'accepted': np.zeros(len(landmarks), np.int64),
-                        'broken': np.zeros(len(landmarks), bool)}
+        run = self.parts.run(landmark_map, rows, batch, positions)
+        if landmark_map._apply_run(rows, batch, positions, run, result, changed):
+            self.parts.commit(run)
+            return True
+        self.parts.rollback(run)
+        return False
 
     def finish(self):
-        """Forget what ``prepare`` found; the update is over."""
-        self.planned = None
+        """Stop journaling changes of the sums: the update is over."""
         self.parts.finish()
 
     def fuse(self, m, P_ind, P_dep, z, R_ind, R_dep):
@@ -216,40 +149,12 @@ class _SplitCovarianceIntersection(_Independent):
         return split_covariance_intersection(m, P_ind, P_dep, z, R_ind, R_dep)
 
     def update(self, landmark_map, rows, codes, z, R_ind, R_dep, positions=None):
-        """
-        Add accepted observations (one per landmark) to their sums; refold those rows.
-
-        A row whose landmark had every earlier row of the batch accepted takes the
-        estimate ``prepare`` found (the same, bit for bit); the others are folded here.
-        """
+        """Add accepted observations (one per landmark) to their sums; refold those rows."""
         self.parts.add(rows, codes, z, R_ind, R_dep, unique=True)
-        plan = self.planned
-        if plan is None or positions is None:
-            return self.parts.combine(rows)
-        at = plan['at'][positions]
-        ready = at >= 0
-        landmark = plan['landmark'][np.maximum(at, 0)]
-        ready &= ~plan['broken'][landmark] & (
-            plan['accepted'][landmark] == plan['accepted_before'][np.maximum(at, 0)])
-        plan['accepted'][landmark[ready]] += 1
-        at = at[ready]
-        if ready.all():
-            return plan['m'][at], plan['P_ind'][at], plan['P_dep'][at]
-        m, P_ind, P_dep = np.empty((len(rows), 2)), np.empty((len(rows), 2, 2)), np.empty(
-            (len(rows), 2, 2))
-        m[ready], P_ind[ready], P_dep[ready] = plan['m'][at], plan['P_ind'][at], plan[
-            'P_dep'][at]
-        rest = ~ready
-        m[rest], P_ind[rest], P_dep[rest] = self.parts.combine(rows[rest])
-        return m, P_ind, P_dep
+        return self.parts.combine(rows)
 
     def initialise(self, landmark_map, row, cluster):
         """Replace a landmark's sums by those of agreeing observations; fold them."""
-        if self.planned is not None:     # what prepare found for it no longer holds
-            plan = self.planned
-            at = np.searchsorted(plan['landmarks'], row)
-            if at < len(plan['landmarks']) and plan['landmarks'][at] == row:
-                plan['broken'][at] = True
         z, R_ind, R_dep = _stack(cluster)
         codes = np.array([landmark_map.source_code(obs.source) for obs in cluster], np.int64)
         self.parts.clear(row)

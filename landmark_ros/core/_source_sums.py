@@ -5,8 +5,8 @@ Per (landmark, source) sums for split covariance intersection, and their fold.
 information sums of the source's observations (``_SourceParts``); a landmark's
 estimate is the split-CI fold of its sources' estimates, from the tightest source
 up (``_fold``: the compiled kernel of ``_fold_kernel`` when numba is there, else
-``_fold_numpy``). ``_SourceParts.plan`` and ``run`` fold a batch's rows as the map
-would take them one by one. Private to ``core``: ``landmark_map`` is the interface.
+``_fold_numpy``). ``_SourceParts.run`` gates and folds a batch's rows as the map would
+take them one by one. Private to ``core``: ``landmark_map`` is the interface.
 
 Sources: split covariance intersection, Julier and Uhlmann, "General decentralized
 data fusion with covariance intersection", Handbook of Multisensor Data Fusion, 2001.
@@ -17,16 +17,9 @@ from landmark_ros.core._arrays import (inverse_2x2, power_of_4_scale, psd_projec
                                        symmetric_2x2)
 from landmark_ros.core.gaussian import information, sci_omega_2x2, split_ci_2x2_entries
 import numpy as np
-from numpy.typing import NDArray
 
 _SOURCE_BITS = 24
 """A (landmark row, source) pair is the key ``row << 24 | source code``."""
-
-_FOLD_CELLS = 1 << 16
-"""(Landmark, source) cells folded at once by a batch plan (bounds its memory)."""
-
-_PLAN_CELLS = 1 << 20
-"""Cells of a batch plan's table of states allowed beyond 16 per row and source."""
 
 
 def _entries(P):
@@ -51,11 +44,11 @@ class _SourceParts:
     replaced, never changed in place (a checkpoint holds the old arrays).
 
     A landmark's estimate is a pure function of its sums (``_fold``, no state carried
-    from one fold to the next), so the estimates after each row of a batch can be
-    found all at once (``plan``) and equal, bit for bit, those found one row at a time.
-    The compiled batch (``run``) also keeps each landmark's fold per slot (``size``,
-    ``rank``, ``prefix``; ``_fold_kernel.run``) while ``kept[row]`` says it matches the
-    sums: every other change of a landmark's sums clears that flag.
+    from one fold to the next), so folding once per batch or once per row gives the
+    same estimate, bit for bit. The compiled batch (``run``) also keeps each
+    landmark's fold per slot (``size``, ``rank``, ``prefix``; ``_fold_kernel.run``)
+    while ``kept[row]`` says it matches the sums: every other change of a landmark's
+    sums clears that flag.
     """
 
     def __init__(self):
@@ -221,110 +214,28 @@ class _SourceParts:
         slots = self.slots[np.minimum(lo[:, None] + columns, len(self.keys) - 1)]
         return _fold(self.Y[slots], self.y[slots], self.Q[slots], valid)
 
-    def plan(self, rows, codes, terms, include):
-        """
-        Return each row's landmark estimate after that row, the included rows accepted.
-
-        What ``add`` then ``combine`` row after row would give, bit for bit (the sums
-        are accumulated in the same order; ``_fold`` is element-wise), in one fold of
-        all the rows at once instead of one per round.
-
-        Parameters
-        ----------
-        rows, codes : ndarray of int, shape (N,)
-            Landmark rows and source codes, in arrival order.
-        terms : ndarray, shape (N, 9)
-            Their ``_terms``, concatenated.
-        include : ndarray of bool, shape (N,)
-            The rows taken as accepted; the others leave the sums as they are.
-
-        Returns
-        -------
-        m : ndarray, shape (N, 2)
-        P_ind, P_dep : ndarray, shape (N, 2, 2)
-            Estimates after the included rows (rows not included: unspecified).
-
-        None when the table of states would be too large (a few landmarks with very
-        many rows next to many with few): fold round by round then.
-
-        """
-        count = len(rows)
-        m, P_ind, P_dep = np.zeros((count, 2)), np.zeros((count, 2, 2)), np.zeros((count, 2, 2))
-        if not include.any():
-            return m, P_ind, P_dep
-        keys = (rows << _SOURCE_BITS) | codes
-        landmarks, landmark = np.unique(rows, return_inverse=True)
-        landmark = landmark.reshape(-1)
-        occurrence = _rank(landmark)
-        # Every pair of these landmarks, the known ones and those new in the batch.
-        known = self._ranges(landmarks)
-        all_keys = np.union1d(self.keys[known], keys[include])
-        is_known = np.zeros(len(all_keys), bool)
-        is_known[np.searchsorted(all_keys, self.keys[known])] = True
-        owner = np.searchsorted(landmarks, all_keys >> _SOURCE_BITS)
-        column = np.arange(len(all_keys)) - np.searchsorted(owner, owner)
-        width, depth = int(column.max()) + 1, int(occurrence.max()) + 1
-        if len(landmarks) * depth * width > max(16 * count * width, _PLAN_CELLS):
-            return None
-        before = np.zeros((len(all_keys), 9))
-        slots = self.slots[known]
-        before[is_known] = np.concatenate([self.Y[slots], self.y[slots], self.Q[slots]], axis=1)
-        # The sums after each included row, pair by pair in arrival order, as ``add``
-        # makes them.
-        taken = np.flatnonzero(include)
-        pair = np.searchsorted(all_keys, keys[taken])
-        running = before.copy()
-        after = np.empty((len(taken), 9))
-        for level in _levels(pair):
-            running[pair[level]] += terms[taken[level]]
-            after[level] = running[pair[level]]
-        # Which sums each state holds: grid[landmark, occurrence, column] indexes the
-        # values [before..., after...]; the latest row so far of each pair wins.
-        small = len(all_keys) + len(taken) < np.iinfo(np.int32).max
-        grid = np.full((len(landmarks), depth, width), -1, np.int32 if small else np.int64)
-        known_pairs = np.flatnonzero(is_known)
-        grid[owner[known_pairs], :, column[known_pairs]] = known_pairs[:, None]
-        grid[landmark[taken], occurrence[taken], column[pair]] = len(all_keys) + np.arange(
-            len(taken))
-        np.maximum.accumulate(grid, axis=1, out=grid)
-        index = grid[landmark[taken], occurrence[taken]]
-        # A pair not seen yet in a state shows the state's own sums (masked out).
-        own = len(all_keys) + np.arange(len(taken))[:, None]
-        index = np.where(index >= 0, index, ~own)
-        sums = np.concatenate([before, after])
-        # In parts of about _FOLD_CELLS (state, source) cells: the fold's temporaries
-        # are a few dozen arrays of that size (element-wise: the same results).
-        step = max(_FOLD_CELLS // width, 1)
-        for lo in range(0, len(taken), step):
-            part = index[lo:lo + step]
-            values = sums[np.where(part >= 0, part, ~part)]
-            m[taken[lo:lo + step]], P_ind[taken[lo:lo + step]], P_dep[taken[lo:lo + step]] = \
-                _fold(values[..., :3], values[..., 3:5], values[..., 5:], part >= 0)
-        return m, P_ind, P_dep
-
     def run(self, landmark_map, rows, batch, positions):
         """
-        Gate and fold the rows of confirmed landmarks one by one (``_fold_kernel.run``).
+        Gate the rows of confirmed landmarks one by one and fold them (``_fold_kernel.run``).
 
         The sums and the kept folds change in place; ``commit`` then keeps the outcome
         or ``rollback`` undoes it (the sums as they were, the folds of these landmarks
         dropped). Pairs new in the batch get slots that hold no observation until a
-        row of theirs is accepted.
+        row of theirs is accepted. Rows are gated against ``landmark_map.gate``.
 
         Returns
         -------
         dict
-            ``accepted`` (N,) the gate's decisions, ``out`` (N, 8) the packed estimate
-            after each accepted row, ``landmarks`` the distinct rows and ``landmark``
-            each row's index in them, ``order`` the rows sorted by landmark (stable),
-            ``state`` (K, 8) their estimates after the batch, and what ``commit`` and
-            ``rollback`` need.
+            ``accepted`` (N,) the gate's decisions, ``landmarks`` the distinct rows and
+            ``landmark`` each row's index in them, ``order`` the rows sorted by landmark
+            (stable), ``state`` (K, 8) their estimates and ``gate`` (K, 5) their gate
+            references after the batch, and what ``commit`` and ``rollback`` need.
 
         """
         codes = batch.codes[positions]
         keys = (rows << _SOURCE_BITS) | codes
         # The distinct landmarks, each row's index in them and the rows grouped by
-        # landmark in arrival order (``_apply_run`` and ``planned`` reuse it).
+        # landmark in arrival order (``_apply_run`` reuses it).
         order, landmarks, landmark = _fold_kernel.group(rows)
         self._grow_kept(int(landmarks[-1]) + 1)
         before = (self.keys, self.slots, self.count)
@@ -347,12 +258,14 @@ class _SourceParts:
                                 np.stack(_entries(landmark_map.cov_dep[landmarks]), axis=1)],
                                axis=1)
         kept = self.kept[landmarks]
-        out, accepted = _fold_kernel.run(landmark, order, position, positions, batch.z,
-                                         batch.R_ind, batch.R_dep, lo, hi, self.slots,
-                                         self.table, kept, state, landmark_map.threshold)
+        gate = landmark_map.gate[landmarks]
+        accepted = _fold_kernel.run(landmark, order, position, positions, batch.z, batch.R_ind,
+                                    batch.R_dep, lo, hi, self.slots, self.table, kept, state,
+                                    gate, landmark_map.observations[landmarks],
+                                    landmark_map.threshold)
         self.kept[landmarks] = kept
-        return {'accepted': accepted, 'out': out, 'landmarks': landmarks, 'landmark': landmark,
-                'order': order, 'state': state, 'before': before, 'new': new,
+        return {'accepted': accepted, 'landmarks': landmarks, 'landmark': landmark,
+                'order': order, 'state': state, 'gate': gate, 'before': before, 'new': new,
                 'new_slots': new_slots, 'touched': touched,
                 'saved': saved}
 
@@ -376,30 +289,6 @@ class _SourceParts:
         self.table[count:self.count] = 0.0
         self.keys, self.slots = keys, slots
         self.kept[run['landmarks']] = False
-
-    @staticmethod
-    def planned(run, size, positions):
-        """
-        Return a ``run`` as ``prepare``'s plan, for the rounds to take from.
-
-        Rows the kernel rejected are not planned (``update`` folds them itself should
-        the map accept one).
-        """
-        accepted, landmark, out = run['accepted'], run['landmark'], run['out']
-        at = np.full(size, -1, np.int64)
-        at[positions[accepted]] = np.flatnonzero(accepted)
-        order = run['order']
-        first = np.searchsorted(landmark[order], landmark[order])
-        taken = accepted[order].astype(np.int64)
-        included: NDArray[np.int64] = np.cumsum(taken) - taken
-        accepted_before = np.empty(len(landmark), np.int64)
-        accepted_before[order] = included - included[first]
-        return {'m': out[:, :2], 'P_ind': symmetric_2x2(out[:, 2], out[:, 3], out[:, 4]),
-                'P_dep': symmetric_2x2(out[:, 5], out[:, 6], out[:, 7]), 'at': at,
-                'landmarks': run['landmarks'], 'landmark': landmark,
-                'accepted_before': accepted_before,
-                'accepted': np.zeros(len(run['landmarks']), np.int64),
-                'broken': np.zeros(len(run['landmarks']), bool)}
 
     def records(self, row, names):
         """Return the sums of one landmark as plain data, sorted by source name."""

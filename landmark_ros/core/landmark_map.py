@@ -36,19 +36,23 @@ Each method is a small strategy object (``core._fusion_methods``: ``fuse``, ``up
 ``initialise``, ``records``, ``load``) chosen once by ``LandmarkMap(fusion)``.
 
 An observation of a known landmark is gated by its squared Mahalanobis distance
-to the estimate (innovation covariance ``P + R``). A new ID becomes a landmark
-once ``min_observations`` of its observations agree with each other; a
+to the landmark's gate reference ``gate`` (innovation covariance ``P_ref + R``): the
+estimate as it was after the landmark's last refresh, which comes after each of its
+first 15 observations, then 8 times per doubling of its count
+(``_fold_kernel.gate_due``; it holds at least 8/9 of the current information), and
+after a rebuild, a merge, ``set_estimate`` or ``load_records``. A new ID becomes a
+landmark once ``min_observations`` of its observations agree with each other; a
 landmark rejected ``max_consecutive_rejections`` times in a row is rebuilt from
 those recent observations when they agree (it moved). Rows of one batch are
 applied in order, so a batch gives the same map as its rows one by one (bit for
 bit): rows of confirmed landmarks go in rounds in which each landmark appears
-once, and every computation is element-wise. With split CI a landmark's estimate is
-a pure function of its per-source sums, so the estimates after every row of a batch
-are found before the rounds (``prepare`` of the split-CI strategy): with numba in one
-compiled loop that gates and folds the rows and keeps each landmark's fold between
-batches, whose outcome the map takes at once unless a landmark is rebuilt in the
-batch; without numba in one vectorised fold of all the rows, whose estimates the
-rounds then gate, count and take.
+once, and every computation is element-wise. With split CI and numba the rows of
+confirmed landmarks are gated and folded in one compiled loop instead
+(``prepare`` of the split-CI strategy, ``_fold_kernel.run``): each landmark is folded
+once after its last row of the batch and at its refreshes (its estimate is a pure
+function of its per-source sums, so the bits are those of a fold per row), and keeps
+its fold between batches; the map takes the outcome at once unless a landmark is
+rebuilt in the batch, when the rounds take the batch instead.
 """
 
 from collections import Counter, deque
@@ -192,6 +196,7 @@ class LandmarkMap:
         self.mean = np.empty((0, 2))
         self.cov_ind = np.empty((0, 2, 2))
         self.cov_dep = np.empty((0, 2, 2))
+        self.gate = np.empty((0, 5))
         self.confirmed = np.empty(0, bool)
         self.observations = np.empty(0, np.int64)
         self.rejections = np.empty(0, np.int64)
@@ -228,8 +233,7 @@ class LandmarkMap:
         if need <= len(self.ids):
             return
         size = max(need, 2 * len(self.ids), 64)
-        for name in ('ids', 'mean', 'cov_ind', 'cov_dep', 'confirmed', 'observations',
-                     'rejections', 'consecutive', 'first_stamp_ns', 'last_stamp_ns'):
+        for name in self._ROW_ARRAYS:
             old = getattr(self, name)
             new = np.zeros((size,) + old.shape[1:], old.dtype)
             if name == 'first_stamp_ns':
@@ -321,7 +325,7 @@ class LandmarkMap:
         finally:
             self._method.finish()
 
-    _ROW_ARRAYS = ('ids', 'mean', 'cov_ind', 'cov_dep', 'confirmed', 'observations',
+    _ROW_ARRAYS = ('ids', 'mean', 'cov_ind', 'cov_dep', 'gate', 'confirmed', 'observations',
                    'rejections', 'consecutive', 'first_stamp_ns', 'last_stamp_ns')
 
     def _checkpoint(self, ids):
@@ -445,6 +449,7 @@ class LandmarkMap:
         self.mean[good] = state[:, :2]
         self.cov_ind[good] = symmetric_2x2(state[:, 2], state[:, 3], state[:, 4])
         self.cov_dep[good] = symmetric_2x2(state[:, 5], state[:, 6], state[:, 7])
+        self.gate[landmarks] = run['gate']
         self.observations[landmarks] += hits
         self.consecutive[landmarks] = streak[ends]
         last_row = np.full(len(landmarks), -1)
@@ -486,9 +491,9 @@ class LandmarkMap:
     def _update_confirmed(self, rows, batch, positions, result, changed):
         """Gate and fuse rows of confirmed landmarks, each landmark at most once."""
         z, R_ind, R_dep = batch.z[positions], batch.R_ind[positions], batch.R_dep[positions]
-        m, P_ind, P_dep = self.mean[rows], self.cov_ind[rows], self.cov_dep[rows]
-        S = P_ind + P_dep + R_ind + R_dep
-        d = z - m
+        gate = self.gate[rows]
+        S = symmetric_2x2(gate[:, 2], gate[:, 3], gate[:, 4]) + R_ind + R_dep
+        d = z - gate[:, :2]
         d2 = mahalanobis_sq_2x2(d[:, 0], d[:, 1], *_entries(S))
         ok = d2 <= self.threshold   # NaN (degenerate input) is rejected
         if ok.any():
@@ -497,6 +502,7 @@ class LandmarkMap:
             self.mean[good], self.cov_ind[good], self.cov_dep[good] = self._method.update(
                 self, good, codes, z[ok], R_ind[ok], R_dep[ok], positions[ok])
             self.observations[good] += 1
+            self._refresh_gate(good[_fold_kernel.gate_due(self.observations[good])])
             self.consecutive[good] = 0
             self.last_stamp_ns[good] = batch.stamps_ns[positions[ok]]
             changed.append(good)
@@ -519,6 +525,12 @@ class LandmarkMap:
             recent.append(observation)
             if self.consecutive[row] >= self.max_consecutive_rejections:
                 self._reinitialise(row, result, changed)
+
+    def _refresh_gate(self, rows):
+        """Make the estimates of ``rows`` (an index or indices) their gate references."""
+        xx, xy, yy = _entries(self.cov_ind[rows] + self.cov_dep[rows])
+        self.gate[rows, 0], self.gate[rows, 1] = self.mean[rows, 0], self.mean[rows, 1]
+        self.gate[rows, 2], self.gate[rows, 3], self.gate[rows, 4] = xx, xy, yy
 
     def _add_tentative(self, row, observation, result, changed):
         buffer = self._buffers.setdefault(
@@ -556,6 +568,7 @@ class LandmarkMap:
             self, row, cluster)
         self.confirmed[row] = True
         self.observations[row] = len(cluster)
+        self._refresh_gate(row)
         self.consecutive[row] = 0
         self.last_stamp_ns[row] = max(obs.stamp_ns for obs in cluster)
         for obs in cluster:
@@ -673,6 +686,7 @@ class LandmarkMap:
             m, P_ind, P_dep = self._method.held(m[0], P_ind[0], P_dep[0])
         self.mean[keep], self.cov_ind[keep], self.cov_dep[keep] = m, P_ind, P_dep
         self.observations[keep] += self.observations[drop]
+        self._refresh_gate(keep)
         self.first_stamp_ns[keep] = min(self.first_stamp_ns[keep], self.first_stamp_ns[drop])
         self.last_stamp_ns[keep] = max(self.last_stamp_ns[keep], self.last_stamp_ns[drop])
         self.consecutive[keep] = 0
@@ -744,6 +758,7 @@ class LandmarkMap:
             self._method.parts.add(np.array([row], np.int64), np.array([code], np.int64),
                                    mean[None], P_ind[None], P_dep[None])
         self.mean[row], self.cov_ind[row], self.cov_dep[row] = mean, P_ind, P_dep
+        self._refresh_gate(row)
         self.confirmed[row] = True
         self.observations[row] += int(observations)
         self.consecutive[row] = 0
@@ -836,6 +851,7 @@ class LandmarkMap:
                         and np.all(np.isfinite(mean))):
                     raise ValueError(f"landmark {record['id']}: non-finite values")
                 self.mean[row], self.cov_ind[row], self.cov_dep[row] = mean, P - P_dep, P_dep
+                self._refresh_gate(row)
                 self.confirmed[row] = True
                 self.observations[row] = int(record['observations'])
                 self.rejections[row] = int(record.get('rejections', 0))

@@ -2,7 +2,10 @@
 Reference copy of core/landmark_map.py before issue 12 (test_landmark_map_plan only).
 
 Frozen at commit 4885365: split CI folded round by round with warm-started weights.
-Not part of the package; do not edit.
+Not part of the package; do not edit, except for one change the package made on
+purpose since: rows are gated against a reference estimate refreshed on the schedule
+of ``_fold_kernel.gate_due`` instead of against the current estimate (the lines
+marked ``# gate``).
 
 A map of landmark estimates fused by ID, with gating and confirmation.
 
@@ -55,6 +58,7 @@ import copy
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
+from landmark_ros.core import _fold_kernel  # gate
 from landmark_ros.core._arrays import (inverse_2x2, mahalanobis_sq_2x2, power_of_4_scale,
                                        symmetric_2x2)
 from landmark_ros.core.gaussian import (chi2_threshold, ci_2x2, covariance_intersection,
@@ -332,6 +336,7 @@ class LandmarkMap:
         self.mean = np.empty((0, 2))
         self.cov_ind = np.empty((0, 2, 2))
         self.cov_dep = np.empty((0, 2, 2))
+        self.gate_mean, self.gate_cov = np.empty((0, 2)), np.empty((0, 2, 2))  # gate
         self.confirmed = np.empty(0, bool)
         self.observations = np.empty(0, np.int64)
         self.rejections = np.empty(0, np.int64)
@@ -369,7 +374,8 @@ class LandmarkMap:
             return
         size = max(need, 2 * len(self.ids), 64)
         for name in ('ids', 'mean', 'cov_ind', 'cov_dep', 'confirmed', 'observations',
-                     'rejections', 'consecutive', 'first_stamp_ns', 'last_stamp_ns'):
+                     'rejections', 'consecutive', 'first_stamp_ns', 'last_stamp_ns',
+                     'gate_mean', 'gate_cov'):  # gate
             old = getattr(self, name)
             new = np.zeros((size,) + old.shape[1:], old.dtype)
             if name == 'first_stamp_ns':
@@ -458,7 +464,8 @@ class LandmarkMap:
             raise
 
     _ROW_ARRAYS = ('ids', 'mean', 'cov_ind', 'cov_dep', 'confirmed', 'observations',
-                   'rejections', 'consecutive', 'first_stamp_ns', 'last_stamp_ns')
+                   'rejections', 'consecutive', 'first_stamp_ns', 'last_stamp_ns',
+                   'gate_mean', 'gate_cov')  # gate
 
     def _checkpoint(self, ids):
         """Save what an update of ``ids`` can change (their rows, the registries)."""
@@ -551,12 +558,15 @@ class LandmarkMap:
             result.changed_ids = np.unique(self.ids[np.concatenate(changed)])
         return result
 
+    def _refresh_gate(self, rows):  # gate
+        self.gate_mean[rows] = self.mean[rows]  # gate
+        self.gate_cov[rows] = self.cov_ind[rows] + self.cov_dep[rows]  # gate
+
     def _update_confirmed(self, rows, batch, positions, result, changed):
         """Gate and fuse rows of confirmed landmarks, each landmark at most once."""
         z, R_ind, R_dep = batch.z[positions], batch.R_ind[positions], batch.R_dep[positions]
-        m, P_ind, P_dep = self.mean[rows], self.cov_ind[rows], self.cov_dep[rows]
-        S = P_ind + P_dep + R_ind + R_dep
-        d = z - m
+        S = self.gate_cov[rows] + R_ind + R_dep  # gate
+        d = z - self.gate_mean[rows]  # gate
         d2 = mahalanobis_sq_2x2(d[:, 0], d[:, 1], *_entries(S))
         ok = d2 <= self.threshold   # NaN (degenerate input) is rejected
         if ok.any():
@@ -565,6 +575,7 @@ class LandmarkMap:
             self.mean[good], self.cov_ind[good], self.cov_dep[good] = self._method.update(
                 self, good, codes, z[ok], R_ind[ok], R_dep[ok])
             self.observations[good] += 1
+            self._refresh_gate(good[_fold_kernel.gate_due(self.observations[good])])  # gate
             self.consecutive[good] = 0
             self.last_stamp_ns[good] = batch.stamps_ns[positions[ok]]
             changed.append(good)
@@ -624,6 +635,7 @@ class LandmarkMap:
             self, row, cluster)
         self.confirmed[row] = True
         self.observations[row] = len(cluster)
+        self._refresh_gate(row)  # gate
         self.consecutive[row] = 0
         self.last_stamp_ns[row] = max(obs.stamp_ns for obs in cluster)
         for obs in cluster:
@@ -764,6 +776,7 @@ class LandmarkMap:
             self._method.parts.add(np.array([row], np.int64), np.array([code], np.int64),
                                    mean[None], P_ind[None], P_dep[None])
         self.mean[row], self.cov_ind[row], self.cov_dep[row] = mean, P_ind, P_dep
+        self._refresh_gate(row)  # gate
         self.confirmed[row] = True
         self.observations[row] += int(observations)
         self.consecutive[row] = 0
@@ -856,6 +869,7 @@ class LandmarkMap:
                         and np.all(np.isfinite(mean))):
                     raise ValueError(f"landmark {record['id']}: non-finite values")
                 self.mean[row], self.cov_ind[row], self.cov_dep[row] = mean, P - P_dep, P_dep
+                self._refresh_gate(row)  # gate
                 self.confirmed[row] = True
                 self.observations[row] = int(record['observations'])
                 self.rejections[row] = int(record.get('rejections', 0))

@@ -1,4 +1,4 @@
-"""The compiled split-CI fold and plan (``core._fold_kernel``) against the numpy ones."""
+"""The compiled split-CI fold and batch run (``core._fold_kernel``) against numpy."""
 
 from landmark_ros.core import _fold_kernel
 from landmark_ros.core import _source_sums
@@ -63,29 +63,47 @@ def fold_one(sums, valid, lo, hi):
     return np.concatenate([m[0], P_ind[0][[0, 0, 1], [0, 1, 1]], P_dep[0][[0, 0, 1], [0, 1, 1]]])
 
 
-def loop_plan(landmark, pair, terms, z, R, start, sums, valid, state, threshold):
-    """Row by row with the numpy gate and fold: what ``_fold_kernel.plan`` must give."""
-    out = np.full((len(landmark), 8), np.nan)
+def packed_gate(m):
+    """Return the gate reference (mean, entries of ``P_ind + P_dep``) of a packed estimate."""
+    return np.concatenate([m[:2], m[2:5] + m[5:8]])
+
+
+def loop_run(landmark, pair, terms, z, R, start, sums, valid, state, gate, observations,
+             threshold):
+    """
+    Row by row with the numpy gate and fold: what ``_fold_kernel.run`` must give.
+
+    Also counts the rows that the current estimate would have decided the other way
+    (the reference is older): the test is blind to the reference unless there are some.
+    """
     accepted = np.zeros(len(landmark), bool)
+    other_way = 0
     for i, k in enumerate(landmark.tolist()):
+        g = gate[k]
+        d2 = mahalanobis_sq_2x2(np.array(z[i, 0] - g[0]), np.array(z[i, 1] - g[1]),
+                                *(g[2:5] + R[i, :3] + R[i, 3:]))
         m = state[k]
-        S = (m[2:5] + m[5:8]) + R[i, :3] + R[i, 3:]
-        d2 = mahalanobis_sq_2x2(np.array(z[i, 0] - m[0]), np.array(z[i, 1] - m[1]), *S)
+        now = mahalanobis_sq_2x2(np.array(z[i, 0] - m[0]), np.array(z[i, 1] - m[1]),
+                                 *((m[2:5] + m[5:8]) + R[i, :3] + R[i, 3:]))
+        other_way += bool(d2 <= threshold) != bool(now <= threshold)
         if not d2 <= threshold:
             continue
         accepted[i] = True
         sums[pair[i]] += terms[i]
         valid[pair[i]] = True
         state[k] = fold_one(sums, valid, start[k], start[k + 1])
-        out[i] = state[k]
-    return out, accepted
+        observations[k] += 1
+        if _fold_kernel.gate_due(observations[k]):
+            gate[k] = packed_gate(state[k])
+    return accepted, other_way
 
 
 @pytest.mark.parametrize('sources', [5, 50])
 def test_run_equals_gating_and_folding_row_by_row_batch_after_batch(compiled, rng, sources):
     # The run keeps each landmark's fold per slot between batches and refolds from
-    # the first source whose place changed; pairs are reached through a shuffled
-    # slot index, some hold no observation yet.
+    # the first source whose place changed (one changed) or whole (several); pairs
+    # are reached through a shuffled slot index, some hold no observation yet. Rows
+    # are gated against references refreshed on the schedule of ``gate_due``.
     landmarks, count = 30, 300
     width = rng.integers(1, sources + 1, landmarks)
     start = np.concatenate([[0], np.cumsum(width)])
@@ -96,13 +114,16 @@ def test_run_equals_gating_and_folding_row_by_row_batch_after_batch(compiled, rn
     state = np.empty((landmarks, 8))
     for k in range(landmarks):
         state[k] = fold_one(sums, valid, start[k], start[k + 1])
+    gate = np.array([packed_gate(m) for m in state])
+    observations = rng.integers(1, 60, landmarks)
     key_slots = rng.permutation(len(sums) + 7)[:len(sums)]
     table = np.full((len(sums) + 7, _fold_kernel.COLUMNS), np.nan)
     table[key_slots, :9] = sums
     table[key_slots, _fold_kernel.VALID] = valid
     kept = np.zeros(landmarks, bool)
-    new_state = state.copy()
+    new_state, new_gate, new_observations = state.copy(), gate.copy(), observations.copy()
     threshold = 9.21
+    other_way = 0
     for _ in range(3):
         landmark = rng.integers(0, landmarks, count)
         pair = start[landmark] + rng.integers(0, 1 << 30, count) % width[landmark]
@@ -119,21 +140,38 @@ def test_run_equals_gating_and_folding_row_by_row_batch_after_batch(compiled, rn
         terms = np.concatenate(_source_sums._terms(z, R_full - D_full, D_full), axis=1)
         R = np.concatenate([R_ind - R_dep, R_dep], axis=1)
         args = (landmark, pair, terms, z, R, start)
-        expected = loop_plan(*args, sums, valid, state, threshold)
+        expected, flipped = loop_run(*args, sums, valid, state, gate, observations, threshold)
+        other_way += flipped
         at = rng.permutation(count)         # the rows' places in the batch arrays
         z_at, R_ind_at, R_dep_at = (np.empty_like(x) for x in (z, R_full, D_full))
         z_at[at], R_ind_at[at], R_dep_at[at] = z, R_full - D_full, D_full
         order = np.argsort(landmark, kind='stable')
-        out, accepted = _fold_kernel.run(landmark, order, pair, at, z_at, R_ind_at, R_dep_at,
-                                         start[:-1], start[1:], key_slots, table, kept,
-                                         new_state, threshold)
+        accepted = _fold_kernel.run(landmark, order, pair, at, z_at, R_ind_at, R_dep_at,
+                                    start[:-1], start[1:], key_slots, table, kept, new_state,
+                                    new_gate, new_observations, threshold)
         assert 30 < accepted.sum() < count - 30     # both branches, many times
-        np.testing.assert_array_equal(accepted, expected[1])
-        np.testing.assert_array_equal(out[accepted], expected[0][accepted])
+        np.testing.assert_array_equal(accepted, expected)
         np.testing.assert_array_equal(new_state, state)
+        np.testing.assert_array_equal(new_gate, gate)
+        np.testing.assert_array_equal(new_observations, observations)
         np.testing.assert_array_equal(table[key_slots, :9], sums)
         np.testing.assert_array_equal(table[key_slots, _fold_kernel.VALID] != 0, valid)
         assert kept[np.unique(landmark[accepted])].all()
+    assert other_way > 0
+
+
+def test_the_gate_schedule_is_the_kernels_and_refreshes_8_times_per_doubling(compiled):
+    n = np.arange(0, 5000)
+    due = _fold_kernel.gate_due(n)
+    assert due[:16].all()
+    assert np.flatnonzero(due[16:64]).tolist() == [i - 16 for i in (
+        16, 18, 20, 22, 24, 26, 28, 30, 32, 36, 40, 44, 48, 52, 56, 60)]
+    for lo in (64, 128, 1024, 2048):
+        assert due[lo:2 * lo].sum() == 8
+    assert all(_fold_kernel._gate_due(int(k)) == bool(d) for k, d in zip(n, due))
+    # The reference never holds less than 8/9 of the observations.
+    last = np.maximum.accumulate(np.where(due, n, 0))
+    assert (last[1:] / n[1:]).min() >= 8 / 9 - 1e-12
 
 
 def test_group_is_a_stable_argsort_and_unique(compiled, rng):

@@ -1,9 +1,10 @@
 """
-Split CI in ``LandmarkMap``: the one-fold plan of a batch against the row-by-row path.
+Split CI in ``LandmarkMap``: the batch path (compiled run, or rounds) against row by row.
 
-``landmark_map_reference`` is ``core/landmark_map.py`` as it was before the plan
-(issue 12): it folded every accepted row's landmark round by round, each weight
-search starting from the last weight of that landmark and step. Where the split-CI
+``landmark_map_reference`` is ``core/landmark_map.py`` as it was before issue 12,
+with the gate reference of the map of today (see its docstring): it folded every
+accepted row's landmark round by round, each weight search starting from the last
+weight of that landmark and step. Where the split-CI
 objective is concave (every source's dependent part positive semi-definite, as when
 each row's dependent part is a fraction of its covariance) the weight is the same
 optimum from any start and the maps agree to 1e-9, every gating decision the same.
@@ -20,7 +21,6 @@ from conftest import random_spd
 from landmark_ros.core import _fold_kernel
 from landmark_ros.core import _source_sums
 from landmark_ros.core import gaussian
-from landmark_ros.core import landmark_map as landmark_map_module
 from landmark_ros.core.landmark_map import LandmarkMap
 import landmark_map_reference  # noqa: I100 - test/core/landmark_map_reference.py
 import numpy as np
@@ -157,12 +157,9 @@ def test_the_fold_equals_split_ci_with_the_public_functions(trial, rng):
     np.testing.assert_allclose(P_dep[0], P_d_ref, rtol=1e-9, atol=1e-12)
 
 
-@pytest.mark.parametrize('passes', [1, 2, 8])
-def test_batch_equals_rows_one_by_one_with_many_rejections(passes, rng, monkeypatch):
-    # Outliers and moves: plans need several passes, run out of passes (the rest are
-    # folded round by round) or are broken by a rebuild in the middle of a batch.
-    monkeypatch.setattr(landmark_map_module._SplitCovarianceIntersection, '_PLAN_PASSES',
-                        passes)
+def test_batch_equals_rows_one_by_one_with_many_rejections(rng):
+    # Outliers and moves: rows rejected, landmarks rebuilt in the middle of a batch
+    # (the compiled run gives way to the rounds then).
     rows = stream(rng, count=900, landmarks=15, outliers=0.15, movers=3)
     count = len(rows[0])
     one_by_one, expected = feed(LandmarkMap, rows, chunked(count, 1),
@@ -175,27 +172,34 @@ def test_batch_equals_rows_one_by_one_with_many_rejections(passes, rng, monkeypa
         assert_same_map(batched, one_by_one)
 
 
-def test_batch_equals_rows_one_by_one_when_the_plan_is_too_large(rng, monkeypatch, fold_path):
-    # One landmark with many rows next to many with one: folded round by round.
-    if fold_path == 'compiled':
-        pytest.skip('the compiled plan has no size limit')
-    monkeypatch.setattr(_source_sums, '_PLAN_CELLS', 0)
-    rows = stream(rng, count=1200, landmarks=60, outliers=0.02, movers=1)
-    ids = rows[0].copy()
-    ids[900::2] = ids[900]
-    rows = (ids,) + rows[1:]
-    plans = []
-    original = _source_sums._SourceParts.plan
-
-    def spy(self, *args):
-        plans.append(original(self, *args))
-        return plans[-1]
-    monkeypatch.setattr(_source_sums._SourceParts, 'plan', spy)
-    one_by_one, expected = feed(LandmarkMap, rows, [slice(0, 900)] + chunked(1200, 1)[900:])
-    batched, result = feed(LandmarkMap, rows, [slice(0, 900), slice(900, 1200)])
-    assert any(plan is None for plan in plans)
-    assert result == expected
-    assert_same_map(batched, one_by_one)
+def test_rows_are_gated_against_a_reference_refreshed_on_schedule(rng, fold_path):
+    # The reference is the estimate after the last observation at which gate_due
+    # held: row by row, and after batches of any size.
+    rows = stream(rng, count=1200, landmarks=6, outliers=0.05, movers=0, sources=3)
+    count = len(rows[0])
+    expected = {}
+    landmark_map = LandmarkMap(FUSION)
+    for part in chunked(count, 1):
+        ids, z, R, R_dep, names, stamps = (x[part] for x in rows)
+        landmark_map.update(ids, z, R, R_dep, names.tolist(), stamps)
+        row = landmark_map._lookup(ids)[0]
+        n = int(landmark_map.observations[row])
+        if landmark_map.confirmed[row] and _fold_kernel.gate_due(n) and n not in expected.get(
+                row, {}):
+            P = landmark_map.cov_ind[row] + landmark_map.cov_dep[row]
+            expected.setdefault(row, {})[n] = np.concatenate(
+                [landmark_map.mean[row], P[[0, 0, 1], [0, 1, 1]]])
+        last = max(k for k in expected.get(row, {0: None}) if k <= n) if row in expected else 0
+        if last:
+            np.testing.assert_array_equal(landmark_map.gate[row], expected[row][last])
+    assert min(landmark_map.observations[:landmark_map._count]) > 100
+    stale = ~np.all(landmark_map.gate[:6, :2] == landmark_map.mean[:6], axis=1)
+    assert stale.any()
+    batched, _ = feed(LandmarkMap, rows, chunked(count, 300))
+    for m in (batched, landmark_map):
+        assert m._count == 6
+    np.testing.assert_array_equal(batched.gate[np.argsort(batched.ids[:6])],
+                                  landmark_map.gate[np.argsort(landmark_map.ids[:6])])
 
 
 def test_loaded_landmarks_are_gated_against_their_loaded_estimate(rng):
@@ -215,17 +219,6 @@ def test_loaded_landmarks_are_gated_against_their_loaded_estimate(rng):
             landmark_map.update(ids, z, R, R_dep, names.tolist(), stamps)
         maps.append(landmark_map)
     assert_same_map(*maps)
-
-
-def test_a_plan_folded_in_parts_is_the_same(rng, monkeypatch):
-    # The plan folds its states in parts of about _FOLD_CELLS cells (memory).
-    rows = stream(rng, count=500, landmarks=12)
-    count = len(rows[0])
-    whole, expected = feed(LandmarkMap, rows, chunked(count, 250))
-    monkeypatch.setattr(_source_sums, '_FOLD_CELLS', 7)
-    parts, result = feed(LandmarkMap, rows, chunked(count, 250))
-    assert result == expected
-    assert_same_map(parts, whole)
 
 
 def assert_kept_folds_are_current(landmark_map):
