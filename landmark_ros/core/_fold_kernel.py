@@ -383,16 +383,26 @@ def _settle(k, single, lo, hi, key_slots, table, kept, order, state, limits):
     if kept[k] and single >= 0:
         last = _move(lo[k], width, single - lo[k], key_slots, table, order, limits)
     else:
-        if single >= 0:
-            table[key_slots[single], 27] = 1.0
         last = _refold(lo[k], width, key_slots, table, order, limits)
         kept[k] = True
     for j in range(8):
         state[k, j] = table[last, 17 + j]
 
 
+def _pending_position(slot, lo, hi, key_slots):
+    # A landmark's pending change as ``single``: -1 none, -2 several, else the
+    # position in key_slots of the one changed slot.
+    if slot < 0:
+        return slot
+    for p in range(lo, hi):
+        if key_slots[p] == slot:
+            return p
+    return -2
+
+
 def _run_kernel(landmark, rows_in_order, position, at, z, R_ind, R_dep, lo, hi, key_slots,
-                table, kept, state, gate, observations, threshold, accepted, limits):
+                table, kept, state, gate, observations, pending, lazy, threshold, accepted,
+                limits):
     width = 1
     for k in range(len(lo)):
         width = max(width, hi[k] - lo[k])
@@ -405,6 +415,8 @@ def _run_kernel(landmark, rows_in_order, position, at, z, R_ind, R_dep, lo, hi, 
     for index in range(count):
         i = rows_in_order[index]
         k = landmark[i]
+        if index == 0 or landmark[rows_in_order[index - 1]] != k:
+            single = _pending_position(pending[k], lo[k], hi[k], key_slots)
         x = at[i]
         g = gate[k]
         a = g[2] + R_ind[x, 0, 0] + R_dep[x, 0, 0]
@@ -416,14 +428,13 @@ def _run_kernel(landmark, rows_in_order, position, at, z, R_ind, R_dep, lo, hi, 
             p = position[i]
             t = table[key_slots[p]]
             _add_terms(t, z[x, 0], z[x, 1], R_ind[x], R_dep[x])
-            if single == -1:
+            if t[27] == 0.0:        # a pair new to the fold: fold the landmark whole
+                t[27] = 1.0
+                single = -2
+            elif single == -1:
                 single = p
             elif single != p:
-                if single >= 0:
-                    table[key_slots[single], 27] = 1.0
                 single = -2
-            if single == -2:
-                t[27] = 1.0
             observations[k] += 1
             if _gate_due(observations[k]):
                 _settle(k, single, lo, hi, key_slots, table, kept, order, state, limits)
@@ -431,9 +442,23 @@ def _run_kernel(landmark, rows_in_order, position, at, z, R_ind, R_dep, lo, hi, 
                 m = state[k]
                 g[0], g[1] = m[0], m[1]
                 g[2], g[3], g[4] = m[2] + m[5], m[3] + m[6], m[4] + m[7]
-        if single != -1 and (index + 1 == count or landmark[rows_in_order[index + 1]] != k):
+        if index + 1 == count or landmark[rows_in_order[index + 1]] != k:
+            if single != -1 and not lazy:
+                _settle(k, single, lo, hi, key_slots, table, kept, order, state, limits)
+                single = -1
+            pending[k] = key_slots[single] if single >= 0 else single
+
+
+def _settle_kernel(lo, hi, pending, key_slots, table, kept, state, limits):
+    width = 1
+    for k in range(len(lo)):
+        width = max(width, hi[k] - lo[k])
+    order = np.empty(width, np.int64)
+    for k in range(len(lo)):
+        single = _pending_position(pending[k], lo[k], hi[k], key_slots)
+        if single != -1 and hi[k] > lo[k]:
             _settle(k, single, lo, hi, key_slots, table, kept, order, state, limits)
-            single = -1
+        pending[k] = -1
 
 
 def _group_kernel(rows, top, order, landmarks, landmark):
@@ -558,7 +583,7 @@ def run(landmark: NDArray[np.intp], order: NDArray[np.intp], position: NDArray[n
         lo: NDArray[np.intp], hi: NDArray[np.intp], key_slots: NDArray[np.intp],
         table: NDArray[np.float64], kept: NDArray[np.bool_], state: NDArray[np.float64],
         gate: NDArray[np.float64], observations: NDArray[np.int64],
-        threshold: float) -> NDArray[np.bool_]:
+        pending: NDArray[np.int64], lazy: bool, threshold: float) -> NDArray[np.bool_]:
     """
     Gate the rows of a batch one after the other and fold their landmarks, as the map would.
 
@@ -571,7 +596,10 @@ def run(landmark: NDArray[np.intp], order: NDArray[np.intp], position: NDArray[n
     those of the slot ``key_slots[position[i]]`` and the landmark's count
     ``observations[k]`` goes up. When the count reaches a refresh point
     (``GATE_BITS``) the landmark is folded and its reference becomes the new
-    estimate; after its last row in the batch it is folded if its sums changed.
+    estimate; after its last row in the batch it is folded if its sums changed, or,
+    with ``lazy``, left pending: ``pending[k]`` then says what changed since the
+    last fold (-1 nothing, -2 several pairs, else the one changed slot), for a later
+    ``run`` or ``settle`` to take up.
 
     A slot's row of ``table`` holds its sums and, for a landmark with ``kept[k]`` (its
     fold up to date with its sums), its source's estimate, its size (``_log2_det`` of
@@ -579,9 +607,9 @@ def run(landmark: NDArray[np.intp], order: NDArray[np.intp], position: NDArray[n
     (the columns ``PART`` to ``VALID``). When one source changed, it moves to its new
     place and the fold is redone from the first place that changed; otherwise the
     whole fold is done and kept (``kept[k]`` is set). The estimates are those of
-    ``_fold`` on the sums, bit for bit. ``table``, ``kept``, ``state``, ``gate`` and
-    ``observations`` are updated in place. Call only after ``load()`` returned the
-    kernel.
+    ``_fold`` on the sums, bit for bit. ``table``, ``kept``, ``state``, ``gate``,
+    ``observations`` and ``pending`` are updated in place. Call only after ``load()``
+    returned the kernel.
 
     Parameters
     ----------
@@ -613,6 +641,10 @@ def run(landmark: NDArray[np.intp], order: NDArray[np.intp], position: NDArray[n
         Gate references: mean, ``(xx, xy, yy)`` of ``P_ind + P_dep``.
     observations : ndarray of int64, shape (K,)
         Observations fused into each landmark so far.
+    pending : ndarray of int64, shape (K,)
+        What changed since each landmark's last fold (see above).
+    lazy : bool
+        Leave the fold after a landmark's last row to later (``pending``).
     threshold : float
         Gate on the squared Mahalanobis distance.
 
@@ -624,8 +656,24 @@ def run(landmark: NDArray[np.intp], order: NDArray[np.intp], position: NDArray[n
     accepted = np.empty(len(landmark), np.bool_)
     with np.errstate(all='ignore'):
         _run_kernel(landmark, order, position, at, z, R_ind, R_dep, lo, hi, key_slots, table,
-                    kept, state, gate, observations, float(threshold), accepted, _limits())
+                    kept, state, gate, observations, pending, bool(lazy), float(threshold),
+                    accepted, _limits())
     return accepted
+
+
+def settle(lo: NDArray[np.intp], hi: NDArray[np.intp], pending: NDArray[np.int64],
+           key_slots: NDArray[np.intp], table: NDArray[np.float64], kept: NDArray[np.bool_],
+           state: NDArray[np.float64]) -> None:
+    """
+    Fold the landmarks that ``run`` left ``pending`` (``lazy``); the same bits as ``_fold``.
+
+    Landmark ``k`` (pairs ``key_slots[lo[k]:hi[k]]``) gets its estimate in ``state[k]``
+    (packed as in ``run``) when ``pending[k]`` is not -1, its kept fold updated
+    (``kept[k]`` set); ``pending`` is all -1 after. A landmark without pairs is
+    skipped. Call only after ``load()`` returned the kernel.
+    """
+    with np.errstate(all='ignore'):
+        _settle_kernel(lo, hi, pending, key_slots, table, kept, state, _limits())
 
 
 def gate_due(observations: NDArray[np.int64]) -> NDArray[np.bool_]:
@@ -678,6 +726,6 @@ _tried = False
 _COMPILED = ('_scale4', '_inverse', '_psd', '_log2_det', '_omega_of', '_congruence', '_split_ci',
              '_source_part', '_fold_step', '_fold_all', '_fold_one', '_kernel',
              '_mahalanobis_sq', '_refold', '_move', '_add_terms', '_gate_due', '_settle',
-             '_run_kernel', '_group_kernel',
+             '_pending_position', '_run_kernel', '_settle_kernel', '_group_kernel',
              '_locate_kernel', '_merge_kernel')
 """The functions ``load`` compiles, callees before callers."""

@@ -45,13 +45,17 @@ class _Independent:
         m, P = fuse_2x2(m, _entries(P_ind + P_dep), z, _entries(R_ind + R_dep))
         return m, P, np.zeros_like(P)
 
-    def prepare(self, landmark_map, rows, batch, positions, result, changed):
+    def prepare(self, landmark_map, rows, batch, positions, result, changed, lazy=False):
         """
         Get ready for the rows of confirmed landmarks of a batch (nothing here).
 
         Returns True when it fused them itself (the rounds are then skipped).
         """
         return False
+
+    def settle(self, rows):
+        """Return the landmarks of ``rows`` left to fold, and their estimates (none here)."""
+        return np.empty(0, np.int64), np.empty((0, 8))
 
     def finish(self):
         """Forget what ``prepare`` found (nothing here)."""
@@ -120,20 +124,20 @@ class _SplitCovarianceIntersection(_Independent):
         """Forget every landmark."""
         self.parts = _SourceParts()
 
-    def prepare(self, landmark_map, rows, batch, positions, result, changed):
+    def prepare(self, landmark_map, rows, batch, positions, result, changed, lazy=False):
         """
         Gate and fold the rows of confirmed landmarks of a batch in the compiled kernel.
 
         ``rows`` (landmark rows, in arrival order) at ``positions`` in the batch, gated
         as ``LandmarkMap``'s rounds would gate them (same numbers, same decisions),
-        each landmark folded once after its last row and at its gate refreshes. The
-        map takes the outcome at once unless a landmark would be rebuilt in the batch;
-        then nothing changed and the rounds take the rows (False). False also when
-        numba is missing.
+        each landmark folded at its gate refreshes and once after its last row (with
+        ``lazy``: when ``settle`` asks). The map takes the outcome at once unless a
+        landmark would be rebuilt in the batch; then nothing changed and the rounds
+        take the rows (False). False also when numba is missing.
         """
         if _fold_kernel.load() is None:
             return False
-        run = self.parts.run(landmark_map, rows, batch, positions)
+        run = self.parts.run(landmark_map, rows, batch, positions, lazy)
         if landmark_map._apply_run(rows, batch, positions, run, result, changed):
             self.parts.commit(run)
             return True
@@ -143,6 +147,10 @@ class _SplitCovarianceIntersection(_Independent):
     def finish(self):
         """Stop journaling changes of the sums: the update is over."""
         self.parts.finish()
+
+    def settle(self, rows):
+        """Fold the landmarks of ``rows`` that a lazy batch left; return them, their states."""
+        return self.parts.settle(rows)
 
     def fuse(self, m, P_ind, P_dep, z, R_ind, R_dep):
         """Fuse estimates with observations row by row (split CI, exact omega)."""

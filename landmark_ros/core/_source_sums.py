@@ -57,6 +57,7 @@ class _SourceParts:
         self.count = 0
         self.table = np.zeros((64, _fold_kernel.COLUMNS))    # per slot: sums, kept fold
         self.kept = np.zeros(64, bool)        # per landmark row
+        self.pending = np.full(64, -1, np.int64)   # per landmark row: see settle
         self.journal = None                   # [(slots, their sums)] while a checkpoint holds
         self.journal_count = 0                # slots from here on are new since it
 
@@ -94,9 +95,13 @@ class _SourceParts:
     def _grow_kept(self, rows):
         """Make ``kept`` cover landmark rows below ``rows``."""
         if rows > len(self.kept):
-            grown = np.zeros(max(rows, 2 * len(self.kept)), bool)
+            size = max(rows, 2 * len(self.kept))
+            grown = np.zeros(size, bool)
             grown[:len(self.kept)] = self.kept
             self.kept = grown
+            pending = np.full(size, -1, np.int64)
+            pending[:len(self.pending)] = self.pending
+            self.pending = pending
 
     def _changed(self, rows):
         """Note that the sums of ``rows`` change outside ``run`` (their kept folds go)."""
@@ -157,20 +162,27 @@ class _SourceParts:
         ``rows``: the landmarks the update may change (the journal covers any).
         """
         self.journal, self.journal_count = [], self.count
-        return self.keys, self.slots, self.count, self.journal
+        return self.keys, self.slots, self.count, self.journal, np.asarray(rows, np.int64)
 
     def finish(self):
         """Stop journaling (the update the checkpoint was for is over)."""
         self.journal = None
 
     def restore(self, state):
-        """Undo every change since ``checkpoint``; every kept fold is dropped."""
-        keys, slots_of_keys, count, journal = state
+        """
+        Undo every change since ``checkpoint``; every kept fold is dropped.
+
+        The landmarks of the checkpoint are left pending (their estimates in the map
+        are put back, possibly from before a fold that ``settle`` has still to do).
+        """
+        keys, slots_of_keys, count, journal, rows = state
         for slots, sums in reversed(journal):
             self.sums[slots] = sums
         self.table[count:self.count] = 0.0     # slots made since: unused again
         self.keys, self.slots, self.count = keys, slots_of_keys, count
         self.kept[:] = False
+        self._grow_kept(int(rows.max()) + 1 if len(rows) else 0)
+        self.pending[rows] = -2
         self.journal = None
 
     def merge_into(self, keep: int, drop: int) -> None:
@@ -193,6 +205,7 @@ class _SourceParts:
     def clear(self, row):
         """Forget the sources of one landmark."""
         self._changed([row])
+        self.pending[row] = -1
         lo, hi = np.searchsorted(self.keys, [row << _SOURCE_BITS, (row + 1) << _SOURCE_BITS])
         self.keys = np.delete(self.keys, np.s_[lo:hi])
         self.slots = np.delete(self.slots, np.s_[lo:hi])
@@ -214,22 +227,25 @@ class _SourceParts:
         slots = self.slots[np.minimum(lo[:, None] + columns, len(self.keys) - 1)]
         return _fold(self.Y[slots], self.y[slots], self.Q[slots], valid)
 
-    def run(self, landmark_map, rows, batch, positions):
+    def run(self, landmark_map, rows, batch, positions, lazy=False):
         """
         Gate the rows of confirmed landmarks one by one and fold them (``_fold_kernel.run``).
 
         The sums and the kept folds change in place; ``commit`` then keeps the outcome
         or ``rollback`` undoes it (the sums as they were, the folds of these landmarks
         dropped). Pairs new in the batch get slots that hold no observation until a
-        row of theirs is accepted. Rows are gated against ``landmark_map.gate``.
+        row of theirs is accepted. Rows are gated against ``landmark_map.gate``. With
+        ``lazy`` the landmarks' folds after their last rows are left pending
+        (``settle``).
 
         Returns
         -------
         dict
             ``accepted`` (N,) the gate's decisions, ``landmarks`` the distinct rows and
             ``landmark`` each row's index in them, ``order`` the rows sorted by landmark
-            (stable), ``state`` (K, 8) their estimates and ``gate`` (K, 5) their gate
-            references after the batch, and what ``commit`` and ``rollback`` need.
+            (stable), ``state`` (K, 8) their estimates (those left pending: as they
+            were) and ``gate`` (K, 5) their gate references after the batch, and what
+            ``commit`` and ``rollback`` need.
 
         """
         codes = batch.codes[positions]
@@ -259,13 +275,15 @@ class _SourceParts:
                                axis=1)
         kept = self.kept[landmarks]
         gate = landmark_map.gate[landmarks]
+        pending = self.pending[landmarks]
         accepted = _fold_kernel.run(landmark, order, position, positions, batch.z, batch.R_ind,
                                     batch.R_dep, lo, hi, self.slots, self.table, kept, state,
-                                    gate, landmark_map.observations[landmarks],
+                                    gate, landmark_map.observations[landmarks], pending, lazy,
                                     landmark_map.threshold)
         self.kept[landmarks] = kept
         return {'accepted': accepted, 'landmarks': landmarks, 'landmark': landmark,
-                'order': order, 'state': state, 'gate': gate, 'before': before, 'new': new,
+                'order': order, 'state': state, 'gate': gate, 'pending': pending,
+                'before': before, 'new': new,
                 'new_slots': new_slots, 'touched': touched,
                 'saved': saved}
 
@@ -275,7 +293,8 @@ class _SourceParts:
                 np.searchsorted(self.keys, (rows + 1) << _SOURCE_BITS))
 
     def commit(self, run):
-        """Keep a ``run``: drop the new pairs no accepted row observed."""
+        """Keep a ``run``: note the folds it left pending; drop the pairs no row observed."""
+        self.pending[run['landmarks']] = run['pending']
         unused = self.table[run['new_slots'], _fold_kernel.VALID] == 0.0
         if unused.any():
             at = np.searchsorted(self.keys, run['new'][unused])
@@ -289,6 +308,31 @@ class _SourceParts:
         self.table[count:self.count] = 0.0
         self.keys, self.slots = keys, slots
         self.kept[run['landmarks']] = False
+
+    def settle(self, rows):
+        """
+        Fold the landmarks of ``rows`` whose fold a lazy ``run`` left pending.
+
+        Returns
+        -------
+        rows : ndarray of int, shape (K,)
+            Those landmarks (the others' estimates in the map are current).
+        state : ndarray, shape (K, 8)
+            Their packed estimates (``_fold_kernel.run``).
+
+        """
+        rows = np.asarray(rows, np.int64)
+        rows = rows[rows < len(self.pending)]
+        rows = rows[self.pending[rows] != -1]
+        state = np.empty((len(rows), 8))
+        if len(rows):
+            lo, hi = self._bounds(rows)
+            kept, pending = self.kept[rows], self.pending[rows]
+            _fold_kernel.settle(lo, hi, pending, self.slots, self.table, kept, state)
+            self.kept[rows], self.pending[rows] = kept, pending
+            rows = rows[hi > lo]
+            state = state[hi > lo]
+        return rows, state
 
     def records(self, row, names):
         """Return the sums of one landmark as plain data, sorted by source name."""

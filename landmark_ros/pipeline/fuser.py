@@ -450,7 +450,8 @@ class Fuser:
             np.concatenate([item.P for item, _ in items]),
             np.concatenate([item.P_dep for item, _ in items]),
             np.repeat([name for _, name in items], lengths),
-            np.repeat([item.stamp_ns for item, _ in items], lengths))
+            np.repeat([item.stamp_ns for item, _ in items], lengths),
+            settle=False)   # folded when read: snapshot, estimate, records
         for name, count in result.accepted.items():
             self.sources[name].counts['fused'] += count
         for name, count in result.rejected.items():
