@@ -24,7 +24,7 @@ from landmark_ros.ros.markers import delete_all, delete_markers, landmark_marker
 from landmark_ros.ros.params import declare_config, keep_in_sync
 from landmark_ros.ros.qos import LATCHED  # noqa: F401 (the map outputs' QoS, re-exported)
 from landmark_ros.ros.schemas import (landmark_message, NOT_MERGED, read_constraints,
-                                      read_landmark_cloud)
+                                      read_landmark_clouds)
 from landmark_ros.ros.subscriptions import take_waiting
 import numpy as np
 from rclpy.node import Node
@@ -135,27 +135,40 @@ class LandmarkFuser(Node):
                 waiting = take_waiting(subscription, PointCloud2, burst, raw=True)
                 if waiting:
                     bursts.append((other, waiting))
-        self.fuser.add_landmark_bursts(
-            [(self._source_of[name], self._decode_landmarks(name, clouds))
-             for name, clouds in bursts], now)
+        self.fuser.add_landmark_bursts(self._decode_landmarks(bursts), now)
 
-    def _decode_landmarks(self, topic, clouds):
-        """Return the clouds (serialized or messages) of one input topic as messages."""
-        source = self._source_of[topic]
-        messages = []
-        for cloud in clouds:
-            try:
-                if isinstance(cloud, (bytes, bytearray, memoryview)):
-                    cloud = read_cloud_bytes(cloud)
-                rows, extras = read_landmark_cloud(cloud)
-            except CloudError as error:
-                self.fuser.reject(source, 'messages_in')
-                self.fuser.reject(source, error.reason, 1, f'message dropped: {error}')
+    def _decode_landmarks(self, bursts):
+        """
+        Return ``(source, messages)`` of ``(topic, clouds)`` (serialized or messages).
+
+        The clouds of every topic are read together (``read_landmark_clouds``); one
+        that cannot be read is counted against its source and dropped.
+        """
+        parsed = []
+        for topic, clouds in bursts:
+            source = self._source_of[topic]
+            for cloud in clouds:
+                try:
+                    if isinstance(cloud, (bytes, bytearray, memoryview)):
+                        cloud = read_cloud_bytes(cloud)
+                    parsed.append((source, cloud))
+                except CloudError as error:
+                    self._drop_cloud(source, error)
+        out = {}
+        reads = read_landmark_clouds([cloud for _, cloud in parsed])
+        for (source, cloud), read in zip(parsed, reads):
+            if isinstance(read, CloudError):
+                self._drop_cloud(source, read)
                 continue
-            messages.append(LandmarkMessage(stamp_ns(cloud.header.stamp), rows.ids, rows.m,
-                                            rows.P, rows.P_dep, cloud.header.frame_id,
-                                            extras.classes, extras.scan))
-        return messages
+            rows, extras = read
+            out.setdefault(source, []).append(LandmarkMessage(
+                stamp_ns(cloud.header.stamp), rows.ids, rows.m, rows.P, rows.P_dep,
+                cloud.header.frame_id, extras.classes, extras.scan))
+        return list(out.items())
+
+    def _drop_cloud(self, source, error):
+        self.fuser.reject(source, 'messages_in')
+        self.fuser.reject(source, error.reason, 1, f'message dropped: {error}')
 
     def on_constraints(self, msg, topic):
         """Decode constraint clouds (this one and those waiting) and queue their views."""

@@ -56,6 +56,8 @@ def read_columns(msg, specs):
     """
     Return the requested fields of every point as float64 or int64 columns.
 
+    ``columns_of(read_records(msg, specs))``.
+
     Parameters
     ----------
     msg : sensor_msgs.msg.PointCloud2
@@ -73,6 +75,23 @@ def read_columns(msg, specs):
     ------
     CloudError
         ``missing_field``, ``unsupported_field_type`` or ``data_length_mismatch``.
+
+    """
+    return columns_of(read_records(msg, specs))
+
+
+def read_records(msg, specs):
+    """
+    Return the requested fields of every point as one structured array (no copy).
+
+    Parameters and errors as ``read_columns``. Records of clouds with the same layout
+    share one dtype object (cached), so they can be concatenated and converted to
+    columns together (``columns_of``).
+
+    Returns
+    -------
+    ndarray, shape (width * height,)
+        Structured, the wanted fields at their offsets, in the cloud's byte order.
 
     """
     specs = tuple(specs)
@@ -100,13 +119,17 @@ def read_columns(msg, specs):
                          f'{len(msg.data)} bytes of data for height {msg.height} x row_step '
                          f'{msg.row_step}')
     if count == 0:
-        return {name: np.empty(0, _column_type(dtype[name])) for name in dtype.names}
+        return np.empty(0, dtype)
     if msg.height == 1:
-        rows = np.frombuffer(msg.data, dtype, count=msg.width)
-    else:
-        data = np.frombuffer(msg.data, np.uint8).reshape(msg.height, msg.row_step)
-        rows = data[:, :msg.width * msg.point_step].copy().view(dtype).reshape(-1)
-    return {name: rows[name].astype(_column_type(rows.dtype[name])) for name in dtype.names}
+        return np.frombuffer(msg.data, dtype, count=msg.width)
+    data = np.frombuffer(msg.data, np.uint8).reshape(msg.height, msg.row_step)
+    return data[:, :msg.width * msg.point_step].copy().view(dtype).reshape(-1)
+
+
+def columns_of(records):
+    """Return structured ``records`` as float64 or int64 columns by field name."""
+    return {name: records[name].astype(_column_type(records.dtype[name]))
+            for name in records.dtype.names}
 
 
 def _layout_dtype(msg, specs):

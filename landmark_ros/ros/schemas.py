@@ -41,7 +41,7 @@ from geometry_msgs.msg import PoseWithCovarianceStamped
 from landmark_ros.pipeline.tracks import Scan
 from landmark_ros.pipeline.views import CONSTRAINT_COLUMNS
 from landmark_ros.ros.cloud import CloudError, CloudWriter, FieldSpec, INTEGER_TYPES
-from landmark_ros.ros.cloud import read_columns
+from landmark_ros.ros.cloud import columns_of, read_columns, read_records
 from landmark_ros.ros.cloud import REAL_TYPES
 from landmark_ros.ros.conversions import planar_pose_covariance, set_planar_pose, set_stamp
 import numpy as np
@@ -333,7 +333,76 @@ def read_landmark_cloud(msg):
         is present, or ``BIAS_FIELDS`` without ``SCAN_FIELDS`` (``partial_field_group``).
 
     """
-    columns = read_columns(msg, LANDMARK_FIELDS)
+    return _landmarks_of(read_columns(msg, LANDMARK_FIELDS))
+
+
+def read_landmark_clouds(msgs):
+    """
+    Return what ``read_landmark_cloud`` returns for each message, or its CloudError.
+
+    The records of consecutive clouds with one layout are converted together: a
+    callback that takes many small clouds pays the conversion's fixed cost once.
+
+    Parameters
+    ----------
+    msgs : sequence of sensor_msgs.msg.PointCloud2 (or ``cloud_bytes.Cloud``)
+
+    Returns
+    -------
+    list
+        Per message, ``(Landmarks, LandmarkExtras)`` or the ``CloudError`` it raised.
+
+    """
+    out = [None] * len(msgs)
+    records = []
+    for k, msg in enumerate(msgs):
+        try:
+            records.append((k, read_records(msg, LANDMARK_FIELDS)))
+        except CloudError as error:
+            out[k] = error
+    start = 0
+    while start < len(records):
+        stop = start + 1
+        dtype = records[start][1].dtype
+        while stop < len(records) and records[stop][1].dtype is dtype:
+            stop += 1
+        group = records[start:stop]
+        start = stop
+        try:
+            # The bytes joined (np.concatenate of structured arrays costs ~1 us each).
+            joined = np.frombuffer(b''.join([r.data for _, r in group]), dtype)
+            rows, extras = _landmarks_of(columns_of(joined), scans=True)
+        except CloudError as error:
+            for k, _ in group:
+                out[k] = error
+            continue
+        first = 0
+        for k, part in group:
+            at = slice(first, first + len(part))
+            first = at.stop
+            out[k] = (Landmarks(*(column[at] for column in rows)),
+                      LandmarkExtras(extras.classes[at], extras.scan[at.start]
+                                     if extras.scan is not None and len(part) else None))
+    return out
+
+
+class _Scans:
+    """The ``Scan`` of the row at an index of columns (a message's first row), on demand."""
+
+    def __init__(self, columns):
+        self.columns = columns
+
+    def __getitem__(self, index):
+        return _scan(self.columns, index)
+
+
+def _landmarks_of(columns, scans=False):
+    """
+    Return ``Landmarks`` and ``LandmarkExtras`` of landmark cloud columns.
+
+    ``LandmarkExtras.scan`` is the first row's ``Scan``, or with ``scans`` a ``_Scans``
+    of every row (None without the fields either way).
+    """
     count = len(columns['x'])
     for group, what in ((DEPENDENT_FIELDS, 'the dependent covariance'),
                         (SCAN_FIELDS, 'the robot pose terms'),
@@ -355,18 +424,22 @@ def read_landmark_cloud(msg):
             P[:, 0, 1] = P[:, 1, 0] = columns[xy]
         return P
 
+    if SCAN_FIELDS[0] not in columns:
+        scan = None
+    else:
+        scan = _Scans(columns) if scans else _scan(columns, 0)
     return (Landmarks(columns['id'], np.stack([columns['x'], columns['y']], axis=1),
                       matrices('cov_xx', 'cov_xy', 'cov_yy'),
                       matrices(*DEPENDENT_FIELDS),
                       columns.get('observations', np.ones(count, np.int64))),
-            LandmarkExtras(columns.get('class', np.zeros(count, np.int64)), _scan(columns)))
+            LandmarkExtras(columns.get('class', np.zeros(count, np.int64)), scan))
 
 
-def _scan(columns):
-    """Return the ``Scan`` of a landmark cloud's first row, None without the fields."""
-    if SCAN_FIELDS[0] not in columns or not len(columns[SCAN_FIELDS[0]]):
+def _scan(columns, index):
+    """Return the ``Scan`` of a landmark cloud's row ``index``, None without the fields."""
+    if SCAN_FIELDS[0] not in columns or index >= len(columns[SCAN_FIELDS[0]]):
         return None
-    v = {name: float(columns[name][0]) for name in SCAN_FIELDS + BIAS_FIELDS
+    v = {name: float(columns[name][index]) for name in SCAN_FIELDS + BIAS_FIELDS
          if name in columns}
     P_pose = np.array([[v['pose_cov_xx'], v['pose_cov_xy'], v['pose_cov_xt']],
                        [v['pose_cov_xy'], v['pose_cov_yy'], v['pose_cov_yt']],

@@ -3,7 +3,9 @@
 from landmark_ros.ros import cloud_bytes
 from landmark_ros.ros.cloud import CloudError, read_columns
 from landmark_ros.ros.cloud_bytes import read_cloud_bytes
+from landmark_ros.pipeline.tracks import Scan
 from landmark_ros.ros.schemas import LANDMARK_FIELDS, landmark_message, read_landmark_cloud
+from landmark_ros.ros.schemas import read_landmark_clouds
 import numpy as np
 import pytest
 from rclpy.serialization import serialize_message
@@ -114,3 +116,50 @@ def test_a_layout_from_the_cache_must_match_every_byte_but_the_padding(rng):
     changed = bytearray(raw)
     changed[at + 4] = 9                         # the offset of 'ab'
     assert read_cloud_bytes(bytes(changed)).fields[0].offset == 9
+
+
+def test_clouds_read_together_equal_each_read_alone(rng):
+    # Runs of one layout are converted together, then cut back per message: the same
+    # rows, classes and scans (each message's first row) as one at a time, and an
+    # unreadable cloud among them is an error of its own.
+    def cloud(kind, count):
+        A = rng.normal(0.0, 0.3, (count, 2, 2))
+        P = A @ np.swapaxes(A, 1, 2) + 0.01 * np.eye(2)
+        ids, m = rng.integers(0, 50, count), rng.normal(0, 5, (count, 2))
+        header = Header(frame_id='map')
+        if kind == 'plain':
+            return landmark_message(header, ids, m, P, 0.3 * P)
+        if kind == 'classes':
+            return landmark_message(header, ids, m, P, classes=rng.integers(0, 4, count))
+        if kind == 'scan':
+            scan = Scan(rng.normal(0, 3, 2), np.diag(rng.uniform(0.01, 0.1, 3)))
+            return landmark_message(header, ids, m, P, 0.5 * P,
+                                    classes=rng.integers(0, 4, count), scan=scan)
+        msg = landmark_message(header, ids, m, P)
+        msg.data = msg.data[:-3]                    # data_length_mismatch
+        return msg
+    kinds = ['plain', 'plain', 'scan', 'scan', 'bad', 'scan', 'classes', 'plain', 'plain',
+             'scan', 'plain']
+    msgs = [cloud(kind, int(rng.integers(0, 4)) if k == 7 else int(rng.integers(1, 30)))
+            for k, kind in enumerate(kinds)]
+    clouds = [read_cloud_bytes(serialize_message(msg)) for msg in msgs]
+    got = read_landmark_clouds(clouds)
+    assert len(got) == len(msgs)
+    for kind, msg, read in zip(kinds, msgs, got):
+        if kind == 'bad':
+            assert isinstance(read, CloudError) and read.reason == 'data_length_mismatch'
+            with pytest.raises(CloudError):
+                read_landmark_cloud(msg)
+            continue
+        rows, extras = read_landmark_cloud(msg)
+        for x, y in zip(read[0], rows):
+            np.testing.assert_array_equal(x, y)
+        np.testing.assert_array_equal(read[1].classes, extras.classes)
+        if extras.scan is None:
+            assert read[1].scan is None
+        else:
+            assert kind == 'scan'
+            for name in ('robot_xy', 'P_pose'):
+                np.testing.assert_array_equal(getattr(read[1].scan, name),
+                                              getattr(extras.scan, name))
+    assert read_landmark_clouds([]) == []
