@@ -346,6 +346,7 @@ def read_landmark_clouds(msgs):
     Parameters
     ----------
     msgs : sequence of sensor_msgs.msg.PointCloud2 (or ``cloud_bytes.Cloud``)
+        The clouds, in any order (runs of one layout are read together).
 
     Returns
     -------

@@ -1,9 +1,9 @@
 """Tests of ros.cloud_bytes: serialized PointCloud2 read without building the message."""
 
+from landmark_ros.pipeline.tracks import Scan
 from landmark_ros.ros import cloud_bytes
 from landmark_ros.ros.cloud import CloudError, read_columns
 from landmark_ros.ros.cloud_bytes import read_cloud_bytes
-from landmark_ros.pipeline.tracks import Scan
 from landmark_ros.ros.schemas import LANDMARK_FIELDS, landmark_message, read_landmark_cloud
 from landmark_ros.ros.schemas import read_landmark_clouds
 import numpy as np
