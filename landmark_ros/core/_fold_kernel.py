@@ -305,8 +305,9 @@ def _fold_step(first, second, out, limits):
 
 
 def _move(lo, width, q, key_slots, table, order, limits):
-    # Pair q (local index) of a landmark whose fold is kept changed: move it to its
-    # place in the order by size and fold again from the first place that changed.
+    # Pair q (local index) of a landmark whose fold is kept changed (or is new to the
+    # fold: rank -1): move it to its place in the order by size and fold again from
+    # the first place that changed.
     p = key_slots[lo + q]
     tp = table[p]
     n = 0
@@ -314,7 +315,7 @@ def _move(lo, width, q, key_slots, table, order, limits):
         s = key_slots[lo + j]
         if s != p and table[s, 27] != 0.0:
             n += 1
-    old = int(tp[26]) if tp[27] != 0.0 else n
+    old = int(tp[26]) if tp[27] != 0.0 and tp[26] >= 0.0 else n
     tp[27] = 1.0
     for j in range(width):
         s = key_slots[lo + j]
@@ -428,10 +429,10 @@ def _run_kernel(landmark, rows_in_order, position, at, z, R_ind, R_dep, lo, hi, 
             p = position[i]
             t = table[key_slots[p]]
             _add_terms(t, z[x, 0], z[x, 1], R_ind[x], R_dep[x])
-            if t[27] == 0.0:        # a pair new to the fold: fold the landmark whole
+            if t[27] == 0.0:        # a pair new to the fold (no rank yet): observed now
                 t[27] = 1.0
-                single = -2
-            elif single == -1:
+                t[26] = -1.0
+            if single == -1:
                 single = p
             elif single != p:
                 single = -2

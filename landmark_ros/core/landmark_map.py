@@ -285,7 +285,8 @@ class LandmarkMap:
 
     def update(self, ids: ArrayLike, z: ArrayLike, R: ArrayLike, R_dep: Optional[ArrayLike] = None,
                source: Union[str, Sequence[str], NDArray[np.str_]] = '',
-               stamp_ns: ArrayLike = 0, settle: bool = True) -> UpdateResult:
+               stamp_ns: ArrayLike = 0, settle: bool = True,
+               source_index: Optional[ArrayLike] = None) -> UpdateResult:
         """
         Fuse a batch of observations, row by row in order.
 
@@ -300,7 +301,8 @@ class LandmarkMap:
         R_dep : array_like, shape (N, 2, 2), optional
             Dependent part of ``R`` (zero when absent) [m^2].
         source : str or sequence of str, length N
-            Who made each observation (for counters and the saved map).
+            Who made each observation (for counters and the saved map). With
+            ``source_index``: the names that it indexes.
         stamp_ns : int or array_like of int, shape (N,)
             Time of each observation [ns].
         settle : bool
@@ -310,6 +312,9 @@ class LandmarkMap:
             call: a caller that updates many times between two reads (a fuser that
             fuses every 20 ms and publishes every 100 ms) folds each landmark once
             per read instead of once per update. Results are the same either way.
+        source_index : array_like of int, shape (N,), optional
+            Each row's source as an index into ``source``: the same as the names row
+            by row, without sorting N strings.
 
         Returns
         -------
@@ -318,13 +323,13 @@ class LandmarkMap:
         Raises
         ------
         ValueError
-            If ``stamp_ns`` is not integer.
+            If ``stamp_ns`` is not integer, or ``source_index`` out of range.
 
         """
         ids = np.asarray(ids, dtype=np.int64).reshape(-1)
         checkpoint = self._checkpoint(ids)
         try:
-            result = self._update(ids, z, R, R_dep, source, stamp_ns, not settle)
+            result = self._update(ids, z, R, R_dep, source, stamp_ns, not settle, source_index)
             if settle:
                 self.settle()
             return result
@@ -384,7 +389,7 @@ class LandmarkMap:
             self._sorted_ids, self._sorted_rows = self.ids[:count][order], order
             self._table[self._table >= count] = -1
 
-    def _update(self, ids, z, R, R_dep, source, stamp_ns, lazy):
+    def _update(self, ids, z, R, R_dep, source, stamp_ns, lazy, source_index):
         ids = np.asarray(ids, dtype=np.int64).reshape(-1)
         z = np.asarray(z, dtype=np.float64).reshape(-1, 2)
         R = np.asarray(R, dtype=np.float64).reshape(-1, 2, 2)
@@ -395,16 +400,21 @@ class LandmarkMap:
             raise ValueError(f'stamp_ns must be integer nanoseconds, got {stamps_ns.dtype}')
         count = len(ids)
         stamps_ns = np.broadcast_to(stamps_ns.astype(np.int64), (count,))
-        if isinstance(source, str):
+        if source_index is not None:
+            names = [str(name) for name in source]
+            inverse = np.asarray(source_index, dtype=np.int64).reshape(-1)
+            if len(inverse) != count or (count and not (
+                    0 <= inverse.min() and inverse.max() < len(names))):
+                raise ValueError(f'source_index must hold {count} indices into {len(names)} '
+                                 'sources')
+            used, first = np.unique(inverse, return_index=True)
+            codes = self._codes(names, used, first, inverse)
+        elif isinstance(source, str):
             codes = np.full(count, self.source_code(source), np.int64)
         else:
             names, first, inverse = np.unique(np.asarray(source, dtype=str),
                                               return_index=True, return_inverse=True)
-            # Register new names in the order they first appear (as row by row would).
-            by_name = np.empty(len(names), np.int64)
-            for k in np.argsort(first, kind='stable').tolist():
-                by_name[k] = self.source_code(str(names[k]))
-            codes = by_name[inverse.reshape(-1)]
+            codes = self._codes(names, np.arange(len(names)), first, inverse.reshape(-1))
         result = UpdateResult()
         if not count:
             return result
@@ -429,6 +439,14 @@ class LandmarkMap:
         if changed:
             result.changed_ids = np.unique(self.ids[np.concatenate(changed)])
         return result
+
+    def _codes(self, names, used, first, inverse):
+        """Return each row's source code: ``names[inverse]``, ``used`` first seen at ``first``."""
+        # Register new names in the order they first appear (as row by row would).
+        by_name = np.zeros(len(names), np.int64)
+        for k in used[np.argsort(first, kind='stable')].tolist():
+            by_name[k] = self.source_code(str(names[k]))
+        return by_name[inverse]
 
     def _apply_run(self, rows, batch, positions, run, result, changed):
         """

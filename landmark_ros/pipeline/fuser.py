@@ -444,14 +444,16 @@ class Fuser:
     def _apply(self, items: Sequence[Tuple[_Queued, str]]) -> UpdateResult:
         """Fuse queued messages (labelled rows only) in one ``LandmarkMap.update``."""
         lengths = [len(item.ids) for item, _ in items]
+        names: Dict[str, int] = {}
+        index = [names.setdefault(name, len(names)) for _, name in items]
         result = self.map.update(
             np.concatenate([item.ids for item, _ in items]),
             np.concatenate([item.m for item, _ in items]),
             np.concatenate([item.P for item, _ in items]),
             np.concatenate([item.P_dep for item, _ in items]),
-            np.repeat([name for _, name in items], lengths),
-            np.repeat([item.stamp_ns for item, _ in items], lengths),
-            settle=False)   # folded when read: snapshot, estimate, records
+            list(names), np.repeat([item.stamp_ns for item, _ in items], lengths),
+            settle=False,   # folded when read: snapshot, estimate, records
+            source_index=np.repeat(index, lengths))
         for name, count in result.accepted.items():
             self.sources[name].counts['fused'] += count
         for name, count in result.rejected.items():

@@ -733,6 +733,32 @@ def test_per_row_sources_and_stamps(rng):
     assert records[2]['first_stamp_ns'] == records[2]['last_stamp_ns'] == 3 * S
 
 
+@pytest.mark.parametrize('fusion', ['independent', 'split_covariance_intersection'])
+def test_sources_by_index_are_the_sources_by_name(rng, fusion):
+    # source_index into a list of names: the same map, the same codes in the same
+    # order of first appearance (a name listed but unused is not registered).
+    count = 300
+    ids = rng.integers(0, 20, count)
+    z = rng.normal(0.0, 0.05, (count, 2)) + ids[:, None]
+    R = np.repeat(0.02 * np.eye(2)[None], count, 0)
+    names = ['c', 'a', 'unused', 'b']
+    index = rng.choice([0, 1, 3], count)
+    by_name, by_index = LandmarkMap(fusion), LandmarkMap(fusion)
+    for part in (slice(0, 100), slice(100, 300)):
+        a = by_name.update(ids[part], z[part], R[part], 0.3 * R[part],
+                           np.array(names)[index[part]], S)
+        b = by_index.update(ids[part], z[part], R[part], 0.3 * R[part], names, S,
+                            source_index=index[part])
+        assert a.accepted == b.accepted
+    assert by_name.source_names == by_index.source_names
+    assert 'unused' not in by_index.source_names
+    assert by_name.to_records() == by_index.to_records()
+    with pytest.raises(ValueError, match='source_index'):
+        by_index.update(ids[:3], z[:3], R[:3], source=names, source_index=[0, 4, 1])
+    with pytest.raises(ValueError, match='source_index'):
+        by_index.update(ids[:3], z[:3], R[:3], source=names, source_index=[0, 1])
+
+
 # --- Monte Carlo consistency through the map ---------------------------------------------------
 
 def simulate_robots(rng, n_landmarks, n_robots=3, repeats=4):
