@@ -245,8 +245,10 @@ class LandmarkMap:
 
     def _rows_of(self, ids):
         """Return the rows of ``ids``, adding unconfirmed entries for new IDs."""
-        unique = np.unique(ids)
-        new = unique[self._lookup(unique) < 0]
+        rows = self._lookup(ids)
+        if (rows >= 0).all():
+            return rows
+        new = np.unique(ids[rows < 0])
         if len(new):
             self._grow(len(new))
             rows = np.arange(self._count, self._count + len(new))
@@ -345,8 +347,14 @@ class LandmarkMap:
 
     def _checkpoint(self, ids):
         """Save what an update of ``ids`` can change (their rows, the registries)."""
-        rows = self._lookup(np.unique(ids))
-        rows = rows[rows >= 0]
+        if 8 * len(ids) < self._count:
+            rows = self._lookup(np.unique(ids))
+            rows = rows[rows >= 0]
+        else:   # a mask over the rows: cheaper than sorting the IDs
+            rows = self._lookup(ids)
+            taken = np.zeros(self._count, bool)
+            taken[rows[rows >= 0]] = True
+            rows = np.flatnonzero(taken)
         return {
             'count': self._count, 'rows': rows,
             'arrays': {name: getattr(self, name)[rows].copy() for name in self._ROW_ARRAYS},
