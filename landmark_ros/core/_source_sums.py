@@ -129,11 +129,7 @@ class _SourceParts:
 
     def _ranges(self, rows):
         """Return the positions in ``keys`` of the pairs of ``rows``, concatenated."""
-        lo = np.searchsorted(self.keys, rows << _SOURCE_BITS)
-        hi = np.searchsorted(self.keys, (rows + 1) << _SOURCE_BITS)
-        counts = hi - lo
-        starts = np.repeat(lo - np.cumsum(counts) + counts, counts)
-        return starts + np.arange(int(counts.sum()))
+        return _spans(*self._bounds(rows))
 
     def add(self, rows, codes, z, R_ind, R_dep, unique=False):
         """
@@ -258,7 +254,7 @@ class _SourceParts:
         lo, hi = self._bounds(landmarks)
         position = _fold_kernel.locate(self.keys, lo, hi, landmark, keys)
         found = position >= 0
-        touched = self.slots[position[found]]   # repeats are harmless
+        touched = self.slots[_spans(lo, hi)]     # every pair of these landmarks, once
         saved = self.sums[touched]
         if self.journal is not None:
             old = touched < self.journal_count
@@ -358,6 +354,13 @@ class _SourceParts:
             self.Y[slot] = Y[0, 0], 0.5 * (Y[0, 1] + Y[1, 0]), Y[1, 1]
             self.y[slot] = np.array(record['information_mean'], dtype=np.float64).reshape(2)
             self.Q[slot] = Q.reshape(4)
+
+
+def _spans(lo, hi):
+    """Return the indices ``lo[k]:hi[k]`` for every ``k``, concatenated."""
+    counts = hi - lo
+    starts = np.repeat(lo - np.cumsum(counts) + counts, counts)
+    return starts + np.arange(int(counts.sum()))
 
 
 def _terms(z, R_ind, R_dep):
