@@ -26,7 +26,7 @@ the weight search and the closed forms are ``core.gaussian``'s
 import math
 import os
 import sys
-from typing import Callable, Optional, Tuple
+from typing import Any, Callable, Optional, Tuple
 
 from landmark_ros.core.gaussian import _OMEGA_BRACKET, OMEGA_EDGE, OMEGA_TOLERANCE
 import numpy as np
@@ -720,6 +720,19 @@ def load() -> Optional[Callable[..., FoldResult]]:
         return None
     fold, AVAILABLE = _compiled_fold, True
     return fold
+
+
+def compiled(function: Callable[..., Any]) -> Optional[Callable[..., Any]]:
+    """
+    Return ``function`` compiled as the kernel is (numba, no fast-math), or None.
+
+    None when ``load()`` found no usable numba. For small loops elsewhere in the
+    package that must give numpy's bits (``pipeline.rows``' sufficient row check).
+    """
+    if load() is None:
+        return None
+    import numba
+    return numba.njit(cache=True, error_model='numpy', fastmath=False, nogil=True)(function)
 
 
 _tried = False
