@@ -47,11 +47,11 @@ class _Independent:
 
     def prepare(self, landmark_map, rows, batch, positions, result, changed, lazy=False):
         """
-        Get ready for the rows of confirmed landmarks of a batch (nothing here).
+        Fuse what it can of the rows of confirmed landmarks of a batch (nothing here).
 
-        Returns True when it fused them itself (the rounds are then skipped).
+        Returns the indices into ``rows`` it left to the rounds (here all of them).
         """
-        return False
+        return np.arange(len(rows))
 
     def settle(self, rows):
         """Return the landmarks of ``rows`` left to fold, and their estimates (none here)."""
@@ -131,18 +131,25 @@ class _SplitCovarianceIntersection(_Independent):
         ``rows`` (landmark rows, in arrival order) at ``positions`` in the batch, gated
         as ``LandmarkMap``'s rounds would gate them (same numbers, same decisions),
         each landmark folded at its gate refreshes and once after its last row (with
-        ``lazy``: when ``settle`` asks). The map takes the outcome at once unless a
-        landmark would be rebuilt in the batch; then nothing changed and the rounds
-        take the rows (False). False also when numba is missing.
+        ``lazy``: when ``settle`` asks). The map takes the outcome of every landmark
+        that the batch does not rebuild (``max_consecutive_rejections`` in a row); the
+        rows of those it does are undone here and left to the rounds, as are all rows
+        without numba. Returns the indices into ``rows`` left to the rounds.
         """
         if _fold_kernel.load() is None:
-            return False
+            return np.arange(len(rows))
         run = self.parts.run(landmark_map, rows, batch, positions, lazy)
-        if landmark_map._apply_run(rows, batch, positions, run, result, changed):
-            self.parts.commit(run)
-            return True
-        self.parts.rollback(run)
-        return False
+        rebuilt = landmark_map._rebuilt_in(run)
+        left = np.flatnonzero(rebuilt[run['landmark']])
+        if rebuilt.any():
+            self.parts.rollback(run, rebuilt)
+            if rebuilt.all():
+                return left
+            run, kept = _SourceParts.without(run, rebuilt)
+            rows, positions = rows[kept], positions[kept]
+        landmark_map._apply_run(rows, batch, positions, run, result, changed)
+        self.parts.commit(run)
+        return left
 
     def finish(self):
         """Stop journaling changes of the sums: the update is over."""

@@ -255,6 +255,7 @@ class _SourceParts:
         position = _fold_kernel.locate(self.keys, lo, hi, landmark, keys)
         found = position >= 0
         touched = self.slots[_spans(lo, hi)]     # every pair of these landmarks, once
+        pairs = hi - lo
         saved = self.sums[touched]
         if self.journal is not None:
             old = touched < self.journal_count
@@ -280,7 +281,7 @@ class _SourceParts:
         return {'accepted': accepted, 'landmarks': landmarks, 'landmark': landmark,
                 'order': order, 'state': state, 'gate': gate, 'pending': pending,
                 'before': before, 'new': new,
-                'new_slots': new_slots, 'touched': touched,
+                'new_slots': new_slots, 'touched': touched, 'pairs': pairs,
                 'saved': saved}
 
     def _bounds(self, rows):
@@ -297,13 +298,44 @@ class _SourceParts:
             self.keys = np.delete(self.keys, at)
             self.slots = np.delete(self.slots, at)
 
-    def rollback(self, run):
-        """Undo a ``run``: its sums and pairs as they were, the folds it kept dropped."""
+    def rollback(self, run, landmarks=None):
+        """
+        Undo a ``run``: its sums and pairs as they were, the folds it kept dropped.
+
+        ``landmarks`` (bool, one per landmark of the run): undo only those; their new
+        pairs are emptied, and ``commit`` (of the rest, ``without``) drops them.
+        """
+        if landmarks is not None and not landmarks.all():
+            undo = landmarks[np.repeat(np.arange(len(landmarks)), run['pairs'])]
+            self.sums[run['touched'][undo]] = run['saved'][undo]
+            rows = run['landmarks'][landmarks]
+            emptied = np.isin(run['new'] >> _SOURCE_BITS, rows)
+            self.table[run['new_slots'][emptied]] = 0.0
+            self.kept[rows] = False
+            return
         keys, slots, count = run['before']
         self.sums[run['touched']] = run['saved']
         self.table[count:self.count] = 0.0
         self.keys, self.slots = keys, slots
         self.kept[run['landmarks']] = False
+
+    @staticmethod
+    def without(run, landmarks):
+        """
+        Return a ``run`` without the rows of ``landmarks`` (bool per landmark), and the rows kept.
+
+        For ``LandmarkMap._apply_run`` and ``commit`` after ``rollback(run, landmarks)``.
+        """
+        keep = ~landmarks
+        kept = np.flatnonzero(keep[run['landmark']])
+        renumber = np.cumsum(keep) - 1
+        at = np.full(len(run['landmark']), -1)
+        at[kept] = np.arange(len(kept))
+        order = at[run['order']]
+        return dict(run, accepted=run['accepted'][kept],
+                    landmark=renumber[run['landmark'][kept]], order=order[order >= 0],
+                    landmarks=run['landmarks'][keep], state=run['state'][keep],
+                    gate=run['gate'][keep], pending=run['pending'][keep]), kept
 
     def settle(self, rows):
         """

@@ -435,10 +435,11 @@ class LandmarkMap:
         # keeps each landmark's own order while fusing the rows of a round together.
         if known.any():
             index = np.flatnonzero(known)
-            if not self._method.prepare(self, rows[index], batch, index, result, changed, lazy):
-                for positions in _levels(rows[index]):
-                    self._update_confirmed(rows[index[positions]], batch, index[positions],
-                                           result, changed)
+            index = index[self._method.prepare(self, rows[index], batch, index, result, changed,
+                                               lazy)]
+            for positions in _levels(rows[index]):
+                self._update_confirmed(rows[index[positions]], batch, index[positions], result,
+                                       changed)
         for i in np.flatnonzero(~known).tolist():
             if self.confirmed[rows[i]]:  # confirmed earlier in this batch
                 self._update_confirmed(rows[i:i + 1], batch, np.array([i]), result, changed)
@@ -456,27 +457,35 @@ class LandmarkMap:
             by_name[k] = self.source_code(str(names[k]))
         return by_name[inverse]
 
+    def _streaks(self, run):
+        """Return the rejections in a row up to each row of a run, rows in ``run['order']``."""
+        group, taken = run['landmark'][run['order']], run['accepted'][run['order']]
+        start = np.searchsorted(group, group)
+        index = np.arange(len(group))
+        last = np.maximum.accumulate(np.where(taken, index, -1))
+        leading = last < start
+        return index - np.where(leading, start - 1, last) + np.where(
+            leading, self.consecutive[run['landmarks'][group]], 0)
+
+    def _rebuilt_in(self, run):
+        """Return which landmarks of a run reach ``max_consecutive_rejections`` (bool, K)."""
+        rebuilt = np.zeros(len(run['landmarks']), bool)
+        over = self._streaks(run) >= self.max_consecutive_rejections
+        rebuilt[run['landmark'][run['order'][over]]] = True
+        return rebuilt
+
     def _apply_run(self, rows, batch, positions, run, result, changed):
         """
         Take the outcome of rows gated and folded one by one (``_SourceParts.run``).
 
         Does what the rounds of ``_update_confirmed`` would do with the same decisions:
-        estimates, counts, stamps, sources seen, buffers of recent rejections. Returns
-        False, changing nothing, when some landmark would reach
-        ``max_consecutive_rejections`` in the batch (the rounds rebuild it then).
+        estimates, counts, stamps, sources seen, buffers of recent rejections. No
+        landmark of ``run`` may reach ``max_consecutive_rejections`` (``_rebuilt_in``:
+        the rounds rebuild those).
         """
         accepted, landmark, landmarks = run['accepted'], run['landmark'], run['landmarks']
-        order = run['order']
-        group = landmark[order]
-        taken = accepted[order]
-        start = np.searchsorted(group, group)
-        index = np.arange(len(order))
-        last = np.maximum.accumulate(np.where(taken, index, -1))
-        leading = last < start
-        streak = index - np.where(leading, start - 1, last) + np.where(
-            leading, self.consecutive[landmarks[group]], 0)
-        if (streak >= self.max_consecutive_rejections).any():
-            return False
+        group = landmark[run['order']]
+        streak = self._streaks(run)
         # Per landmark: accepted rows, the last one, the streak of rejections at the end.
         ends = np.searchsorted(group, np.arange(len(landmarks)), side='right') - 1
         hits = np.bincount(landmark[accepted], minlength=len(landmarks))
@@ -522,7 +531,6 @@ class LandmarkMap:
             recent = self._buffers.setdefault(
                 int(rows[i]), deque(maxlen=self.max_consecutive_rejections))
             recent.append(batch.observation(positions[i]))
-        return True
 
     def _update_confirmed(self, rows, batch, positions, result, changed):
         """Gate and fuse rows of confirmed landmarks, each landmark at most once."""

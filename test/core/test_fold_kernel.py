@@ -232,15 +232,23 @@ def test_turned_off_by_the_environment(monkeypatch):
     assert not _fold_kernel.AVAILABLE
 
 
-def test_a_clean_batch_is_taken_at_once_and_a_rebuild_goes_round_by_round(
+def test_a_clean_batch_is_taken_at_once_and_only_a_rebuilt_landmark_goes_round_by_round(
         compiled, rng, monkeypatch):
-    taken = []
-    original = landmark_map_module.LandmarkMap._apply_run
+    # The kernel's outcome is taken for every landmark the batch does not rebuild; the
+    # rows of the one it rebuilds go through the rounds (and only those).
+    applied, rounds = [], []
+    apply_run = landmark_map_module.LandmarkMap._apply_run
+    update_confirmed = landmark_map_module.LandmarkMap._update_confirmed
 
-    def spy(self, *args):
-        taken.append(original(self, *args))
-        return taken[-1]
-    monkeypatch.setattr(landmark_map_module.LandmarkMap, '_apply_run', spy)
+    def spy_apply(self, rows, *args):
+        applied.append(sorted(set(self.ids[rows].tolist())))
+        return apply_run(self, rows, *args)
+
+    def spy_rounds(self, rows, *args):
+        rounds.append(sorted(set(self.ids[rows].tolist())))
+        return update_confirmed(self, rows, *args)
+    monkeypatch.setattr(landmark_map_module.LandmarkMap, '_apply_run', spy_apply)
+    monkeypatch.setattr(landmark_map_module.LandmarkMap, '_update_confirmed', spy_rounds)
     landmark_map = landmark_map_module.LandmarkMap(max_consecutive_rejections=2)
     truth = rng.uniform(-20.0, 20.0, (10, 2))
     ids = np.repeat(np.arange(10), 4)
@@ -248,13 +256,18 @@ def test_a_clean_batch_is_taken_at_once_and_a_rebuild_goes_round_by_round(
     names = [f'robot{k % 3}' for k in range(len(ids))]
     z = truth[ids] + rng.normal(0.0, 0.1, (len(ids), 2))
     landmark_map.update(ids, z, R, 0.5 * R, names, 1)          # confirms all ten
-    assert len(landmark_map) == 10 and not taken
+    assert len(landmark_map) == 10 and not applied
+    rounds.clear()      # rows of landmarks confirmed earlier in that batch
     z = truth[ids] + rng.normal(0.0, 0.1, (len(ids), 2))
     result = landmark_map.update(ids, z, R, 0.5 * R, names, 2)
-    assert taken == [True] and sum(result.accepted.values()) == len(ids)
+    assert applied == [list(range(10))] and not rounds
+    assert sum(result.accepted.values()) == len(ids)
+    z = truth[ids] + rng.normal(0.0, 0.1, (len(ids), 2))
     z[ids == 3] += 5.0                                          # landmark 3 moved
     result = landmark_map.update(ids, z, R, 0.5 * R, names, 3)
-    assert taken == [True, False] and result.reinitialised == [3]
+    assert applied[1:] == [[k for k in range(10) if k != 3]]
+    assert rounds == [[3]] * 4 and result.reinitialised == [3]
+    assert sum(result.accepted.values()) == len(ids) - 2       # two rejected, then rebuilt
 
 
 def test_the_compiled_scale_is_the_numpy_scale_at_every_magnitude(compiled, rng):
