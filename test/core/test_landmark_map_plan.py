@@ -31,7 +31,7 @@ FUSION = 'split_covariance_intersection'
 
 @pytest.fixture(autouse=True, params=['numpy', 'compiled'])
 def fold_path(request, monkeypatch):
-    """Run every test with the numpy fold and plan, and with the compiled kernel."""
+    """Run every test with the numpy fold (the rounds), and with the compiled kernel."""
     if request.param == 'numpy':     # as without numba: nothing compiled is called
         monkeypatch.setattr(_fold_kernel, 'load', lambda: None)
         monkeypatch.setattr(_fold_kernel, 'AVAILABLE', False)
