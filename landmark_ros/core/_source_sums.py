@@ -254,18 +254,22 @@ class _SourceParts:
         lo, hi = self._bounds(landmarks)
         position = _fold_kernel.locate(self.keys, lo, hi, landmark, keys)
         found = position >= 0
-        touched = self.slots[_spans(lo, hi)]     # every pair of these landmarks, once
-        pairs = hi - lo
-        saved = self.sums[touched]
-        if self.journal is not None:
-            old = touched < self.journal_count
-            self.journal.append((touched[old], saved[old]))
         new, new_slots = keys[:0], keys[:0]
         if not found.all():
             new = np.unique(keys[~found])
             new_slots = self._insert(new, False)
             lo, hi = self._bounds(landmarks)
             position = _fold_kernel.locate(self.keys, lo, hi, landmark, keys)
+        # The pairs the rows touch, once each, grouped by landmark (keys are sorted).
+        mark = np.zeros(len(self.keys), bool)
+        mark[position] = True
+        at = np.flatnonzero(mark)
+        touched = self.slots[at]
+        owner = np.searchsorted(hi, at, side='right')   # each pair's landmark index
+        saved = self.sums[touched]
+        if self.journal is not None:
+            old = touched < self.journal_count
+            self.journal.append((touched[old], saved[old]))
         state = np.concatenate([landmark_map.mean[landmarks],
                                 np.stack(_entries(landmark_map.cov_ind[landmarks]), axis=1),
                                 np.stack(_entries(landmark_map.cov_dep[landmarks]), axis=1)],
@@ -281,7 +285,7 @@ class _SourceParts:
         return {'accepted': accepted, 'landmarks': landmarks, 'landmark': landmark,
                 'order': order, 'state': state, 'gate': gate, 'pending': pending,
                 'before': before, 'new': new,
-                'new_slots': new_slots, 'touched': touched, 'pairs': pairs,
+                'new_slots': new_slots, 'touched': touched, 'owner': owner,
                 'saved': saved}
 
     def _bounds(self, rows):
@@ -306,7 +310,7 @@ class _SourceParts:
         pairs are emptied, and ``commit`` (of the rest, ``without``) drops them.
         """
         if landmarks is not None and not landmarks.all():
-            undo = landmarks[np.repeat(np.arange(len(landmarks)), run['pairs'])]
+            undo = landmarks[run['owner']]
             self.sums[run['touched'][undo]] = run['saved'][undo]
             rows = run['landmarks'][landmarks]
             emptied = np.isin(run['new'] >> _SOURCE_BITS, rows)
