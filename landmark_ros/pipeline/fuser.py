@@ -59,6 +59,12 @@ class _Queued:
     unlabelled: bool = False
 
 
+def _per_message(flags: NDArray[np.bool_], bounds: NDArray[np.int64]) -> List[int]:
+    """Return the count of ``flags`` in each message (rows ``bounds[k]:bounds[k + 1]``)."""
+    total = np.concatenate([[0], np.cumsum(flags)])
+    return (total[bounds[1:]] - total[bounds[:-1]]).tolist()
+
+
 class LandmarkMessage(NamedTuple):
     """
     One landmark message of a source, as ``Fuser.add_landmarks`` takes it.
@@ -245,65 +251,83 @@ class Fuser:
             kept = [message for message in messages if self._arrive(
                 source, message.frame_id, now_ns, 'landmarks') is not None]
             if kept:
-                taken.append((source, kept, [len(np.asarray(message.ids)) for message in kept]))
+                taken.append((source, kept))
         if not taken:
             return 0
-        every = [message for _, kept, _ in taken for message in kept]
-        ids = np.concatenate([np.asarray(message.ids) for message in every])
+        every = [message for _, kept in taken for message in kept]
+        ids = np.concatenate([np.asarray(message.ids) for message in every]).astype(
+            np.int64, copy=False)
         m, P, P_dep = (np.concatenate([np.asarray(getattr(message, name), np.float64)
                                        for message in every]) for name in ('m', 'P', 'P_dep'))
         valid, _ = landmark_row_problems(ids, m, P, P_dep)
-        queued, start = 0, 0
-        for source, kept, sizes in taken:
-            part = slice(start, start + sum(sizes))
-            start = part.stop
-            # The reasons per source: the rows of a source with problems checked again.
-            reasons = None if valid[part].all() else landmark_row_problems(
-                ids[part], m[part], P[part], P_dep[part])[1]
-            queued += self._queue_checked(source, kept, sizes, ids[part], m[part],
-                                          valid[part].copy(), reasons)
+        # Per message, from one pass over the burst: rows that passed the checks, those
+        # of another shard, and those queued (with how many lack an ID).
+        bounds = np.cumsum([0] + [len(message.ids) for message in every])
+        passed = _per_message(valid, bounds)
+        other = self._other_shard(ids, m)
+        if other is not None:
+            other &= valid
+            valid &= ~other
+        other_counts = _per_message(other, bounds) if other is not None else [0] * len(every)
+        counts = _per_message(valid, bounds)
+        unlabelled = _per_message(valid & (ids == UNKNOWN_ID), bounds)
+        queued, index = 0, 0
+        for source, kept in taken:
+            first, index = index, index + len(kept)
+            part = slice(bounds[first], bounds[index])
+            state = self.sources[source]
+            state.counts['observations_in'] += part.stop - part.start
+            if sum(passed[first:index]) < part.stop - part.start:
+                # The reasons per source: the rows of a source with problems checked again.
+                for reason, count in landmark_row_problems(
+                        ids[part], m[part], P[part], P_dep[part])[1].items():
+                    self.reject(source, reason, count,
+                                f'{count} of {part.stop - part.start} rows rejected')
+            if sum(other_counts[first:index]):
+                state.counts['other_shard'] += sum(other_counts[first:index])
+            for k in range(first, index):
+                if counts[k]:
+                    rows = slice(bounds[k], bounds[k + 1])
+                    keep = None if counts[k] == rows.stop - rows.start else valid[rows]
+                    columns = (ids[rows], m[rows], P[rows], P_dep[rows])
+                    if keep is not None:
+                        columns = (columns[0][keep], columns[1][keep], columns[2][keep],
+                                   columns[3][keep])
+                    queued += self._queue(state, every[k], counts[k], unlabelled[k] > 0,
+                                          columns, keep)
         return queued
 
-    def _queue_checked(self, source, kept, sizes, ids, m, valid, reasons):
-        """Count, shard, reject and queue one source's checked rows (``add_landmark_bursts``)."""
-        state = self.sources[source]
-        state.counts['observations_in'] += len(ids)
-        if self.config.shard_count > 1:
-            # Rows without an ID go to the shard of their cell (``shard_of_position``).
-            cells = shard_of_position(np.asarray(m, np.float64).reshape(-1, 2),
-                                      self.config.shard_cell_m, self.config.shard_count)
-            other = valid & np.where(ids == UNKNOWN_ID, cells != self.config.shard_index,
-                                     ids % self.config.shard_count != self.config.shard_index)
-            if other.any():
-                state.counts['other_shard'] += int(other.sum())
-                valid &= ~other
-        for reason, count in (reasons or {}).items():
-            self.reject(source, reason, count, f'{count} of {len(valid)} rows rejected')
-        queued, offset = 0, 0
-        for message, size in zip(kept, sizes):
-            part = slice(offset, offset + size)
-            offset += size
-            queued += self._queue(state, message, valid[part])
-        return queued
+    def _other_shard(self, ids, m):
+        """Return which rows belong to another shard (None when there is one shard)."""
+        if self.config.shard_count <= 1:
+            return None
+        # Rows without an ID go to the shard of their cell (``shard_of_position``).
+        cells = shard_of_position(m.reshape(-1, 2), self.config.shard_cell_m,
+                                  self.config.shard_count)
+        return np.where(ids == UNKNOWN_ID, cells != self.config.shard_index,
+                        ids % self.config.shard_count != self.config.shard_index)
 
-    def _queue(self, state: Source, message: LandmarkMessage, valid: NDArray[np.bool_]) -> int:
-        """Queue the ``valid`` rows of one message (dropping the oldest of a full queue)."""
-        if not valid.any():
-            return 0
+    def _queue(self, state: Source, message: LandmarkMessage, count: int, unlabelled: bool,
+               columns: Tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64],
+                              NDArray[np.float64]],
+               keep: Optional[NDArray[np.bool_]]) -> int:
+        """
+        Queue ``count`` checked rows of one message (dropping the oldest of a full queue).
+
+        ``columns``: the rows' ``ids, m, P, P_dep``; ``keep``: which rows of the message
+        they are (None: all).
+        """
         if len(state.queue) >= self.config.max_queue_messages:
             dropped = state.queue.popleft()
             self.reject(state.name, 'queue_overflow', len(dropped.ids),
                         f'more than {self.config.max_queue_messages} messages waiting: '
                         'dropped the oldest')
-        ids, m, P, P_dep = np.asarray(message.ids), message.m, message.P, message.P_dep
         classes = None if message.classes is None else np.asarray(message.classes, np.int64)
-        if not valid.all():
-            ids, m, P, P_dep = ids[valid], m[valid], P[valid], P_dep[valid]
-            classes = None if classes is None else classes[valid]
-        state.queue.append(_Queued(next(self._sequence), ids.astype(np.int64), m, P, P_dep,
-                                   int(message.stamp_ns), classes, message.scan,
-                                   bool((ids == UNKNOWN_ID).any())))
-        return int(valid.sum())
+        if classes is not None and keep is not None:
+            classes = classes[keep]
+        state.queue.append(_Queued(next(self._sequence), *columns, int(message.stamp_ns),
+                                   classes, message.scan, unlabelled))
+        return count
 
     def add_constraints(self, source: str, stamp_ns: int, columns: Dict[str, NDArray[Any]],
                         frame_id: Optional[str] = None, now_ns: Optional[int] = None) -> int:

@@ -102,6 +102,16 @@ def test_a_burst_is_queued_as_its_messages_one_by_one(depth, rng):
     assert one.sources[SOURCES[0]].counts == many.sources[SOURCES[0]].counts
     assert one.sources[SOURCES[0]].last_message_ns == many.sources[SOURCES[0]].last_message_ns
     assert problems(one) == problems(many) != {}
+    # What is queued, against the messages themselves: message 1 without its bad rows
+    # 1 and 2, message 2 (wrong frame) and 3 (no valid row) not at all.
+    expected = [(k, rows) for k, rows in ((0, [0, 1, 2, 3]), (1, [0, 3]), (4, [0, 1, 2, 3]),
+                                          (5, [0, 1, 2, 3]))][-depth:]
+    for item, (k, kept) in zip(many.sources[SOURCES[0]].queue, expected, strict=True):
+        assert (item.stamp_ns, item.unlabelled) == (messages[k].stamp_ns, k == 5)
+        for got, given in zip((item.ids, item.m, item.P, item.P_dep, item.classes),
+                              messages[k][1:5] + (messages[k].classes,)):
+            np.testing.assert_array_equal(got, np.asarray(given)[kept])
+        assert item.ids.dtype == np.int64 and item.m.dtype == np.float64
     for a, b in zip(one.sources[SOURCES[0]].queue, many.sources[SOURCES[0]].queue,
                     strict=True):
         assert (a.stamp_ns, a.unlabelled) == (b.stamp_ns, b.unlabelled)
