@@ -139,15 +139,15 @@ class _SplitCovarianceIntersection(_Independent):
         if _fold_kernel.load() is None:
             return np.arange(len(rows))
         run = self.parts.run(landmark_map, rows, batch, positions, lazy)
-        rebuilt = landmark_map._rebuilt_in(run)
+        rebuilt, streak = landmark_map._rebuilt_in(run)
         left = np.flatnonzero(rebuilt[run['landmark']])
         if rebuilt.any():
             self.parts.rollback(run, rebuilt)
             if rebuilt.all():
                 return left
             run, kept = _SourceParts.without(run, rebuilt)
-            rows, positions = rows[kept], positions[kept]
-        landmark_map._apply_run(rows, batch, positions, run, result, changed)
+            rows, positions, streak = rows[kept], positions[kept], None
+        landmark_map._apply_run(rows, batch, positions, run, result, changed, streak)
         self.parts.commit(run)
         return left
 

@@ -468,24 +468,29 @@ class LandmarkMap:
             leading, self.consecutive[run['landmarks'][group]], 0)
 
     def _rebuilt_in(self, run):
-        """Return which landmarks of a run reach ``max_consecutive_rejections`` (bool, K)."""
-        rebuilt = np.zeros(len(run['landmarks']), bool)
-        over = self._streaks(run) >= self.max_consecutive_rejections
-        rebuilt[run['landmark'][run['order'][over]]] = True
-        return rebuilt
+        """
+        Return which landmarks of a run reach ``max_consecutive_rejections`` (bool, K).
 
-    def _apply_run(self, rows, batch, positions, run, result, changed):
+        And the run's ``_streaks``, for ``_apply_run`` if no landmark is rebuilt.
+        """
+        rebuilt = np.zeros(len(run['landmarks']), bool)
+        streak = self._streaks(run)
+        over = streak >= self.max_consecutive_rejections
+        rebuilt[run['landmark'][run['order'][over]]] = True
+        return rebuilt, streak
+
+    def _apply_run(self, rows, batch, positions, run, result, changed, streak=None):
         """
         Take the outcome of rows gated and folded one by one (``_SourceParts.run``).
 
         Does what the rounds of ``_update_confirmed`` would do with the same decisions:
         estimates, counts, stamps, sources seen, buffers of recent rejections. No
         landmark of ``run`` may reach ``max_consecutive_rejections`` (``_rebuilt_in``:
-        the rounds rebuild those).
+        the rounds rebuild those). ``streak``: the run's ``_streaks``, if known.
         """
         accepted, landmark, landmarks = run['accepted'], run['landmark'], run['landmarks']
         group = landmark[run['order']]
-        streak = self._streaks(run)
+        streak = self._streaks(run) if streak is None else streak
         # Per landmark: accepted rows, the last one, the streak of rejections at the end.
         ends = np.searchsorted(group, np.arange(len(landmarks)), side='right') - 1
         hits = np.bincount(landmark[accepted], minlength=len(landmarks))

@@ -172,6 +172,20 @@ def test_batch_equals_rows_one_by_one_with_many_rejections(rng):
         assert_same_map(batched, one_by_one)
 
 
+@pytest.mark.parametrize('seed', range(6))
+def test_rebuilds_in_a_batch_leave_the_others_streaks_as_row_by_row(seed):
+    # Many landmarks rebuilt part way through small batches: the landmarks the batch
+    # keeps take their rejection streaks from the run without the rebuilt ones' rows
+    # (a streak array of the whole run, read at the kept rows, fails this).
+    rows = stream(np.random.default_rng(seed), count=600, landmarks=8, outliers=0.3,
+                  movers=4)
+    count = len(rows[0])
+    one_by_one, _ = feed(LandmarkMap, rows, chunked(count, 1), max_consecutive_rejections=3)
+    for size in (20, 60):
+        batched, _ = feed(LandmarkMap, rows, chunked(count, size), max_consecutive_rejections=3)
+        assert_same_map(batched, one_by_one)
+
+
 def test_rows_are_gated_against_a_reference_refreshed_on_schedule(rng, fold_path):
     # The reference is the estimate after the last observation at which gate_due
     # held: row by row, and after batches of any size.
@@ -263,10 +277,10 @@ def test_kept_folds_stay_current_through_every_other_change(rng, monkeypatch, fo
             raise RuntimeError('failed half way')
 
     def noting(self, run):
-        rebuilt = rebuilt_in(self, run)
+        rebuilt, streak = rebuilt_in(self, run)
         if self is landmark_map:      # all taken, some landmarks undone, all undone
             outcomes.append('all' if not rebuilt.any() else 'none' if rebuilt.all() else 'some')
-        return rebuilt
+        return rebuilt, streak
     monkeypatch.setattr(LandmarkMap, '_apply_run', failing)
     monkeypatch.setattr(LandmarkMap, '_rebuilt_in', noting)
     kept, pending = [], []
