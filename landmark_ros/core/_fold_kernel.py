@@ -403,12 +403,13 @@ def _pending_position(slot, lo, hi, key_slots):
 
 def _run_kernel(landmark, rows_in_order, position, at, z, R_ind, R_dep, lo, hi, key_slots,
                 table, kept, state, gate, observations, pending, lazy, threshold, accepted,
-                limits):
+                seen, saved_slots, saved_sums, saved_owner, limits):
     width = 1
     for k in range(len(lo)):
         width = max(width, hi[k] - lo[k])
     order = np.empty(width, np.int64)
     count = len(rows_in_order)
+    saved_count = 0
     # Landmark by landmark (each in arrival order): the landmarks do not interact,
     # and a landmark's pairs stay in the cache for all its rows. ``single``: the one
     # pair whose sums changed since the landmark was last folded (-1 none, -2 more).
@@ -428,6 +429,13 @@ def _run_kernel(landmark, rows_in_order, position, at, z, R_ind, R_dep, lo, hi, 
         if accepted[i]:
             p = position[i]
             t = table[key_slots[p]]
+            if not seen[p]:         # the pair's sums before the batch, once
+                seen[p] = True
+                c = saved_count
+                saved_slots[c], saved_owner[c] = key_slots[p], k
+                for j in range(9):
+                    saved_sums[c, j] = t[j]
+                saved_count += 1
             _add_terms(t, z[x, 0], z[x, 1], R_ind[x], R_dep[x])
             if t[27] == 0.0:        # a pair new to the fold (no rank yet): observed now
                 t[27] = 1.0
@@ -448,6 +456,7 @@ def _run_kernel(landmark, rows_in_order, position, at, z, R_ind, R_dep, lo, hi, 
                 _settle(k, single, lo, hi, key_slots, table, kept, order, state, limits)
                 single = -1
             pending[k] = key_slots[single] if single >= 0 else single
+    return saved_count
 
 
 def _settle_kernel(lo, hi, pending, key_slots, table, kept, state, limits):
@@ -652,14 +661,23 @@ def run(landmark: NDArray[np.intp], order: NDArray[np.intp], position: NDArray[n
     Returns
     -------
     accepted : ndarray of bool, shape (N,)
+    saved : tuple of (ndarray of int (C,), ndarray (C, 9), ndarray of int (C,))
+        Each slot whose sums the batch changed, once: the slot, its sums as they were
+        before the batch and its landmark (an index into ``state``), in the order the
+        kernel first added to them. What a rollback restores.
 
     """
-    accepted = np.empty(len(landmark), np.bool_)
+    count = len(landmark)
+    accepted = np.empty(count, np.bool_)
+    seen = np.zeros(len(key_slots), np.bool_)
+    slots, owner = np.empty(count, np.int64), np.empty(count, np.int64)
+    sums = np.empty((count, 9))
     with np.errstate(all='ignore'):
-        _run_kernel(landmark, order, position, at, z, R_ind, R_dep, lo, hi, key_slots, table,
-                    kept, state, gate, observations, pending, bool(lazy), float(threshold),
-                    accepted, _limits())
-    return accepted
+        changed = _run_kernel(landmark, order, position, at, z, R_ind, R_dep, lo, hi,
+                              key_slots, table, kept, state, gate, observations, pending,
+                              bool(lazy), float(threshold), accepted, seen, slots, sums, owner,
+                              _limits())
+    return accepted, (slots[:changed], sums[:changed], owner[:changed])
 
 
 def settle(lo: NDArray[np.intp], hi: NDArray[np.intp], pending: NDArray[np.int64],

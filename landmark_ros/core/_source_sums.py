@@ -260,16 +260,6 @@ class _SourceParts:
             new_slots = self._insert(new, False)
             lo, hi = self._bounds(landmarks)
             position = _fold_kernel.locate(self.keys, lo, hi, landmark, keys)
-        # The pairs the rows touch, once each, grouped by landmark (keys are sorted).
-        mark = np.zeros(len(self.keys), bool)
-        mark[position] = True
-        at = np.flatnonzero(mark)
-        touched = self.slots[at]
-        owner = np.searchsorted(hi, at, side='right')   # each pair's landmark index
-        saved = self.sums[touched]
-        if self.journal is not None:
-            old = touched < self.journal_count
-            self.journal.append((touched[old], saved[old]))
         state = np.concatenate([landmark_map.mean[landmarks],
                                 np.stack(_entries(landmark_map.cov_ind[landmarks]), axis=1),
                                 np.stack(_entries(landmark_map.cov_dep[landmarks]), axis=1)],
@@ -277,10 +267,13 @@ class _SourceParts:
         kept = self.kept[landmarks]
         gate = landmark_map.gate[landmarks]
         pending = self.pending[landmarks]
-        accepted = _fold_kernel.run(landmark, order, position, positions, batch.z, batch.R_ind,
-                                    batch.R_dep, lo, hi, self.slots, self.table, kept, state,
-                                    gate, landmark_map.observations[landmarks], pending, lazy,
-                                    landmark_map.threshold)
+        accepted, (touched, saved, owner) = _fold_kernel.run(
+            landmark, order, position, positions, batch.z, batch.R_ind, batch.R_dep, lo, hi,
+            self.slots, self.table, kept, state, gate, landmark_map.observations[landmarks],
+            pending, lazy, landmark_map.threshold)
+        if self.journal is not None:
+            old = touched < self.journal_count
+            self.journal.append((touched[old], saved[old]))
         self.kept[landmarks] = kept
         return {'accepted': accepted, 'landmarks': landmarks, 'landmark': landmark,
                 'order': order, 'state': state, 'gate': gate, 'pending': pending,

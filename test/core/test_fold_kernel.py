@@ -150,11 +150,20 @@ def test_run_equals_gating_and_folding_row_by_row_batch_after_batch(
         z_at, R_ind_at, R_dep_at = (np.empty_like(x) for x in (z, R_full, D_full))
         z_at[at], R_ind_at[at], R_dep_at[at] = z, R_full - D_full, D_full
         order = np.argsort(landmark, kind='stable')
-        accepted = _fold_kernel.run(landmark, order, pair, at, z_at, R_ind_at, R_dep_at,
-                                    start[:-1], start[1:], key_slots, table, kept, new_state,
-                                    new_gate, new_observations, pending, lazy, threshold)
+        before = table[:, :9].copy()
+        accepted, (slots, saved, owner) = _fold_kernel.run(
+            landmark, order, pair, at, z_at, R_ind_at, R_dep_at, start[:-1], start[1:],
+            key_slots, table, kept, new_state, new_gate, new_observations, pending, lazy,
+            threshold)
         assert 30 < accepted.sum() < count - 30     # both branches, many times
         np.testing.assert_array_equal(accepted, expected)
+        # The slots the batch changed, once each, with their sums before it and their
+        # landmark.
+        pair_of = np.full(len(table), -1)
+        pair_of[key_slots] = np.arange(len(key_slots))
+        assert sorted(slots.tolist()) == sorted(key_slots[np.unique(pair[accepted])].tolist())
+        np.testing.assert_array_equal(saved, before[slots])
+        np.testing.assert_array_equal(owner, np.searchsorted(start, pair_of[slots], 'right') - 1)
         left = pending != -1
         assert left.any() == lazy
         if lazy and batch and sources == 5:    # one changed pair or several, kept folds
