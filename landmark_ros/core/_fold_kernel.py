@@ -593,7 +593,9 @@ def run(landmark: NDArray[np.intp], order: NDArray[np.intp], position: NDArray[n
         lo: NDArray[np.intp], hi: NDArray[np.intp], key_slots: NDArray[np.intp],
         table: NDArray[np.float64], kept: NDArray[np.bool_], state: NDArray[np.float64],
         gate: NDArray[np.float64], observations: NDArray[np.int64],
-        pending: NDArray[np.int64], lazy: bool, threshold: float) -> NDArray[np.bool_]:
+        pending: NDArray[np.int64], lazy: bool, threshold: float
+        ) -> Tuple[NDArray[np.bool_], Tuple[NDArray[np.int64], NDArray[np.float64],
+                                            NDArray[np.int64]]]:
     """
     Gate the rows of a batch one after the other and fold their landmarks, as the map would.
 
