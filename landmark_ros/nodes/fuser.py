@@ -27,7 +27,9 @@ from landmark_ros.ros.schemas import (landmark_message, NOT_MERGED, read_constra
                                       read_landmark_clouds)
 from landmark_ros.ros.subscriptions import take_waiting
 import numpy as np
+from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.node import Node
+from rclpy.qos import qos_policy_name_from_kind
 from rclpy.qos_overriding_options import QoSOverridingOptions
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header
@@ -63,7 +65,8 @@ class LandmarkFuser(Node):
                 PointCloud2, topic, self._guard(lambda msg, topic=topic: self.on_landmarks(
                     msg, topic), 'landmarks callback'),
                 qos.reliable_input(config.input_depth), qos_overriding_options=overrides,
-                raw=True)
+                raw=True, event_callbacks=self._events(lambda topic=topic: self._source_of[
+                    topic]))
         self._source_of = {topic: subscription.topic_name
                            for topic, subscription in self._subscriptions_by_topic.items()}
         self._constraint_subs = {}
@@ -72,7 +75,9 @@ class LandmarkFuser(Node):
                 PointCloud2, topic, self._guard(
                     lambda msg, topic=topic: self.on_constraints(msg, topic),
                     'constraints callback'),
-                qos.reliable_input(config.input_depth), qos_overriding_options=overrides)
+                qos.reliable_input(config.input_depth), qos_overriding_options=overrides,
+                event_callbacks=self._events(lambda topic=topic: self._constraint_source_of[
+                    topic]))
         self._constraint_source_of = {topic: subscription.topic_name
                                       for topic, subscription in self._constraint_subs.items()}
         self.fuser = Fuser(config, list(self._source_of.values()), self.get_logger(),
@@ -96,6 +101,24 @@ class LandmarkFuser(Node):
         self.create_timer(config.diagnostics_period_s, self._guard(self.publish_diagnostics))
         if config.map_file and config.autosave_period_s > 0.0:
             self.create_timer(config.autosave_period_s, self._guard(self.autosave))
+
+    def _events(self, source_of):
+        """
+        Return the QoS events of an input subscription: incompatible QoS only.
+
+        Counted against the source (``incompatible_qos``, with a throttled warning)
+        instead of rclpy's default warning. rclpy's other default event (incompatible
+        type) is left out: every event handler is one more entity in every wait of
+        the executor, and with 50 input topics the two defaults made each wait cost
+        about 540 instead of 390 us here.
+        """
+        def incompatible(event):
+            self.fuser.reject(source_of(), 'incompatible_qos', 1,
+                              'a publisher offers incompatible QoS, its messages are not '
+                              'received; last policy: '
+                              f'{qos_policy_name_from_kind(event.last_policy_kind)}')
+        return SubscriptionEventCallbacks(incompatible_qos=self._guard(
+            incompatible, 'incompatible QoS event'), use_default_callbacks=False)
 
     def _guard(self, callback, what=None):
         # Callbacks created before the fuser exists count into it once it does.
