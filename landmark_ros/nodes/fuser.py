@@ -29,7 +29,6 @@ from landmark_ros.ros.subscriptions import take_waiting
 import numpy as np
 from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.node import Node
-from rclpy.qos import qos_policy_name_from_kind
 from rclpy.qos_overriding_options import QoSOverridingOptions
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header
@@ -65,8 +64,7 @@ class LandmarkFuser(Node):
                 PointCloud2, topic, self._guard(lambda msg, topic=topic: self.on_landmarks(
                     msg, topic), 'landmarks callback'),
                 qos.reliable_input(config.input_depth), qos_overriding_options=overrides,
-                raw=True, event_callbacks=self._events(lambda topic=topic: self._source_of[
-                    topic]))
+                raw=True, event_callbacks=self._no_events())
         self._source_of = {topic: subscription.topic_name
                            for topic, subscription in self._subscriptions_by_topic.items()}
         self._constraint_subs = {}
@@ -76,8 +74,7 @@ class LandmarkFuser(Node):
                     lambda msg, topic=topic: self.on_constraints(msg, topic),
                     'constraints callback'),
                 qos.reliable_input(config.input_depth), qos_overriding_options=overrides,
-                event_callbacks=self._events(lambda topic=topic: self._constraint_source_of[
-                    topic]))
+                event_callbacks=self._no_events())
         self._constraint_source_of = {topic: subscription.topic_name
                                       for topic, subscription in self._constraint_subs.items()}
         self.fuser = Fuser(config, list(self._source_of.values()), self.get_logger(),
@@ -91,6 +88,7 @@ class LandmarkFuser(Node):
                                                  qos.reliable_output(10))
         self.marker_pub = self.create_publisher(MarkerArray, 'fused_markers', qos.LATCHED)
         self._marker_subscribers = 0
+        self._incompatible = set()      # publishers counted as incompatible_qos (GIDs)
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics',
                                                      qos.DIAGNOSTICS)
         self.create_service(Trigger, '~/reset', self._guard(self.on_reset))
@@ -102,23 +100,38 @@ class LandmarkFuser(Node):
         if config.map_file and config.autosave_period_s > 0.0:
             self.create_timer(config.autosave_period_s, self._guard(self.autosave))
 
-    def _events(self, source_of):
-        """
-        Return the QoS events of an input subscription: incompatible QoS only.
+    @staticmethod
+    def _no_events():
+        # No QoS event handlers on the inputs: each is one more entity in every wait
+        # of the executor (with 50 input topics rclpy's two defaults made a wait cost
+        # 540 instead of 170 us). Incompatible publishers are found by
+        # ``_check_publishers`` instead.
+        return SubscriptionEventCallbacks(use_default_callbacks=False)
 
-        Counted against the source (``incompatible_qos``, with a throttled warning)
-        instead of rclpy's default warning. rclpy's other default event (incompatible
-        type) is left out: every event handler is one more entity in every wait of
-        the executor, and with 50 input topics the two defaults made each wait cost
-        about 540 instead of 390 us here.
+    def _check_publishers(self):
         """
-        def incompatible(event):
-            self.fuser.reject(source_of(), 'incompatible_qos', 1,
-                              'a publisher offers incompatible QoS, its messages are not '
-                              'received; last policy: '
-                              f'{qos_policy_name_from_kind(event.last_policy_kind)}')
-        return SubscriptionEventCallbacks(incompatible_qos=self._guard(
-            incompatible, 'incompatible QoS event'), use_default_callbacks=False)
+        Count each publisher whose QoS cannot reach an input (``incompatible_qos``), once.
+
+        Run with the diagnostics: the publishers of every input topic
+        (``get_publishers_info_by_topic``) against the subscription's QoS
+        (``qos.incompatible_policy``).
+        """
+        inputs = [(self._source_of[topic], subscription)
+                  for topic, subscription in self._subscriptions_by_topic.items()]
+        inputs += [(self._constraint_source_of[topic], subscription)
+                   for topic, subscription in self._constraint_subs.items()]
+        for source, subscription in inputs:
+            for info in self.get_publishers_info_by_topic(subscription.topic_name):
+                gid = bytes(info.endpoint_gid)
+                if gid in self._incompatible:
+                    continue
+                policy = qos.incompatible_policy(subscription.qos_profile, info.qos_profile)
+                if policy is not None:
+                    self._incompatible.add(gid)
+                    name = f'{info.node_namespace.rstrip("/")}/{info.node_name}'
+                    self.fuser.reject(source, 'incompatible_qos', 1,
+                                      f'publisher {name} offers incompatible QoS '
+                                      f'({policy}): its messages are not received')
 
     def _guard(self, callback, what=None):
         # Callbacks created before the fuser exists count into it once it does.
@@ -269,6 +282,7 @@ class LandmarkFuser(Node):
 
     def publish_diagnostics(self):
         """Publish the fuser's status and one status per source on /diagnostics."""
+        self._check_publishers()
         name = self.get_fully_qualified_name()
         diagnostics.publish(self, self.diagnostics_pub, [
             diagnostics.to_msg(status, name, self.get_namespace())

@@ -28,3 +28,37 @@ def reliable_output(depth):
 def reliable_input(depth):
     """Return the QoS of reliable inputs (the fuser's landmark topics)."""
     return reliable_output(depth)
+
+
+def incompatible_policy(requested, offered):
+    """
+    Return the first policy by which a publisher's QoS cannot serve a subscription's.
+
+    DDS matches a writer to a reader only when what the writer offers is at least what
+    the reader requests (request vs offered, "RxO", DDS 1.4 section 2.2.3): reliability
+    (a best-effort writer and a reliable reader), durability (a volatile writer and a
+    transient-local reader) and the deadline (a writer's longer than the reader's).
+
+    Parameters
+    ----------
+    requested, offered : rclpy.qos.QoSProfile
+        The subscription's profile and the publisher's
+        (``Node.get_publishers_info_by_topic``).
+
+    Returns
+    -------
+    str or None
+        ``'RELIABILITY'``, ``'DURABILITY'`` or ``'DEADLINE'``; None when they match.
+
+    """
+    if (requested.reliability == ReliabilityPolicy.RELIABLE
+            and offered.reliability == ReliabilityPolicy.BEST_EFFORT):
+        return 'RELIABILITY'
+    if (requested.durability == DurabilityPolicy.TRANSIENT_LOCAL
+            and offered.durability == DurabilityPolicy.VOLATILE):
+        return 'DURABILITY'
+    infinite = (0, 0x7fffffffffffffff)
+    wanted, given = requested.deadline.nanoseconds, offered.deadline.nanoseconds
+    if wanted not in infinite and (given in infinite or given > wanted):
+        return 'DEADLINE'
+    return None
