@@ -38,8 +38,8 @@ Each method is a small strategy object (``core._fusion_methods``: ``fuse``, ``up
 An observation of a known landmark is gated by its squared Mahalanobis distance
 to the landmark's gate reference ``gate`` (innovation covariance ``P_ref + R``): the
 estimate as it was after the landmark's last refresh, which comes after each of its
-first 15 observations, then 8 times per doubling of its count
-(``_fold_kernel.gate_due``; it holds at least 8/9 of the current information), and
+first 7 observations, then 4 times per doubling of its count
+(``_fold_kernel.gate_due``; it holds at least 4/5 of the current information), and
 after a rebuild, a merge, ``set_estimate`` or ``load_records``. A new ID becomes a
 landmark once ``min_observations`` of its observations agree with each other; a
 landmark rejected ``max_consecutive_rejections`` times in a row is rebuilt from
