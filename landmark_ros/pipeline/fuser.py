@@ -288,13 +288,9 @@ class Fuser:
             for k in range(first, index):
                 if counts[k]:
                     rows = slice(bounds[k], bounds[k + 1])
-                    keep = None if counts[k] == rows.stop - rows.start else valid[rows]
-                    columns = (ids[rows], m[rows], P[rows], P_dep[rows])
-                    if keep is not None:
-                        columns = (columns[0][keep], columns[1][keep], columns[2][keep],
-                                   columns[3][keep])
-                    queued += self._queue(state, every[k], counts[k], unlabelled[k] > 0,
-                                          columns, keep)
+                    keep = slice(None) if counts[k] == rows.stop - rows.start else valid[rows]
+                    queued += self._queue(state, every[k], counts[k], unlabelled[k] > 0, (
+                        ids[rows][keep], m[rows][keep], P[rows][keep], P_dep[rows][keep]), keep)
         return queued
 
     def _other_shard(self, ids, m):
@@ -310,21 +306,20 @@ class Fuser:
     def _queue(self, state: Source, message: LandmarkMessage, count: int, unlabelled: bool,
                columns: Tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64],
                               NDArray[np.float64]],
-               keep: Optional[NDArray[np.bool_]]) -> int:
+               keep: Any) -> int:
         """
         Queue ``count`` checked rows of one message (dropping the oldest of a full queue).
 
         ``columns``: the rows' ``ids, m, P, P_dep``; ``keep``: which rows of the message
-        they are (None: all).
+        they are (a mask, or a slice of all).
         """
         if len(state.queue) >= self.config.max_queue_messages:
             dropped = state.queue.popleft()
             self.reject(state.name, 'queue_overflow', len(dropped.ids),
                         f'more than {self.config.max_queue_messages} messages waiting: '
                         'dropped the oldest')
-        classes = None if message.classes is None else np.asarray(message.classes, np.int64)
-        if classes is not None and keep is not None:
-            classes = classes[keep]
+        classes = None if message.classes is None else np.asarray(message.classes,
+                                                                  np.int64)[keep]
         state.queue.append(_Queued(next(self._sequence), *columns, int(message.stamp_ns),
                                    classes, message.scan, unlabelled))
         return count
