@@ -25,7 +25,7 @@ from landmark_ros.ros.params import declare_config, keep_in_sync
 from landmark_ros.ros.qos import LATCHED  # noqa: F401 (the map outputs' QoS, re-exported)
 from landmark_ros.ros.schemas import (landmark_message, NOT_MERGED, read_constraints,
                                       read_landmark_clouds)
-from landmark_ros.ros.subscriptions import take_waiting
+from landmark_ros.ros.subscriptions import BurstGroup, take_waiting
 import numpy as np
 from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.node import Node
@@ -57,6 +57,9 @@ class LandmarkFuser(Node):
         # qos_overrides.<topic>.subscription.* parameters, per input topic. rclpy applies
         # them to the profile it is given: each subscription gets its own.
         overrides = QoSOverridingOptions.with_default_policies()
+        # One callback takes the clouds waiting on every input; the group then spares
+        # the executor the empty dispatches of the inputs it emptied.
+        self._inputs = BurstGroup(self)
         for topic in config.input_topics:
             # Raw: the clouds are read from their bytes (``cloud_bytes``), not built
             # as Python messages first.
@@ -64,7 +67,7 @@ class LandmarkFuser(Node):
                 PointCloud2, topic, self._guard(lambda msg, topic=topic: self.on_landmarks(
                     msg, topic), 'landmarks callback'),
                 qos.reliable_input(config.input_depth), qos_overriding_options=overrides,
-                raw=True, event_callbacks=self._no_events())
+                raw=True, event_callbacks=self._no_events(), callback_group=self._inputs)
         self._source_of = {topic: subscription.topic_name
                            for topic, subscription in self._subscriptions_by_topic.items()}
         self._constraint_subs = {}
@@ -168,7 +171,7 @@ class LandmarkFuser(Node):
             self._subscriptions_by_topic[topic], PointCloud2, burst - 1, raw=True))]
         for other, subscription in self._subscriptions_by_topic.items():
             if other != topic:
-                waiting = take_waiting(subscription, PointCloud2, burst, raw=True)
+                waiting = self._inputs.take(subscription, PointCloud2, burst, raw=True)
                 if waiting:
                     bursts.append((other, waiting))
         self.fuser.add_landmark_bursts(self._decode_landmarks(bursts), now)

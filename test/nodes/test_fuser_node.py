@@ -833,6 +833,7 @@ def test_input_topics_that_resolve_to_one_topic_are_refused_or_fused_once(env):
 @pytest.mark.parametrize('burst', [1, 16])
 def test_one_callback_takes_the_clouds_waiting_on_every_input_topic(env, monkeypatch, burst):
     import landmark_ros.nodes.fuser as fuser_module
+    import landmark_ros.ros.subscriptions as subscriptions_module
     a, b, c = 'a/landmarks', 'b/landmarks', 'c/landmarks'
     rig = FuserRig(env, topics=(a, b, c), min_observations=1, max_batch_messages=burst)
     subscription = rig.node._subscriptions_by_topic
@@ -852,7 +853,8 @@ def test_one_callback_takes_the_clouds_waiting_on_every_input_topic(env, monkeyp
         out, waiting[sub] = queue[:limit], queue[limit:]
         return out
 
-    monkeypatch.setattr(fuser_module, 'take_waiting', take_waiting)
+    monkeypatch.setattr(fuser_module, 'take_waiting', take_waiting)     # its own topic
+    monkeypatch.setattr(subscriptions_module, 'take_waiting', take_waiting)     # the others
     rig.node.on_landmarks(cloud(1.0, 1), a)
     sources = rig.node.sources
     expected = {a: [1] + [2, 3][:burst - 1], b: [12, 13][:burst], c: []}
