@@ -44,6 +44,7 @@ REQUIRED = [
     'landmark_ros.pipeline.map_file',
     'landmark_ros.pipeline.observer',
     'landmark_ros.pipeline.pose_buffer',
+    'landmark_ros.pipeline.publishing',
     'landmark_ros.pipeline.rows',
     'landmark_ros.pipeline.tracks',
     'landmark_ros.pipeline.views',

@@ -7,8 +7,9 @@ Per robot one ``Observer`` (the ``landmark_observer`` of namespace ``/<robot>``)
 source ``/<robot>/landmarks``. Messages go in in bag order (the order a recorder
 received them); the nodes' timers run on bag time (as with ``use_sim_time`` and
 ``ros2 bag play --clock``), each at its configured period from the first message on:
-the fuser's batch update (``update_period_s``), its map (``publish_rate_hz``, only when
-changed), its updates and markers (``updates_rate_hz``), the observers' waiting
+the fuser's batch update (``update_period_s``), its updates and markers
+(``updates_rate_hz``) and its map (``publish_rate_hz``, only when changed) on one
+publication timer (``pipeline.publishing``), the observers' waiting
 observations (``max_wait_s``) and every node's ``/diagnostics``. After the last message
 the clock runs on long enough for every waiting observation, batch and map to come out.
 
@@ -32,6 +33,7 @@ from landmark_ros.bag.storage import read_message
 from landmark_ros.pipeline.config import FuserConfig, ObserverConfig
 from landmark_ros.pipeline.fuser import Fuser
 from landmark_ros.pipeline.observer import ObservationMessage, Observer
+from landmark_ros.pipeline.publishing import PublicationSchedule
 from landmark_ros.ros import diagnostics
 from landmark_ros.ros.cloud import CloudError, read_columns
 from landmark_ros.ros.conversions import InputError, pose_from_msg, pose_from_odometry
@@ -141,6 +143,8 @@ class BagPipeline:
             out.add_topic(topic, message_class, latched, depth=1 if latched else 10)
         self.truth = None
         self._markers_stale = True
+        self.schedule = PublicationSchedule(self.fuser.config.publish_rate_hz,
+                                            self.fuser.config.updates_rate_hz)
         self.tasks = self._tasks()
         self._statuses = []
         self._statuses_ns = 0
@@ -165,9 +169,7 @@ class BagPipeline:
         tasks = [
             Task(_ns(fuser.update_period_s), lambda now: self.fuser.fuse_queued(),
                  lambda: not self.fuser.queued_messages()),
-            Task(_ns(1.0 / fuser.publish_rate_hz), self.publish_map,
-                 lambda: not self.fuser.map_changed),
-            Task(_ns(1.0 / fuser.updates_rate_hz), self.publish_updates),
+            Task(_ns(self.schedule.period_s), self.publish_outputs),
             Task(_ns(fuser.diagnostics_period_s), self.fuser_diagnostics),
         ]
         for robot, observer in self.observers.items():
@@ -202,8 +204,8 @@ class BagPipeline:
         """Return how long the clock runs after the last message [s]."""
         fuser = self.fuser.config
         wait = max([o.config.max_wait_s for o in self.observers.values()] + [0.0])
-        return (wait + fuser.update_period_s + 1.0 / fuser.publish_rate_hz
-                + 1.0 / fuser.updates_rate_hz + 0.01)
+        return (wait + fuser.update_period_s + self.schedule.map_period_s
+                + self.schedule.updates_period_s + 0.01)
 
     # Inputs ------------------------------------------------------------------------------
 
@@ -274,8 +276,16 @@ class BagPipeline:
         header.stamp.sec, header.stamp.nanosec = divmod(int(now_ns), 1_000_000_000)
         return header
 
+    def publish_outputs(self, now_ns):
+        """Write what is due at this tick of the fuser's publication timer, as the node does."""
+        updates, full_map = self.schedule.tick()
+        if updates:
+            self.publish_updates(now_ns)
+        if full_map:
+            self.publish_map(now_ns)
+
     def publish_map(self, now_ns):
-        """Write the full map if it changed (the fuser's ``publish_rate_hz`` timer)."""
+        """Write the full map if it changed (at most ``publish_rate_hz``)."""
         if not self.fuser.map_changed:
             return
         ids, m, P, P_dep, observations = self.fuser.snapshot()

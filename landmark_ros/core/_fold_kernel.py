@@ -499,11 +499,14 @@ def _locate_kernel(keys, lo, hi, landmark, wanted, position):
     # position[i] = where keys[lo:hi] of row i's landmark holds wanted[i], else -1.
     for i in range(len(wanted)):
         k = landmark[i]
-        position[i] = -1
-        for p in range(lo[k], hi[k]):
-            if keys[p] == wanted[i]:
-                position[i] = p
-                break
+        a, b, key = lo[k], hi[k], wanted[i]
+        while a < b:                # binary search of the landmark's pairs
+            middle = (a + b) >> 1
+            if keys[middle] < key:
+                a = middle + 1
+            else:
+                b = middle
+        position[i] = a if a < hi[k] and keys[a] == key else -1
 
 
 def _merge_kernel(keys, slots, new, new_slots, out_keys, out_slots):
@@ -567,8 +570,8 @@ def locate(keys: NDArray[np.int64], lo: NDArray[np.intp], hi: NDArray[np.intp],
     """
     Return where sorted ``keys`` hold ``wanted[i]`` within ``lo[k]:hi[k]``, ``k = landmark[i]``.
 
-    A scan of each landmark's few pairs instead of a binary search of all keys; -1
-    where the key is not there.
+    A binary search of each landmark's few pairs instead of all keys; -1 where the
+    key is not there.
     """
     position = np.empty(len(wanted), np.int64)
     _locate_kernel(keys, lo, hi, landmark, wanted, position)

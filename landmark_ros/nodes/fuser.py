@@ -16,6 +16,7 @@ import sys
 from diagnostic_msgs.msg import DiagnosticArray
 from landmark_ros.pipeline.config import FuserConfig
 from landmark_ros.pipeline.fuser import Fuser, LandmarkMessage
+from landmark_ros.pipeline.publishing import PublicationSchedule
 from landmark_ros.ros import diagnostics, guard, qos, runner
 from landmark_ros.ros.cloud import CloudError
 from landmark_ros.ros.cloud_bytes import read_cloud_bytes
@@ -97,8 +98,8 @@ class LandmarkFuser(Node):
         self.create_service(Trigger, '~/reset', self._guard(self.on_reset))
         self.create_service(Trigger, '~/save', self._guard(self.on_save))
         self.create_timer(config.update_period_s, self._guard(self.fuse_queued))
-        self.create_timer(1.0 / config.publish_rate_hz, self._guard(self.publish_map))
-        self.create_timer(1.0 / config.updates_rate_hz, self._guard(self.publish_updates))
+        self._schedule = PublicationSchedule(config.publish_rate_hz, config.updates_rate_hz)
+        self.create_timer(self._schedule.period_s, self._guard(self.publish_outputs))
         self.create_timer(config.diagnostics_period_s, self._guard(self.publish_diagnostics))
         if config.map_file and config.autosave_period_s > 0.0:
             self.create_timer(config.autosave_period_s, self._guard(self.autosave))
@@ -233,8 +234,20 @@ class LandmarkFuser(Node):
     def _header(self):
         return Header(stamp=self.get_clock().now().to_msg(), frame_id=self.config.world_frame)
 
+    def publish_outputs(self):
+        """
+        Publish what is due at this tick of the publication timer (``PublicationSchedule``).
+
+        The updates first, then the full map: both from one fold of the map.
+        """
+        updates, full_map = self._schedule.tick()
+        if updates:
+            self.publish_updates()
+        if full_map:
+            self.publish_map()
+
     def publish_map(self):
-        """Publish the full map if it changed (``publish_rate_hz``)."""
+        """Publish the full map if it changed (at most ``publish_rate_hz``)."""
         if not self.fuser.map_changed:
             return
         ids, m, P, P_dep, observations = self.fuser.snapshot()

@@ -250,7 +250,8 @@ class FuserConfig(ConfigBase):
         read_only=True, low=0.001, high=10.0)
     publish_rate_hz: float = param(
         5.0, 'Most full maps (fused_landmarks) per second, published only when the map '
-        'changed.', read_only=True, low=0.01, high=1000.0)
+        'changed; on one timer with the updates (its rate the faster of the two), every '
+        'n-th tick.', read_only=True, low=0.01, high=1000.0)
     updates_rate_hz: float = param(
         10.0, 'Most fused_landmark_updates (the landmarks changed since the last one) and '
         'marker updates per second.', read_only=True, low=0.01, high=1000.0)
