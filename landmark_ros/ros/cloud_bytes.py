@@ -109,9 +109,14 @@ def read_cloud_bytes(raw):
 
 
 _LAYOUTS = {}
-"""Field lists by count: (content mask, masked bytes, fields, layout) of those seen; a
-stream of clouds repeats one. The padding bytes are masked out: CDR leaves them
-unspecified, and serializers do not clear them."""
+"""Field lists by count: (content mask, masked bytes, fields, layout, exact bytes) of
+those seen; a stream of clouds repeats one. The padding bytes are masked out: CDR
+leaves them unspecified, and serializers do not clear them. A few exact byte strings
+of each (padding included) are kept too: a publisher repeats its own, and comparing
+bytes costs a tenth of masking them."""
+
+_EXACT = 16
+"""Exact byte strings kept per field list."""
 
 
 def _parse(buf):
@@ -142,10 +147,16 @@ def _parse(buf):
 
 def _fields(buf, pos, count):
     """Return the ``count`` fields serialized from ``pos`` (4-aligned), their layout, the end."""
-    for mask, masked, fields, layout in _LAYOUTS.get(count, ()):
-        if pos + len(mask) <= len(buf) and np.array_equal(
-                np.frombuffer(buf, np.uint8, len(mask), pos) & mask, masked):
-            return fields, layout, pos + len(mask)
+    for mask, masked, fields, layout, exact in _LAYOUTS.get(count, ()):
+        end = pos + len(mask)
+        if end <= len(buf):
+            raw = bytes(buf[pos:end])
+            if raw in exact:        # bytes seen before, padding included: no masking
+                return fields, layout, end
+            if np.array_equal(np.frombuffer(buf, np.uint8, len(mask), pos) & mask, masked):
+                if len(exact) < _EXACT:
+                    exact.add(raw)
+                return fields, layout, end
     if count > len(buf) // 13:         # a field takes 13 bytes at least
         raise ValueError('more fields than bytes')
     start, fields, pads = pos, [], []
@@ -169,7 +180,7 @@ def _fields(buf, pos, count):
         for lo, hi in pads:
             mask[lo - start:hi - start] = 0
         known.append((mask, np.frombuffer(buf, np.uint8, pos - start, start) & mask, fields,
-                      layout))
+                      layout, {bytes(buf[start:pos])}))
     return fields, layout, pos
 
 
