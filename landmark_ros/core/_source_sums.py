@@ -258,11 +258,8 @@ class _SourceParts:
         if not found.all():
             new = np.unique(keys[~found])
             new_slots = self._insert(new, False)
-            # Every position moves up by the new keys below it.
-            lo = lo + np.searchsorted(new, landmarks << _SOURCE_BITS)
-            hi = hi + np.searchsorted(new, (landmarks + 1) << _SOURCE_BITS)
-            position = position + np.searchsorted(new, keys)
-            position[~found] = np.searchsorted(self.keys, keys[~found])
+            lo, hi = self._bounds(landmarks)
+            position = _fold_kernel.locate(self.keys, lo, hi, landmark, keys)
         state = np.concatenate([landmark_map.mean[landmarks],
                                 np.stack(_entries(landmark_map.cov_ind[landmarks]), axis=1),
                                 np.stack(_entries(landmark_map.cov_dep[landmarks]), axis=1)],
