@@ -19,6 +19,9 @@ from landmark_ros.core.gaussian import information, sci_omega_2x2, split_ci_2x2_
 import numpy as np
 
 _SOURCE_BITS = 24
+
+_COMPACT_SLACK = 4096
+"""Slots no pair holds that ``finish`` tolerates beyond half as many as the pairs."""
 """A (landmark row, source) pair is the key ``row << 24 | source code``."""
 
 
@@ -161,8 +164,28 @@ class _SourceParts:
         return self.keys, self.slots, self.count, self.journal, np.asarray(rows, np.int64)
 
     def finish(self):
-        """Stop journaling (the update the checkpoint was for is over)."""
+        """Stop journaling (the update the checkpoint was for is over); compact if due."""
         self.journal = None
+        if self.count - len(self.keys) > len(self.keys) // 2 + _COMPACT_SLACK:
+            self._compact()
+
+    def _compact(self):
+        """
+        Give back the slots no pair holds (those of forgotten, rebuilt or merged landmarks).
+
+        The live slots move to the front in key order (a landmark's pairs then lie
+        together); ``slots`` and the pending slots follow. Only while no checkpoint
+        holds (the journal and a restore name slots).
+        """
+        live = self.slots
+        self.table[:len(live)] = self.table[live]
+        self.table[len(live):self.count] = 0.0
+        renumber = np.full(self.count, -1, np.int64)
+        renumber[live] = np.arange(len(live))
+        single = self.pending >= 0
+        self.pending[single] = renumber[self.pending[single]]
+        self.slots = np.arange(len(live), dtype=np.int64)
+        self.count = len(live)
 
     def restore(self, state):
         """
@@ -287,13 +310,33 @@ class _SourceParts:
                 np.searchsorted(self.keys, (rows + 1) << _SOURCE_BITS))
 
     def commit(self, run):
-        """Keep a ``run``: note the folds it left pending; drop the pairs no row observed."""
-        self.pending[run['landmarks']] = run['pending']
-        unused = self.table[run['new_slots'], _fold_kernel.VALID] == 0.0
+        """
+        Keep a ``run``: note the folds it left pending; drop the pairs no row observed.
+
+        Their slots are given back when the run's new slots are still the newest (the
+        used ones move down over them): rows gated out on new pairs, batch after
+        batch, would otherwise grow the table without end.
+        """
+        pending, new, new_slots = run['pending'], run['new'], run['new_slots']
+        unused = self.table[new_slots, _fold_kernel.VALID] == 0.0
         if unused.any():
-            at = np.searchsorted(self.keys, run['new'][unused])
-            self.keys = np.delete(self.keys, at)
+            at = np.searchsorted(self.keys, new[unused])
+            self.keys = np.delete(self.keys, at)      # new arrays: the slots change below
             self.slots = np.delete(self.slots, at)
+            first = int(new_slots[0])
+            if first + len(new_slots) == self.count:
+                used = new_slots[~unused]
+                moved = first + np.arange(len(used))
+                self.table[moved] = self.table[used]
+                self.table[first + len(used):self.count] = 0.0
+                self.slots[np.searchsorted(self.keys, new[~unused])] = moved
+                renumber = np.full(len(new_slots), -1, np.int64)
+                renumber[~unused] = moved
+                pending = pending.copy()
+                newer = pending >= first            # a single changed slot among the new
+                pending[newer] = renumber[pending[newer] - first]
+                self.count = first + len(used)
+        self.pending[run['landmarks']] = pending
 
     def rollback(self, run, landmarks=None):
         """
@@ -313,7 +356,7 @@ class _SourceParts:
         keys, slots, count = run['before']
         self.sums[run['touched']] = run['saved']
         self.table[count:self.count] = 0.0
-        self.keys, self.slots = keys, slots
+        self.keys, self.slots, self.count = keys, slots, count
         self.kept[run['landmarks']] = False
 
     @staticmethod

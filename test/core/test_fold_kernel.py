@@ -294,3 +294,114 @@ def test_the_compiled_scale_is_the_numpy_scale_at_every_magnitude(compiled, rng)
         got = np.array([_fold_kernel._scale4(x, y, 0.0, 0.0) for x, y in zip(a, c)])
     np.testing.assert_array_equal(got, expected)
     assert np.isinf(got).any() and (got < 2.3e-308).any()    # both ends reached
+
+
+@pytest.mark.parametrize('settle', [True, False])
+def test_pairs_of_gated_out_rows_give_their_slots_back(compiled, rng, settle):
+    # Rows gated out on (landmark, source) pairs new to the map, batch after batch,
+    # leave no slot behind, and moving the used new slots down over the unused ones
+    # (pending folds included) keeps the map what row-by-row updates give.
+    batched = landmark_map_module.LandmarkMap(max_consecutive_rejections=1000)
+    single = landmark_map_module.LandmarkMap(max_consecutive_rejections=1000)
+    truth = rng.uniform(-20.0, 20.0, (20, 2))
+
+    def batch(index, count):
+        ids = rng.integers(0, 20, count)
+        R = np.tile(0.01 * np.eye(2), (count, 1, 1))
+        z = truth[ids] + rng.normal(0.0, 0.1, (count, 2))
+        names = [f'robot{k}' for k in rng.integers(0, 3, count)]
+        for k in rng.choice(count, 4, replace=False):
+            names[k] = f'intruder{index}'                   # a new pair, gated out
+            z[k] += 5.0
+        for k in rng.choice(count, 2, replace=False):
+            names[k] = f'late{index}'                       # a new pair, accepted
+        return ids, z, R, 0.5 * R, names
+
+    # 40 observations each: a landmark's gate reference is then refreshed every 8th,
+    # so its fold may wait with one changed (new) slot pending.
+    ids = np.repeat(np.arange(20), 40)
+    first = (ids, truth[ids] + rng.normal(0.0, 0.1, (800, 2)),
+             np.tile(0.01 * np.eye(2), (800, 1, 1)))
+    for landmark_map in (batched, single):
+        landmark_map.update(*first, np.tile(0.005 * np.eye(2), (800, 1, 1)),
+                            [f'robot{k % 3}' for k in range(800)], 1)
+    rejected = 0
+    for index in range(12):
+        ids, z, R, R_dep, names = batch(index, 30)
+        result = batched.update(ids, z, R, R_dep, names, 2 + index, settle=settle)
+        rejected += sum(result.rejected.values())
+        for k in range(len(ids)):
+            single.update(ids[k:k + 1], z[k:k + 1], R[k:k + 1], R_dep[k:k + 1], names[k:k + 1],
+                          2 + index, settle=settle)
+        for landmark_map in (batched, single):
+            parts = landmark_map._method.parts
+            # Every slot holds a pair: none left over from a gated-out row.
+            assert parts.count == len(parts.keys)
+            assert sorted(parts.slots.tolist()) == list(range(parts.count))
+            assert_pending_slots_are_own(parts, len(landmark_map))
+    assert rejected >= 12 * 4 - 8
+    for got, expected in zip(batched.snapshot(), single.snapshot()):
+        np.testing.assert_array_equal(got, expected)
+
+
+def assert_pending_slots_are_own(parts, rows):
+    """Assert that a landmark's pending single changed slot is one of its own pairs'."""
+    for row, slot in enumerate(parts.pending[:rows].tolist()):
+        if slot >= 0:
+            lo, hi = parts._bounds(np.array([row]))
+            assert slot in parts.slots[lo[0]:hi[0]].tolist()
+
+
+def test_a_batch_rebuilt_whole_gives_its_new_slots_back(compiled, rng):
+    # Every landmark of the batch rebuilt: the whole run is undone, its new pairs and
+    # their slots with it.
+    landmark_map = landmark_map_module.LandmarkMap(max_consecutive_rejections=2)
+    R = np.tile(0.01 * np.eye(2), (6, 1, 1))
+    landmark_map.update(np.zeros(6, int), rng.normal(0.0, 0.1, (6, 2)), R, 0.5 * R,
+                        [f'robot{k % 2}' for k in range(6)], 1)
+    parts = landmark_map._method.parts
+    before = parts.count
+    result = landmark_map.update(np.zeros(3, int), 5.0 + rng.normal(0.0, 0.1, (3, 2)), R[:3],
+                                 0.5 * R[:3], ['intruder'] * 3, 2)
+    assert result.reinitialised == [0]
+    # The run is undone with its new slot; the rounds then rebuild the landmark from
+    # the new source: its old pairs go (their slots wait for a compaction), one comes.
+    assert len(parts.keys) == 1 and parts.count == before + 1
+
+
+def test_a_compaction_keeps_the_map_and_gives_back_every_free_slot(compiled, rng, monkeypatch):
+    # Landmarks rebuilt and forgotten leave slots without pairs; past the slack a
+    # compaction moves the live ones to the front, pending folds included, and the
+    # map goes on as one that never compacted.
+    maps = [landmark_map_module.LandmarkMap(max_consecutive_rejections=2) for _ in range(2)]
+    compactions = []
+    compact = _source_sums._SourceParts._compact
+
+    def spy(self):
+        compactions.append(int((self.pending >= 0).sum()))
+        compact(self)
+    monkeypatch.setattr(_source_sums._SourceParts, '_compact', spy)
+    truth = rng.uniform(-20.0, 20.0, (30, 2))
+    for step in range(10):
+        # 40 observations of each first (its fold may then wait with one changed slot
+        # pending: gate refreshes every 8th), then a few rows at a time.
+        ids = np.repeat(np.arange(30), 40) if step == 0 else rng.integers(0, 30, 45)
+        R = np.tile(0.01 * np.eye(2), (len(ids), 1, 1))
+        z = truth[ids] + rng.normal(0.0, 0.1, (len(ids), 2))
+        moved = rng.choice(30, 3, replace=False)
+        truth[moved] += 3.0                                 # rebuilt when next seen
+        names = [f'robot{k}' for k in rng.integers(0, 4, len(ids))]
+        for index, landmark_map in enumerate(maps):
+            monkeypatch.setattr(_source_sums, '_COMPACT_SLACK', 0 if index == 0 else 10 ** 9)
+            landmark_map.update(ids, z, R, 0.5 * R, names, 1 + step, settle=step == 0)
+            assert_pending_slots_are_own(landmark_map._method.parts, len(landmark_map))
+            if step == 5:
+                landmark_map.forget(int(moved[0]))
+    compacted, other = (landmark_map._method.parts for landmark_map in maps)
+    assert compactions and max(compactions) > 0        # with single pending slots
+    assert len(compacted.keys) == len(other.keys)
+    assert compacted.count - len(compacted.keys) <= len(compacted.keys) // 2
+    assert other.count - len(other.keys) > len(other.keys) // 2      # what it gave back
+    assert_pending_slots_are_own(compacted, len(maps[0]))
+    for got, expected in zip(maps[0].snapshot(), maps[1].snapshot()):
+        np.testing.assert_array_equal(got, expected)
