@@ -19,10 +19,10 @@ from landmark_ros.core.gaussian import information, sci_omega_2x2, split_ci_2x2_
 import numpy as np
 
 _SOURCE_BITS = 24
+"""A (landmark row, source) pair is the key ``row << 24 | source code``."""
 
 _COMPACT_SLACK = 4096
 """Slots no pair holds that ``finish`` tolerates beyond half as many as the pairs."""
-"""A (landmark row, source) pair is the key ``row << 24 | source code``."""
 
 
 def _entries(P):
@@ -180,7 +180,7 @@ class _SourceParts:
         live = self.slots
         self.table[:len(live)] = self.table[live]
         self.table[len(live):self.count] = 0.0
-        renumber = np.full(self.count, -1, np.int64)
+        renumber = np.full(self.count, -2, np.int64)    # a slot no pair holds: fold all
         renumber[live] = np.arange(len(live))
         single = self.pending >= 0
         self.pending[single] = renumber[self.pending[single]]
@@ -330,7 +330,7 @@ class _SourceParts:
                 self.table[moved] = self.table[used]
                 self.table[first + len(used):self.count] = 0.0
                 self.slots[np.searchsorted(self.keys, new[~unused])] = moved
-                renumber = np.full(len(new_slots), -1, np.int64)
+                renumber = np.full(len(new_slots), -2, np.int64)
                 renumber[~unused] = moved
                 pending = pending.copy()
                 newer = pending >= first            # a single changed slot among the new
