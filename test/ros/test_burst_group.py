@@ -59,8 +59,7 @@ class Burst:
             self.inside(topic)
         for other, subscription in self.subscriptions.items():
             if other != topic and other in self.takes[topic]:
-                take = self.group.take if isinstance(self.group, BurstGroup) else (
-                    lambda *args: take_waiting(*args))
+                take = self.group.take if isinstance(self.group, BurstGroup) else take_waiting
                 self.received[other] += [m.data for m in take(subscription, Int32, 100)]
 
 
