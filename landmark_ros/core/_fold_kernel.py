@@ -253,11 +253,12 @@ def _mahalanobis_sq(dx, dy, a, b, c):
     return (c * dx * dx - 2.0 * b * dx * dy + a * dy * dy) / (a * c - b * b)
 
 
-# Columns of the per-slot table of ``run``: the sums (Y, y, Q), the source's packed
-# estimate (``_source_part``), the prefix fold at its rank, its size, its rank in the
-# fold order, and 1.0 when it holds observations. One row per slot: a landmark's
-# sources are read together.
-PART, PREFIX, SIZE, RANK, VALID, COLUMNS = 9, 17, 25, 26, 27, 28
+# Columns of the per-slot table of ``run``: the sums (Y, y, Q), the slot's rank in
+# its landmark's fold order, 1.0 when it holds observations, the source's packed
+# estimate (``_source_part``), the prefix fold at its rank and its size. One row per
+# slot: a landmark's sources are read together. What every accepted row reads and
+# writes (the sums, rank, flag) comes first: 88 bytes, two cache lines, not three.
+RANK, VALID, PART, PREFIX, SIZE, COLUMNS = 9, 10, 11, 19, 27, 28
 
 GATE_BITS = 2
 """A landmark's gate reference is refreshed 2 ** GATE_BITS times per doubling of its
@@ -273,28 +274,29 @@ def _refold(lo, width, key_slots, table, order, limits):
     n = 0
     for j in range(width):
         t = table[key_slots[lo + j]]
-        if t[27] != 0.0:
-            t[25] = _source_part(t[0:3], t[3:5], t[5:9], True, t[9:17])
+        if t[VALID] != 0.0:
+            t[SIZE] = _source_part(t[0:3], t[3:5], t[5:9], True, t[PART:PART + 8])
             n += 1
         else:
-            t[25] = math.inf
-            t[26] = -1.0
+            t[SIZE] = math.inf
+            t[RANK] = -1.0
     # Stable insertion sort of the pairs by size (key order breaks ties).
     for j in range(width):
-        key = table[key_slots[lo + j], 25]
+        key = table[key_slots[lo + j], SIZE]
         i = j
-        while i > 0 and table[key_slots[lo + order[i - 1]], 25] > key:
+        while i > 0 and table[key_slots[lo + order[i - 1]], SIZE] > key:
             order[i] = order[i - 1]
             i -= 1
         order[i] = j
     t = table[key_slots[lo + order[0]]]
     for i in range(8):
-        t[17 + i] = t[9 + i]
-    t[26] = 0.0
+        t[PREFIX + i] = t[PART + i]
+    t[RANK] = 0.0
     for j in range(1, n):
         t = table[key_slots[lo + order[j]]]
-        _fold_step(table[key_slots[lo + order[j - 1]], 17:25], t[9:17], t[17:25], limits)
-        t[26] = j
+        _fold_step(table[key_slots[lo + order[j - 1]], PREFIX:PREFIX + 8], t[PART:PART + 8],
+                   t[PREFIX:PREFIX + 8], limits)
+        t[RANK] = j
     return key_slots[lo + order[n - 1]]
 
 
@@ -315,21 +317,21 @@ def _move(lo, width, q, key_slots, table, order, limits):
     n = 0
     for j in range(width):
         s = key_slots[lo + j]
-        if s != p and table[s, 27] != 0.0:
+        if s != p and table[s, VALID] != 0.0:
             n += 1
-    old = int(tp[26]) if tp[27] != 0.0 and tp[26] >= 0.0 else n
-    tp[27] = 1.0
+    old = int(tp[RANK]) if tp[VALID] != 0.0 and tp[RANK] >= 0.0 else n
+    tp[VALID] = 1.0
     for j in range(width):
         s = key_slots[lo + j]
-        if s != p and table[s, 27] != 0.0:
-            r = int(table[s, 26])
+        if s != p and table[s, VALID] != 0.0:
+            r = int(table[s, RANK])
             order[r if r < old else r - 1] = j
-    key = _source_part(tp[0:3], tp[3:5], tp[5:9], True, tp[9:17])
-    tp[25] = key
+    key = _source_part(tp[0:3], tp[3:5], tp[5:9], True, tp[PART:PART + 8])
+    tp[SIZE] = key
     new = n
     for j in range(n):
         other = order[j]
-        value = table[key_slots[lo + other], 25]
+        value = table[key_slots[lo + other], SIZE]
         if value > key or (value == key and other > q):
             new = j
             break
@@ -341,13 +343,14 @@ def _move(lo, width, q, key_slots, table, order, limits):
     if j0 == 0:
         t = table[key_slots[lo + order[0]]]
         for i in range(8):
-            t[17 + i] = t[9 + i]
-        t[26] = 0.0
+            t[PREFIX + i] = t[PART + i]
+        t[RANK] = 0.0
         j0 = 1
     for j in range(j0, n):
         t = table[key_slots[lo + order[j]]]
-        _fold_step(table[key_slots[lo + order[j - 1]], 17:25], t[9:17], t[17:25], limits)
-        t[26] = j
+        _fold_step(table[key_slots[lo + order[j - 1]], PREFIX:PREFIX + 8], t[PART:PART + 8],
+                   t[PREFIX:PREFIX + 8], limits)
+        t[RANK] = j
     return key_slots[lo + order[n - 1]]
 
 
@@ -389,7 +392,7 @@ def _settle(k, single, lo, hi, key_slots, table, kept, order, state, limits):
         last = _refold(lo[k], width, key_slots, table, order, limits)
         kept[k] = True
     for j in range(8):
-        state[k, j] = table[last, 17 + j]
+        state[k, j] = table[last, PREFIX + j]
 
 
 def _pending_position(slot, lo, hi, key_slots):
@@ -439,9 +442,9 @@ def _run_kernel(landmark, rows_in_order, position, at, z, R_ind, R_dep, lo, hi, 
                     saved_sums[c, j] = t[j]
                 saved_count += 1
             _add_terms(t, z[x, 0], z[x, 1], R_ind[x], R_dep[x])
-            if t[27] == 0.0:        # a pair new to the fold (no rank yet): observed now
-                t[27] = 1.0
-                t[26] = -1.0
+            if t[VALID] == 0.0:        # a pair new to the fold (no rank yet): observed now
+                t[VALID] = 1.0
+                t[RANK] = -1.0
             if single == -1:
                 single = p
             elif single != p:
