@@ -269,8 +269,10 @@ class FuserConfig(ConfigBase):
         100, 'Messages one source may have waiting; the oldest is dropped beyond.',
         read_only=True, low=1, high=100000)
     max_batch_messages: int = param(
-        16, 'Messages already waiting in each input subscription queue that one callback '
-        'takes and checks together (1 takes one at a time).', low=1, high=1000)
+        16, 'Most messages one callback takes from each input subscription queue and '
+        'checks together: those waiting, then, while the last round took more than one, '
+        'those that arrived meanwhile, for up to a quarter of update_period_s (1 takes one '
+        'at a time).', low=1, high=1000)
     input_depth: int = param(
         100, 'Queue depth of the input subscriptions (reliable QoS).',
         read_only=True, low=1, high=10000)

@@ -862,7 +862,106 @@ def test_one_callback_takes_the_clouds_waiting_on_every_input_topic(env, monkeyp
             for topic in (a, b, c)} == expected
     assert {topic: sources[topic].counts['messages_in'] for topic in (a, b, c)} == {
         topic: len(ids) for topic, ids in expected.items()}
-    assert taken == [(subscription[a], burst - 1), (subscription[b], burst),
-                     (subscription[c], burst)]
+    first = [(subscription[a], burst - 1), (subscription[b], burst), (subscription[c], burst)]
+    # More than one cloud: another round, of the room left per input, finds nothing.
+    again = [(subscription[t], burst - len(expected[t])) for t in (a, b, c)
+             if len(expected[t]) < burst]
+    assert taken == first + again
     rig.node.fuse_queued()
     assert sorted(rig.node.fuser.snapshot()[0].tolist()) == sorted(sum(expected.values(), []))
+
+
+class _Arrivals:
+    """Subscription queues for ``take_waiting``: clouds arrive while a round is processed."""
+
+    def __init__(self, queues, arrivals):
+        self.queues, self.arrivals, self.taken = queues, list(arrivals), []
+
+    def take_waiting(self, sub, msg_type, limit, raw=False):
+        self.taken.append((sub, limit))
+        queue = self.queues.get(sub, [])
+        out, self.queues[sub] = queue[:limit], queue[limit:]
+        return out
+
+    def patch(self, monkeypatch, node):
+        import landmark_ros.nodes.fuser as fuser_module
+        import landmark_ros.ros.subscriptions as subscriptions_module
+        monkeypatch.setattr(fuser_module, 'take_waiting', self.take_waiting)
+        monkeypatch.setattr(subscriptions_module, 'take_waiting', self.take_waiting)
+        add = node.fuser.add_landmark_bursts
+
+        def add_then_arrive(bursts, now):
+            add(bursts, now)
+            if self.arrivals:           # what arrives while this round is processed
+                for sub, clouds in self.arrivals.pop(0).items():
+                    self.queues.setdefault(sub, []).extend(clouds)
+        monkeypatch.setattr(node.fuser, 'add_landmark_bursts', add_then_arrive)
+
+
+def _cloud(stamp, landmark):
+    return landmark_message(header(stamp, 'map'), [landmark], [[1.0 * landmark, 0.0]], [C])
+
+
+def _queued_ids(node, topics):
+    return {topic: [int(item.ids[0]) for item in node.sources[topic].queue] for topic in topics}
+
+
+def test_clouds_arriving_during_a_burst_are_taken_in_further_rounds_up_to_the_cap(
+        env, monkeypatch):
+    a, b, c = 'a/landmarks', 'b/landmarks', 'c/landmarks'
+    rig = FuserRig(env, topics=(a, b, c), min_observations=1, max_batch_messages=4)
+    sub = rig.node._subscriptions_by_topic
+    # Round 1 takes a: 1 + 2, b: 1. Meanwhile 3 arrive on a, 1 on b, 2 on c; round 2
+    # takes a: 1 (its cap of 4), b: 1, c: 2; meanwhile 2 more on b and 1 on c; round 3
+    # takes b: 2 (cap), c: 1; then one arrives on c: round 4 takes it alone, and the
+    # callback stops there (a round of one cloud: the inputs are not busy).
+    arrivals = _Arrivals(
+        {sub[a]: [_cloud(2.0, 2), _cloud(3.0, 3)], sub[b]: [_cloud(1.5, 11)]},
+        [{sub[a]: [_cloud(4.0, 4), _cloud(5.0, 5), _cloud(6.0, 6)], sub[b]: [_cloud(2.5, 12)],
+          sub[c]: [_cloud(1.0, 21), _cloud(2.0, 22)]},
+         {sub[b]: [_cloud(3.5, 13), _cloud(4.5, 14)], sub[c]: [_cloud(3.0, 23)]},
+         {sub[c]: [_cloud(4.0, 24)]},
+         {sub[c]: [_cloud(5.0, 25)]}])
+    arrivals.patch(monkeypatch, rig.node)
+    rig.node.on_landmarks(_cloud(1.0, 1), a)
+    assert _queued_ids(rig.node, (a, b, c)) == {a: [1, 2, 3, 4], b: [11, 12, 13, 14],
+                                                c: [21, 22, 23, 24]}
+    assert [len(arrivals.queues[sub[t]]) for t in (a, b, c)] == [2, 0, 1]   # left to a wait
+    assert arrivals.taken == [(sub[a], 3), (sub[b], 4), (sub[c], 4),
+                              (sub[a], 1), (sub[b], 3), (sub[c], 4),
+                              (sub[b], 2), (sub[c], 2),
+                              (sub[c], 1)]
+    assert {t: rig.node.sources[t].counts['messages_in'] for t in (a, b, c)} == {
+        a: 4, b: 4, c: 4}
+
+
+def test_a_lone_cloud_takes_no_second_round(env, monkeypatch):
+    a, b = 'a/landmarks', 'b/landmarks'
+    rig = FuserRig(env, topics=(a, b), min_observations=1, max_batch_messages=16)
+    sub = rig.node._subscriptions_by_topic
+    arrivals = _Arrivals({}, [{sub[b]: [_cloud(2.0, 12)]}])
+    arrivals.patch(monkeypatch, rig.node)
+    rig.node.on_landmarks(_cloud(1.0, 1), a)
+    assert _queued_ids(rig.node, (a, b)) == {a: [1], b: []}
+    assert arrivals.taken == [(sub[a], 15), (sub[b], 16)]
+
+
+def test_further_rounds_stop_at_a_quarter_of_the_update_period(env, monkeypatch):
+    import landmark_ros.nodes.fuser as fuser_module
+    a, b = 'a/landmarks', 'b/landmarks'
+    rig = FuserRig(env, topics=(a, b), min_observations=1, max_batch_messages=16,
+                   update_period_s=0.04)
+    sub = rig.node._subscriptions_by_topic
+    arrivals = _Arrivals({sub[b]: [_cloud(1.5, 11)]},
+                         [{sub[b]: [_cloud(2.5, 12), _cloud(3.5, 13)]}] * 3)
+    arrivals.patch(monkeypatch, rig.node)
+    # Wall time read at the start, then after each round: 9 ms, then just over 10 ms
+    # (the budget: a quarter of 40 ms) after the start.
+    clock = iter([100.0, 100.009, 100.0101])
+
+    class FakeTime:
+        monotonic = staticmethod(lambda: next(clock))
+    monkeypatch.setattr(fuser_module, 'time', FakeTime)
+    rig.node.on_landmarks(_cloud(1.0, 1), a)
+    assert _queued_ids(rig.node, (a, b)) == {a: [1], b: [11, 12, 13]}
+    assert len(arrivals.taken) == 4     # round 1 (2 takes), round 2 (2), none after
