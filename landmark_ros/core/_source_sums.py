@@ -14,7 +14,7 @@ data fusion with covariance intersection", Handbook of Multisensor Data Fusion, 
 
 from landmark_ros.core import _fold_kernel
 from landmark_ros.core._arrays import (inverse_2x2, power_of_4_scale, psd_projection_2x2,
-                                       symmetric_2x2)
+                                       symmetric_2x2, unique_ints)
 from landmark_ros.core.gaussian import information, sci_omega_2x2, split_ci_2x2_entries
 import numpy as np
 
@@ -126,7 +126,7 @@ class _SourceParts:
         found = position < len(self.keys)
         found[found] = self.keys[position[found]] == keys[found]
         if not found.all():
-            self._insert(np.unique(keys[~found]), True)
+            self._insert(unique_ints(keys[~found]), True)
             position = np.searchsorted(self.keys, keys)
         return self.slots[position]
 
@@ -279,7 +279,7 @@ class _SourceParts:
         found = position >= 0
         new, new_slots = keys[:0], keys[:0]
         if not found.all():
-            new = np.unique(keys[~found])
+            new = unique_ints(keys[~found])
             new_slots = self._insert(new, False)
             lo, hi = self._bounds(landmarks)
             position = _fold_kernel.locate(self.keys, lo, hi, landmark, keys)

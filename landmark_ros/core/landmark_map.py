@@ -61,7 +61,7 @@ from dataclasses import dataclass, field
 from typing import Any, Deque, Dict, List, Mapping, NamedTuple, Optional, Sequence, Tuple, Union
 
 from landmark_ros.core import _fold_kernel
-from landmark_ros.core._arrays import mahalanobis_sq_2x2, symmetric_2x2
+from landmark_ros.core._arrays import mahalanobis_sq_2x2, symmetric_2x2, unique_ints
 from landmark_ros.core._fusion_methods import _SplitCovarianceIntersection, _stack, _STRATEGIES
 from landmark_ros.core._source_sums import _entries, _levels, _SOURCE_BITS
 from landmark_ros.core.gaussian import chi2_threshold
@@ -248,7 +248,7 @@ class LandmarkMap:
         rows = self._lookup(ids)
         if (rows >= 0).all():
             return rows
-        new = np.unique(ids[rows < 0])
+        new = unique_ints(ids[rows < 0])
         if len(new):
             self._grow(len(new))
             rows = np.arange(self._count, self._count + len(new))
@@ -348,7 +348,7 @@ class LandmarkMap:
     def _checkpoint(self, ids):
         """Save what an update of ``ids`` can change (their rows, the registries)."""
         if 8 * len(ids) < self._count:
-            rows = self._lookup(np.unique(ids))
+            rows = self._lookup(unique_ints(ids))
             rows = rows[rows >= 0]
         else:   # a mask over the rows: cheaper than sorting the IDs
             rows = self._lookup(ids)
@@ -446,7 +446,7 @@ class LandmarkMap:
             else:
                 self._add_tentative(rows[i], batch.observation(i), result, changed)
         if changed:
-            result.changed_ids = np.unique(self.ids[np.concatenate(changed)])
+            result.changed_ids = unique_ints(self.ids[np.concatenate(changed)])
         return result
 
     def _codes(self, names, used, first, inverse):
@@ -677,7 +677,7 @@ class LandmarkMap:
             The unconfirmed IDs whose observations were dropped.
 
         """
-        rows = self._lookup(np.unique(np.asarray(ids, dtype=np.int64)))
+        rows = self._lookup(unique_ints(np.asarray(ids, dtype=np.int64)))
         rows = rows[rows >= 0]
         rows = rows[~self.confirmed[rows]]
         for row in rows.tolist():
@@ -703,7 +703,7 @@ class LandmarkMap:
             The landmarks taken out.
 
         """
-        rows = self._lookup(np.unique(np.asarray(ids, dtype=np.int64)))
+        rows = self._lookup(unique_ints(np.asarray(ids, dtype=np.int64)))
         rows = rows[rows >= 0]
         rows = rows[self.confirmed[rows]]
         self.confirmed[rows] = False
@@ -858,7 +858,7 @@ class LandmarkMap:
         if ids is None:
             rows = np.flatnonzero(self.confirmed[:self._count])
         else:
-            rows = self._lookup(np.unique(np.asarray(ids, dtype=np.int64)))
+            rows = self._lookup(unique_ints(np.asarray(ids, dtype=np.int64)))
             rows = rows[rows >= 0]
             rows = rows[self.confirmed[rows]]
         rows = rows[np.argsort(self.ids[rows], kind='stable')]

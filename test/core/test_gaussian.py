@@ -6,6 +6,7 @@ from conftest import assert_psd, random_spd
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from landmark_ros.core import gaussian
+from landmark_ros.core._arrays import unique_ints
 from landmark_ros.core.gaussian import (
     chi2_survival, chi2_threshold, covariance_intersection, covariance_intersection_omega,
     covariance_range_status, covariance_status, fuse, fuse_many, gate, mahalanobis_sq,
@@ -739,3 +740,14 @@ def test_psd_projection_2x2_clips_negative_eigenvalues(rng):
                                rtol=0, atol=1e-12 * np.abs(S).max())     # idempotent
     single = [psd_projection_2x2(*S[k, [0, 0, 1], [0, 1, 1]]) for k in range(120, 140)]
     np.testing.assert_array_equal(np.array(single), np.stack([a, b, c], 1)[120:140])
+
+
+@pytest.mark.parametrize('dtype', [np.int64, np.int32, np.intp, np.uint8])
+@pytest.mark.parametrize('size', [0, 1, 2, 7, 1000])
+def test_unique_ints_is_np_unique(dtype, size):
+    rng = np.random.default_rng(size)
+    values = rng.integers(0, max(size // 3, 1) + 1, (size, 1) if size % 2 else size).astype(dtype)
+    got = unique_ints(values)
+    expected = np.unique(values)
+    assert got.dtype == expected.dtype
+    np.testing.assert_array_equal(got, expected)
