@@ -314,8 +314,8 @@ class _SourceParts:
         Keep a ``run``: note the folds it left pending; drop the pairs no row observed.
 
         Their slots are given back when the run's new slots are still the newest (the
-        used ones move down over them): rows gated out on new pairs, batch after
-        batch, would otherwise grow the table without end.
+        used ones past the new end move into them): rows gated out on new pairs,
+        batch after batch, would otherwise grow the table without end.
         """
         pending, new, new_slots = run['pending'], run['new'], run['new_slots']
         unused = self.table[new_slots, _fold_kernel.VALID] == 0.0
@@ -325,17 +325,21 @@ class _SourceParts:
             self.slots = np.delete(self.slots, at)
             first = int(new_slots[0])
             if first + len(new_slots) == self.count:
-                used = new_slots[~unused]
-                moved = first + np.arange(len(used))
-                self.table[moved] = self.table[used]
-                self.table[first + len(used):self.count] = 0.0
-                self.slots[np.searchsorted(self.keys, new[~unused])] = moved
-                renumber = np.full(len(new_slots), -2, np.int64)
-                renumber[~unused] = moved
+                # The used slots past the new end fill the unused ones below it.
+                end = first + int(np.count_nonzero(~unused))
+                below = new_slots < end
+                holes = np.flatnonzero(unused & below)
+                movers = np.flatnonzero(~unused & ~below)
+                self.table[new_slots[holes]] = self.table[new_slots[movers]]
+                self.table[end:self.count] = 0.0
+                self.slots[np.searchsorted(self.keys, new[movers])] = new_slots[holes]
+                renumber = new_slots.copy()
+                renumber[unused] = -2
+                renumber[movers] = new_slots[holes]
                 pending = pending.copy()
                 newer = pending >= first            # a single changed slot among the new
                 pending[newer] = renumber[pending[newer] - first]
-                self.count = first + len(used)
+                self.count = end
         self.pending[run['landmarks']] = pending
 
     def rollback(self, run, landmarks=None):
