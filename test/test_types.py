@@ -23,6 +23,7 @@ REQUIRED = [
     'landmark_ros.core._arrays',
     'landmark_ros.core._fold_kernel',
     'landmark_ros.core._fusion_methods',
+    'landmark_ros.core._pair_index',
     'landmark_ros.core._partial_geometry',
     'landmark_ros.core._partial_init',
     'landmark_ros.core._partial_model',

@@ -476,54 +476,6 @@ def _settle_kernel(lo, hi, pending, key_slots, table, kept, state, limits):
         pending[k] = -1
 
 
-def _group_kernel(rows, top, order, landmarks, landmark):
-    # Counting sort of rows (values below top): stable order, distinct rows, index.
-    index = np.full(top, -1, np.int64)
-    count = np.zeros(top, np.int64)
-    for r in rows:
-        count[r] += 1
-    distinct = 0
-    start = 0
-    for r in range(top):
-        if count[r]:
-            index[r] = distinct
-            landmarks[distinct] = r
-            count[r], start = start, start + count[r]
-            distinct += 1
-    for i in range(len(rows)):
-        r = rows[i]
-        landmark[i] = index[r]
-        order[count[r]] = i
-        count[r] += 1
-    return distinct
-
-
-def _locate_kernel(keys, lo, hi, landmark, wanted, position):
-    # position[i] = where keys[lo:hi] of row i's landmark holds wanted[i], else -1.
-    for i in range(len(wanted)):
-        k = landmark[i]
-        a, b, key = lo[k], hi[k], wanted[i]
-        while a < b:                # binary search of the landmark's pairs
-            middle = (a + b) >> 1
-            if keys[middle] < key:
-                a = middle + 1
-            else:
-                b = middle
-        position[i] = a if a < hi[k] and keys[a] == key else -1
-
-
-def _merge_kernel(keys, slots, new, new_slots, out_keys, out_slots):
-    # Merge sorted keys and sorted new keys (none in keys), slots alongside.
-    i = j = 0
-    for k in range(len(out_keys)):
-        if j == len(new) or (i < len(keys) and keys[i] < new[j]):
-            out_keys[k], out_slots[k] = keys[i], slots[i]
-            i += 1
-        else:
-            out_keys[k], out_slots[k] = new[j], new_slots[j]
-            j += 1
-
-
 def _compiled_fold(Y, y, Q, valid):
     """Run the kernel on contiguous copies; return ``m, P_ind, P_dep`` as ``_fold``."""
     Y, y, Q = (np.ascontiguousarray(x, dtype=np.float64) for x in (Y, y, Q))
@@ -538,61 +490,6 @@ def _compiled_fold(Y, y, Q, valid):
     P_dep[:, 0, 0], P_dep[:, 0, 1], P_dep[:, 1, 0], P_dep[:, 1, 1] = \
         out[:, 5], out[:, 6], out[:, 6], out[:, 7]
     return out[:, :2].copy(), P_ind, P_dep
-
-
-def group(rows: NDArray[np.intp]) -> Tuple[NDArray[np.intp], NDArray[np.intp], NDArray[np.intp]]:
-    """
-    Group rows by value: what a stable argsort and ``np.unique`` give, in one pass.
-
-    Parameters
-    ----------
-    rows : ndarray of int, shape (N,)
-        Non-negative values (landmark rows).
-
-    Returns
-    -------
-    order : ndarray of int, shape (N,)
-        ``np.argsort(rows, kind='stable')``.
-    distinct : ndarray of int, shape (K,)
-        The distinct values, increasing.
-    index : ndarray of int, shape (N,)
-        Each row's index in ``distinct``.
-
-    """
-    rows = np.ascontiguousarray(rows, dtype=np.int64)
-    order = np.empty(len(rows), np.int64)
-    distinct = np.empty(len(rows), np.int64)
-    index = np.empty(len(rows), np.int64)
-    top = int(rows.max()) + 1 if len(rows) else 0
-    count = _group_kernel(rows, top, order, distinct, index)
-    return order, distinct[:count], index
-
-
-def locate(keys: NDArray[np.int64], lo: NDArray[np.intp], hi: NDArray[np.intp],
-           landmark: NDArray[np.intp], wanted: NDArray[np.int64]) -> NDArray[np.intp]:
-    """
-    Return where sorted ``keys`` hold ``wanted[i]`` within ``lo[k]:hi[k]``, ``k = landmark[i]``.
-
-    A binary search of each landmark's few pairs instead of all keys; -1 where the
-    key is not there.
-    """
-    position = np.empty(len(wanted), np.int64)
-    _locate_kernel(keys, lo, hi, landmark, wanted, position)
-    return position
-
-
-def merge(keys: NDArray[np.int64], slots: NDArray[np.int64], new: NDArray[np.int64],
-          new_slots: NDArray[np.int64]) -> Tuple[NDArray[np.int64], NDArray[np.int64]]:
-    """
-    Return sorted ``keys`` with the sorted ``new`` keys (none already there) merged in.
-
-    What ``np.insert`` at ``np.searchsorted(keys, new)`` gives, in one linear pass;
-    ``slots`` and ``new_slots`` are carried alongside.
-    """
-    out_keys = np.empty(len(keys) + len(new), np.int64)
-    out_slots = np.empty(len(keys) + len(new), np.int64)
-    _merge_kernel(keys, slots, new, new_slots, out_keys, out_slots)
-    return out_keys, out_slots
 
 
 def run(landmark: NDArray[np.intp], order: NDArray[np.intp], position: NDArray[np.intp],
@@ -636,8 +533,8 @@ def run(landmark: NDArray[np.intp], order: NDArray[np.intp], position: NDArray[n
     landmark : ndarray of int, shape (N,)
         Each row's landmark, an index into ``state``, ``gate``, ``lo``, ``hi``, ``kept``.
     order : ndarray of int, shape (N,)
-        The rows grouped by landmark, each landmark's in arrival order (``group``):
-        the order they are taken in (landmarks do not interact).
+        The rows grouped by landmark, each landmark's in arrival order
+        (``_pair_index.group``): the order they are taken in (landmarks do not interact).
     position : ndarray of int, shape (N,)
         Each row's (landmark, source) pair, an index into ``key_slots``.
     at : ndarray of int, shape (N,)
@@ -768,6 +665,5 @@ _tried = False
 _COMPILED = ('_scale4', '_inverse', '_psd', '_log2_det', '_omega_of', '_congruence', '_split_ci',
              '_source_part', '_fold_step', '_fold_all', '_fold_one', '_kernel',
              '_mahalanobis_sq', '_refold', '_move', '_add_terms', '_gate_due', '_settle',
-             '_pending_position', '_run_kernel', '_settle_kernel', '_group_kernel',
-             '_locate_kernel', '_merge_kernel')
+             '_pending_position', '_run_kernel', '_settle_kernel')
 """The functions ``load`` compiles, callees before callers."""

@@ -12,7 +12,7 @@ Sources: split covariance intersection, Julier and Uhlmann, "General decentraliz
 data fusion with covariance intersection", Handbook of Multisensor Data Fusion, 2001.
 """
 
-from landmark_ros.core import _fold_kernel
+from landmark_ros.core import _fold_kernel, _pair_index
 from landmark_ros.core._arrays import (inverse_2x2, power_of_4_scale, psd_projection_2x2,
                                        symmetric_2x2, unique_ints)
 from landmark_ros.core.gaussian import information, sci_omega_2x2, split_ci_2x2_entries
@@ -88,7 +88,7 @@ class _SourceParts:
         slots = self._new_slots(len(new))
         self.table[slots, _fold_kernel.VALID] = 1.0 if valid else 0.0
         if _fold_kernel.AVAILABLE:
-            self.keys, self.slots = _fold_kernel.merge(self.keys, self.slots, new, slots)
+            self.keys, self.slots = _pair_index.merge(self.keys, self.slots, new, slots)
         else:
             at = np.searchsorted(self.keys, new)
             self.keys = np.insert(self.keys, at, new)
@@ -271,18 +271,18 @@ class _SourceParts:
         keys = (rows << _SOURCE_BITS) | codes
         # The distinct landmarks, each row's index in them and the rows grouped by
         # landmark in arrival order (``_apply_run`` reuses it).
-        order, landmarks, landmark = _fold_kernel.group(rows)
+        order, landmarks, landmark = _pair_index.group(rows)
         self._grow_kept(int(landmarks[-1]) + 1)
         before = (self.keys, self.slots, self.count)
         lo, hi = self._bounds(landmarks)
-        position = _fold_kernel.locate(self.keys, lo, hi, landmark, keys)
+        position = _pair_index.locate(self.keys, lo, hi, landmark, keys)
         found = position >= 0
         new, new_slots = keys[:0], keys[:0]
         if not found.all():
             new = unique_ints(keys[~found])
             new_slots = self._insert(new, False)
             lo, hi = self._bounds(landmarks)
-            position = _fold_kernel.locate(self.keys, lo, hi, landmark, keys)
+            position = _pair_index.locate(self.keys, lo, hi, landmark, keys)
         state = np.concatenate([landmark_map.mean[landmarks],
                                 np.stack(_entries(landmark_map.cov_ind[landmarks]), axis=1),
                                 np.stack(_entries(landmark_map.cov_dep[landmarks]), axis=1)],

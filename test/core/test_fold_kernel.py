@@ -1,6 +1,7 @@
 """The compiled split-CI fold and batch run (``core._fold_kernel``) against numpy."""
 
 from landmark_ros.core import _fold_kernel
+from landmark_ros.core import _pair_index
 from landmark_ros.core import _source_sums
 from landmark_ros.core import landmark_map as landmark_map_module
 from landmark_ros.core._arrays import mahalanobis_sq_2x2, power_of_4_scale
@@ -200,7 +201,7 @@ def test_the_gate_schedule_is_the_kernels_and_refreshes_4_times_per_doubling(com
 def test_group_is_a_stable_argsort_and_unique(compiled, rng):
     for rows in (rng.integers(0, 50, 1000), rng.integers(0, 100_000, 300), np.array([7]),
                  np.zeros(5, np.int64)):
-        order, distinct, index = _fold_kernel.group(rows)
+        order, distinct, index = _pair_index.group(rows)
         expected, inverse = np.unique(rows, return_inverse=True)
         np.testing.assert_array_equal(order, np.argsort(rows, kind='stable'))
         np.testing.assert_array_equal(distinct, expected)
@@ -214,7 +215,7 @@ def test_locate_finds_each_key_among_its_landmarks_pairs(compiled, rng):
     lo, hi = np.searchsorted(rows, landmarks), np.searchsorted(rows, landmarks, side='right')
     landmark = rng.integers(0, len(landmarks), 2000)
     wanted = landmarks[landmark] * 100 + rng.integers(0, 100, 2000)
-    position = _fold_kernel.locate(keys, lo, hi, landmark, wanted)
+    position = _pair_index.locate(keys, lo, hi, landmark, wanted)
     there = np.isin(wanted, keys)
     assert there.any() and not there.all()
     np.testing.assert_array_equal(position[~there], -1)
@@ -226,7 +227,7 @@ def test_merge_is_insert_at_the_sorted_places(compiled, rng):
         both = rng.choice(1 << 40, size + extra, replace=False)
         keys, new = np.sort(both[:size]), np.sort(both[size:])
         slots, new_slots = rng.integers(0, 1 << 20, size), rng.integers(0, 1 << 20, extra)
-        got_keys, got_slots = _fold_kernel.merge(keys, slots, new, new_slots)
+        got_keys, got_slots = _pair_index.merge(keys, slots, new, new_slots)
         at = np.searchsorted(keys, new)
         np.testing.assert_array_equal(got_keys, np.insert(keys, at, new))
         np.testing.assert_array_equal(got_slots, np.insert(slots, at, new_slots))
