@@ -47,6 +47,7 @@ REQUIRED = [
     'landmark_ros.pipeline.pose_buffer',
     'landmark_ros.pipeline.publishing',
     'landmark_ros.pipeline.rows',
+    'landmark_ros.pipeline.sources',
     'landmark_ros.pipeline.tracks',
     'landmark_ros.pipeline.views',
 ]

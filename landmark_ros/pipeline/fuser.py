@@ -11,10 +11,9 @@ give one by one). Partial views (range-only, bearing-only rows of the constraint
 ``fuse_queued``. Time is integer nanoseconds throughout.
 """
 
-from collections import Counter, deque
-from dataclasses import dataclass, field
+from collections import Counter
 import itertools
-from typing import Any, Deque, Dict, List, NamedTuple, Optional, Sequence, Tuple
+from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 from landmark_ros.core.landmark_map import LandmarkMap, MapSnapshot, UpdateResult
 from landmark_ros.pipeline import map_file
@@ -22,6 +21,7 @@ from landmark_ros.pipeline.config import FuserConfig
 from landmark_ros.pipeline.counters import Counters, Logger, Status
 from landmark_ros.pipeline.rows import (landmark_row_problems, load_row_kernel, MAX_LABEL_ID,
                                         UNKNOWN_ID)
+from landmark_ros.pipeline.sources import LandmarkMessage, Queued, Source
 from landmark_ros.pipeline.tracks import Scan, shard_of_position, Tracker
 from landmark_ros.pipeline.views import (constraint_row_problems, NOT_PROBLEMS as VIEW_COUNTS,
                                          parse_waiting_records, PartialViews,
@@ -46,71 +46,10 @@ class _Quiet:
         """Drop an error."""
 
 
-@dataclass(frozen=True)
-class _Queued:
-    sequence: int
-    ids: NDArray[np.int64]
-    m: NDArray[np.float64]
-    P: NDArray[np.float64]
-    P_dep: NDArray[np.float64]
-    stamp_ns: int
-    classes: Optional[NDArray[np.int64]] = None
-    scan: Optional[Scan] = None
-    unlabelled: bool = False
-
-
 def _per_message(flags: NDArray[np.bool_], bounds: NDArray[np.int64]) -> List[int]:
     """Return the count of ``flags`` in each message (rows ``bounds[k]:bounds[k + 1]``)."""
     total = np.concatenate([[0], np.cumsum(flags)])
     return (total[bounds[1:]] - total[bounds[:-1]]).tolist()
-
-
-class LandmarkMessage(NamedTuple):
-    """
-    One landmark message of a source, as ``Fuser.add_landmarks`` takes it.
-
-    Attributes
-    ----------
-    stamp_ns : int
-        The message stamp [ns].
-    ids : ndarray of int, shape (N,)
-        Landmark IDs (``UNKNOWN_ID`` for rows without one).
-    m : ndarray, shape (N, 2)
-        Positions in ``world_frame`` [m].
-    P : ndarray, shape (N, 2, 2)
-        Total covariances [m^2].
-    P_dep : ndarray, shape (N, 2, 2)
-        Their dependent parts (zeros when the source does not say).
-    frame_id : str, optional
-        The message's frame, checked against ``world_frame``; None skips the check.
-    classes : ndarray of int, shape (N,), optional
-        Landmark classes (0 when absent).
-    scan : Scan, optional
-        The message's robot pose terms, for the association of rows without an ID
-        (without it they are associated as independent rows).
-
-    """
-
-    stamp_ns: int
-    ids: NDArray[Any]
-    m: NDArray[np.float64]
-    P: NDArray[np.float64]
-    P_dep: NDArray[np.float64]
-    frame_id: Optional[str] = None
-    classes: Optional[NDArray[Any]] = None
-    scan: Optional[Scan] = None
-
-
-@dataclass
-class Source:
-    """One input of the fuser (a robot's landmark topic): its queue and counters."""
-
-    name: str
-    queue: Deque[_Queued] = field(default_factory=deque)
-    counts: Counter[str] = field(default_factory=Counter)
-    last_message_ns: Optional[int] = None
-    optional: bool = False
-    """A constraint source: not stale before its first message (rb-only teams)."""
 
 
 class Fuser:
@@ -320,8 +259,8 @@ class Fuser:
                         'dropped the oldest')
         classes = None if message.classes is None else np.asarray(message.classes,
                                                                   np.int64)[keep]
-        state.queue.append(_Queued(next(self._sequence), *columns, int(message.stamp_ns),
-                                   classes, message.scan, unlabelled))
+        state.queue.append(Queued(next(self._sequence), *columns, int(message.stamp_ns),
+                                  classes, message.scan, unlabelled))
         return count
 
     def add_constraints(self, source: str, stamp_ns: int, columns: Dict[str, NDArray[Any]],
@@ -444,7 +383,7 @@ class Fuser:
     def _counts_of(self) -> Dict[str, Counter[str]]:
         return {name: state.counts for name, state in self.sources.items()}
 
-    def _associate(self, item: _Queued, name: str) -> _Queued:
+    def _associate(self, item: Queued, name: str) -> Queued:
         """Return ``item`` with the IDs of its unlabelled rows given (ambiguous dropped)."""
         unlabelled = item.ids == UNKNOWN_ID
         classes = item.classes
@@ -459,10 +398,10 @@ class Fuser:
         keep = ids >= 0
         self.tracker.note_rows(ids[keep], item.m[keep], item.P[keep], item.P_dep[keep], name,
                                item.stamp_ns)
-        return _Queued(item.sequence, ids[keep], item.m[keep], item.P[keep], item.P_dep[keep],
-                       item.stamp_ns, classes[keep], item.scan, False)
+        return Queued(item.sequence, ids[keep], item.m[keep], item.P[keep], item.P_dep[keep],
+                      item.stamp_ns, classes[keep], item.scan, False)
 
-    def _apply(self, items: Sequence[Tuple[_Queued, str]]) -> UpdateResult:
+    def _apply(self, items: Sequence[Tuple[Queued, str]]) -> UpdateResult:
         """Fuse queued messages (labelled rows only) in one ``LandmarkMap.update``."""
         lengths = [len(item.ids) for item, _ in items]
         names: Dict[str, int] = {}
