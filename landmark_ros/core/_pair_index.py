@@ -2,10 +2,11 @@
 The index of split CI's (landmark, source) pairs, compiled with numba when it is installed.
 
 ``_source_sums`` keeps the pairs as sorted int64 keys (landmark row, then source
-code) with a slot each. A batch groups its rows by landmark (``group``), finds each
-row's pair among its landmark's (``locate``) and merges the new pairs into the keys
-(``merge``): three linear or logarithmic loops, compiled as ``_fold_kernel``'s are
-(``_fold_kernel.compiled``: no fast-math), plain Python without numba.
+code) with a slot each. A batch groups its rows by landmark (``group``), finds where
+each landmark's pairs lie (``bounds``) and each row's pair among them (``locate``),
+and merges the new pairs into the keys (``merge``): linear or logarithmic loops,
+compiled as ``_fold_kernel``'s are (``_fold_kernel.compiled``: no fast-math), plain
+Python without numba.
 """
 
 from typing import Any, Callable, Dict, Tuple
@@ -35,6 +36,31 @@ def _group_kernel(rows, top, order, landmarks, landmark):
         order[count[r]] = i
         count[r] += 1
     return distinct
+
+
+def _bounds_kernel(keys, landmarks, shift, lo, hi):
+    # keys[lo[k]:hi[k]] = those of landmark landmarks[k] (increasing): a galloping
+    # search forward from the previous landmark's end, then a scan of its few pairs.
+    n = len(keys)
+    a = 0
+    for k in range(len(landmarks)):
+        first, end = landmarks[k] << shift, (landmarks[k] + 1) << shift
+        b, step = a, 1
+        while b < n and keys[b] < first:
+            a = b + 1
+            b += step
+            step <<= 1
+        b = min(b, n)
+        while a < b:
+            middle = (a + b) >> 1
+            if keys[middle] < first:
+                a = middle + 1
+            else:
+                b = middle
+        lo[k] = a
+        while a < n and keys[a] < end:
+            a += 1
+        hi[k] = a
 
 
 def _locate_kernel(keys, lo, hi, landmark, wanted, position):
@@ -89,6 +115,22 @@ def group(rows: NDArray[np.intp]) -> Tuple[NDArray[np.intp], NDArray[np.intp], N
     top = int(rows.max()) + 1 if len(rows) else 0
     count = _compiled('_group_kernel')(rows, top, order, distinct, index)
     return order, distinct[:count], index
+
+
+def bounds(keys: NDArray[np.int64], landmarks: NDArray[np.int64],
+           shift: int) -> Tuple[NDArray[np.intp], NDArray[np.intp]]:
+    """
+    Return where the keys of each landmark start and end in sorted ``keys``.
+
+    A landmark's keys are ``landmark << shift`` up to ``(landmark + 1) << shift``;
+    ``landmarks`` increasing. What ``np.searchsorted`` of both ends gives, in one
+    forward pass (a batch's landmarks are close together in the keys).
+    """
+    landmarks = np.ascontiguousarray(landmarks, dtype=np.int64)
+    lo = np.empty(len(landmarks), np.int64)
+    hi = np.empty(len(landmarks), np.int64)
+    _compiled('_bounds_kernel')(keys, landmarks, int(shift), lo, hi)
+    return lo, hi
 
 
 def locate(keys: NDArray[np.int64], lo: NDArray[np.intp], hi: NDArray[np.intp],

@@ -274,14 +274,14 @@ class _SourceParts:
         order, landmarks, landmark = _pair_index.group(rows)
         self._grow_kept(int(landmarks[-1]) + 1)
         before = (self.keys, self.slots, self.count)
-        lo, hi = self._bounds(landmarks)
+        lo, hi = _pair_index.bounds(self.keys, landmarks, _SOURCE_BITS)
         position = _pair_index.locate(self.keys, lo, hi, landmark, keys)
         found = position >= 0
         new, new_slots = keys[:0], keys[:0]
         if not found.all():
             new = unique_ints(keys[~found])
             new_slots = self._insert(new, False)
-            lo, hi = self._bounds(landmarks)
+            lo, hi = _pair_index.bounds(self.keys, landmarks, _SOURCE_BITS)
             position = _pair_index.locate(self.keys, lo, hi, landmark, keys)
         state = np.concatenate([landmark_map.mean[landmarks],
                                 np.stack(_entries(landmark_map.cov_ind[landmarks]), axis=1),

@@ -208,6 +208,17 @@ def test_group_is_a_stable_argsort_and_unique(compiled, rng):
         np.testing.assert_array_equal(index, inverse.reshape(-1))
 
 
+def test_bounds_is_searchsorted_of_both_ends(compiled, rng):
+    shift = 24
+    for size, count in ((3000, 500), (0, 4), (5, 1), (3000, 2000)):
+        keys = np.unique((rng.integers(0, 2000, size) << shift) | rng.integers(0, 50, size))
+        landmarks = np.unique(rng.integers(0, 2100, count))   # some without keys
+        lo, hi = _pair_index.bounds(keys, landmarks, shift)
+        np.testing.assert_array_equal(lo, np.searchsorted(keys, landmarks << shift))
+        np.testing.assert_array_equal(hi, np.searchsorted(keys, (landmarks + 1) << shift))
+        assert size < 1000 or (hi > lo).any()
+
+
 def test_locate_finds_each_key_among_its_landmarks_pairs(compiled, rng):
     keys = np.unique(rng.integers(0, 10_000, 3000))
     rows = keys // 100
