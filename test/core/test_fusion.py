@@ -7,7 +7,7 @@ true error covariance from the gains) and by Monte Carlo with known correlations
 """
 
 from conftest import assert_psd, random_spd
-from landmark_ros.core import gaussian
+from landmark_ros.core import _fold_kernel, gaussian
 from landmark_ros.core.gaussian import (
     covariance_intersection, covariance_intersection_omega, fuse,
     split_covariance_intersection, split_covariance_intersection_omega)
@@ -308,6 +308,69 @@ def test_sci_omega_is_the_exact_optimum(n, rng):
         for a, b in zip(fused, reference):
             assert_close_scaled(a, b, tol)
     assert interior >= 20
+
+
+def quadratic_stop_cases(seed, count):
+    """Return entries of random split-CI parts, from mild to 1e4 scales and near-singular."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for spread in (0.5, 2.0, 4.0):
+        A = rng.normal(size=(count, 2, 2)) * 10.0 ** rng.uniform(-spread, spread, (count, 1, 1))
+        floor = 10.0 ** rng.uniform(-2.0 * spread, 0.0, (count, 1, 1))
+        P1 = A @ np.swapaxes(A, 1, 2) + floor * np.eye(2)
+        P2 = np.roll(P1, 1, axis=0) * rng.uniform(0.1, 10.0, (count, 1, 1))
+        f1, f2 = rng.uniform(0.0, 1.0, (2, count, 1, 1))
+        f1[:count // 8] = 0.0       # singular dependent parts
+        f2[count // 8:count // 4] = 1.0
+        out.append(tuple((P[:, 0, 0], P[:, 0, 1], P[:, 1, 1]) for P in (
+            (1.0 - f1) * P1, f1 * P1, (1.0 - f2) * P2, f2 * P2)))
+    return out
+
+
+def test_sci_omega_quadratic_stop_agrees_with_the_full_search(monkeypatch):
+    # The early stop (quadratic convergence predicts the next step below the tolerance)
+    # gives the full search's weight but where log det is flat to rounding; never after
+    # a jump to an end of the bracket, where the Newton steps are tiny and not converging.
+    for parts in quadratic_stop_cases(3, 20_000):
+        quick = gaussian.sci_omega_2x2(*parts)
+        with monkeypatch.context() as patch:
+            patch.setattr(gaussian, '_OMEGA_QUADRATIC', 0.0)
+            full = gaussian.sci_omega_2x2(*parts)
+        difference = np.abs(quick - full)
+        assert difference.max() <= 1e-6
+        assert np.quantile(difference, 0.999) <= 1e-10
+
+
+def test_sci_omega_quadratic_stop_saves_a_newton_step(monkeypatch):
+    calls = []
+    slope = gaussian._sci_slope
+    monkeypatch.setattr(gaussian, '_sci_slope', lambda *a: calls.append(1) or slope(*a))
+    parts = quadratic_stop_cases(5, 400)[0]
+    counts = []
+    for quadratic in (gaussian._OMEGA_QUADRATIC, 0.0):
+        monkeypatch.setattr(gaussian, '_OMEGA_QUADRATIC', quadratic)
+        calls.clear()
+        for i in range(100, 400):   # one element at a time: a call per Newton step
+            gaussian.sci_omega_2x2(*(tuple(x[i:i + 1] for x in part) for part in parts))
+        counts.append(len(calls))
+    assert counts[0] <= counts[1] - 0.15 * 300, counts     # 1479 against 1554 here
+
+
+def test_sci_omega_stays_inside_a_collapsed_bracket():
+    # Found by test_gaussian's range test: scales 1e-12 to 1e12 make the slope rounding
+    # noise; the bracket narrows to nothing while the Newton point lands past 1.
+    P1i = np.array([[285288441006.45984, 444295202210.24756],
+                    [444295202210.24756, 691958552321.5609]])
+    P2i = np.array([[977237220955.8112, 0.0], [0.0, 1000.0]])
+    P1d = np.array([[9.965365501409348e-06, -2.1774718636614557e-05],
+                    [-2.1774718636614557e-05, 4.757862925559931e-05]])
+    P2d = 1.0232929922807536e-12 * np.eye(2)
+    omega = split_covariance_intersection_omega(P1i, P1d, P2i, P2d)
+    assert 0.8 < omega < 0.85
+    entries = [(P[0, 0], P[0, 1], P[1, 1]) for P in (P1i, P1d, P2i, P2d)]
+    kernel = _fold_kernel.load() and _fold_kernel._omega_of(
+        *(x for e in entries for x in e), _fold_kernel._limits())
+    assert kernel is None or kernel == omega
 
 
 def test_ci_omega_is_the_exact_optimum(rng):
