@@ -188,13 +188,14 @@ def _split_ci(first, second, omega, out):
     u, v = omega, 1.0 - omega
     d10, d11, d12 = p1d0 / u, p1d1 / u, p1d2 / u
     d20, d21, d22 = p2d0 / v, p2d1 / v, p2d2 / v
-    ai0, ai1, ai2 = _inverse(d10 + p1i0, d11 + p1i1, d12 + p1i2)
-    bi0, bi1, bi2 = _inverse(d20 + p2i0, d21 + p2i1, d22 + p2i2)
-    q0, q1, q2 = _inverse(ai0 + bi0, ai1 + bi1, ai2 + bi2)
-    w10, w11, w12, w13 = (q0 * ai0 + q1 * ai1, q0 * ai1 + q1 * ai2,
-                          q1 * ai0 + q2 * ai1, q1 * ai1 + q2 * ai2)
-    w20, w21, w22, w23 = (q0 * bi0 + q1 * bi1, q0 * bi1 + q1 * bi2,
-                          q1 * bi0 + q2 * bi1, q1 * bi1 + q2 * bi2)
+    a0, a1, a2 = d10 + p1i0, d11 + p1i1, d12 + p1i2
+    b0, b1, b2 = d20 + p2i0, d21 + p2i1, d22 + p2i2
+    q0, q1, q2 = _inverse(a0 + b0, a1 + b1, a2 + b2)
+    # W1 = B (A + B)^-1, W2 = A (A + B)^-1.
+    w10, w11, w12, w13 = (b0 * q0 + b1 * q1, b0 * q1 + b1 * q2,
+                          b1 * q0 + b2 * q1, b1 * q1 + b2 * q2)
+    w20, w21, w22, w23 = (a0 * q0 + a1 * q1, a0 * q1 + a1 * q2,
+                          a1 * q0 + a2 * q1, a1 * q1 + a2 * q2)
     m0 = w10 * first[0] + w11 * first[1] + w20 * second[0] + w21 * second[1]
     m1 = w12 * first[0] + w13 * first[1] + w22 * second[0] + w23 * second[1]
     i1 = _congruence(w10, w11, w12, w13, p1i0, p1i1, p1i2)

@@ -750,8 +750,10 @@ def split_ci_2x2_entries(
 
     Notes
     -----
-    Information form (see ``fuse_2x2``) with gains ``W1 = P A^-1``, ``W2 = P B^-1``;
-    both parts are congruences, ``P_ind = W1 P1i W1^T + W2 P2i W2^T`` and
+    With ``A = P1d / omega + P1i`` and ``B = P2d / (1 - omega) + P2i``, the gains
+    ``W1 = P A^-1 = B (A + B)^-1`` and ``W2 = P B^-1 = A (A + B)^-1``: one inverse, of
+    ``A + B`` (which stays regular when ``A`` or ``B`` is singular). Both parts are
+    congruences, ``P_ind = W1 P1i W1^T + W2 P2i W2^T`` and
     ``P_dep = W1 (P1d / omega) W1^T + W2 (P2d / (1 - omega)) W2^T``: positive
     semi-definite by construction, each accurate on its own scale.
 
@@ -761,12 +763,12 @@ def split_ci_2x2_entries(
     u, v = omega, 1.0 - omega
     D1 = _divide(P1d, u)
     D2 = _divide(P2d, v)
-    Ai = inverse_2x2(*(d + i for d, i in zip(D1, P1i)))
-    Bi = inverse_2x2(*(d + i for d, i in zip(D2, P2i)))
-    P = inverse_2x2(*(x + y for x, y in zip(Ai, Bi)))
-    # W1 = P A^-1, W2 = P B^-1 (W1 + W2 = I).
-    w1 = _product(P, Ai)
-    w2 = _product(P, Bi)
+    A = (D1[0] + P1i[0], D1[1] + P1i[1], D1[2] + P1i[2])
+    B = (D2[0] + P2i[0], D2[1] + P2i[1], D2[2] + P2i[2])
+    Si = inverse_2x2(*(x + y for x, y in zip(A, B)))
+    # W1 = B (A + B)^-1, W2 = A (A + B)^-1 (W1 + W2 = I).
+    w1 = _product(B, Si)
+    w2 = _product(A, Si)
     m = (w1[0] * m1[0] + w1[1] * m1[1] + w2[0] * m2[0] + w2[1] * m2[1],
          w1[2] * m1[0] + w1[3] * m1[1] + w2[2] * m2[0] + w2[3] * m2[1])
     P_ind = _sum_times(_congruence(*w1, P1i), _congruence(*w2, P2i), s)
