@@ -281,14 +281,18 @@ estimate. 3 (8/9) cost about a third more in the fold for landmarks with tens of
 sources, and gave the same MRCLAM and Monte Carlo figures."""
 
 
-def _refold(lo, width, key_slots, table, order, limits):
-    # The whole fold of one landmark (pairs key_slots[lo:lo + width]), as _fold_one,
-    # kept per slot.
+def _refold(lo, width, key_slots, table, order, limits, partial):
+    # The fold of one landmark (pairs key_slots[lo:lo + width]), as _fold_one, kept per
+    # slot. ``partial``: the kept fold holds for the pairs not marked changed (size NaN,
+    # or rank -1: new to the fold); their estimates are kept and the fold is redone
+    # from the first place where the order differs. Otherwise all of it.
     n = 0
     for j in range(width):
         t = table[key_slots[lo + j]]
         if t[VALID] != 0.0:
-            t[SIZE] = _source_part(t[0:3], t[3:5], t[5:9], True, t[PART:PART + 8])
+            if not partial or t[RANK] < 0.0 or t[SIZE] != t[SIZE]:
+                t[SIZE] = _source_part(t[0:3], t[3:5], t[5:9], True, t[PART:PART + 8])
+                t[RANK] = -1.0
             n += 1
         else:
             t[SIZE] = math.inf
@@ -301,11 +305,19 @@ def _refold(lo, width, key_slots, table, order, limits):
             order[i] = order[i - 1]
             i -= 1
         order[i] = j
-    t = table[key_slots[lo + order[0]]]
-    for i in range(8):
-        t[PREFIX + i] = t[PART + i]
-    t[RANK] = 0.0
-    for j in range(1, n):
+    # The first places hold the same unchanged pairs as before: their prefixes hold.
+    start = 0
+    while start < n and table[key_slots[lo + order[start]], RANK] == start:
+        start += 1
+    if start == n:
+        return key_slots[lo + order[n - 1]]
+    if start == 0:
+        t = table[key_slots[lo + order[0]]]
+        for i in range(8):
+            t[PREFIX + i] = t[PART + i]
+        t[RANK] = 0.0
+        start = 1
+    for j in range(start, n):
         t = table[key_slots[lo + order[j]]]
         _fold_step(table[key_slots[lo + order[j - 1]], PREFIX:PREFIX + 8], t[PART:PART + 8],
                    t[PREFIX:PREFIX + 8], limits)
@@ -402,7 +414,7 @@ def _settle(k, single, lo, hi, key_slots, table, kept, order, state, limits):
     if kept[k] and single >= 0:
         last = _move(lo[k], width, single - lo[k], key_slots, table, order, limits)
     else:
-        last = _refold(lo[k], width, key_slots, table, order, limits)
+        last = _refold(lo[k], width, key_slots, table, order, limits, kept[k])
         kept[k] = True
     for j in range(8):
         state[k, j] = table[last, PREFIX + j]
@@ -455,6 +467,7 @@ def _run_kernel(landmark, rows_in_order, position, at, z, R_ind, R_dep, lo, hi, 
                     saved_sums[c, j] = t[j]
                 saved_count += 1
             _add_terms(t, z[x, 0], z[x, 1], R_ind[x], R_dep[x])
+            t[SIZE] = math.nan          # its estimate in the kept fold is stale
             if t[VALID] == 0.0:        # a pair new to the fold (no rank yet): observed now
                 t[VALID] = 1.0
                 t[RANK] = -1.0

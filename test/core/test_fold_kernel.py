@@ -1,5 +1,6 @@
 """The compiled split-CI fold and batch run (``core._fold_kernel``) against numpy."""
 
+from conftest import random_spd
 from landmark_ros.core import _fold_kernel
 from landmark_ros.core import _pair_index
 from landmark_ros.core import _source_sums
@@ -99,15 +100,18 @@ def loop_run(landmark, pair, terms, z, R, start, sums, valid, state, gate, obser
     return accepted, other_way
 
 
-@pytest.mark.parametrize('lazy', [False, True])
+@pytest.mark.parametrize('lazy, dependent', [(False, 1.0), (True, 1.0), (True, 0.98)])
 @pytest.mark.parametrize('sources', [5, 50])
 def test_run_equals_gating_and_folding_row_by_row_batch_after_batch(
-        compiled, rng, sources, lazy):
+        compiled, rng, sources, lazy, dependent):
     # The run keeps each landmark's fold per slot between batches and refolds from
-    # the first source whose place changed (one changed) or whole (several); pairs
-    # are reached through a shuffled slot index, some hold no observation yet. Rows
-    # are gated against references refreshed on the schedule of ``gate_due``. Lazy:
-    # folds left pending carry over to the next batch; ``settle`` does them.
+    # the first place that changed: one changed source moves to its new place, with
+    # several the changed ones get new estimates and the unchanged first places keep
+    # theirs. Pairs are reached through a shuffled slot index, some hold no
+    # observation yet. Rows are gated against references refreshed on the schedule of
+    # ``gate_due``. Lazy: folds left pending carry over to the next batch; ``settle``
+    # does them. ``dependent``: least fraction of a row's covariance that is dependent
+    # (0.98: a source's estimate can grow and move to a later place).
     landmarks, count = 30, 300
     width = rng.integers(1, sources + 1, landmarks)
     start = np.concatenate([[0], np.cumsum(width)])
@@ -134,7 +138,7 @@ def test_run_equals_gating_and_folding_row_by_row_batch_after_batch(
         pair = start[landmark] + rng.integers(0, 1 << 30, count) % width[landmark]
         R_ind = np.stack([np.full(count, 0.04), rng.uniform(-0.01, 0.01, count),
                           np.full(count, 0.05)], axis=1)
-        R_dep = R_ind * rng.uniform(0.0, 1.0, (count, 1))
+        R_dep = R_ind * rng.uniform(1.0 - dependent, 1.0, (count, 1))
         R_full = np.zeros((count, 2, 2))
         R_full[:, 0, 0], R_full[:, 0, 1], R_full[:, 1, 0], R_full[:, 1, 1] = (
             R_ind[:, 0], R_ind[:, 1], R_ind[:, 1], R_ind[:, 2])
@@ -182,6 +186,40 @@ def test_run_equals_gating_and_folding_row_by_row_batch_after_batch(
         np.testing.assert_array_equal(table[key_slots, :9], sums)
         np.testing.assert_array_equal(table[key_slots, _fold_kernel.VALID] != 0, valid)
     assert other_way > 0
+
+
+def test_a_partial_refold_is_the_whole_refold_bit_for_bit(compiled, rng):
+    # Several sources of a landmark with a kept fold changed: their estimates are
+    # redone, the others' kept, the fold redone from the first place that changed.
+    # Changed sources move either way (a large dependent part can grow an estimate),
+    # which shifts unchanged ones to other places before the first changed one.
+    width, limits = 5, _fold_kernel._limits()
+    Y, y, Q, _ = random_sums(rng, 2000 * width, 1)
+    shifted = 0
+    for trial in range(2000):
+        table = np.zeros((width, _fold_kernel.COLUMNS))
+        rows = slice(trial * width, (trial + 1) * width)
+        table[:, :9] = np.concatenate([Y[rows, 0], y[rows, 0], Q[rows, 0]], axis=1)
+        table[:, _fold_kernel.VALID] = 1.0
+        key_slots, order = rng.permutation(width), np.empty(width, np.int64)
+        _fold_kernel._refold(0, width, key_slots, table, order, limits, False)
+        rank = table[:, _fold_kernel.RANK].copy()
+        changed = rng.choice(width, rng.integers(2, 4), replace=False)
+        for j in changed:
+            R = random_spd(rng, 2)
+            share = rng.uniform(0.9, 0.999)
+            _fold_kernel._add_terms(table[j], 0.1, -0.2, (1.0 - share) * R, share * R)
+            table[j, _fold_kernel.SIZE] = np.nan
+        whole = table.copy()
+        last = _fold_kernel._refold(0, width, key_slots, table, order, limits, True)
+        expected = _fold_kernel._refold(0, width, key_slots, whole, order, limits, False)
+        np.testing.assert_array_equal(table[last, _fold_kernel.PREFIX:],
+                                      whole[expected, _fold_kernel.PREFIX:])
+        np.testing.assert_array_equal(table[:, _fold_kernel.RANK], whole[:, _fold_kernel.RANK])
+        first = min(int(whole[j, _fold_kernel.RANK]) for j in changed)
+        place = whole[:, _fold_kernel.RANK]
+        shifted += bool(((place < first) & (place != rank)).any())
+    assert shifted > 100
 
 
 def test_the_gate_schedule_is_the_kernels_and_refreshes_4_times_per_doubling(compiled):
