@@ -316,11 +316,14 @@ def _omega_of_information(A, B):
     det_D = dxx * dyy - dxy * dxy
     with np.errstate(divide='ignore', invalid='ignore'):
         stationary = np.clip(np.where(det_D < 0.0, -t / (2.0 * det_D), 0.0), 0.0, 1.0)
-    candidates = np.stack([np.zeros_like(t), np.ones_like(t), stationary], axis=-1)
-    value = candidates * t[..., None] + candidates ** 2 * det_D[..., None]
-    value = np.where(np.isnan(value), -np.inf, value)
-    best = np.take_along_axis(candidates, np.argmax(value, axis=-1)[..., None], axis=-1)
-    return best[..., 0][()]
+        # w t + w^2 det D at the candidates 0, 1 and the stationary point, NaN as -inf;
+        # the first of the largest wins.
+        at_0 = 0.0 * t + 0.0 * det_D
+        at_1 = t + det_D
+        at_s = stationary * t + (stationary * stationary) * det_D
+    at_0, at_1, at_s = (np.where(x == x, x, -np.inf) for x in (at_0, at_1, at_s))
+    best = np.where(at_1 > at_0, 1.0, 0.0)
+    return np.where(at_s > np.maximum(at_0, at_1), stationary, best)[()]
 
 
 def _omega_golden(A, B, iterations=80):
