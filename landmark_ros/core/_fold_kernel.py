@@ -409,7 +409,7 @@ def _gate_due(n):
 
 def _settle(k, single, lo, hi, key_slots, table, kept, order, state, limits):
     # Fold landmark k again after its sums changed: only pair ``single`` (when >= 0
-    # and the fold is kept) or several (all flagged VALID) -> state[k].
+    # and the fold is kept) or several (those with a NaN size) -> state[k].
     width = hi[k] - lo[k]
     if kept[k] and single >= 0:
         last = _move(lo[k], width, single - lo[k], key_slots, table, order, limits)
@@ -547,8 +547,10 @@ def run(landmark: NDArray[np.intp], order: NDArray[np.intp], position: NDArray[n
     A slot's row of ``table`` holds its sums and, for a landmark with ``kept[k]`` (its
     fold up to date with its sums), its source's estimate, its size (``_log2_det`` of
     the covariance), its rank in the fold order and the prefix fold up to that rank
-    (the columns ``PART`` to ``VALID``). When one source changed, it moves to its new
-    place and the fold is redone from the first place that changed; otherwise the
+    (the columns ``RANK`` to ``PREFIX``). When one source changed, it moves to its new
+    place and the fold is redone from the first place that changed. When several did
+    (a row marks its pair's size NaN), they get new estimates, the others keep theirs
+    and the fold is redone from the first place that changed. Without a kept fold the
     whole fold is done and kept (``kept[k]`` is set). The estimates are those of
     ``_fold`` on the sums, bit for bit. ``table``, ``kept``, ``state``, ``gate``,
     ``observations`` and ``pending`` are updated in place. Call only after ``load()``
