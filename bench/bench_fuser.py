@@ -58,7 +58,7 @@ line is machine-readable::
     RESULT bench_fuser key=value ...
 
 Run from the repository root in the dev venv (``make bench``):
-``python bench/bench_fuser.py [--reps 3] [--window 50] [--measure 1.0]``.
+``python bench/bench_fuser.py [--reps 5] [--window 50] [--measure 1.0]``.
 """
 
 import argparse
@@ -714,8 +714,8 @@ def main(argv=None):
 
     """
     parser = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
-    parser.add_argument('--reps', type=int, default=3,
-                        help='rounds of relay/fuser runs (default 3)')
+    parser.add_argument('--reps', type=int, default=5,
+                        help='rounds of relay/fuser runs (default 5)')
     parser.add_argument('--window', type=int, default=50,
                         help='messages outstanding per node (default 50)')
     parser.add_argument('--warmup', type=float, default=0.3,
