@@ -43,7 +43,7 @@ for _variable in ('OPENBLAS_NUM_THREADS', 'OMP_NUM_THREADS', 'MKL_NUM_THREADS'):
     os.environ.setdefault(_variable, '1')
 
 from landmark_ros.core import association, landmarks  # noqa: E402
-from landmark_ros.core.gaussian import chi2_threshold  # noqa: E402
+from landmark_ros.core.gating import chi2_threshold  # noqa: E402
 import numpy as np  # noqa: E402
 
 TARGET_GNN_ROWS_PER_S = 100_000.0

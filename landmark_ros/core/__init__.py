@@ -27,7 +27,7 @@ Jacobians
 covariances
     ``P_*`` for states, ``R`` for sensor noise, ``S`` for innovations. Standard
     deviations appear only in parameters; the code works with variances.
-    Accepted range (``gaussian.covariance_range_status``): variances from
+    Accepted range (``covariance.covariance_range_status``): variances from
     ``MIN_VARIANCE`` = 1e-12 to ``MAX_VARIANCE`` = 1e12 m^2, condition number up to
     ``MAX_CONDITION`` = 1e9; inside it every 2x2 closed form is scaled and neither
     overflows nor underflows.
@@ -38,7 +38,9 @@ Modules
 -------
 pose2      SE(2) composition (+), inverse (-), ``between`` and point transforms.
 sensors    Range-bearing, range-only and bearing-only models and their inverses.
-gaussian   Product of Gaussians, covariance intersection, Mahalanobis gate.
+gaussian   Product of Gaussians, covariance intersection and split CI.
+gating     Mahalanobis distance and the chi-square gate.
+covariance Covariance checks and the accepted range.
 landmarks  The chapter's operations with full uncertainty propagation.
 ellipse    Geometry of the k-sigma contour of a 2D Gaussian.
 landmark_map  ``LandmarkMap``: fusion by landmark ID, gating, confirmation.

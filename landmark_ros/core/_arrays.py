@@ -313,6 +313,12 @@ def solve(A: NDArray[np.float64], B: NDArray[np.float64]) -> NDArray[np.float64]
     return np.stack([x0, x1], axis=-2)
 
 
+def solve_vectors(A: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Solve ``A x = b`` (``solve``) for vectors ``b`` of shape (n,) or (N, n); x likewise."""
+    A, b = np.broadcast_arrays(A, b[..., None])
+    return solve(A, b)[..., 0]
+
+
 def symmetric_2x2(xx: Union[float, NDArray[np.float64]], xy: Union[float, NDArray[np.float64]],
                   yy: Union[float, NDArray[np.float64]]) -> NDArray[np.float64]:
     """

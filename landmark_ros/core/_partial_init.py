@@ -20,7 +20,7 @@ from landmark_ros.core._partial_model import (BEARING, Linearisation, linearise,
                                               Views, WAIT)
 from landmark_ros.core.curvature import CONFIDENCE_RADIUS_95, observe_hessians, \
     relative_curvatures
-from landmark_ros.core.gaussian import chi2_threshold
+from landmark_ros.core.gating import chi2_threshold
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import least_squares

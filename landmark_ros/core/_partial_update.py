@@ -12,7 +12,7 @@ from typing import Optional
 from landmark_ros.core import sensors
 from landmark_ros.core._partial_model import (_OMEGA_STEPS, GATED, linearise, METHODS,
                                               OMEGA_EDGE, TOO_CLOSE, UPDATED, Views)
-from landmark_ros.core.gaussian import chi2_threshold
+from landmark_ros.core.gating import chi2_threshold
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 

@@ -47,7 +47,7 @@ import math
 from typing import List, Optional, Tuple
 
 from landmark_ros.core._arrays import as_matrices, as_vectors
-from landmark_ros.core.gaussian import chi2_threshold, mahalanobis_sq
+from landmark_ros.core.gating import chi2_threshold, mahalanobis_sq
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.linalg import cho_factor, cho_solve, cholesky, solve_triangular

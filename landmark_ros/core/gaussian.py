@@ -1,5 +1,5 @@
 """
-Gaussians: product fusion, covariance intersection, Mahalanobis gate, checks.
+Gaussians: product fusion, covariance intersection and split CI, with their weights.
 
 Symbols
 -------
@@ -26,54 +26,12 @@ import math
 from typing import Optional, Tuple, Union
 
 from landmark_ros.core._arrays import (as_matrices, as_vectors, common_batch_shape,
-                                       Entries2x2, entries_2x2, inverse_2x2, mahalanobis_sq_2x2,
-                                       matrix_scale, power_of_4_scale, solve, symmetric_2x2,
-                                       symmetrise, to_batch, transpose)
+                                       Entries2x2, entries_2x2, inverse_2x2, power_of_4_scale,
+                                       solve, solve_vectors, symmetric_2x2, symmetrise, to_batch,
+                                       transpose)
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy import special
 
-
-COVARIANCE_OK = 0
-COVARIANCE_NONFINITE = 1
-COVARIANCE_ASYMMETRIC = 2
-COVARIANCE_NOT_PSD = 3
-COVARIANCE_PROBLEMS = {
-    COVARIANCE_NONFINITE: 'covariance_nonfinite',
-    COVARIANCE_ASYMMETRIC: 'covariance_asymmetric',
-    COVARIANCE_NOT_PSD: 'covariance_not_psd',
-}
-"""Names of the codes ``covariance_status`` returns, as counters and logs use them."""
-
-MIN_VARIANCE = 1e-12
-"""Smallest accepted variance (diagonal entry) of a covariance [m^2]: (1 um)^2."""
-
-MAX_VARIANCE = 1e12
-"""Largest accepted variance (diagonal entry) of a covariance [m^2]: (1000 km)^2."""
-
-MAX_CONDITION = 1e9
-"""
-Largest accepted condition number (largest / smallest eigenvalue) of a covariance.
-
-A 2x2 inverse or solve loses about ``log10(condition)`` of float64's 15.7 digits, so
-at 1e9 gates and fused estimates keep about 6.7 significant digits (relative error
-``1e9 * 2.2e-16 = 2.2e-7``); beyond, the thin direction of the ellipse is noise. It is
-a ratio of standard deviations of about 3e4, more than a real range-bearing sensor
-(for example 1 cm of range against 1 mrad of bearing at 300 m) produces. Together
-with the variance bounds it keeps every scaled determinant above 1e-9 and every
-fused product inside the float range.
-"""
-
-COVARIANCE_TOO_SMALL = 4
-COVARIANCE_TOO_LARGE = 5
-COVARIANCE_ILL_CONDITIONED = 6
-COVARIANCE_RANGE_PROBLEMS = {
-    COVARIANCE_NONFINITE: 'covariance_nonfinite',
-    COVARIANCE_TOO_SMALL: 'covariance_too_small',
-    COVARIANCE_TOO_LARGE: 'covariance_too_large',
-    COVARIANCE_ILL_CONDITIONED: 'covariance_ill_conditioned',
-}
-"""Names of the codes ``covariance_range_status`` returns, as counters and logs use them."""
 
 OMEGA_EDGE = 1e-9
 """Split-CI weights are searched in ``[OMEGA_EDGE, 1 - OMEGA_EDGE]`` (open interval)."""
@@ -110,12 +68,6 @@ def _broadcast_entries(P: Entries2x2, shape: Tuple[int, ...]) -> Entries2x2:
     """Return the entries of ``P`` broadcast to ``shape`` (read-only views)."""
     a, b, c = (np.broadcast_to(x, shape) for x in P)
     return a, b, c
-
-
-def _solve_vec(A, b):
-    """Solve ``A x = b`` for vectors ``b`` of shape (n,) or (N, n)."""
-    A, b = np.broadcast_arrays(A, b[..., None])
-    return solve(A, b)[..., 0]
 
 
 def fuse(m1: ArrayLike, P1: ArrayLike, m2: ArrayLike,
@@ -157,7 +109,7 @@ def fuse(m1: ArrayLike, P1: ArrayLike, m2: ArrayLike,
     S = P1 + P2
     # P1 S^-1 P2 equals P1 - P1 S^-1 P1 and treats both inputs alike.
     P = symmetrise(P1 @ solve(S, np.broadcast_to(P2, S.shape)))
-    m = (P2 @ _solve_vec(S, m1)[..., None] + P1 @ _solve_vec(S, m2)[..., None])[..., 0]
+    m = (P2 @ solve_vectors(S, m1)[..., None] + P1 @ solve_vectors(S, m2)[..., None])[..., 0]
     return to_batch(shape, m, 1), to_batch(shape, P, 2)
 
 
@@ -804,241 +756,3 @@ def _congruence(k00: NDArray[np.float64], k01: NDArray[np.float64], k10: NDArray
     r00, r01 = k00 * a + k01 * b, k00 * b + k01 * c
     r10, r11 = k10 * a + k11 * b, k10 * b + k11 * c
     return r00 * k00 + r01 * k01, r00 * k10 + r01 * k11, r10 * k10 + r11 * k11
-
-
-def mahalanobis_sq(x: ArrayLike, mean: ArrayLike,
-                   P: ArrayLike) -> Union[float, NDArray[np.float64]]:
-    """
-    Return the squared Mahalanobis distance ``(x - mean)^T P^-1 (x - mean)``.
-
-    Compare it with ``chi2_threshold`` directly: both are squared quantities.
-    Angular components are not wrapped here; pass wrapped differences if needed.
-
-    Parameters
-    ----------
-    x : array_like, shape (n,) or (N, n)
-        The point (or chi-square value) to evaluate.
-    mean : array_like, shape (n,) or (N, n)
-        Centre of the ellipse.
-    P : array_like, shape (n, n) or (N, n, n), positive definite
-        Covariance matrices.
-
-    Returns
-    -------
-    d2 : float or ndarray, shape () or (N,)
-
-    """
-    x = np.asarray(x, dtype=np.float64)
-    d = x - np.asarray(mean, dtype=np.float64)
-    P = as_matrices(P, d.shape[-1], 'P')
-    if d.shape[-1] == 2:
-        a, b, c = entries_2x2(P)
-        return mahalanobis_sq_2x2(d[..., 0], d[..., 1], a, b, c)[()]
-    s = matrix_scale(P)
-    d = d / np.sqrt(s)[..., None]
-    return np.sum(d * _solve_vec(P / s[..., None, None], d), axis=-1)[()]
-
-
-def gate(d2: ArrayLike, chi2_threshold: float) -> Union[np.bool_, NDArray[np.bool_]]:
-    """
-    Return True where a squared Mahalanobis distance passes the gate.
-
-    Parameters
-    ----------
-    d2 : float or ndarray, shape () or (N,)
-        Squared Mahalanobis distances.
-    chi2_threshold : float
-        From ``chi2_threshold(dof, probability)``.
-
-    Returns
-    -------
-    bool or ndarray of bool, same shape as ``d2``
-
-    """
-    return (np.asarray(d2) <= chi2_threshold)[()]
-
-
-def chi2_survival(x: float, dof: int) -> float:
-    """
-    Return ``P(X > x)`` for a chi-square variable ``X`` with integer ``dof``.
-
-    ``scipy.special.chdtrc`` (the regularised upper incomplete gamma function).
-
-    Parameters
-    ----------
-    x : float
-        The point (or chi-square value) to evaluate.
-    dof : int, >= 1
-        Degrees of freedom.
-
-    Returns
-    -------
-    float
-        1.0 for ``x <= 0``.
-
-    """
-    if x <= 0.0:
-        return 1.0
-    return float(special.chdtrc(dof, x))
-
-
-def chi2_threshold(dof: int, probability: float) -> float:
-    """
-    Return the chi-square quantile: ``P(X <= threshold) = probability``.
-
-    ``scipy.special.chdtri`` on the upper tail ``1 - probability``, the inverse of
-    ``chi2_survival``.
-
-    Parameters
-    ----------
-    dof : int
-        Degrees of freedom, 1 to 100 (1 to 3 cover points, observations and poses).
-    probability : float
-        In (0, 1), e.g. 0.999 to keep 99.9 % of consistent observations.
-
-    Returns
-    -------
-    float
-        The threshold for ``mahalanobis_sq``.
-
-    Raises
-    ------
-    ValueError
-        If ``dof`` or ``probability`` is out of range.
-
-    """
-    if isinstance(dof, bool) or dof not in range(1, 101):
-        raise ValueError(f'dof must be an integer from 1 to 100, got {dof!r}')
-    if not 0.0 < probability < 1.0:
-        raise ValueError(f'probability must lie in (0, 1), got {probability!r}')
-    return float(special.chdtri(int(dof), 1.0 - probability))
-
-
-def covariance_status(P: ArrayLike,
-                      rtol: float = 1e-9) -> Union[np.int_, NDArray[np.int_]]:
-    """
-    Check covariances: finite, symmetric and positive semi-definite.
-
-    Parameters
-    ----------
-    P : array_like, shape (n, n) or (N, n, n)
-        Covariance matrices.
-    rtol : float
-        Tolerance relative to the largest absolute entry of each matrix, for the
-        asymmetry and for the most negative eigenvalue.
-
-    Returns
-    -------
-    int or ndarray of int, shape () or (N,)
-        ``COVARIANCE_OK`` or the first problem found: ``COVARIANCE_NONFINITE``,
-        ``COVARIANCE_ASYMMETRIC``, ``COVARIANCE_NOT_PSD``.
-
-    """
-    P = np.asarray(P, dtype=np.float64)
-    if P.ndim not in (2, 3) or P.shape[-1] != P.shape[-2]:
-        raise ValueError(f'P must have shape (n, n) or (N, n, n), got {P.shape}')
-    finite = np.all(np.isfinite(P), axis=(-2, -1))
-    safe = np.where(finite[..., None, None], P, 0.0)
-    scale = np.max(np.abs(safe), axis=(-2, -1))
-    tol = rtol * scale
-    symmetric = np.max(np.abs(safe - transpose(safe)), axis=(-2, -1)) <= tol
-    psd = _smallest_eigenvalue(symmetrise(safe)) >= -tol
-    status = np.where(~finite, COVARIANCE_NONFINITE,
-                      np.where(~symmetric, COVARIANCE_ASYMMETRIC,
-                               np.where(~psd, COVARIANCE_NOT_PSD, COVARIANCE_OK)))
-    return status[()]
-
-
-def _smallest_eigenvalue(P):
-    if P.shape[-1] != 2:
-        return np.linalg.eigvalsh(P)[..., 0]
-    # Closed form for 2x2: several times faster than eigvalsh on small batches.
-    a, b, c = P[..., 0, 0], P[..., 0, 1], P[..., 1, 1]
-    return 0.5 * (a + c) - np.hypot(0.5 * (a - c), b)
-
-
-def validate_covariance(P: ArrayLike, name: str = 'covariance',
-                        rtol: float = 1e-9) -> NDArray[np.float64]:
-    """
-    Raise unless every covariance is finite, symmetric and positive semi-definite.
-
-    Parameters
-    ----------
-    P : array_like, shape (n, n) or (N, n, n)
-        Covariance matrices.
-    name : str
-        Name used in error messages.
-    rtol : float
-        See ``covariance_status``.
-
-    Returns
-    -------
-    ndarray
-        ``P`` as float64.
-
-    Raises
-    ------
-    ValueError
-        Naming the first bad matrix and its problem.
-
-    """
-    status = np.atleast_1d(covariance_status(P, rtol))
-    bad = np.flatnonzero(status)
-    if bad.size:
-        raise ValueError(
-            f'{name}: {bad.size} matrix(es) rejected, first at index {bad[0]}: '
-            f'{COVARIANCE_PROBLEMS[int(status[bad[0]])]}')
-    return np.asarray(P, dtype=np.float64)
-
-
-def covariance_range_status(P: ArrayLike) -> Union[np.int_, NDArray[np.int_]]:
-    """
-    Check that covariances lie in the range the core computes reliably.
-
-    Call it on covariances ``covariance_status`` accepted: every diagonal entry in
-    ``[MIN_VARIANCE, MAX_VARIANCE]`` and a condition number (largest over smallest
-    eigenvalue) of at most ``MAX_CONDITION``. Inside that range every closed form of
-    the core is free of overflow and underflow (see the module docstring).
-
-    Parameters
-    ----------
-    P : array_like, shape (n, n) or (N, n, n)
-        Symmetric positive semi-definite covariances [m^2].
-
-    Returns
-    -------
-    int or ndarray of int, shape () or (N,)
-        ``COVARIANCE_OK`` or the first problem found: ``COVARIANCE_NONFINITE``,
-        ``COVARIANCE_TOO_SMALL``, ``COVARIANCE_TOO_LARGE``,
-        ``COVARIANCE_ILL_CONDITIONED`` (names in ``COVARIANCE_RANGE_PROBLEMS``).
-
-    Raises
-    ------
-    ValueError
-        If ``P`` is not ``(n, n)`` or ``(N, n, n)``.
-
-    """
-    P = np.asarray(P, dtype=np.float64)
-    if P.ndim not in (2, 3) or P.shape[-1] != P.shape[-2]:
-        raise ValueError(f'P must have shape (n, n) or (N, n, n), got {P.shape}')
-    finite = np.all(np.isfinite(P), axis=(-2, -1))
-    safe = np.where(finite[..., None, None], P, 1.0)
-    diagonal = np.diagonal(safe, axis1=-2, axis2=-1)
-    small = np.min(diagonal, axis=-1) < MIN_VARIANCE
-    large = np.max(diagonal, axis=-1) > MAX_VARIANCE
-    s = matrix_scale(safe)
-    scaled = symmetrise(safe) / s[..., None, None]
-    if P.shape[-1] == 2:
-        a, b, c = scaled[..., 0, 0], scaled[..., 0, 1], scaled[..., 1, 1]
-        largest = 0.5 * (a + c) + np.hypot(0.5 * (a - c), b)
-        # smallest = det / largest; compared without dividing.
-        ill = (a * c - b * b) * MAX_CONDITION < largest * largest
-    else:
-        eigenvalues = np.linalg.eigvalsh(scaled)
-        ill = eigenvalues[..., 0] * MAX_CONDITION < eigenvalues[..., -1]
-    status = np.where(~finite, COVARIANCE_NONFINITE,
-                      np.where(small, COVARIANCE_TOO_SMALL,
-                               np.where(large, COVARIANCE_TOO_LARGE,
-                                        np.where(ill, COVARIANCE_ILL_CONDITIONED,
-                                                 COVARIANCE_OK))))
-    return status[()]

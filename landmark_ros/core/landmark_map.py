@@ -64,7 +64,7 @@ from landmark_ros.core import _fold_kernel
 from landmark_ros.core._arrays import mahalanobis_sq_2x2, symmetric_2x2, unique_ints
 from landmark_ros.core._fusion_methods import _SplitCovarianceIntersection, _stack, _STRATEGIES
 from landmark_ros.core._source_sums import _entries, _levels, _SOURCE_BITS
-from landmark_ros.core.gaussian import chi2_threshold
+from landmark_ros.core.gating import chi2_threshold
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 

@@ -437,5 +437,5 @@ def nees(m: ArrayLike, P_m: ArrayLike, m_true: ArrayLike) -> Union[float, NDArra
         Chi-square with ``n`` degrees of freedom when the estimate is consistent.
 
     """
-    from landmark_ros.core.gaussian import mahalanobis_sq
+    from landmark_ros.core.gating import mahalanobis_sq
     return mahalanobis_sq(np.asarray(m_true), m, P_m)

@@ -10,7 +10,7 @@ freedom, which gives the interval an honest average NEES falls into.
 from dataclasses import dataclass
 import math
 
-from landmark_ros.core.gaussian import mahalanobis_sq
+from landmark_ros.core.gating import mahalanobis_sq
 import numpy as np
 from scipy import special
 

@@ -15,7 +15,7 @@ from collections import deque
 from dataclasses import dataclass, field, replace
 from typing import Any, Callable, Deque, Dict, List, Optional, Sequence, Tuple
 
-from landmark_ros.core.gaussian import COVARIANCE_PROBLEMS, covariance_status
+from landmark_ros.core.covariance import COVARIANCE_PROBLEMS, covariance_status
 from landmark_ros.pipeline import pose_buffer
 from landmark_ros.pipeline.config import ObserverConfig
 from landmark_ros.pipeline.counters import Counters, Status

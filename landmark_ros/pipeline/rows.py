@@ -3,10 +3,10 @@
 from collections import Counter
 from typing import Any, Callable, List, Mapping, Optional, Sequence, Tuple
 
-from landmark_ros.core.gaussian import (COVARIANCE_ASYMMETRIC, COVARIANCE_NOT_PSD,
-                                        COVARIANCE_PROBLEMS, COVARIANCE_RANGE_PROBLEMS,
-                                        covariance_range_status, covariance_status,
-                                        MAX_CONDITION, MAX_VARIANCE, MIN_VARIANCE)
+from landmark_ros.core.covariance import (COVARIANCE_ASYMMETRIC, COVARIANCE_NOT_PSD,
+                                          COVARIANCE_PROBLEMS, COVARIANCE_RANGE_PROBLEMS,
+                                          covariance_range_status, covariance_status,
+                                          MAX_CONDITION, MAX_VARIANCE, MIN_VARIANCE)
 from landmark_ros.core.landmarks import landmark_to_world_dependent
 from landmark_ros.core.sensors import MIN_RANGE
 import numpy as np
@@ -355,7 +355,7 @@ def _surely_valid(ids, m, P, P_dep):
 
 def range_status(P: NDArray[np.float64], usable: NDArray[np.bool_]) -> NDArray[np.int64]:
     """
-    Return ``core.gaussian.covariance_range_status`` of symmetric 2x2 covariances, fast.
+    Return ``core.covariance.covariance_range_status`` of symmetric 2x2 covariances, fast.
 
     A sufficient test in a few vector operations passes most rows (diagonal inside
     ``[MIN_VARIANCE, MAX_VARIANCE]`` and ``trace^2 <= MAX_CONDITION det``, which bounds

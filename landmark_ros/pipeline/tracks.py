@@ -34,7 +34,7 @@ from landmark_ros.core.association import (Association, Candidates, candidates,
                                            global_nearest_neighbour, jcbb,
                                            LandmarkIndex, nearest_neighbour,
                                            scan_covariance)
-from landmark_ros.core.gaussian import chi2_threshold
+from landmark_ros.core.gating import chi2_threshold
 from landmark_ros.core.landmark_map import LandmarkMap, MapSnapshot, UpdateResult
 from landmark_ros.pipeline.config import FuserConfig
 from landmark_ros.pipeline.rows import MAX_LABEL_ID, UNKNOWN_ID

@@ -2,7 +2,7 @@
 
 import math
 
-from landmark_ros.core.gaussian import COVARIANCE_PROBLEMS, covariance_status
+from landmark_ros.core.covariance import COVARIANCE_PROBLEMS, covariance_status
 import numpy as np
 
 

@@ -61,9 +61,10 @@ from typing import NamedTuple
 from landmark_ros.core import _fold_kernel  # gate
 from landmark_ros.core._arrays import (inverse_2x2, mahalanobis_sq_2x2, power_of_4_scale,
                                        symmetric_2x2)
-from landmark_ros.core.gaussian import (chi2_threshold, ci_2x2, covariance_intersection,
-                                        fuse_2x2, information, sci_omega_2x2,
-                                        split_ci_2x2_entries, split_covariance_intersection)
+from landmark_ros.core.gating import chi2_threshold
+from landmark_ros.core.gaussian import (ci_2x2, covariance_intersection, fuse_2x2, information,
+                                        sci_omega_2x2, split_ci_2x2_entries,
+                                        split_covariance_intersection)
 import numpy as np
 
 _TABLE_LIMIT = 1 << 20

@@ -7,7 +7,7 @@ from landmark_ros.core import association
 from landmark_ros.core.association import (
     ambiguous_rows, candidates, global_nearest_neighbour, jcbb, joint_mahalanobis_sq,
     joint_thresholds, LandmarkIndex, nearest_neighbour, scan_covariance)
-from landmark_ros.core.gaussian import chi2_threshold, mahalanobis_sq
+from landmark_ros.core.gating import chi2_threshold, mahalanobis_sq
 from landmark_ros.core.landmarks import (landmark_to_world, landmark_to_world_dependent,
                                          lever_arm_covariance)
 from landmark_ros.core.pose2 import compose

@@ -2,7 +2,7 @@
 
 from conftest import random_points, random_spd
 from landmark_ros.core.ellipse import ellipse_axes, ellipse_points
-from landmark_ros.core.gaussian import mahalanobis_sq
+from landmark_ros.core.gating import mahalanobis_sq
 import numpy as np
 import pytest
 

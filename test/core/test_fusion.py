@@ -8,9 +8,9 @@ true error covariance from the gains) and by Monte Carlo with known correlations
 
 from conftest import assert_psd, random_spd
 from landmark_ros.core import _fold_kernel, gaussian
-from landmark_ros.core.gaussian import (
-    covariance_intersection, covariance_intersection_omega, fuse,
-    split_covariance_intersection, split_covariance_intersection_omega)
+from landmark_ros.core.gaussian import (covariance_intersection, covariance_intersection_omega,
+                                        fuse, split_covariance_intersection,
+                                        split_covariance_intersection_omega)
 import numpy as np
 import pytest
 from scipy import optimize

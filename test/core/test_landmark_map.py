@@ -4,7 +4,7 @@ from collections import Counter
 import json
 
 from conftest import random_spd
-from landmark_ros.core import gaussian, landmarks, pose2, sensors
+from landmark_ros.core import gating, gaussian, landmarks, pose2, sensors
 from landmark_ros.core.landmark_map import FUSION_METHODS, LandmarkMap
 import numpy as np
 import pytest
@@ -327,7 +327,7 @@ def test_outlier_of_a_confirmed_landmark_is_rejected(fusion, rng):
     S = P[0] + R[4]
     values, vectors = np.linalg.eigh(S)
     outlier = m[0] + 20.0 * np.sqrt(values[-1]) * vectors[:, -1]
-    assert gaussian.mahalanobis_sq(outlier, m[0], S) == pytest.approx(400.0)
+    assert gating.mahalanobis_sq(outlier, m[0], S) == pytest.approx(400.0)
     result = with_outlier.update([3], *one(outlier, R[4], R_dep[4]), source='bad')
     assert result.rejected == Counter(bad=1) and not result.accepted and not result.changed
     for x, y in zip(with_outlier.snapshot(), before):
@@ -492,7 +492,7 @@ def test_moved_landmark_is_reinitialised(fusion, rng):
     m_ref, P_ref, P_dep_ref = reference_sequence(fusion, z_new, R[3:8], R_dep[3:8])
     np.testing.assert_allclose(m[0], m_ref, rtol=0, atol=1e-12)
     np.testing.assert_allclose(P[0], P_ref, rtol=0, atol=1e-12)
-    assert gaussian.mahalanobis_sq(new, m[0], P[0]) < stats.chi2.ppf(0.999, 2)
+    assert gating.mahalanobis_sq(new, m[0], P[0]) < stats.chi2.ppf(0.999, 2)
     assert lm.to_records()[0]['rejections'] == 5
     assert lm.sources_of(2) == ['r1', 'r20', 'r21', 'r22', 'r23', 'r24']
     # It now accepts observations at the new place.
@@ -796,7 +796,7 @@ def test_simulated_robots_helper_is_consistent_per_observation(rng):
     # One observation on its own has NEES ~ 2: the sim and the propagation agree.
     truth, batches = simulate_robots(rng, 4000, n_robots=1, repeats=1)
     m, P_m, _, _ = batches[0]
-    d2 = gaussian.mahalanobis_sq(m, truth, P_m)
+    d2 = gating.mahalanobis_sq(m, truth, P_m)
     assert abs(d2.mean() - 2.0) < 0.15
 
 
@@ -812,7 +812,7 @@ def map_nees():
                    for m, P, P_dep, source in batches]
         ids, m, P, _, _ = lm.snapshot()
         np.testing.assert_array_equal(ids, np.arange(n_landmarks))
-        d2 = gaussian.mahalanobis_sq(m, truth[ids], P)
+        d2 = gating.mahalanobis_sq(m, truth[ids], P)
         out[fusion] = (d2.mean(), merged(results), np.linalg.det(P))
     bound = stats.chi2.ppf(0.975, 2 * n_landmarks) / n_landmarks
     return out, bound, len(batches) * n_landmarks

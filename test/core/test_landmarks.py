@@ -3,7 +3,8 @@
 from conftest import (numerical_jacobian, random_observations, random_points, random_poses,
                       random_spd)
 from landmark_ros.core import pose2, sensors
-from landmark_ros.core.gaussian import fuse, mahalanobis_sq
+from landmark_ros.core.gating import mahalanobis_sq
+from landmark_ros.core.gaussian import fuse
 from landmark_ros.core.landmarks import (
     landmark_to_world, landmark_to_world_parts, lever_arm_covariance, nees, polar_covariance,
     predict_observation, relative_pose, sensor_in_world)

@@ -3,7 +3,7 @@
 from collections import Counter
 
 from conftest import random_observations, random_poses, random_spd
-from landmark_ros.core.gaussian import MAX_CONDITION
+from landmark_ros.core.covariance import MAX_CONDITION
 from landmark_ros.core.landmarks import landmark_to_world_dependent
 from landmark_ros.core.sensors import MIN_RANGE
 from landmark_ros.pipeline import rows as rows_module
@@ -356,7 +356,7 @@ def test_landmarks_from_rows_dependent_part_is_the_pose_and_bias(rng, no_warning
 # --- range_status ----------------------------------------------------------------------------
 
 def test_range_status_fast_path_agrees_with_the_core(rng):
-    from landmark_ros.core.gaussian import covariance_range_status
+    from landmark_ros.core.covariance import covariance_range_status
     from landmark_ros.pipeline.rows import range_status
     scale = 10.0 ** rng.uniform(-14, 14, (4000, 1, 1))
     P = random_spd(rng, 2, 4000, eps=10.0 ** rng.uniform(-12, 0, (4000, 1, 1))) * scale
