@@ -309,8 +309,12 @@ def _refold(lo, width, key_slots, table, order, limits, partial):
     start = 0
     while start < n and table[key_slots[lo + order[start]], RANK] == start:
         start += 1
-    if start == n:
-        return key_slots[lo + order[n - 1]]
+    return _fold_from(start, n, lo, key_slots, table, order, limits)
+
+
+def _fold_from(start, n, lo, key_slots, table, order, limits):
+    # Redo a landmark's kept fold from place ``start`` of its ``n`` ordered pairs
+    # (``order``: local indices into key_slots[lo:]); return the last pair's slot.
     if start == 0:
         t = table[key_slots[lo + order[0]]]
         for i in range(8):
@@ -364,19 +368,7 @@ def _move(lo, width, q, key_slots, table, order, limits):
         order[j] = order[j - 1]
     order[new] = q
     n += 1
-    j0 = min(old, new)
-    if j0 == 0:
-        t = table[key_slots[lo + order[0]]]
-        for i in range(8):
-            t[PREFIX + i] = t[PART + i]
-        t[RANK] = 0.0
-        j0 = 1
-    for j in range(j0, n):
-        t = table[key_slots[lo + order[j]]]
-        _fold_step(table[key_slots[lo + order[j - 1]], PREFIX:PREFIX + 8], t[PART:PART + 8],
-                   t[PREFIX:PREFIX + 8], limits)
-        t[RANK] = j
-    return key_slots[lo + order[n - 1]]
+    return _fold_from(min(old, new), n, lo, key_slots, table, order, limits)
 
 
 def _add_terms(t, z0, z1, R_ind, R_dep):
@@ -691,7 +683,7 @@ def compiled(function: Callable[..., Any]) -> Optional[Callable[..., Any]]:
 _tried = False
 
 _COMPILED = ('_scale4', '_inverse', '_psd', '_log2_det', '_omega_of', '_congruence', '_split_ci',
-             '_source_part', '_fold_step', '_fold_all', '_fold_one', '_kernel',
+             '_source_part', '_fold_step', '_fold_from', '_fold_all', '_fold_one', '_kernel',
              '_mahalanobis_sq', '_refold', '_move', '_add_terms', '_gate_due', '_settle',
              '_pending_position', '_run_kernel', '_settle_kernel')
 """The functions ``load`` compiles, callees before callers."""
