@@ -16,14 +16,15 @@ PYTEST_ARGS ?=
 PYTEST := $(VPY) -m pytest -q -p no:cacheprovider -ra
 
 .DEFAULT_GOAL := help
-.PHONY: help venv test lint bench clean
+.PHONY: help venv test lint bench docs clean
 
 help:
 	@echo 'landmark_ros make targets:'
 	@echo '  venv   create/update .venv (ROS Jazzy wheels, dev tools, package editable)'
 	@echo '  test   run the whole test suite (extra pytest args: PYTEST_ARGS="...")'
 	@echo '  lint   run only the flake8 / pep257 linter tests'
-	@echo '  bench  run every bench/bench_*.py, then one summary (also bench/results.md)'
+	@echo '  bench  run every bench/bench_*.py, then one summary (also docs/benchmarks.md)'
+	@echo '  docs   regenerate the generated parts of docs/ (parameters, cloud schemas)'
 	@echo '  demo   simulated 3-robot run: sim, observers, fuser; table + demo.png (DEMO_ARGS="...")'
 	@echo '  clean  remove .venv, build artefacts and __pycache__'
 	@echo 'ROS_AUTOMATIC_DISCOVERY_RANGE=$(ROS_AUTOMATIC_DISCOVERY_RANGE) is exported to all targets.'
@@ -50,7 +51,7 @@ lint: venv
 	$(PYTEST) test -m linter $(PYTEST_ARGS)
 
 # Runs every bench/bench_*.py in turn (each log in bench/results/, git-ignored), then
-# one summary table of their RESULT lines, also written to bench/results.md. A
+# one summary table of their RESULT lines, also written to docs/benchmarks.md. A
 # benchmark that crashes does not stop the others; the target fails at the end.
 bench: venv
 	@shopt -s nullglob; files=(bench/bench_*.py); \
@@ -62,7 +63,7 @@ bench: venv
 		PYTHONUNBUFFERED=1 $(VPY) "$$f" 2>&1 | tee "$$log"; rc=$${PIPESTATUS[0]}; \
 		if [ $$rc -ne 0 ]; then echo "bench: $$f exited with status $$rc"; status=$$rc; fi; \
 	done; \
-	echo; $(VPY) bench/summary.py --markdown bench/results.md "$${logs[@]}" || status=$$?; \
+	echo; $(VPY) bench/summary.py --markdown docs/benchmarks.md "$${logs[@]}" || status=$$?; \
 	exit $$status
 
 # Simulator, one observer per robot and the fuser as separate processes in a private
@@ -73,6 +74,11 @@ bench: venv
 DEMO_ARGS ?=
 demo: venv
 	$(VPY) -m landmark_ros.demo $(DEMO_ARGS)
+
+# The generated parts of docs/: the parameter tables (from the config dataclasses) and
+# the cloud schema tables (from ros/schemas.py). test/test_docs.py fails when they drift.
+docs: venv
+	$(VPY) docs/generate.py
 
 clean:
 	rm -rf $(VENV) build install log .pytest_cache .hypothesis *.egg-info
