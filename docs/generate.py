@@ -20,10 +20,10 @@ Usage: ``python docs/generate.py`` (or ``make docs``) rewrites the pages;
 import argparse
 from dataclasses import is_dataclass
 import importlib
+from pathlib import Path
 import pkgutil
 import re
 import sys
-from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = ROOT / 'docs'
@@ -121,7 +121,7 @@ FIELD_MEANINGS = {
     'kind': '0 range, 1 bearing',
     'value': 'measured range [m] or bearing [rad]',
     'variance': 'independent noise variance [m^2 or rad^2]',
-    'variance_dep': 'bias variance, shared by the sensor\'s partial observations',
+    'variance_dep': "bias variance, shared by the sensor's partial observations",
     'sensor_cov_xx': 'sensor pose covariance (robot pose through the mounting)',
     'view_group': 'the same number for the rows of one pose of one robot',
 }

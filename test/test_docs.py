@@ -183,7 +183,7 @@ def _package_sources():
 
 
 def test_the_reason_collector_finds_each_pattern():
-    source = '''
+    source = """
 def f(self, status, source):
     self.counters.add('made_up_added', 1)
     self.reject(source, 'made_up_rejected', 2)
@@ -194,7 +194,7 @@ def f(self, status, source):
     for code, name in COVARIANCE_RANGE_PROBLEMS.items():
         reasons[f'result_{name}'] += 1
 MY_COUNTERS = ('made_up_listed',)
-'''
+"""
     names = counted_names({'x.py': source}, _problem_tables())
     assert {'made_up_added', 'made_up_rejected', 'made_up_error', 'made_up_check',
             'made_up_augmented', 'made_up_listed', 'pose_covariance_not_psd',

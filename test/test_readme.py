@@ -1,6 +1,8 @@
 """
-The README tells the truth: a front page with the commands, the index of docs/ and the
-parameter tables where it says they are.
+The README tells the truth.
+
+It is a front page with the commands and the index of docs/, and the parameter tables
+are where it says they are.
 
 The manual's own checks (generated pages, links, rejection reasons) are in
 ``test_docs.py``.
