@@ -167,9 +167,11 @@ def schema_tables():
     landmark = [(name, _type_name(dtype)) for name, dtype in schemas.LANDMARK_SCHEMA]
     scan = [(name, 'FLOAT64, optional group') for name in schemas.SCAN_FIELDS]
     bias = [(name, 'FLOAT64, optional group') for name in schemas.BIAS_FIELDS]
-    partial = getattr(schemas, 'PARTIAL_OBSERVATION_SCHEMA', None)
-    if partial is None:
-        partial = schemas.CONSTRAINT_SCHEMA
+    # The partial observations' schema, under its name or its 0.1.0 name.
+    names = sorted((name for name in vars(schemas) if name.endswith('_SCHEMA')
+                    and ('PARTIAL' in name or 'CONSTRAINT' in name)),
+                   key=lambda name: 'PARTIAL' not in name)
+    partial = getattr(schemas, names[0])
     fused = [(name, _type_name(dtype)) for name, dtype in schemas.FUSED_SCHEMA]
     return {
         'observations': _table([(spec.name, accepted(spec))
