@@ -190,7 +190,8 @@ def with_blocks(text, tables):
         name = match.group(2)
         if name not in tables:
             raise KeyError(f'no generated table named {name!r}')
-        return match.group(1) + tables[name] + match.group(4)
+        # Blank lines around the table: GitHub ends a table only at a blank line.
+        return match.group(1) + '\n' + tables[name] + '\n' + match.group(4)
     return BLOCK.sub(replace, text)
 
 
