@@ -43,11 +43,11 @@ import sys
 import time
 
 from landmark_ros.core.landmark_map import FUSION_METHODS
-from landmark_ros.demo.launcher import (Launcher, ProcessExitedError, remove_unused_shm,
+from landmark_ros.ros.launcher import (Launcher, ProcessExitedError, remove_unused_shm,
                                         shm_files_of, write_params_file)
 from landmark_ros.eval.metrics import evaluate, format_table
 from landmark_ros.eval.plotting import PlotUnavailableError
-from landmark_ros.pipeline import map_file
+from landmark_ros.fuser import map_file
 from landmark_ros.ros.cloud import CloudError
 from landmark_ros.ros.conversions import InputError, pose_from_msg, stamp_ns
 from landmark_ros.ros.schemas import read_landmarks

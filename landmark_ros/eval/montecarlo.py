@@ -3,9 +3,9 @@ Monte Carlo consistency of the three fusion methods in the simulator (ROS-free).
 
 ``python -m landmark_ros.eval.montecarlo [--seeds 50] [--duration 20]`` runs the simulator
 (``landmark_ros.sim.simulation``) for many seeds and drives the pipeline the nodes run
-with it: one ``pipeline.observer.Observer`` per robot (its noise parameters are the
+with it: one ``observer.Observer`` per robot (its noise parameters are the
 simulator's), fed with the poses and observation messages in the order and with the
-stamps the ``landmark_sim`` node publishes them, and one ``pipeline.fuser.Fuser`` per
+stamps the ``landmark_sim`` node publishes them, and one ``fuser.Fuser`` per
 fusion method, fed with every observer's landmark batches and fused every
 ``update_period_s`` of simulated time, as the ``landmark_fuser`` node's timer does.
 It then averages the NEES of the fused landmarks, per seed and over all seeds. A
@@ -32,7 +32,7 @@ range, bearing, mixed
     White noise as ``white``, with every robot range-only, every robot bearing-only,
     or one robot of each kind (``SimConfig.sensor_kinds``): the observers send the
     partial rows as views (``landmark_constraints``), the fusers place the landmarks
-    from them (``pipeline.views``, delayed initialisation) and update them one view
+    from them (``fuser.partial``, delayed initialisation) and update them one view
     at a time. The plain EKF (``independent``) is the exact model to first order and
     must be inside the interval; CI and split CI must not be above it.
 shared_frame
@@ -63,8 +63,8 @@ import time
 from landmark_ros.core.landmark_map import FUSION_METHODS
 from landmark_ros.eval.metrics import anees_interval, evaluate
 from landmark_ros.pipeline.config import FuserConfig, ObserverConfig
-from landmark_ros.pipeline.fuser import Fuser
-from landmark_ros.pipeline.observer import ObservationMessage, Observer
+from landmark_ros.fuser.fuser import Fuser
+from landmark_ros.observer.observer import ObservationMessage, Observer
 from landmark_ros.sim import simulation
 import numpy as np
 

@@ -22,10 +22,10 @@ Modes
 -----
 offline (default)
     ``landmark_ros.mrclam.offline``: the pipeline objects the nodes run, without ROS.
-    One ``pipeline.observer.Observer`` per robot gets, in global time order (ties by
+    One ``observer.Observer`` per robot gets, in global time order (ties by
     robot number), the robot's pose at each measurement stamp, then that stamp's
     observation message (integer nanosecond stamps, as the player publishes them);
-    one ``pipeline.fuser.Fuser`` per fusion method gets every landmark batch, source
+    one ``fuser.Fuser`` per fusion method gets every landmark batch, source
     the robot's landmark topic ``/robotN/landmarks``, and fuses its queue every chunk
     (the same map as row by row). One map per fusion method, all three unless
     ``--fusion`` names one.
@@ -34,7 +34,7 @@ offline (default)
     loaded for this mode only): the same data over DDS (loopback only, private
     ROS_DOMAIN_ID 100-149 from the process ID unless ``--domain-id``) through the real
     nodes, in processes started by
-    ``landmark_ros.demo.launcher``: one ``landmark_observer`` per robot (namespace
+    ``landmark_ros.ros.launcher``: one ``landmark_observer`` per robot (namespace
     ``robotN``) and one ``landmark_fuser`` per fusion method, all running at once on
     the same observer outputs (namespace ``/mrclam/METHOD``), all with
     ``--params-file`` the config file, plus the transport overrides printed at start
@@ -57,13 +57,13 @@ offline (default)
 ``--sensor range`` / ``--sensor bearing``
     The offline replay with the bearings (ranges) dropped: each observer turns the
     range-only (bearing-only) rows into ``landmark_constraints`` and the fusers place
-    the landmarks from those views (``pipeline.views``). With ``--through-nodes`` the
+    the landmarks from those views (``fuser.partial``). With ``--through-nodes`` the
     player publishes the clouds without the dropped field and the fusers also take
     ``/robotN/landmark_constraints`` (``player.Player``); not with ``--hide-ids``.
 ``--hide-ids``
     Landmarks without IDs: the observation messages go without their ``id`` field
     (through the nodes: every row ``UNKNOWN_ID``),
-    the fusers associate the sightings (``pipeline.tracks``, parameter
+    the fusers associate the sightings (``fuser.tracks``, parameter
     ``association``) and each summary entry gains ``association_accuracy`` (a sighting
     is right when it went to the confirmed track matched, by optimal assignment on
     positions within 1 m, to its true landmark), ``oracle_accuracy`` (each sighting to

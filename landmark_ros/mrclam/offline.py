@@ -1,8 +1,8 @@
 """
 The offline replay: the dataset through the pipeline objects of the nodes (ROS-free).
 
-Per robot one ``pipeline.observer.Observer`` and per fusion method one
-``pipeline.fuser.Fuser``, built from the very YAML sections the nodes read
+Per robot one ``observer.Observer`` and per fusion method one
+``fuser.Fuser``, built from the very YAML sections the nodes read
 (``ObserverConfig`` / ``FuserConfig.from_values``), are fed what the nodes receive in
 ``--through-nodes``: for every observation message (one per robot and measurement
 stamp, ``Rows.messages``), in global time order with ties by robot number, the
@@ -25,10 +25,10 @@ from typing import Dict, Iterator, List, Sequence, Tuple
 
 from landmark_ros.eval.metrics import evaluate_association
 from landmark_ros.mrclam.report import method_result, MethodResult
-from landmark_ros.pipeline.fuser import Fuser
-from landmark_ros.pipeline.observer import (LandmarkBatch, NOT_PROBLEMS, ObservationMessage,
+from landmark_ros.fuser.fuser import Fuser
+from landmark_ros.observer.observer import (LandmarkBatch, NOT_PROBLEMS, ObservationMessage,
                                             Observer)
-from landmark_ros.pipeline.tracks import ASSOCIATION_COUNTERS
+from landmark_ros.fuser.tracks import ASSOCIATION_COUNTERS
 import numpy as np
 
 FUSE_CHUNK = 1024

@@ -2,7 +2,7 @@
 The replay through the real nodes, over DDS (the only ROS module of ``mrclam``).
 
 ``run_through_nodes`` starts one ``landmark_observer`` per robot and one
-``landmark_fuser`` per fusion method as processes (``landmark_ros.demo.launcher``) in
+``landmark_fuser`` per fusion method as processes (``landmark_ros.ros.launcher``) in
 a private ROS domain on the loopback interface, with ``--params-file`` the replay's
 config plus the transport overrides ``OBSERVER_TRANSPORT`` and ``FUSER_TRANSPORT``.
 ``Player`` publishes the dataset into them in global time order with flow control
@@ -23,13 +23,13 @@ import time
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseWithCovarianceStamped
-from landmark_ros.demo.launcher import Launcher, ProcessExitedError
+from landmark_ros.ros.launcher import Launcher, ProcessExitedError
 from landmark_ros.eval.metrics import evaluate_association
 from landmark_ros.mrclam.offline import observe
 from landmark_ros.mrclam.report import method_result
-from landmark_ros.pipeline import map_file
+from landmark_ros.fuser import map_file
 from landmark_ros.pipeline.config import FuserConfig
-from landmark_ros.pipeline.observer import Observer
+from landmark_ros.observer.observer import Observer
 from landmark_ros.pipeline.rows import UNKNOWN_ID
 from landmark_ros.ros.cloud import CloudWriter
 from landmark_ros.ros.conversions import stamp_ns
@@ -791,7 +791,7 @@ def run_through_nodes(dataset, config, methods, progress=None, keep_logs=False, 
     """
     Replay the dataset through the real nodes; return the results per method.
 
-    The nodes run as processes of ``landmark_ros.demo.launcher.Launcher`` (stopped with
+    The nodes run as processes of ``landmark_ros.ros.launcher.Launcher`` (stopped with
     SIGINT, then SIGTERM and SIGKILL, whatever happens) in a private ROS domain on the
     loopback interface; this process joins it with its own context. ``progress``
     chooses the progress bar as in ``progress_bar`` (None: only on a terminal).

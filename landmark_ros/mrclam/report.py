@@ -36,7 +36,7 @@ class MethodResult:
     sensor: str = 'rb'
     """Which columns the replay kept: ``rb`` (range-bearing), ``range`` or ``bearing``."""
     landmarks_initialised: int = 0
-    """Landmarks placed from partial views (``pipeline.views``)."""
+    """Landmarks placed from partial views (``fuser.partial``)."""
     association: object = None
     """``eval.metrics.AssociationSummary`` of a run without IDs (``--hide-ids``), else None."""
 

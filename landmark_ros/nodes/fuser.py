@@ -3,7 +3,7 @@ landmark_fuser: the landmark observations of several robots in, one fused map ou
 
 Subscribes every topic of ``input_topics`` (landmark clouds, one source each),
 queues their rows and fuses them by landmark ID in batches with
-``landmark_ros.pipeline.fuser.Fuser``; every topic of ``constraint_topics`` (partial
+``landmark_ros.fuser.fuser.Fuser``; every topic of ``constraint_topics`` (partial
 views: range-only and bearing-only, one source each) too. Publishes the confirmed map on
 ``fused_landmarks`` (transient local: late subscribers get it), the landmarks changed
 since the last update on ``fused_landmark_updates``, RViz markers on
@@ -16,8 +16,8 @@ import time
 
 from diagnostic_msgs.msg import DiagnosticArray
 from landmark_ros.pipeline.config import FuserConfig
-from landmark_ros.pipeline.fuser import Fuser, LandmarkMessage
-from landmark_ros.pipeline.publishing import PublicationSchedule
+from landmark_ros.fuser.fuser import Fuser, LandmarkMessage
+from landmark_ros.fuser.publishing import PublicationSchedule
 from landmark_ros.ros import diagnostics, guard, qos, runner
 from landmark_ros.ros.cloud import CloudError
 from landmark_ros.ros.cloud_bytes import read_cloud_bytes

@@ -7,8 +7,8 @@ odometry`` ``odometry``, nav_msgs/Odometry, instead) and ``observations``
 fields); publishes ``landmarks`` (PointCloud2: ``id``, ``x``, ``y``, ``z``,
 ``cov_xx``, ``cov_xy``, ``cov_yy`` and the dependent part ``cov_dep_*``),
 ``landmark_constraints`` (the partial rows: range-only and bearing-only views, see
-``pipeline.views``), ``landmark_markers`` and ``/diagnostics``.
-The node only converts messages: the work is ``landmark_ros.pipeline.observer.Observer``.
+``fuser.partial``), ``landmark_markers`` and ``/diagnostics``.
+The node only converts messages: the work is ``landmark_ros.observer.observer.Observer``.
 """
 
 import sys
@@ -16,7 +16,7 @@ import sys
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from landmark_ros.pipeline.config import ObserverConfig
-from landmark_ros.pipeline.observer import ObservationMessage, Observer
+from landmark_ros.observer.observer import ObservationMessage, Observer
 from landmark_ros.ros import diagnostics, guard, qos, runner
 from landmark_ros.ros.cloud import CloudError, read_columns
 from landmark_ros.ros.conversions import (InputError, pose_from_msg, pose_from_odometry,

@@ -1,1 +1,1 @@
-"""ROS-free pipeline: the observer and fuser logic as objects (numpy, scipy)."""
+"""Shared by the observer, the fuser and the localizer: config, counters, row checks, pose buffer (ROS-free)."""

@@ -15,7 +15,7 @@ accept clouds without ``cov_dep_*`` (dependent part zero).
 ``fused_landmarks`` (fuser out): the landmark fields then ``observations`` UINT32.
 
 ``landmark_constraints`` (observer out, fuser in; partial views, see
-``pipeline.views``): ``id`` UINT32, ``kind`` UINT8 (0 range, 1 bearing), ``value``
+``fuser.partial``): ``id`` UINT32, ``kind`` UINT8 (0 range, 1 bearing), ``value``
 [m or rad], ``variance``, ``variance_dep`` (independent noise and bias variances),
 ``sensor_x``, ``sensor_y``, ``sensor_theta`` (sensor pose in the world),
 ``sensor_cov_xx``, ``_xy``, ``_xt``, ``_yy``, ``_yt``, ``_tt`` (its covariance) FLOAT64,
@@ -38,8 +38,8 @@ from typing import NamedTuple
 
 
 from geometry_msgs.msg import PoseWithCovarianceStamped
-from landmark_ros.pipeline.tracks import Scan
-from landmark_ros.pipeline.views import CONSTRAINT_COLUMNS
+from landmark_ros.fuser.tracks import Scan
+from landmark_ros.fuser.partial import CONSTRAINT_COLUMNS
 from landmark_ros.ros.cloud import CloudError, CloudWriter, FieldSpec, INTEGER_TYPES
 from landmark_ros.ros.cloud import columns_of, read_columns, read_records
 from landmark_ros.ros.cloud import REAL_TYPES
@@ -122,7 +122,7 @@ class LandmarkExtras(NamedTuple):
     classes: np.ndarray
     """Landmark classes, int64, shape (N,); zero when absent."""
     scan: object
-    """``pipeline.tracks.Scan`` of the message (from its first row); None when absent."""
+    """``fuser.tracks.Scan`` of the message (from its first row); None when absent."""
 
 
 def make_header(stamp_s, frame_id):
@@ -213,7 +213,7 @@ def landmark_message(header, ids, m, P_m, P_dep=None, observations=None, out=Non
         A message to fill instead of a new one.
     classes : array_like of int, shape (N,), optional
         Landmark classes; given (or with ``observations``), the cloud has ``class``.
-    scan : landmark_ros.pipeline.tracks.Scan, optional
+    scan : landmark_ros.fuser.tracks.Scan, optional
         Robot pose terms of the message, written to every row (``SCAN_FIELDS``, and
         ``BIAS_FIELDS`` when it has a bias); not with ``observations``.
     merged_into : array_like of int, shape (N,), optional
@@ -462,7 +462,7 @@ def constraint_message(header, columns, out=None):
     header : std_msgs.msg.Header
         Stamp and world frame.
     columns : dict of str to ndarray, shape (N,)
-        ``pipeline.views.CONSTRAINT_COLUMNS`` (``Constraints.columns``).
+        ``fuser.partial.CONSTRAINT_COLUMNS`` (``Constraints.columns``).
     out : sensor_msgs.msg.PointCloud2, optional
         A message to fill instead of a new one.
 

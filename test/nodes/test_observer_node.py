@@ -516,7 +516,7 @@ def test_max_wait_change_at_run_time_takes_effect(env):
 
 GOOD_ROWS = [(1, 4.0, 0.7, NAN, NAN, NAN), (2, 2.5, -1.2, 0.09, 0.01, 0.02)]
 BAD_ROWS = {
-    # One of range and bearing NaN is a partial row (pipeline.views), not a bad one.
+    # One of range and bearing NaN is a partial row (fuser.partial), not a bad one.
     'observation_nonfinite': [(3, NAN, NAN, NAN, NAN, NAN), (4, 1.0, INF, NAN, NAN, NAN),
                               (5, -INF, 0.2, NAN, NAN, NAN), (6, 2.0, -INF, NAN, NAN, NAN),
                               (7, INF, 0.2, NAN, NAN, NAN)],
@@ -619,7 +619,7 @@ def _short_row_step(msg):
 
 
 BAD_MESSAGES = {
-    # Without range or bearing a cloud is bearing-only or range-only (pipeline.views).
+    # Without range or bearing a cloud is bearing-only or range-only (fuser.partial).
     'id_float32': ('unsupported_field_type', retyped('id', np.float32)),
     'range_int32': ('unsupported_field_type', retyped('range', np.int32)),
     'bearing_count_2': ('unsupported_field_type', edited(_field('bearing', count=2))),

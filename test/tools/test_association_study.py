@@ -2,7 +2,7 @@
 
 from landmark_ros.eval import association_study as study
 from landmark_ros.pipeline.config import FuserConfig
-from landmark_ros.pipeline.fuser import Fuser
+from landmark_ros.fuser.fuser import Fuser
 from landmark_ros.pipeline.rows import UNKNOWN_ID
 from landmark_ros.sim import simulation
 import numpy as np

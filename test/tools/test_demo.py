@@ -17,7 +17,7 @@ import subprocess
 import sys
 import time
 
-from landmark_ros.demo.launcher import (Launcher, ManagedProcess, mapped_by_anyone,
+from landmark_ros.ros.launcher import (Launcher, ManagedProcess, mapped_by_anyone,
                                         ProcessExitedError, ros_module_command, SHM_DIR,
                                         shm_files_of, write_params_file)
 import numpy as np

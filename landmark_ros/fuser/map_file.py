@@ -44,12 +44,12 @@ def save(path: str, records: Sequence[Mapping[str, Any]], world_frame: str, fusi
         The next landmark ID the fuser allocates to landmarks found without an ID
         (kept so that an ID is never given twice, across restarts); omitted when None.
     tracks : dict, optional
-        The tracks of landmarks found without IDs (``pipeline.tracks.Tracker.to_dict``:
+        The tracks of landmarks found without IDs (``fuser.tracks.Tracker.to_dict``:
         tentative tracks and their rows, merge bookkeeping), so that a restart resumes
         them; omitted when None (files without it load with no tracks).
     waiting_views : list of dict, optional
         Range-only and bearing-only views of landmarks not placed yet
-        (``pipeline.views.PartialViews.waiting_records``), so that a restart keeps
+        (``fuser.partial.PartialViews.waiting_records``), so that a restart keeps
         them; omitted when None or empty (files without it load as before).
 
     """

@@ -20,8 +20,8 @@ from landmark_ros.pipeline import pose_buffer
 from landmark_ros.pipeline.config import ObserverConfig
 from landmark_ros.pipeline.counters import Counters, Status
 from landmark_ros.pipeline.rows import landmarks_from_rows, observation_noise, UNKNOWN_ID
-from landmark_ros.pipeline.tracks import Scan
-from landmark_ros.pipeline.views import (Constraints, constraints_from_rows, CorrelatedNoise,
+from landmark_ros.fuser.tracks import Scan
+from landmark_ros.fuser.partial import (Constraints, constraints_from_rows, CorrelatedNoise,
                                          no_constraints, split_partial)
 import numpy as np
 from numpy.typing import NDArray

@@ -1,4 +1,4 @@
-"""Tests of pipeline.views: partial rows in the Observer, views in the Fuser (no ROS)."""
+"""Tests of fuser.partial: partial rows in the Observer, views in the Fuser (no ROS)."""
 
 import json
 import math
@@ -8,9 +8,9 @@ from landmark_ros.core.landmark_map import LandmarkMap
 from landmark_ros.core.landmarks import sensor_in_world
 from landmark_ros.core.partial import BEARING, RANGE, Views
 from landmark_ros.pipeline.config import FuserConfig, ObserverConfig
-from landmark_ros.pipeline.fuser import Fuser
-from landmark_ros.pipeline.observer import ObservationMessage, Observer
-from landmark_ros.pipeline.views import CONSTRAINT_COLUMNS, Constraints, CorrelatedNoise
+from landmark_ros.fuser.fuser import Fuser
+from landmark_ros.observer.observer import ObservationMessage, Observer
+from landmark_ros.fuser.partial import CONSTRAINT_COLUMNS, Constraints, CorrelatedNoise
 import numpy as np
 import pytest
 from scipy.stats import chi2

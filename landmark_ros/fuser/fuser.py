@@ -16,14 +16,14 @@ import itertools
 from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 from landmark_ros.core.landmark_map import LandmarkMap, MapSnapshot, UpdateResult
-from landmark_ros.pipeline import map_file
+from landmark_ros.fuser import map_file
 from landmark_ros.pipeline.config import FuserConfig
 from landmark_ros.pipeline.counters import Counters, Logger, Status
 from landmark_ros.pipeline.rows import (landmark_row_problems, load_row_kernel, MAX_LABEL_ID,
                                         UNKNOWN_ID)
-from landmark_ros.pipeline.sources import LandmarkMessage, Queued, Source
-from landmark_ros.pipeline.tracks import Scan, shard_of_position, Tracker
-from landmark_ros.pipeline.views import (constraint_row_problems, NOT_PROBLEMS as VIEW_COUNTS,
+from landmark_ros.fuser.sources import LandmarkMessage, Queued, Source
+from landmark_ros.fuser.tracks import Scan, shard_of_position, Tracker
+from landmark_ros.fuser.partial import (constraint_row_problems, NOT_PROBLEMS as VIEW_COUNTS,
                                          parse_waiting_records, PartialViews,
                                          views_from_columns)
 import numpy as np
@@ -99,7 +99,7 @@ class Fuser:
         self._updated: List[NDArray[np.int64]] = []
         self._removed: List[tuple] = []
         self.tracker = Tracker(config)
-        """Association of the rows without an ID (``pipeline.tracks``)."""
+        """Association of the rows without an ID (``fuser.tracks``)."""
         self.association_log: Optional[List[Tuple[str, int, NDArray[np.int64]]]] = None
         """Set to a list to record, per message with rows without an ID, in fuse order,
         ``(source, stamp_ns, ids)``: the ID each such row got (-1: dropped as ambiguous)."""
@@ -356,7 +356,7 @@ class Fuser:
         # Rows without an ID: message by message, each associated with the map as the
         # messages before it left it; labelled messages in between go in one batch.
         # Expiry (before) and merging (after) go with each such message, so the map
-        # does not depend on where the batches begin and end (``pipeline.tracks``).
+        # does not depend on where the batches begin and end (``fuser.tracks``).
         results, group = [], []
         for item, name in items:
             now_ns = self.tracker.advance(item.stamp_ns)

@@ -5,7 +5,7 @@ import math
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from landmark_ros.nodes.fuser import LandmarkFuser
 from landmark_ros.nodes.observer import LandmarkObserver
-from landmark_ros.pipeline.views import CONSTRAINT_COLUMNS
+from landmark_ros.fuser.partial import CONSTRAINT_COLUMNS
 from landmark_ros.ros.cloud import CloudWriter
 from landmark_ros.ros.qos import LATCHED
 from landmark_ros.ros.schemas import observation_message, read_constraints, read_landmarks
