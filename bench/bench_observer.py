@@ -65,7 +65,7 @@ os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 
 import _common  # noqa: E402
 from landmark_ros.core.landmarks import landmark_to_world_dependent  # noqa: E402
-from landmark_ros.pipeline import rows as pipeline_rows  # noqa: E402
+from landmark_ros.observer import rows as observer_rows  # noqa: E402
 from landmark_ros.pipeline.config import ObserverConfig  # noqa: E402
 from landmark_ros.observer.observer import ObservationMessage, Observer  # noqa: E402
 import numpy as np  # noqa: E402
@@ -198,9 +198,9 @@ def pipeline(args):
          lambda i: observer.poses.lookup(big[i % count].stamp_ns)),
         ('Observer.noise', lambda i: observer.noise(big[i % count].columns)),
         ('rows.landmarks_from_rows (all below)',
-         lambda i: pipeline_rows.landmarks_from_rows(*inputs[i % count])),
+         lambda i: observer_rows.landmarks_from_rows(*inputs[i % count])),
         ('  rows.row_problems',
-         lambda i: pipeline_rows.row_problems(*inputs[i % count][:3])),
+         lambda i: observer_rows.row_problems(*inputs[i % count][:3])),
         ('  core landmark_to_world_dependent',
          lambda i: landmark_to_world_dependent(inputs[i % count][3], inputs[i % count][4],
                                                inputs[i % count][1], inputs[i % count][2])),

@@ -176,7 +176,7 @@ def node_parameters(config, fusion, map_path):
     }
     partial = partial_robots(config)
     if partial:
-        fuser['constraint_topics'] = [f'/robot{i + 1}/landmark_constraints' for i in partial]
+        fuser['partial_observation_topics'] = [f'/robot{i + 1}/partial_observations' for i in partial]
     return {'/landmark_sim': sim, '/**/landmark_observer': observer,
             '/landmark_fuser': fuser}
 
@@ -378,7 +378,7 @@ class Monitor:
                    and node.count_subscribers(f'/robot{i + 1}/pose') > 1
                    and node.count_subscribers(f'/robot{i + 1}/landmarks') > 0
                    and (i not in self.partial or node.count_subscribers(
-                       f'/robot{i + 1}/landmark_constraints') > 0)
+                       f'/robot{i + 1}/partial_observations') > 0)
                    for i in range(self.robots)) and node.count_publishers(
                        '/fused_landmarks') > 0
 
@@ -431,11 +431,11 @@ class Monitor:
                                  'observations_in'):
                 return False
             if i in self.partial:
-                views = self.latest[observer].get('constraints_out', '0')
-                source = f'/landmark_fuser: /{robot}/landmark_constraints'
-                if not self._settled(source, lambda v: v.get('constraints_in', '0') == views,
-                                     lambda v: v.get('queued_views') == '0',
-                                     'constraints_in'):
+                views = self.latest[observer].get('partial_out', '0')
+                source = f'/landmark_fuser: /{robot}/partial_observations'
+                if not self._settled(source, lambda v: v.get('partial_in', '0') == views,
+                                     lambda v: v.get('queued_partial') == '0',
+                                     'partial_in'):
                     return False
         fused = sum(int(v.get('fused', 0)) for v in self.source_statuses().values())
         return (self.fused is not None and int(self.fused.observations.sum()) >= fused

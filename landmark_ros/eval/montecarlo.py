@@ -31,7 +31,7 @@ biased
 range, bearing, mixed
     White noise as ``white``, with every robot range-only, every robot bearing-only,
     or one robot of each kind (``SimConfig.sensor_kinds``): the observers send the
-    partial rows as views (``landmark_constraints``), the fusers place the landmarks
+    partial rows as views (``partial_observations``), the fusers place the landmarks
     from them (``fuser.partial``, delayed initialisation) and update them one view
     at a time. The plain EKF (``independent``) is the exact model to first order and
     must be inside the interval; CI and split CI must not be above it.
@@ -160,13 +160,13 @@ def fuse_simulation(sim, methods=FUSION_METHODS, gate_probability=0.999, configs
 
     """
     sources = [f'/robot{robot + 1}/landmarks' for robot in range(sim.robots)]
-    views = [f'/robot{robot + 1}/landmark_constraints' for robot in range(sim.robots)]
+    views = [f'/robot{robot + 1}/partial_observations' for robot in range(sim.robots)]
     observers = [Observer(observer_config(sim.config)) for _ in range(sim.robots)]
     fusers = {method: Fuser(FuserConfig(fusion=method, gate_probability=gate_probability,
                                         min_observations=1), sources,
-                            constraint_sources=views)
+                            partial_sources=views)
               for method in methods} if configs is None else {
-                  name: Fuser(config, sources, constraint_sources=views)
+                  name: Fuser(config, sources, partial_sources=views)
                   for name, config in configs.items()}
     if measurements is not None:
         for fuser in fusers.values():
@@ -185,9 +185,9 @@ def fuse_simulation(sim, methods=FUSION_METHODS, gate_probability=0.999, configs
                 fuser.add_landmarks(sources[robot], batch.stamp_ns, batch.ids, batch.m,
                                     batch.P, batch.P_dep, now_ns=now_ns,
                                     classes=batch.classes, scan=batch.scan)
-                if len(batch.constraints):
-                    fuser.add_constraints(views[robot], batch.stamp_ns,
-                                          batch.constraints.columns(), now_ns=now_ns)
+                if len(batch.partial_observations):
+                    fuser.add_partial_observations(views[robot], batch.stamp_ns,
+                                          batch.partial_observations.columns(), now_ns=now_ns)
 
     while next_pose < pose_end or next_observation < observation_end:
         pose_stamp = sim.pose_stamp_ns(next_pose)

@@ -10,7 +10,7 @@ from collections import Counter, deque
 from dataclasses import dataclass, field
 from typing import Any, Deque, NamedTuple, Optional
 
-from landmark_ros.fuser.tracks import Scan
+from landmark_ros.pipeline.scan import Scan
 import numpy as np
 from numpy.typing import NDArray
 
@@ -75,4 +75,4 @@ class Source:
     counts: Counter[str] = field(default_factory=Counter)
     last_message_ns: Optional[int] = None
     optional: bool = False
-    """A constraint source: not stale before its first message (rb-only teams)."""
+    """A partial source: not stale before its first message (rb-only teams)."""

@@ -56,10 +56,10 @@ offline (default)
     the maps differ by millimetres to centimetres (covariance intersection).
 ``--sensor range`` / ``--sensor bearing``
     The offline replay with the bearings (ranges) dropped: each observer turns the
-    range-only (bearing-only) rows into ``landmark_constraints`` and the fusers place
+    range-only (bearing-only) rows into ``partial_observations`` and the fusers place
     the landmarks from those views (``fuser.partial``). With ``--through-nodes`` the
     player publishes the clouds without the dropped field and the fusers also take
-    ``/robotN/landmark_constraints`` (``player.Player``); not with ``--hide-ids``.
+    ``/robotN/partial_observations`` (``player.Player``); not with ``--hide-ids``.
 ``--hide-ids``
     Landmarks without IDs: the observation messages go without their ``id`` field
     (through the nodes: every row ``UNKNOWN_ID``),
@@ -252,7 +252,7 @@ def main(argv=None):
         fill_node_association(offline, results, document['agreement'])
         timing.update({k: info[k] for k in ('wall_s', 'startup_s', 'play_wall_s', 'speedup')})
         document['nodes'] = {k: info[k] for k in ('clouds', 'rows', 'rows_out',
-                                                  'constraint_rows_out', 'barriers',
+                                                  'partial_rows_out', 'barriers',
                                                   'barrier_rounds', 'probes', 'fusers',
                                                   'observers', 'cloud_mismatch', 'cpu_s')}
     print()

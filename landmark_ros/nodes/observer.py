@@ -6,7 +6,7 @@ odometry`` ``odometry``, nav_msgs/Odometry, instead) and ``observations``
 (sensor_msgs/PointCloud2 with ``id``, ``range``, ``bearing`` and optional noise
 fields); publishes ``landmarks`` (PointCloud2: ``id``, ``x``, ``y``, ``z``,
 ``cov_xx``, ``cov_xy``, ``cov_yy`` and the dependent part ``cov_dep_*``),
-``landmark_constraints`` (the partial rows: range-only and bearing-only views, see
+``partial_observations`` (the partial rows: range-only and bearing-only views, see
 ``fuser.partial``), ``landmark_markers`` and ``/diagnostics``.
 The node only converts messages: the work is ``landmark_ros.observer.observer.Observer``.
 """
@@ -23,7 +23,7 @@ from landmark_ros.ros.conversions import (InputError, pose_from_msg, pose_from_o
                                           stamp_ns)
 from landmark_ros.ros.markers import landmark_markers
 from landmark_ros.ros.params import declare_config, keep_in_sync
-from landmark_ros.ros.schemas import constraint_message, landmark_message, OBSERVATION_FIELDS
+from landmark_ros.ros.schemas import partial_observation_message, landmark_message, OBSERVATION_FIELDS
 from landmark_ros.ros.subscriptions import take_waiting
 from nav_msgs.msg import Odometry
 import numpy as np
@@ -61,8 +61,8 @@ class LandmarkObserver(Node):
         self.landmark_pub = self.create_publisher(
             PointCloud2, 'landmarks', qos.reliable_output(config.output_depth),
             qos_overriding_options=overrides)
-        self.constraint_pub = self.create_publisher(
-            PointCloud2, 'landmark_constraints', qos.reliable_output(config.output_depth),
+        self.partial_pub = self.create_publisher(
+            PointCloud2, 'partial_observations', qos.reliable_output(config.output_depth),
             qos_overriding_options=overrides)
         # No QoS event handlers on the auxiliary outputs: each is a waitable that
         # every message pays for in the executor.
@@ -193,9 +193,9 @@ class LandmarkObserver(Node):
             self.landmark_pub.publish(landmark_message(
                 header, batch.ids, batch.m, batch.P, batch.P_dep, out=self._landmark_msg,
                 classes=batch.classes, scan=batch.scan))
-            if len(batch.constraints):
-                self.constraint_pub.publish(constraint_message(header,
-                                                               batch.constraints.columns()))
+            if len(batch.partial_observations):
+                self.partial_pub.publish(partial_observation_message(header,
+                                                               batch.partial_observations.columns()))
             if markers:
                 for i, landmark_id in enumerate(batch.ids.tolist()):
                     self._latest_markers[landmark_id] = (header, batch.m[i], batch.P[i])

@@ -7,7 +7,7 @@ from landmark_ros.pipeline.config import FuserConfig, ObserverConfig
 from landmark_ros.fuser.fuser import Fuser
 from landmark_ros.observer.observer import ObservationMessage, Observer
 from landmark_ros.pipeline.rows import UNKNOWN_ID
-from landmark_ros.fuser.tracks import Scan
+from landmark_ros.pipeline.scan import Scan
 import numpy as np
 import pytest
 
@@ -241,7 +241,7 @@ def test_partial_rows_without_an_id_are_rejected_by_the_observer():
     observer.add_pose(S, np.zeros(3), np.zeros((3, 3)))
     columns = {'range': np.array([2.0, 3.0])}
     (batch,) = observer.add_observations([ObservationMessage(S, columns)], S)
-    assert len(batch.ids) == 0 and len(batch.constraints) == 0
+    assert len(batch.ids) == 0 and len(batch.partial_observations) == 0
     assert observer.counters.counts['partial_without_id'] == 2
 
 

@@ -1,14 +1,14 @@
-"""Partial views over DDS: observers publish landmark_constraints, the fuser places them."""
+"""Partial views over DDS: observers publish partial_observations, the fuser places them."""
 
 import math
 
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from landmark_ros.nodes.fuser import LandmarkFuser
 from landmark_ros.nodes.observer import LandmarkObserver
-from landmark_ros.fuser.partial import CONSTRAINT_COLUMNS
+from landmark_ros.pipeline.partial_rows import PARTIAL_COLUMNS
 from landmark_ros.ros.cloud import CloudWriter
 from landmark_ros.ros.qos import LATCHED
-from landmark_ros.ros.schemas import observation_message, read_constraints, read_landmarks
+from landmark_ros.ros.schemas import observation_message, read_partial_observations, read_landmarks
 import numpy as np
 from rclpy.parameter import Parameter
 from rosutil import Collector, header, pose_message, wait_for_match
@@ -32,11 +32,11 @@ def bearing_only_cloud(stamp, landmark_id, bearing):
     return BEARING_ONLY.message(header(stamp, 'camera'), rows)
 
 
-def test_observers_publish_constraints_and_the_fuser_places_the_landmark(env):
+def test_observers_publish_partial_observations_and_the_fuser_places_the_landmark(env):
     ns = f'/views_test_{env.domain_id}'
     fuser = env.add(LandmarkFuser(context=env.context, namespace=ns, parameter_overrides=params({
         'input_topics': ['robot1/landmarks', 'robot2/landmarks'],
-        'constraint_topics': ['robot1/landmark_constraints', 'robot2/landmark_constraints'],
+        'partial_observation_topics': ['robot1/partial_observations', 'robot2/partial_observations'],
         'fusion': 'split_covariance_intersection', 'publish_rate_hz': 50.0})))
     tester = env.node('views_tester')
     maps = Collector(tester, PointCloud2, f'{ns}/fused_landmarks', LATCHED)
@@ -47,14 +47,14 @@ def test_observers_publish_constraints_and_the_fuser_places_the_landmark(env):
             parameter_overrides=params({'bearing_stddev': 0.01})))
         pose_pub = tester.create_publisher(PoseWithCovarianceStamped, f'{ns}/{robot}/pose', 10)
         obs_pub = tester.create_publisher(PointCloud2, f'{ns}/{robot}/observations', 10)
-        constraints = Collector(tester, PointCloud2, f'{ns}/{robot}/landmark_constraints')
-        assert wait_for_match(env, [pose_pub, obs_pub], [constraints.subscription], DEADLINE_S)
-        rigs.append((observer, pose_pub, obs_pub, constraints))
-    assert env.spin_until(lambda: all(o.constraint_pub.get_subscription_count() >= 2
+        partial = Collector(tester, PointCloud2, f'{ns}/{robot}/partial_observations')
+        assert wait_for_match(env, [pose_pub, obs_pub], [partial.subscription], DEADLINE_S)
+        rigs.append((observer, pose_pub, obs_pub, partial))
+    assert env.spin_until(lambda: all(o.partial_pub.get_subscription_count() >= 2
                                       for o, _, _, _ in rigs), DEADLINE_S)
 
     poses = [np.array([0.0, 0.0, 0.3]), np.array([6.0, 0.0, -0.2])]
-    for k, ((observer, pose_pub, obs_pub, constraints), pose) in enumerate(zip(rigs, poses)):
+    for k, ((observer, pose_pub, obs_pub, partial), pose) in enumerate(zip(rigs, poses)):
         bearing = math.atan2(*(LANDMARK - pose[:2])[::-1]) - pose[2]
         count = observer.counters['poses_in']
         pose_pub.publish(pose_message(10.0, pose, P_POSE))
@@ -62,11 +62,11 @@ def test_observers_publish_constraints_and_the_fuser_places_the_landmark(env):
         # Robot 1 sends a bearing-only cloud, robot 2 a range-bearing row with NaN range.
         obs_pub.publish(bearing_only_cloud(10.0, 7, bearing) if k == 0 else
                         observation_message(header(10.0, 'camera'), [7], [[math.nan, bearing]]))
-        assert env.spin_until(lambda: constraints.messages, DEADLINE_S)
-        msg = constraints.messages[-1]
-        assert [f.name for f in msg.fields] == list(CONSTRAINT_COLUMNS)
+        assert env.spin_until(lambda: partial.messages, DEADLINE_S)
+        msg = partial.messages[-1]
+        assert [f.name for f in msg.fields] == list(PARTIAL_COLUMNS)
         assert not msg.is_bigendian and msg.header.frame_id == 'map'
-        rows = read_constraints(msg)
+        rows = read_partial_observations(msg)
         assert rows['id'].tolist() == [7] and rows['kind'].tolist() == [1]
         np.testing.assert_allclose(rows['value'], [bearing], atol=1e-12)
         np.testing.assert_allclose([rows['sensor_x'][0], rows['sensor_y'][0]], pose[:2])
@@ -79,5 +79,5 @@ def test_observers_publish_constraints_and_the_fuser_places_the_landmark(env):
     rows = read_landmarks(maps.messages[-1])
     np.testing.assert_allclose(rows.m[0], LANDMARK, atol=1e-9)
     assert fuser.fuser.counters['landmarks_initialised'] == 1
-    source = fuser.fuser.sources[f'{ns}/robot1/landmark_constraints']
-    assert source.counts['views_fused'] == 1
+    source = fuser.fuser.sources[f'{ns}/robot1/partial_observations']
+    assert source.counts['partial_fused'] == 1

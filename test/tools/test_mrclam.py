@@ -22,7 +22,7 @@ from landmark_ros.mrclam.config import load_config
 from landmark_ros.mrclam.data import (interpolate_poses, load_dataset, read_table,
                                       seconds_to_stamps_ns)
 from landmark_ros.observer.observer import Observer
-from landmark_ros.pipeline.rows import landmarks_from_rows, observation_noise
+from landmark_ros.observer.rows import landmarks_from_rows, observation_noise
 from landmark_ros.ros.conversions import seconds_to_ns
 import numpy as np
 import pytest
