@@ -78,9 +78,9 @@ os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 import _common  # noqa: E402
 from landmark_ros.core.landmark_map import FUSION_METHODS  # noqa: E402
 from landmark_ros.core.landmarks import landmark_to_world_dependent  # noqa: E402
+from landmark_ros.fuser.fuser import Fuser, LandmarkMessage  # noqa: E402
 from landmark_ros.nodes.fuser import LandmarkFuser  # noqa: E402
 from landmark_ros.pipeline.config import FuserConfig  # noqa: E402
-from landmark_ros.fuser.fuser import Fuser, LandmarkMessage  # noqa: E402
 from landmark_ros.ros import qos  # noqa: E402
 from landmark_ros.ros.schemas import landmark_message, make_header, read_landmarks  # noqa: E402
 import numpy as np  # noqa: E402

@@ -66,8 +66,8 @@ os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 import _common  # noqa: E402
 from landmark_ros.core.landmarks import landmark_to_world_dependent  # noqa: E402
 from landmark_ros.observer import rows as observer_rows  # noqa: E402
-from landmark_ros.pipeline.config import ObserverConfig  # noqa: E402
 from landmark_ros.observer.observer import ObservationMessage, Observer  # noqa: E402
+from landmark_ros.pipeline.config import ObserverConfig  # noqa: E402
 import numpy as np  # noqa: E402
 
 ROWS = (1, 10, 100)

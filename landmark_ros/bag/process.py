@@ -30,10 +30,10 @@ from geometry_msgs.msg import PoseWithCovarianceStamped
 from landmark_ros.bag.params import load_config
 from landmark_ros.bag.storage import BagError, BagOutput, msgtype, one_line, open_bag
 from landmark_ros.bag.storage import read_message
-from landmark_ros.pipeline.config import FuserConfig, ObserverConfig
 from landmark_ros.fuser.fuser import Fuser
-from landmark_ros.observer.observer import ObservationMessage, Observer
 from landmark_ros.fuser.publishing import PublicationSchedule
+from landmark_ros.observer.observer import ObservationMessage, Observer
+from landmark_ros.pipeline.config import FuserConfig, ObserverConfig
 from landmark_ros.ros import diagnostics
 from landmark_ros.ros.cloud import CloudError, read_columns
 from landmark_ros.ros.conversions import InputError, pose_from_msg, pose_from_odometry

@@ -43,13 +43,13 @@ import sys
 import time
 
 from landmark_ros.core.landmark_map import FUSION_METHODS
-from landmark_ros.ros.launcher import (Launcher, ProcessExitedError, remove_unused_shm,
-                                        shm_files_of, write_params_file)
 from landmark_ros.eval.metrics import evaluate, format_table
 from landmark_ros.eval.plotting import PlotUnavailableError
 from landmark_ros.fuser import map_file
 from landmark_ros.ros.cloud import CloudError
 from landmark_ros.ros.conversions import InputError, pose_from_msg, stamp_ns
+from landmark_ros.ros.launcher import (Launcher, ProcessExitedError, remove_unused_shm,
+                                       shm_files_of, write_params_file)
 from landmark_ros.ros.schemas import read_landmarks
 from landmark_ros.sim.simulation import SENSOR_KINDS, SimConfig, Simulation
 from tqdm import tqdm
@@ -176,7 +176,8 @@ def node_parameters(config, fusion, map_path):
     }
     partial = partial_robots(config)
     if partial:
-        fuser['partial_observation_topics'] = [f'/robot{i + 1}/partial_observations' for i in partial]
+        fuser['partial_observation_topics'] = [f'/robot{i + 1}/partial_observations'
+                                               for i in partial]
     return {'/landmark_sim': sim, '/**/landmark_observer': observer,
             '/landmark_fuser': fuser}
 

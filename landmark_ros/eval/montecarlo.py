@@ -62,9 +62,9 @@ import time
 
 from landmark_ros.core.landmark_map import FUSION_METHODS
 from landmark_ros.eval.metrics import anees_interval, evaluate
-from landmark_ros.pipeline.config import FuserConfig, ObserverConfig
 from landmark_ros.fuser.fuser import Fuser
 from landmark_ros.observer.observer import ObservationMessage, Observer
+from landmark_ros.pipeline.config import FuserConfig, ObserverConfig
 from landmark_ros.sim import simulation
 import numpy as np
 
@@ -187,7 +187,8 @@ def fuse_simulation(sim, methods=FUSION_METHODS, gate_probability=0.999, configs
                                     classes=batch.classes, scan=batch.scan)
                 if len(batch.partial_observations):
                     fuser.add_partial_observations(views[robot], batch.stamp_ns,
-                                          batch.partial_observations.columns(), now_ns=now_ns)
+                                                   batch.partial_observations.columns(),
+                                                   now_ns=now_ns)
 
     while next_pose < pose_end or next_observation < observation_end:
         pose_stamp = sim.pose_stamp_ns(next_pose)

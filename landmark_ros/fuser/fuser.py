@@ -18,8 +18,7 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 from landmark_ros.core.landmark_map import LandmarkMap, MapSnapshot, UpdateResult
 from landmark_ros.fuser import map_file
 from landmark_ros.fuser.partial import (NOT_PROBLEMS as PARTIAL_COUNTS, parse_waiting_records,
-                                        PartialFusion, partial_row_problems,
-                                        views_from_columns)
+                                        partial_row_problems, PartialFusion, views_from_columns)
 from landmark_ros.fuser.sources import LandmarkMessage, Queued, Source
 from landmark_ros.fuser.tracks import shard_of_position, Tracker
 from landmark_ros.pipeline.config import FuserConfig
@@ -338,7 +337,7 @@ class Fuser:
 
     def fuse_queued(self) -> Optional[UpdateResult]:
         """
-        Fuse every queued row, in arrival order, in one batch (the queued partial observations first).
+        Fuse every queued row, in arrival order, in one batch (queued partial observations first).
 
         Returns
         -------

@@ -160,7 +160,7 @@ def parse_waiting_records(records: Any) -> List[Tuple[int, _Buffered]]:
         raise ValueError(f'invalid waiting views: {dict(reasons)}')
     views = views_from_columns(columns)
     return [(int(r['id']), _Buffered(r['source'], int(r['stamp_ns']), int(r['view_group']),
-                                 views[k])) for k, r in enumerate(records)]
+                                     views[k])) for k, r in enumerate(records)]
 
 
 class PartialFusion:
@@ -233,7 +233,7 @@ class PartialFusion:
         for landmark_id, buffer in self.waiting.items():
             for b in buffer:
                 columns = PartialObservations(np.array([landmark_id], np.int64), b.views,
-                                      np.array([b.group], np.int64)).columns()
+                                              np.array([b.group], np.int64)).columns()
                 record: Dict[str, Any] = {name: values[0].item()
                                           for name, values in columns.items()}
                 record.update(source=b.source, stamp_ns=int(b.stamp_ns))

@@ -7,7 +7,7 @@ the same code as the nodes, then the fused maps against the true landmark positi
     landmark_mrclam [DATASET] [--config config/mrclam.yaml] [--fusion METHOD]
                     [--through-nodes [--no-progress] [--keep-logs] [--domain-id N]]
                     [--sensor rb|range|bearing] [--json FILE] [--plot FILE] [--calibrate]
-                    [--export-bag OUT] [--hide-ids]
+                    [--export-bag OUT (deprecated)] [--hide-ids]
 
 ``DATASET`` is a MRCLAM directory (default: ``shared/data/mrclam/dataset6`` beside the
 repository). Sightings, poses and ground truth come from ``landmark_ros.mrclam.data``:
@@ -79,12 +79,10 @@ offline (default)
 ``--calibrate``
     Estimate the sensor model from ground truth and print suggested YAML values
     (``landmark_ros.mrclam.calibrate.calibrate`` documents the procedure).
-``--export-bag OUT``
-    Write the dataset as a rosbag2 (MCAP) directory ``OUT`` for ``landmark_bag`` or
-    ``ros2 bag play`` and stop (no replay): ``landmark_ros.bag.export.export_dataset``
-    with the config's ``pose_stddev``, imported for this mode only (it uses the ROS
-    message classes). ``OUT`` must not exist; a bag error prints one line and exits
-    with code 2.
+``--export-bag OUT`` (deprecated, removed in the next release)
+    Runs ``landmark_bag --from-mrclam DATASET -o OUT --config CONFIG`` (the bag tool
+    owns the export; this replay does not import it) after a deprecation warning on
+    stderr, and passes its output and exit code on.
 
 Output
 ------
@@ -117,6 +115,7 @@ their 2-sigma ellipses (matplotlib, ``landmark_ros.eval.plotting``).
 
 import argparse
 from pathlib import Path
+import subprocess
 import sys
 import time
 
@@ -155,8 +154,9 @@ def parse_args(argv=None):
     parser.add_argument('--calibrate', action='store_true',
                         help='estimate the sensor model from ground truth and print it')
     parser.add_argument('--export-bag', type=Path, default=None, metavar='OUT',
-                        help='write the dataset as a rosbag2 (MCAP) directory OUT for '
-                        'landmark_bag and stop (OUT must not exist)')
+                        help='deprecated (removed in the next release): use landmark_bag '
+                        '--from-mrclam DATASET -o OUT; writes the dataset as a rosbag2 (MCAP) '
+                        'directory OUT for landmark_bag and stops (OUT must not exist)')
     parser.add_argument('--json', type=Path, default=None, help='write the results as JSON')
     parser.add_argument('--plot', type=Path, default=None, help='draw the maps (PNG, PDF...)')
     parser.add_argument('--no-progress', action='store_true',
@@ -170,23 +170,26 @@ def parse_args(argv=None):
     return parser.parse_args(argv)
 
 
-def export_bag(dataset, config, path):
-    """Write the dataset as a bag for ``landmark_bag``; return the exit code."""
-    # ROS message classes, imported for this mode only (as the player).
-    from landmark_ros.bag.export import export_dataset
-    from landmark_ros.bag.storage import BagError
+def export_bag(dataset_path, config, path):
+    """
+    Forward the deprecated ``--export-bag`` to ``landmark_bag --from-mrclam``; return its code.
+
+    The bag tool sits above the replay (``bag/`` imports ``mrclam/``, not the reverse), so
+    the export runs as the bag tool's command in a child process; its output is passed on.
+    """
+    print('landmark_mrclam: --export-bag is deprecated and will be removed in the next '
+          f'release: use landmark_bag --from-mrclam {dataset_path} -o {path} '
+          f'--config {config.path}', file=sys.stderr)
+    command = [sys.executable, '-m', 'landmark_ros.bag.cli', '--from-mrclam',
+               str(dataset_path), '-o', str(path), '--config', str(config.path)]
     try:
-        counts = export_dataset(dataset, config.pose_stddev, path)
-    except BagError as error:
-        print(f'landmark_mrclam: {error}', file=sys.stderr)
-        return 2
+        done = subprocess.run(command, capture_output=True, text=True, check=False)
     except KeyboardInterrupt:
         print('landmark_mrclam: interrupted: no bag written', file=sys.stderr)
         return 130
-    total = sum(counts.values())
-    print(f'wrote {path}: {total} messages on {len(counts)} topics '
-          f'(then: landmark_bag {path} -o OUTPUT --config {config.path})')
-    return 0
+    sys.stdout.write(done.stdout)
+    sys.stderr.write(done.stderr.replace('landmark_bag: ', 'landmark_mrclam: '))
+    return done.returncode
 
 
 def main(argv=None):
@@ -203,7 +206,7 @@ def main(argv=None):
     print(dataset_report(dataset))
     print(f'config {config.path}; loaded in {load_s:.2f} s')
     if args.export_bag is not None:
-        return export_bag(dataset, config, args.export_bag)
+        return export_bag(args.dataset or default_dataset_path(), config, args.export_bag)
     if args.calibrate:
         try:
             calibration = calibrate(dataset)

@@ -24,11 +24,11 @@ from dataclasses import dataclass, replace
 from typing import Dict, Iterator, List, Sequence, Tuple
 
 from landmark_ros.eval.metrics import evaluate_association
-from landmark_ros.mrclam.report import method_result, MethodResult
 from landmark_ros.fuser.fuser import Fuser
+from landmark_ros.fuser.tracks import ASSOCIATION_COUNTERS
+from landmark_ros.mrclam.report import method_result, MethodResult
 from landmark_ros.observer.observer import (LandmarkBatch, NOT_PROBLEMS, ObservationMessage,
                                             Observer)
-from landmark_ros.fuser.tracks import ASSOCIATION_COUNTERS
 import numpy as np
 
 FUSE_CHUNK = 1024
@@ -160,7 +160,7 @@ def run_offline(dataset, config, methods, chunk=FUSE_CHUNK, sensor='rb',
     if sensor not in SENSORS:
         raise ValueError(f'sensor must be one of {SENSORS}, got {sensor!r}')
     partial_observation_topics = [topic.rsplit('/', 1)[0] + '/partial_observations'
-                         for topic in rows.topics]
+                                  for topic in rows.topics]
     fusers = {method: Fuser(replace(config.fuser, fusion=method), rows.topics,
                             partial_sources=partial_observation_topics)
               for method in methods}
@@ -183,7 +183,7 @@ def run_offline(dataset, config, methods, chunk=FUSE_CHUNK, sensor='rb',
                         (rows.ids[a:b], batch.m, batch.P) if whole else None)
             if len(batch.partial_observations):
                 fuser.add_partial_observations(partial_observation_topics[robot], batch.stamp_ns,
-                                      batch.partial_observations.columns())
+                                               batch.partial_observations.columns())
         messages += 1
         queued += 1
         if queued >= limit:

@@ -23,16 +23,16 @@ import time
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseWithCovarianceStamped
-from landmark_ros.ros.launcher import Launcher, ProcessExitedError
 from landmark_ros.eval.metrics import evaluate_association
+from landmark_ros.fuser import map_file
 from landmark_ros.mrclam.offline import observe
 from landmark_ros.mrclam.report import method_result
-from landmark_ros.fuser import map_file
-from landmark_ros.pipeline.config import FuserConfig
 from landmark_ros.observer.observer import Observer
+from landmark_ros.pipeline.config import FuserConfig
 from landmark_ros.pipeline.rows import UNKNOWN_ID
 from landmark_ros.ros.cloud import CloudWriter
 from landmark_ros.ros.conversions import stamp_ns
+from landmark_ros.ros.launcher import Launcher, ProcessExitedError
 from landmark_ros.ros.schemas import observation_message, pose_message
 from landmark_ros.ros.schemas import read_landmarks
 import numpy as np
@@ -116,7 +116,8 @@ def observer_arguments(robot, config_path):
 def fuser_arguments(method, topics, config_path, map_path, partial_observation_topics=None):
     """Return the ROS arguments of one fuser process (``partial_observation_topics``: if given)."""
     arguments = ['-r', f'__ns:=/mrclam/{method}', '--params-file', str(config_path)]
-    extra = {} if partial_observation_topics is None else {'partial_observation_topics': list(partial_observation_topics)}
+    extra = {} if partial_observation_topics is None else {
+        'partial_observation_topics': list(partial_observation_topics)}
     for name, value in dict(FUSER_TRANSPORT, input_topics=list(topics), fusion=method,
                             map_file=str(map_path), **extra).items():
         arguments += _param(name, value)
@@ -457,14 +458,14 @@ class Player:
         expected = expected[k] if k < len(expected) else None
         if stamp != expected:
             raise ReplayError(f'{self.robots[index].name}: partial observations stamped {stamp} '
-                              f'ns, expected {expected} ns (partial observation cloud {k}): lost, or '
-                              'the observer node and its pipeline disagree')
+                              f'ns, expected {expected} ns (partial observation cloud {k}): '
+                              'lost, or the observer node and its pipeline disagree')
         self.partial_out[index] += 1
         self.partial_rows_out += msg.width * msg.height
         self._advance(index)
 
     def _advance(self, index):
-        """Count the clouds whose outputs (landmarks, and partial observations if any) all arrived."""
+        """Count the clouds whose outputs (landmarks, partial observations if any) all came."""
         before = self.partial_before[index]
         out = self.out[index]
         while (out < self.landmarks_out[index]
@@ -632,7 +633,8 @@ class Player:
                     and all(self.node.count_subscribers(r.landmarks_topic) >= 1 + len(
                         self.methods) for r in self.robots)
                     and all(self.node.count_subscribers(t) >= 1 + len(self.methods)
-                            for t in (self.partial_observation_topics if self.partial_subs else ())))
+                            for t in (self.partial_observation_topics if self.partial_subs
+                                      else ())))
         self.spin_until(matched, timeout_s, 'the nodes to start and match')
 
     def probe(self, timeout_s=60.0):
@@ -885,7 +887,8 @@ def run_through_nodes(dataset, config, methods, progress=None, keep_logs=False, 
             results[method].landmarks_initialised = sum(
                 int(v.get('landmarks_initialised', 0)) for v in sources.values())
             if partial_observation_topics:
-                taken = sum(int(sources[t].get('partial_in', 0)) for t in partial_observation_topics)
+                taken = sum(int(sources[t].get('partial_in', 0))
+                            for t in partial_observation_topics)
                 if taken != player.partial_rows_out:
                     mismatch[method] = (f'partial_in {taken}, partial observation rows published '
                                         f'{player.partial_rows_out}')

@@ -15,9 +15,9 @@ import sys
 import time
 
 from diagnostic_msgs.msg import DiagnosticArray
-from landmark_ros.pipeline.config import FuserConfig
 from landmark_ros.fuser.fuser import Fuser, LandmarkMessage
 from landmark_ros.fuser.publishing import PublicationSchedule
+from landmark_ros.pipeline.config import FuserConfig
 from landmark_ros.ros import diagnostics, guard, qos, runner
 from landmark_ros.ros.cloud import CloudError
 from landmark_ros.ros.cloud_bytes import read_cloud_bytes
@@ -25,8 +25,8 @@ from landmark_ros.ros.conversions import stamp_ns
 from landmark_ros.ros.markers import delete_all, delete_markers, landmark_markers
 from landmark_ros.ros.params import declare_config, keep_in_sync
 from landmark_ros.ros.qos import LATCHED  # noqa: F401 (the map outputs' QoS, re-exported)
-from landmark_ros.ros.schemas import (landmark_message, NOT_MERGED, read_partial_observations,
-                                      read_landmark_clouds)
+from landmark_ros.ros.schemas import (landmark_message, NOT_MERGED, read_landmark_clouds,
+                                      read_partial_observations)
 from landmark_ros.ros.subscriptions import BurstGroup, take_waiting
 import numpy as np
 from rclpy.event_handler import SubscriptionEventCallbacks
@@ -81,7 +81,7 @@ class LandmarkFuser(Node):
                 qos.reliable_input(config.input_depth), qos_overriding_options=overrides,
                 event_callbacks=self._no_events())
         self._partial_source_of = {topic: subscription.topic_name
-                                      for topic, subscription in self._partial_subs.items()}
+                                   for topic, subscription in self._partial_subs.items()}
         self.fuser = Fuser(config, list(self._source_of.values()), self.get_logger(),
                            list(self._partial_source_of.values()))
         keep_in_sync(self, lambda: self.fuser.config, self._apply_config)
@@ -249,7 +249,7 @@ class LandmarkFuser(Node):
                 self.fuser.reject(source, error.reason, 1, f'message dropped: {error}')
                 continue
             self.fuser.add_partial_observations(source, stamp_ns(cloud.header.stamp), columns,
-                                       cloud.header.frame_id, now)
+                                                cloud.header.frame_id, now)
 
     def fuse_queued(self):
         """Fuse every queued row, in arrival order, in one batch."""

@@ -15,15 +15,16 @@ import sys
 
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseWithCovarianceStamped
-from landmark_ros.pipeline.config import ObserverConfig
 from landmark_ros.observer.observer import ObservationMessage, Observer
+from landmark_ros.pipeline.config import ObserverConfig
 from landmark_ros.ros import diagnostics, guard, qos, runner
 from landmark_ros.ros.cloud import CloudError, read_columns
 from landmark_ros.ros.conversions import (InputError, pose_from_msg, pose_from_odometry,
                                           stamp_ns)
 from landmark_ros.ros.markers import landmark_markers
 from landmark_ros.ros.params import declare_config, keep_in_sync
-from landmark_ros.ros.schemas import partial_observation_message, landmark_message, OBSERVATION_FIELDS
+from landmark_ros.ros.schemas import (landmark_message, OBSERVATION_FIELDS,
+                                      partial_observation_message)
 from landmark_ros.ros.subscriptions import take_waiting
 from nav_msgs.msg import Odometry
 import numpy as np
@@ -194,8 +195,8 @@ class LandmarkObserver(Node):
                 header, batch.ids, batch.m, batch.P, batch.P_dep, out=self._landmark_msg,
                 classes=batch.classes, scan=batch.scan))
             if len(batch.partial_observations):
-                self.partial_pub.publish(partial_observation_message(header,
-                                                               batch.partial_observations.columns()))
+                self.partial_pub.publish(partial_observation_message(
+                    header, batch.partial_observations.columns()))
             if markers:
                 for i, landmark_id in enumerate(batch.ids.tolist()):
                     self._latest_markers[landmark_id] = (header, batch.m[i], batch.P[i])

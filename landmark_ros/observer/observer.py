@@ -16,12 +16,12 @@ from dataclasses import dataclass, field, replace
 from typing import Any, Callable, Deque, Dict, List, Optional, Sequence, Tuple
 
 from landmark_ros.core.covariance import COVARIANCE_PROBLEMS, covariance_status
-from landmark_ros.pipeline import pose_buffer
-from landmark_ros.pipeline.config import ObserverConfig
-from landmark_ros.pipeline.counters import Counters, Status
 from landmark_ros.observer.partial import (CorrelatedNoise, partial_observations_from_rows,
                                            split_partial)
 from landmark_ros.observer.rows import landmarks_from_rows, observation_noise
+from landmark_ros.pipeline import pose_buffer
+from landmark_ros.pipeline.config import ObserverConfig
+from landmark_ros.pipeline.counters import Counters, Status
 from landmark_ros.pipeline.partial_rows import no_partial_observations, PartialObservations
 from landmark_ros.pipeline.rows import UNKNOWN_ID
 from landmark_ros.pipeline.scan import Scan

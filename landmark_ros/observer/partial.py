@@ -131,12 +131,12 @@ class CorrelatedNoise:
 
 
 def partial_observations_from_rows(columns: Dict[str, NDArray[Any]], R: NDArray[np.float64],
-                          pose: NDArray[np.float64], P_pose: NDArray[np.float64],
-                          sensor_pose: Optional[NDArray[np.float64]],
-                          R_bias: Optional[NDArray[np.float64]],
-                          view_group: int, stamp_ns: int = 0,
-                          correlated: Optional[CorrelatedNoise] = None
-                          ) -> Tuple[PartialObservations, Counter[str]]:
+                                   pose: NDArray[np.float64], P_pose: NDArray[np.float64],
+                                   sensor_pose: Optional[NDArray[np.float64]],
+                                   R_bias: Optional[NDArray[np.float64]],
+                                   view_group: int, stamp_ns: int = 0,
+                                   correlated: Optional[CorrelatedNoise] = None
+                                   ) -> Tuple[PartialObservations, Counter[str]]:
     """
     Turn the partial rows of one message into checked partial observations.
 
@@ -198,4 +198,4 @@ def partial_observations_from_rows(columns: Dict[str, NDArray[Any]], R: NDArray[
     views = views_from_robot(kind[valid], pose, P_pose, y[valid], variance,
                              bias[valid], sensor_pose)
     return PartialObservations(ids[valid].astype(np.int64), views,
-                       np.full(int(valid.sum()), view_group, np.int64)), reasons
+                               np.full(int(valid.sum()), view_group, np.int64)), reasons

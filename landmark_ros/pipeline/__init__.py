@@ -1,1 +1,1 @@
-"""Shared by the observer, the fuser and the localizer: config, counters, row checks, pose buffer (ROS-free)."""
+"""What the observer, the fuser and the localizer share: config, counters, rows (ROS-free)."""

@@ -355,7 +355,6 @@ class FuserConfig(ConfigBase):
             raise ValueError(f'shard_index must be below shard_count ({self.shard_count}), '
                              f'got {self.shard_index}')
 
-
     def _take_deprecated_topics(self) -> None:
         """Let the deprecated ``constraint_topics``, when set, give the partial topics."""
         old = tuple(topic for topic in self.constraint_topics if topic)

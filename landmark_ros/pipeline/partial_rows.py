@@ -26,9 +26,11 @@ PARTIAL_COLUMNS = (
     'sensor_cov_tt', 'view_group')
 """Columns of a ``partial_observations`` row, in wire order (``ros.schemas``)."""
 
-SENSOR_COVARIANCE_COLUMNS = (('sensor_cov_xx', 0, 0), ('sensor_cov_xy', 0, 1), ('sensor_cov_xt', 0, 2),
-              ('sensor_cov_yy', 1, 1), ('sensor_cov_yt', 1, 2), ('sensor_cov_tt', 2, 2))
+SENSOR_COVARIANCE_COLUMNS = (
+    ('sensor_cov_xx', 0, 0), ('sensor_cov_xy', 0, 1), ('sensor_cov_xt', 0, 2),
+    ('sensor_cov_yy', 1, 1), ('sensor_cov_yt', 1, 2), ('sensor_cov_tt', 2, 2))
 """The sensor pose covariance columns and their ``(row, column)`` in ``P_s``."""
+
 
 @dataclass(frozen=True)
 class PartialObservations:

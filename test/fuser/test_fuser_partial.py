@@ -7,10 +7,10 @@ from landmark_ros.core.gating import chi2_threshold
 from landmark_ros.core.landmark_map import LandmarkMap
 from landmark_ros.core.landmarks import sensor_in_world
 from landmark_ros.core.partial import BEARING, RANGE, Views
-from landmark_ros.pipeline.config import FuserConfig, ObserverConfig
 from landmark_ros.fuser.fuser import Fuser
 from landmark_ros.observer.observer import ObservationMessage, Observer
 from landmark_ros.observer.partial import CorrelatedNoise
+from landmark_ros.pipeline.config import FuserConfig, ObserverConfig
 from landmark_ros.pipeline.partial_rows import PARTIAL_COLUMNS, PartialObservations
 import numpy as np
 import pytest
@@ -111,7 +111,7 @@ def test_two_exact_bearings_give_the_intersection(fusion):
     f = fuser(fusion)
     for k, s in enumerate(([0.0, 0.0, 0.3], [6.0, 0.0, -0.2])):
         f.add_partial_observations(VIEWS[k], (k + 1) * S, columns(7, BEARING, bearing_to(s, m), s,
-                                                         P_s=P_POSE))
+                                                                  P_s=P_POSE))
     f.fuse_queued()
     ids, mean, P, P_dep, _ = f.snapshot()
     np.testing.assert_array_equal(ids, [7])
@@ -125,8 +125,8 @@ def test_statuses_count_the_views_waiting_per_source():
     m = np.array([3.0, 4.0])
     f = fuser()
     for k, s in enumerate(([0.0, 0.0, 0.3], [6.0, 0.0, -0.2], [1.0, 1.0, 0.0])):
-        f.add_partial_observations(VIEWS[k % 2], (k + 1) * S, columns(7, BEARING, bearing_to(s, m), s,
-                                                             P_s=P_POSE))
+        f.add_partial_observations(VIEWS[k % 2], (k + 1) * S,
+                                   columns(7, BEARING, bearing_to(s, m), s, P_s=P_POSE))
 
     def waiting():
         return {status.name: status.extra['queued_partial'] for status in f.statuses(4 * S)
@@ -142,7 +142,8 @@ def test_three_exact_ranges_give_the_point():
     f = fuser()
     for k, s in enumerate(([0.0, 0.0, 0.0], [4.0, 0.0, 1.0], [0.0, 5.0, 2.0])):
         f.add_partial_observations(VIEWS[k % 2], (k + 1) * S,
-                          columns(3, RANGE, np.hypot(*(m - s[:2])), s, P_s=P_POSE, R=1e-4))
+                                   columns(3, RANGE, np.hypot(*(m - s[:2])), s, P_s=P_POSE,
+                                           R=1e-4))
         f.fuse_queued()
     ids, mean, _, _, _ = f.snapshot()
     np.testing.assert_array_equal(ids, [3])
@@ -170,7 +171,7 @@ def test_a_mixed_landmark(fusion, rng):
     f = fuser(fusion, min_observations=1)
     for k, s in enumerate(([0.0, 0.0, 0.0], [4.0, 0.0, 0.0])):
         f.add_partial_observations(VIEWS[k], (k + 1) * S, columns(9, BEARING, bearing_to(s, m), s,
-                                                         P_s=P_POSE, R=1e-4))
+                                                                  P_s=P_POSE, R=1e-4))
     f.fuse_queued()
     before = f.snapshot()
     # A range-bearing landmark row of another robot fuses through the map.
@@ -211,9 +212,9 @@ def test_an_outlier_view_is_gated_and_counted():
     f = fuser()
     for k, s in enumerate(([0.0, 0.0, 0.0], [6.0, 0.0, 0.0])):
         f.add_partial_observations(VIEWS[k], (k + 1) * S, columns(7, BEARING, bearing_to(s, m), s,
-                                                         R=1e-4))
+                                                                  R=1e-4))
     f.add_partial_observations(VIEWS[0], 3 * S, columns(7, BEARING, bearing_to([0, 0, 0], m) + 0.5,
-                                               [0.0, 0.0, 0.0], R=1e-4))
+                                                        [0.0, 0.0, 0.0], R=1e-4))
     f.fuse_queued()
     assert f.sources[VIEWS[0]].counts['partial_gated'] == 1
     assert f.statuses(0)[0].level == 'warn'
@@ -223,7 +224,8 @@ def test_an_outlier_view_is_gated_and_counted():
 def test_waiting_views_are_bounded():
     f = fuser(max_views_per_landmark=3)
     for k in range(5):    # all from one place: never placed
-        f.add_partial_observations(VIEWS[0], (k + 1) * S, columns(2, BEARING, 0.1, [0.0, 0.0, 0.0]))
+        f.add_partial_observations(VIEWS[0], (k + 1) * S,
+                                   columns(2, BEARING, 0.1, [0.0, 0.0, 0.0]))
     f.fuse_queued()
     assert len(f.partial.waiting[2]) == 3
     assert f.sources[VIEWS[0]].counts['partial_dropped'] == 2
@@ -286,7 +288,7 @@ def test_nees_of_views_through_the_fuser(kind):
             y = (bearing_to(true, m_true) if kind == BEARING
                  else np.hypot(*(m_true - true[:2]))) + rng.normal(0, np.sqrt(R))
             f.add_partial_observations(VIEWS[k % 2], (k + 1) * S,
-                              columns(1, kind, y, believed, P_s=P_pose, R=R, group=k))
+                                       columns(1, kind, y, believed, P_s=P_pose, R=R, group=k))
             f.fuse_queued()
         ids, m, P, _, _ = f.snapshot()
         if not len(ids):      # e.g. ranges whose circles still meet twice: waits
@@ -304,12 +306,14 @@ def test_a_landmark_gated_again_and_again_is_placed_again_from_its_recent_views(
     old, new = np.array([3.0, 4.0]), np.array([5.0, 1.0])
     f = fuser(max_views_per_landmark=5, max_consecutive_rejections=5)
     for k, s in enumerate(([0.0, 0.0, 0.0], [6.0, 0.0, 0.0])):
-        f.add_partial_observations(VIEWS[k], (k + 1) * S, columns(7, BEARING, bearing_to(s, old), s))
+        f.add_partial_observations(VIEWS[k], (k + 1) * S,
+                                   columns(7, BEARING, bearing_to(s, old), s))
     f.fuse_queued()
     np.testing.assert_allclose(f.snapshot().m[0], old, atol=1e-9)
     for k, s in enumerate(([0.0, 0.0, 0.0], [9.0, 0.0, 0.0], [0.0, 6.0, 0.0],
                            [9.0, 6.0, 1.0], [2.0, -3.0, 0.0])):
-        f.add_partial_observations(VIEWS[0], (k + 3) * S, columns(7, BEARING, bearing_to(s, new), s))
+        f.add_partial_observations(VIEWS[0], (k + 3) * S,
+                                   columns(7, BEARING, bearing_to(s, new), s))
     f.fuse_queued()
     assert f.sources[VIEWS[0]].counts['partial_gated'] == 5
     assert f.counters['landmarks_reinitialised'] == 1
@@ -412,8 +416,8 @@ def test_waiting_partial_observations_survive_a_restart(tmp_path):
     first, second = np.array([0.0, 0.0, 0.1]), np.array([6.0, 0.0, -0.2])
     P_s = np.diag([1e-4, 2e-4, 1e-5])
     f = fuser(map_file=path)
-    f.add_partial_observations(VIEWS[0], S, columns(7, BEARING, bearing_to(first, m), first, P_s=P_s,
-                                           R=1e-6, R_bias=4e-6, group=9))
+    f.add_partial_observations(VIEWS[0], S, columns(7, BEARING, bearing_to(first, m), first,
+                                                    P_s=P_s, R=1e-6, R_bias=4e-6, group=9))
     f.fuse_queued()
     assert len(f.map) == 0 and list(f.partial.waiting) == [7]
     assert f.save()
@@ -428,7 +432,8 @@ def test_waiting_partial_observations_survive_a_restart(tmp_path):
     for name in ('kind', 's', 'P_s', 'y', 'R', 'R_bias'):
         np.testing.assert_array_equal(getattr(restored.views, name),
                                       getattr(original.views, name))
-    again.add_partial_observations(VIEWS[1], 2 * S, columns(7, BEARING, bearing_to(second, m), second))
+    again.add_partial_observations(VIEWS[1], 2 * S,
+                                   columns(7, BEARING, bearing_to(second, m), second))
     again.fuse_queued()
     np.testing.assert_allclose(again.snapshot().m[0], m, atol=1e-9)
     assert again.save()
@@ -460,6 +465,7 @@ def test_a_bad_waiting_partial_observation_moves_the_map_file_aside(tmp_path, fi
 
 
 class _Warnings:
+
     def __init__(self):
         self.lines = []
 

@@ -3,10 +3,10 @@
 from collections import Counter
 import json
 
-from landmark_ros.pipeline.config import FuserConfig
 from landmark_ros.fuser.fuser import Fuser
-from landmark_ros.pipeline.rows import UNKNOWN_ID
 from landmark_ros.fuser.tracks import together_log_likelihood_ratio
+from landmark_ros.pipeline.config import FuserConfig
+from landmark_ros.pipeline.rows import UNKNOWN_ID
 from landmark_ros.pipeline.scan import Scan
 import numpy as np
 import pytest

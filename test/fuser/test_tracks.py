@@ -3,9 +3,9 @@
 from collections import Counter
 import json
 
-from landmark_ros.pipeline.config import FuserConfig, ObserverConfig
 from landmark_ros.fuser.fuser import Fuser
 from landmark_ros.observer.observer import ObservationMessage, Observer
+from landmark_ros.pipeline.config import FuserConfig, ObserverConfig
 from landmark_ros.pipeline.rows import UNKNOWN_ID
 from landmark_ros.pipeline.scan import Scan
 import numpy as np

@@ -22,8 +22,8 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from landmark_ros.core.gaussian import (covariance_intersection, split_covariance_intersection,
                                         split_covariance_intersection_omega)
 from landmark_ros.core.landmarks import landmark_to_world_dependent
-from landmark_ros.nodes.fuser import LandmarkFuser
 from landmark_ros.fuser import map_file
+from landmark_ros.nodes.fuser import LandmarkFuser
 from landmark_ros.pipeline.config import FuserConfig
 from landmark_ros.pipeline.rows import UNKNOWN_ID
 from landmark_ros.ros.qos import LATCHED

@@ -8,7 +8,7 @@ from landmark_ros.nodes.observer import LandmarkObserver
 from landmark_ros.pipeline.partial_rows import PARTIAL_COLUMNS
 from landmark_ros.ros.cloud import CloudWriter
 from landmark_ros.ros.qos import LATCHED
-from landmark_ros.ros.schemas import observation_message, read_partial_observations, read_landmarks
+from landmark_ros.ros.schemas import observation_message, read_landmarks, read_partial_observations
 import numpy as np
 from rclpy.parameter import Parameter
 from rosutil import Collector, header, pose_message, wait_for_match
@@ -36,7 +36,8 @@ def test_observers_publish_partial_observations_and_the_fuser_places_the_landmar
     ns = f'/views_test_{env.domain_id}'
     fuser = env.add(LandmarkFuser(context=env.context, namespace=ns, parameter_overrides=params({
         'input_topics': ['robot1/landmarks', 'robot2/landmarks'],
-        'partial_observation_topics': ['robot1/partial_observations', 'robot2/partial_observations'],
+        'partial_observation_topics': ['robot1/partial_observations',
+                                       'robot2/partial_observations'],
         'fusion': 'split_covariance_intersection', 'publish_rate_hz': 50.0})))
     tester = env.node('views_tester')
     maps = Collector(tester, PointCloud2, f'{ns}/fused_landmarks', LATCHED)

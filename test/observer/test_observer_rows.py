@@ -10,6 +10,7 @@ from landmark_ros.pipeline.rows import MAX_ID
 import numpy as np
 import pytest
 
+
 # --- observation_noise ---------------------------------------------------------------------------
 
 def test_noise_without_noise_columns_is_one_shared_matrix():

@@ -9,6 +9,7 @@ from landmark_ros.pipeline.rows import landmark_row_problems, MAX_ID
 import numpy as np
 import pytest
 
+
 # --- landmark_row_problems -----------------------------------------------------------------------
 
 def _landmark_rows(rng, count=6):

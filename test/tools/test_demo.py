@@ -18,8 +18,8 @@ import sys
 import time
 
 from landmark_ros.ros.launcher import (Launcher, ManagedProcess, mapped_by_anyone,
-                                        ProcessExitedError, ros_module_command, SHM_DIR,
-                                        shm_files_of, write_params_file)
+                                       ProcessExitedError, ros_module_command, SHM_DIR,
+                                       shm_files_of, write_params_file)
 import numpy as np
 import pytest
 import yaml
@@ -370,7 +370,7 @@ def test_short_demo_run_with_a_mixed_team(tmp_path):
     params = yaml.safe_load((tmp_path / 'log' / 'demo' / 'params.yaml').read_text())
     fuser = params['/landmark_fuser']['ros__parameters']
     assert fuser['partial_observation_topics'] == ['/robot2/partial_observations',
-                                          '/robot3/partial_observations']
+                                                   '/robot3/partial_observations']
     assert re.search(r'average NEES .*: consistent', output), output
     assert_nothing_left(children, shm, domain_of(output), ports_before)
 
