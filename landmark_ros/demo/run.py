@@ -46,6 +46,7 @@ from landmark_ros.core.landmark_map import FUSION_METHODS
 from landmark_ros.eval.metrics import evaluate, format_table
 from landmark_ros.eval.plotting import PlotUnavailableError
 from landmark_ros.fuser import map_file
+from landmark_ros.pipeline.counters import without_deprecated
 from landmark_ros.ros.cloud import CloudError
 from landmark_ros.ros.conversions import InputError, pose_from_msg, stamp_ns
 from landmark_ros.ros.launcher import (Launcher, ProcessExitedError, remove_unused_shm,
@@ -333,7 +334,7 @@ class Monitor:
     def _on_diagnostics(self, msg):
         self.callbacks += 1
         for status in msg.status:
-            values = {kv.key: kv.value for kv in status.values}
+            values = without_deprecated({kv.key: kv.value for kv in status.values})
             self.sequence += 1
             self.latest[status.name] = values
             if status.name == '/landmark_sim' and values.get('finished') == 'true' \

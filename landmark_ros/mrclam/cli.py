@@ -258,6 +258,8 @@ def main(argv=None):
                                                   'partial_rows_out', 'barriers',
                                                   'barrier_rounds', 'probes', 'fusers',
                                                   'observers', 'cloud_mismatch', 'cpu_s')}
+        # Deprecated alias of partial_rows_out, removed in the next release.
+        document['nodes']['constraint_rows_out'] = document['nodes']['partial_rows_out']
     print()
     print(report(results))
     if args.hide_ids:

@@ -29,6 +29,7 @@ from landmark_ros.mrclam.offline import observe
 from landmark_ros.mrclam.report import method_result
 from landmark_ros.observer.observer import Observer
 from landmark_ros.pipeline.config import FuserConfig
+from landmark_ros.pipeline.counters import without_deprecated
 from landmark_ros.pipeline.rows import UNKNOWN_ID
 from landmark_ros.ros.cloud import CloudWriter
 from landmark_ros.ros.conversions import stamp_ns
@@ -478,8 +479,8 @@ class Player:
     def _on_diagnostics(self, msg):
         stamp = stamp_ns(msg.header.stamp)
         for status in msg.status:
-            self.diagnostics[status.name] = (stamp, {kv.key: kv.value for kv in status.values},
-                                             status.message)
+            values = without_deprecated({kv.key: kv.value for kv in status.values})
+            self.diagnostics[status.name] = (stamp, values, status.message)
 
     # Helpers ---------------------------------------------------------------------------
 

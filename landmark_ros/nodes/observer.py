@@ -65,6 +65,12 @@ class LandmarkObserver(Node):
         self.partial_pub = self.create_publisher(
             PointCloud2, 'partial_observations', qos.reliable_output(config.output_depth),
             qos_overriding_options=overrides)
+        self.deprecated_partial_pub = None  # landmark_constraints, for one more release
+        if config.publish_landmark_constraints:
+            self.get_logger().warning('publish_landmark_constraints is deprecated: fusers '
+                                      'take partial_observations (partial_observation_topics)')
+            self.deprecated_partial_pub = self.create_publisher(
+                PointCloud2, 'landmark_constraints', qos.reliable_output(config.output_depth))
         # No QoS event handlers on the auxiliary outputs: each is a waitable that
         # every message pays for in the executor.
         quiet = PublisherEventCallbacks(use_default_callbacks=False)
@@ -195,8 +201,10 @@ class LandmarkObserver(Node):
                 header, batch.ids, batch.m, batch.P, batch.P_dep, out=self._landmark_msg,
                 classes=batch.classes, scan=batch.scan))
             if len(batch.partial_observations):
-                self.partial_pub.publish(partial_observation_message(
-                    header, batch.partial_observations.columns()))
+                msg = partial_observation_message(header, batch.partial_observations.columns())
+                self.partial_pub.publish(msg)
+                if self.deprecated_partial_pub is not None:
+                    self.deprecated_partial_pub.publish(msg)
             if markers:
                 for i, landmark_id in enumerate(batch.ids.tolist()):
                     self._latest_markers[landmark_id] = (header, batch.m[i], batch.P[i])

@@ -199,6 +199,10 @@ class ObserverConfig(ConfigBase):
     log_throttle_s: float = param(
         5.0, 'Shortest interval between two log lines about the same problem [s].',
         low=0.0, high=3600.0)
+    publish_landmark_constraints: bool = param(
+        False, 'Deprecated, removed in the next release: also publish the partial '
+        'observations on their former topic landmark_constraints, for fusers still '
+        'subscribed to it (constraint_topics).', read_only=True)
 
     def check(self) -> None:
         """Check relations between fields."""

@@ -1,4 +1,4 @@
-"""Partial views over DDS: observers publish partial_observations, the fuser places them."""
+"""Partial observations over DDS: observers publish them, the fuser places the landmark."""
 
 import math
 
@@ -8,8 +8,10 @@ from landmark_ros.nodes.observer import LandmarkObserver
 from landmark_ros.pipeline.partial_rows import PARTIAL_COLUMNS
 from landmark_ros.ros.cloud import CloudWriter
 from landmark_ros.ros.qos import LATCHED
-from landmark_ros.ros.schemas import observation_message, read_landmarks, read_partial_observations
+from landmark_ros.ros.schemas import (observation_message, read_landmarks,
+                                      read_partial_observations)
 import numpy as np
+import pytest
 from rclpy.parameter import Parameter
 from rosutil import Collector, header, pose_message, wait_for_match
 from sensor_msgs.msg import PointCloud2
@@ -32,12 +34,17 @@ def bearing_only_cloud(stamp, landmark_id, bearing):
     return BEARING_ONLY.message(header(stamp, 'camera'), rows)
 
 
-def test_observers_publish_partial_observations_and_the_fuser_places_the_landmark(env):
-    ns = f'/views_test_{env.domain_id}'
+@pytest.mark.parametrize('deprecated', [False, True])
+def test_observers_publish_partial_observations_and_the_fuser_places_the_landmark(env,
+                                                                                  deprecated):
+    # deprecated: the former names, kept for one release, still work end to end: the
+    # fuser's constraint_topics and the observers' landmark_constraints topic.
+    ns = f'/partial_test_{env.domain_id}'
+    topic = 'landmark_constraints' if deprecated else 'partial_observations'
+    parameter = 'constraint_topics' if deprecated else 'partial_observation_topics'
     fuser = env.add(LandmarkFuser(context=env.context, namespace=ns, parameter_overrides=params({
         'input_topics': ['robot1/landmarks', 'robot2/landmarks'],
-        'partial_observation_topics': ['robot1/partial_observations',
-                                       'robot2/partial_observations'],
+        parameter: [f'robot1/{topic}', f'robot2/{topic}'],
         'fusion': 'split_covariance_intersection', 'publish_rate_hz': 50.0})))
     tester = env.node('views_tester')
     maps = Collector(tester, PointCloud2, f'{ns}/fused_landmarks', LATCHED)
@@ -45,14 +52,17 @@ def test_observers_publish_partial_observations_and_the_fuser_places_the_landmar
     for robot in ('robot1', 'robot2'):
         observer = env.add(LandmarkObserver(
             context=env.context, namespace=f'{ns}/{robot}',
-            parameter_overrides=params({'bearing_stddev': 0.01})))
+            parameter_overrides=params({'bearing_stddev': 0.01,
+                                        'publish_landmark_constraints': deprecated})))
         pose_pub = tester.create_publisher(PoseWithCovarianceStamped, f'{ns}/{robot}/pose', 10)
         obs_pub = tester.create_publisher(PointCloud2, f'{ns}/{robot}/observations', 10)
-        partial = Collector(tester, PointCloud2, f'{ns}/{robot}/partial_observations')
+        partial = Collector(tester, PointCloud2, f'{ns}/{robot}/{topic}')
         assert wait_for_match(env, [pose_pub, obs_pub], [partial.subscription], DEADLINE_S)
         rigs.append((observer, pose_pub, obs_pub, partial))
-    assert env.spin_until(lambda: all(o.partial_pub.get_subscription_count() >= 2
-                                      for o, _, _, _ in rigs), DEADLINE_S)
+    assert all((o.deprecated_partial_pub is not None) == deprecated for o, _, _, _ in rigs)
+    assert env.spin_until(lambda: all(
+        (o.deprecated_partial_pub if deprecated else o.partial_pub).get_subscription_count()
+        >= 2 for o, _, _, _ in rigs), DEADLINE_S)
 
     poses = [np.array([0.0, 0.0, 0.3]), np.array([6.0, 0.0, -0.2])]
     for k, ((observer, pose_pub, obs_pub, partial), pose) in enumerate(zip(rigs, poses)):
@@ -80,5 +90,5 @@ def test_observers_publish_partial_observations_and_the_fuser_places_the_landmar
     rows = read_landmarks(maps.messages[-1])
     np.testing.assert_allclose(rows.m[0], LANDMARK, atol=1e-9)
     assert fuser.fuser.counters['landmarks_initialised'] == 1
-    source = fuser.fuser.sources[f'{ns}/robot1/partial_observations']
+    source = fuser.fuser.sources[f'{ns}/robot1/{topic}']
     assert source.counts['partial_fused'] == 1
