@@ -116,7 +116,7 @@ def parse_args(argv=None):
         parser.error('bias standard deviations must not be negative')
     if args.no_ids and set(args.sensors) != {'rb'}:
         parser.error('--no-ids needs range-bearing sensors: range-only and bearing-only '
-                     'views without IDs are out of scope')
+                     'observations without IDs are out of scope')
     if args.domain_id is not None and not 0 <= args.domain_id <= 232:
         parser.error('--domain-id must be in [0, 232]')
     try:
@@ -822,8 +822,8 @@ def run(args, started=None):
         unfused = sorted(set(unfused) - only_partial)
         print(f'{len(only_partial)} landmarks seen by range-only or bearing-only robots '
               f'only: {len(only_partial) - len(waiting)} placed'
-              + (f', {waiting} still waiting for views with enough geometry'
-                 if waiting else ''))
+              + (f', {waiting} still waiting for partial observations with enough '
+                 'geometry' if waiting else ''))
     if unfused:
         failures.append(f'landmarks measured but not fused: {unfused}')
     if association is not None and association['extra_tracks']:
@@ -842,7 +842,8 @@ def run(args, started=None):
         print('FAILED: ' + '; '.join(failures))
         return 1
     fused_count = (f'{len(seen) - len(waiting)} of {len(seen)} measured landmarks fused '
-                   f'({len(waiting)} seen only by partial sensors wait for views)'
+                   f'({len(waiting)} seen only by partial sensors wait for more partial '
+                   'observations)'
                    if waiting else f'all {len(seen)} measured landmarks fused')
     print(f'OK: {fused_count}, consistent ({args.fusion} fusion)')
     return 0

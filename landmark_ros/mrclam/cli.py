@@ -57,7 +57,7 @@ offline (default)
 ``--sensor range`` / ``--sensor bearing``
     The offline replay with the bearings (ranges) dropped: each observer turns the
     range-only (bearing-only) rows into ``partial_observations`` and the fusers place
-    the landmarks from those views (``fuser.partial``). With ``--through-nodes`` the
+    the landmarks from those partial observations (``fuser.partial``). With ``--through-nodes`` the
     player publishes the clouds without the dropped field and the fusers also take
     ``/robotN/partial_observations`` (``player.Player``); not with ``--hide-ids``.
 ``--hide-ids``
@@ -144,7 +144,7 @@ def parse_args(argv=None):
                         help='one fusion method (default: all three)')
     parser.add_argument('--sensor', choices=SENSORS, default='rb',
                         help='rb: range and bearing; range: bearings dropped (range-only '
-                        'views); bearing: ranges dropped (bearing-only views)')
+                        'observations); bearing: ranges dropped (bearing-only observations)')
     parser.add_argument('--through-nodes', action='store_true',
                         help='replay over DDS through landmark_observer and landmark_fuser '
                         'processes')

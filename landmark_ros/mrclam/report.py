@@ -36,7 +36,7 @@ class MethodResult:
     sensor: str = 'rb'
     """Which columns the replay kept: ``rb`` (range-bearing), ``range`` or ``bearing``."""
     landmarks_initialised: int = 0
-    """Landmarks placed from partial views (``fuser.partial``)."""
+    """Landmarks placed from partial observations (``fuser.partial``)."""
     association: object = None
     """``eval.metrics.AssociationSummary`` of a run without IDs (``--hide-ids``), else None."""
 
@@ -333,7 +333,7 @@ def format_node_info(info):
         parts = [f'{topic} in {v.get("messages_in")} msgs/{v.get("observations_in")} rows, '
                  f'fused {v.get("fused", 0)}, gated {v.get("gated_out", 0)}'
                  if 'partial_in' not in v else
-                 f'{topic} in {v.get("messages_in")} msgs/{v.get("partial_in")} views, '
+                 f'{topic} in {v.get("messages_in")} msgs/{v.get("partial_in")} partial, '
                  f'fused {v.get("partial_fused", 0)}, gated {v.get("partial_gated", 0)}, '
                  f'initialised {v.get("landmarks_initialised", 0)}'
                  for topic, v in sources.items()]

@@ -19,7 +19,7 @@ import time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from landmark_ros.nodes.observer import LandmarkObserver
-from landmark_ros.pipeline.config import ObserverConfig
+from landmark_ros.pipeline.config import DEPRECATED_PARAMETERS, ObserverConfig
 from landmark_ros.ros.schemas import observation_message
 import numpy as np
 import pytest
@@ -424,7 +424,7 @@ def test_shipped_yaml_applies_to_a_namespaced_node(ros_env):
     assert node.get_fully_qualified_name() == '/robot1/landmark_observer'
     key, values = yaml_sections(SHIPPED_YAML)
     assert key == '/**/landmark_observer'
-    assert set(values) == {spec.name for spec in fields(ObserverConfig)}
+    assert set(values) == {spec.name for spec in fields(ObserverConfig)} - DEPRECATED_PARAMETERS
     for name, value in values.items():
         assert param_value(node, name) == value, name
         assert type(param_value(node, name)) is type(value), name
