@@ -2,7 +2,7 @@
 Benchmark the fuser: its pipeline object alone, then the node against a bare relay.
 
 Part 1, pipeline level, in this process, no ROS: for each fusion method a map is
-warmed through a ``pipeline.fuser.Fuser`` (source ``warmup``: 100-row messages with
+warmed through a ``fuser.Fuser`` (source ``warmup``: 100-row messages with
 two consistent observations of each of 1,000 landmarks, until all are confirmed) and
 its records loaded into a ``Fuser`` with one other source, as the nodes of part 2
 load them; that fuser is fed 100-row messages of random landmarks: timed per message,
@@ -78,9 +78,9 @@ os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 import _common  # noqa: E402
 from landmark_ros.core.landmark_map import FUSION_METHODS  # noqa: E402
 from landmark_ros.core.landmarks import landmark_to_world_dependent  # noqa: E402
+from landmark_ros.fuser.fuser import Fuser, LandmarkMessage  # noqa: E402
 from landmark_ros.nodes.fuser import LandmarkFuser  # noqa: E402
 from landmark_ros.pipeline.config import FuserConfig  # noqa: E402
-from landmark_ros.pipeline.fuser import Fuser, LandmarkMessage  # noqa: E402
 from landmark_ros.ros import qos  # noqa: E402
 from landmark_ros.ros.schemas import landmark_message, make_header, read_landmarks  # noqa: E402
 import numpy as np  # noqa: E402
@@ -747,7 +747,7 @@ def main(argv=None):
     truth = make_world(args.seed)
     own = pipeline(args, truth)
     lines = [
-        f'bench_fuser: pipeline.fuser.Fuser alone, then landmark_fuser vs a bare relay node '
+        f'bench_fuser: fuser.Fuser alone, then landmark_fuser vs a bare relay node '
         f'over DDS; {LANDMARKS} confirmed landmarks, seed {args.seed}',
         '',
         f'part 1, pipeline, no ROS: thread CPU us per {ROWS_PER_MESSAGE}-row message, best '

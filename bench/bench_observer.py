@@ -1,7 +1,7 @@
 """
 Benchmark the observer: its pipeline object alone, then the node against a bare relay.
 
-Part 1, pipeline level, in this process, no ROS: a ``pipeline.observer.Observer`` with
+Part 1, pipeline level, in this process, no ROS: a ``observer.Observer`` with
 the default parameters and 101 poses (100.00 s to 101.00 s every 10 ms) in its buffer.
 Timed, per observation message of 1, 10 and 100 rows (stamps between poses, so every
 message is interpolated and placed at once; every row valid):
@@ -65,9 +65,9 @@ os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 
 import _common  # noqa: E402
 from landmark_ros.core.landmarks import landmark_to_world_dependent  # noqa: E402
-from landmark_ros.pipeline import rows as pipeline_rows  # noqa: E402
+from landmark_ros.observer import rows as observer_rows  # noqa: E402
+from landmark_ros.observer.observer import ObservationMessage, Observer  # noqa: E402
 from landmark_ros.pipeline.config import ObserverConfig  # noqa: E402
-from landmark_ros.pipeline.observer import ObservationMessage, Observer  # noqa: E402
 import numpy as np  # noqa: E402
 
 ROWS = (1, 10, 100)
@@ -198,9 +198,9 @@ def pipeline(args):
          lambda i: observer.poses.lookup(big[i % count].stamp_ns)),
         ('Observer.noise', lambda i: observer.noise(big[i % count].columns)),
         ('rows.landmarks_from_rows (all below)',
-         lambda i: pipeline_rows.landmarks_from_rows(*inputs[i % count])),
+         lambda i: observer_rows.landmarks_from_rows(*inputs[i % count])),
         ('  rows.row_problems',
-         lambda i: pipeline_rows.row_problems(*inputs[i % count][:3])),
+         lambda i: observer_rows.row_problems(*inputs[i % count][:3])),
         ('  core landmark_to_world_dependent',
          lambda i: landmark_to_world_dependent(inputs[i % count][3], inputs[i % count][4],
                                                inputs[i % count][1], inputs[i % count][2])),
@@ -540,7 +540,7 @@ def main(argv=None):
     targets = {'add_us_100': add_us[big] < TARGET_OWN_US}
 
     lines = [
-        'bench_observer: pipeline.observer.Observer alone, then landmark_observer vs a bare '
+        'bench_observer: observer.Observer alone, then landmark_observer vs a bare '
         'relay node over DDS',
         _common.machine_line(host, None if args.pipeline_only else domain_id,
                              os.getloadavg()[0]),
@@ -618,7 +618,7 @@ def main(argv=None):
                 for r, o in zip(runs['relay', rows], runs['observer', rows]))
             for rows in ROWS))
         stats = info.get('observer_stats') or {}
-        from landmark_ros.pipeline.observer import THROUGHPUT_COUNTERS
+        from landmark_ros.observer.observer import THROUGHPUT_COUNTERS
         problems = {k: v for k, v in stats.items() if v and k not in THROUGHPUT_COUNTERS
                     and k not in ('pose_buffer_size', 'peak_rss_kb')}
         lines.append(f'lost messages {lost}; outputs have the rows sent: '

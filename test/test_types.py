@@ -1,8 +1,8 @@
 """
 Static types of the ROS-free layers: mypy is clean and the public API is annotated.
 
-Every module of ``core/`` and ``pipeline/`` is in ``REQUIRED``: its public functions
-and methods must be fully annotated, and mypy checks the two packages with the
+Every module of ``core/``, ``pipeline/``, ``observer/`` and ``fuser/`` is in ``REQUIRED``:
+its public functions and methods must be fully annotated, and mypy checks the packages with the
 settings of ``mypy.ini``, reporting every error. A new module fails
 ``test_every_module_is_required`` until it is added to ``REQUIRED`` (and annotated).
 """
@@ -16,7 +16,8 @@ import sys
 import pytest
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
-PACKAGES = ('landmark_ros/core', 'landmark_ros/pipeline')
+PACKAGES = ('landmark_ros/core', 'landmark_ros/pipeline', 'landmark_ros/observer',
+            'landmark_ros/fuser')
 
 REQUIRED = [
     'landmark_ros.core',
@@ -43,15 +44,21 @@ REQUIRED = [
     'landmark_ros.pipeline',
     'landmark_ros.pipeline.config',
     'landmark_ros.pipeline.counters',
-    'landmark_ros.pipeline.fuser',
-    'landmark_ros.pipeline.map_file',
-    'landmark_ros.pipeline.observer',
+    'landmark_ros.pipeline.partial_rows',
     'landmark_ros.pipeline.pose_buffer',
-    'landmark_ros.pipeline.publishing',
     'landmark_ros.pipeline.rows',
-    'landmark_ros.pipeline.sources',
-    'landmark_ros.pipeline.tracks',
-    'landmark_ros.pipeline.views',
+    'landmark_ros.pipeline.scan',
+    'landmark_ros.observer',
+    'landmark_ros.observer.observer',
+    'landmark_ros.observer.partial',
+    'landmark_ros.observer.rows',
+    'landmark_ros.fuser',
+    'landmark_ros.fuser.fuser',
+    'landmark_ros.fuser.map_file',
+    'landmark_ros.fuser.partial',
+    'landmark_ros.fuser.publishing',
+    'landmark_ros.fuser.sources',
+    'landmark_ros.fuser.tracks',
 ]
 
 
@@ -178,7 +185,7 @@ def test_public_functions_are_seen():
         'landmark_ros.core.landmark_map']
     assert {'Views.__getitem__', 'Views.concatenate', 'update'} <= seen[
         'landmark_ros.core._partial_model'] | seen['landmark_ros.core._partial_update']
-    assert {'Fuser.fuse_queued', 'Fuser.snapshot'} <= seen['landmark_ros.pipeline.fuser']
+    assert {'Fuser.fuse_queued', 'Fuser.snapshot'} <= seen['landmark_ros.fuser.fuser']
     assert not any('._' in name and not name.endswith('__')
                    for names in seen.values() for name in names)
 

@@ -5,6 +5,7 @@ landmark_bag: run a recorded bag through the landmark pipeline offline, faster t
 
     landmark_bag INPUT -o OUTPUT [--config PARAMS_FILE] [--json FILE] [--robots NAMES]
                  [--no-progress]
+    landmark_bag --from-mrclam DATASET -o OUTPUT [--config PARAMS_FILE]
 
 ``INPUT`` is a rosbag2 (directory, ``.mcap`` or ``.db3``) with ``/<robot>/pose`` and
 ``/<robot>/observations`` per robot (the observers' inputs; robots are found by the
@@ -17,6 +18,10 @@ sections the fuser. When the bag holds ``/ground_truth_landmarks`` the fused map
 evaluated as ``landmark_mrclam`` does (``--json`` writes ``{"input", "output",
 "robots", "speedup", "summary": [entry]}``, the entry as in the replay's JSON).
 
+``--from-mrclam DATASET`` writes a MRCLAM dataset directory as such a bag instead
+(``landmark_ros.bag.export``: poses, observations, ``/ground_truth_landmarks``; the pose
+standard deviations from the ``landmark_mrclam`` section of ``--config``) and stops.
+
 A bag that cannot be used (missing, truncated, a missing topic, a topic of another
 message type), an invalid parameter or an existing output prints one line and exits
 with code 2, leaving no output behind.
@@ -27,10 +32,12 @@ import json
 from pathlib import Path
 import sys
 
+from landmark_ros.bag.export import export_dataset, pose_stddev_from_config
 from landmark_ros.bag.params import read_document
 from landmark_ros.bag.process import process_bag
 from landmark_ros.bag.report import evaluate_map, format_report
 from landmark_ros.bag.storage import BagError
+from landmark_ros.mrclam.data import DEFAULT_POSE_STDDEV
 
 PROG = 'landmark_bag'
 
@@ -40,7 +47,11 @@ def parse_args(argv=None):
     parser = argparse.ArgumentParser(
         prog=PROG, description='Run a recorded bag through landmark_observer (one per robot) '
         'and landmark_fuser offline; write their outputs as a bag (MCAP).')
-    parser.add_argument('input', type=Path, help='input rosbag2 (directory, .mcap or .db3)')
+    parser.add_argument('input', type=Path, nargs='?', default=None,
+                        help='input rosbag2 (directory, .mcap or .db3)')
+    parser.add_argument('--from-mrclam', type=Path, default=None, metavar='DATASET',
+                        help='instead of INPUT: write the MRCLAM dataset directory DATASET '
+                             'as a bag OUTPUT and stop')
     parser.add_argument('-o', '--output', type=Path, required=True,
                         help='output bag directory to create (must not exist)')
     parser.add_argument('--config', type=Path, default=None, metavar='PARAMS_FILE',
@@ -53,7 +64,28 @@ def parse_args(argv=None):
                         help='robot names separated by commas or spaces (default: every '
                              '<name> with a topic /<name>/observations)')
     parser.add_argument('--no-progress', action='store_true', help='no progress bar')
-    return parser.parse_args(argv)
+    args = parser.parse_args(argv)
+    if (args.input is None) == (args.from_mrclam is None):
+        parser.error('give either INPUT or --from-mrclam DATASET')
+    return args
+
+
+def export_mrclam(dataset, output, config):
+    """Write a MRCLAM dataset as a bag (``--from-mrclam``); return the exit code."""
+    try:
+        stddev = (pose_stddev_from_config(config) if config is not None
+                  else DEFAULT_POSE_STDDEV)
+        counts = export_dataset(dataset, stddev, output)
+    except (BagError, OSError, ValueError) as error:
+        print(f'{PROG}: error: {error}', file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f'{PROG}: interrupted: no bag written', file=sys.stderr)
+        return 130
+    total = sum(counts.values())
+    print(f'wrote {output}: {total} messages on {len(counts)} topics '
+          f'(then: {PROG} {output} -o OUTPUT --config PARAMS_FILE)')
+    return 0
 
 
 def _progress_bar(enabled):
@@ -76,6 +108,8 @@ def _progress_bar(enabled):
 def main(argv=None):
     """Run ``landmark_bag``; return the exit code."""
     args = parse_args(argv)
+    if args.from_mrclam is not None:
+        return export_mrclam(args.from_mrclam, args.output, args.config)
     robots = None
     if args.robots is not None:
         robots = [name.strip('/') for name in args.robots.replace(',', ' ').split()]

@@ -9,7 +9,7 @@ received them); the nodes' timers run on bag time (as with ``use_sim_time`` and
 ``ros2 bag play --clock``), each at its configured period from the first message on:
 the fuser's batch update (``update_period_s``), its updates and markers
 (``updates_rate_hz``) and its map (``publish_rate_hz``, only when changed) on one
-publication timer (``pipeline.publishing``), the observers' waiting
+publication timer (``fuser.publishing``), the observers' waiting
 observations (``max_wait_s``) and every node's ``/diagnostics``. After the last message
 the clock runs on long enough for every waiting observation, batch and map to come out.
 
@@ -30,10 +30,10 @@ from geometry_msgs.msg import PoseWithCovarianceStamped
 from landmark_ros.bag.params import load_config
 from landmark_ros.bag.storage import BagError, BagOutput, msgtype, one_line, open_bag
 from landmark_ros.bag.storage import read_message
+from landmark_ros.fuser.fuser import Fuser
+from landmark_ros.fuser.publishing import PublicationSchedule
+from landmark_ros.observer.observer import ObservationMessage, Observer
 from landmark_ros.pipeline.config import FuserConfig, ObserverConfig
-from landmark_ros.pipeline.fuser import Fuser
-from landmark_ros.pipeline.observer import ObservationMessage, Observer
-from landmark_ros.pipeline.publishing import PublicationSchedule
 from landmark_ros.ros import diagnostics
 from landmark_ros.ros.cloud import CloudError, read_columns
 from landmark_ros.ros.conversions import InputError, pose_from_msg, pose_from_odometry

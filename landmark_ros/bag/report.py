@@ -23,7 +23,7 @@ def evaluate_map(fuser, truth):
 
     Parameters
     ----------
-    fuser : landmark_ros.pipeline.fuser.Fuser
+    fuser : landmark_ros.fuser.fuser.Fuser
         The fuser after the bag.
     truth : dict
         ``id -> (x, y)`` [m].

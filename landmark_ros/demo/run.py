@@ -43,13 +43,14 @@ import sys
 import time
 
 from landmark_ros.core.landmark_map import FUSION_METHODS
-from landmark_ros.demo.launcher import (Launcher, ProcessExitedError, remove_unused_shm,
-                                        shm_files_of, write_params_file)
 from landmark_ros.eval.metrics import evaluate, format_table
 from landmark_ros.eval.plotting import PlotUnavailableError
-from landmark_ros.pipeline import map_file
+from landmark_ros.fuser import map_file
+from landmark_ros.pipeline.counters import without_deprecated
 from landmark_ros.ros.cloud import CloudError
 from landmark_ros.ros.conversions import InputError, pose_from_msg, stamp_ns
+from landmark_ros.ros.launcher import (Launcher, ProcessExitedError, remove_unused_shm,
+                                       shm_files_of, write_params_file)
 from landmark_ros.ros.schemas import read_landmarks
 from landmark_ros.sim.simulation import SENSOR_KINDS, SimConfig, Simulation
 from tqdm import tqdm
@@ -115,7 +116,7 @@ def parse_args(argv=None):
         parser.error('bias standard deviations must not be negative')
     if args.no_ids and set(args.sensors) != {'rb'}:
         parser.error('--no-ids needs range-bearing sensors: range-only and bearing-only '
-                     'views without IDs are out of scope')
+                     'observations without IDs are out of scope')
     if args.domain_id is not None and not 0 <= args.domain_id <= 232:
         parser.error('--domain-id must be in [0, 232]')
     try:
@@ -176,7 +177,8 @@ def node_parameters(config, fusion, map_path):
     }
     partial = partial_robots(config)
     if partial:
-        fuser['constraint_topics'] = [f'/robot{i + 1}/landmark_constraints' for i in partial]
+        fuser['partial_observation_topics'] = [f'/robot{i + 1}/partial_observations'
+                                               for i in partial]
     return {'/landmark_sim': sim, '/**/landmark_observer': observer,
             '/landmark_fuser': fuser}
 
@@ -332,7 +334,7 @@ class Monitor:
     def _on_diagnostics(self, msg):
         self.callbacks += 1
         for status in msg.status:
-            values = {kv.key: kv.value for kv in status.values}
+            values = without_deprecated({kv.key: kv.value for kv in status.values})
             self.sequence += 1
             self.latest[status.name] = values
             if status.name == '/landmark_sim' and values.get('finished') == 'true' \
@@ -378,7 +380,7 @@ class Monitor:
                    and node.count_subscribers(f'/robot{i + 1}/pose') > 1
                    and node.count_subscribers(f'/robot{i + 1}/landmarks') > 0
                    and (i not in self.partial or node.count_subscribers(
-                       f'/robot{i + 1}/landmark_constraints') > 0)
+                       f'/robot{i + 1}/partial_observations') > 0)
                    for i in range(self.robots)) and node.count_publishers(
                        '/fused_landmarks') > 0
 
@@ -431,11 +433,11 @@ class Monitor:
                                  'observations_in'):
                 return False
             if i in self.partial:
-                views = self.latest[observer].get('constraints_out', '0')
-                source = f'/landmark_fuser: /{robot}/landmark_constraints'
-                if not self._settled(source, lambda v: v.get('constraints_in', '0') == views,
-                                     lambda v: v.get('queued_views') == '0',
-                                     'constraints_in'):
+                views = self.latest[observer].get('partial_out', '0')
+                source = f'/landmark_fuser: /{robot}/partial_observations'
+                if not self._settled(source, lambda v: v.get('partial_in', '0') == views,
+                                     lambda v: v.get('queued_partial') == '0',
+                                     'partial_in'):
                     return False
         fused = sum(int(v.get('fused', 0)) for v in self.source_statuses().values())
         return (self.fused is not None and int(self.fused.observations.sum()) >= fused
@@ -820,8 +822,8 @@ def run(args, started=None):
         unfused = sorted(set(unfused) - only_partial)
         print(f'{len(only_partial)} landmarks seen by range-only or bearing-only robots '
               f'only: {len(only_partial) - len(waiting)} placed'
-              + (f', {waiting} still waiting for views with enough geometry'
-                 if waiting else ''))
+              + (f', {waiting} still waiting for partial observations with enough '
+                 'geometry' if waiting else ''))
     if unfused:
         failures.append(f'landmarks measured but not fused: {unfused}')
     if association is not None and association['extra_tracks']:
@@ -840,7 +842,8 @@ def run(args, started=None):
         print('FAILED: ' + '; '.join(failures))
         return 1
     fused_count = (f'{len(seen) - len(waiting)} of {len(seen)} measured landmarks fused '
-                   f'({len(waiting)} seen only by partial sensors wait for views)'
+                   f'({len(waiting)} seen only by partial sensors wait for more partial '
+                   'observations)'
                    if waiting else f'all {len(seen)} measured landmarks fused')
     print(f'OK: {fused_count}, consistent ({args.fusion} fusion)')
     return 0

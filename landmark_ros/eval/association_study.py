@@ -6,7 +6,7 @@ Monte Carlo study of landmarks without IDs: association, tracks, consistency (RO
 with the landmark IDs hidden, through the pipeline the nodes run
 (``eval.montecarlo.fuse_simulation``: one ``Observer`` per robot, the fusers fed every
 landmark batch with its classes and scan terms and fused every ``update_period_s`` of
-simulated time), several ``pipeline.fuser.Fuser`` on the same simulated messages.
+simulated time), several ``fuser.Fuser`` on the same simulated messages.
 
 Track confirmation
 ------------------
@@ -21,7 +21,7 @@ per message over a 64 m^2 field of view, 10 messages/s per robot, gate about
 association methods with the confirmation the sensor calls for, ``STUDY_SETTING``
 (``M = 5``, ``T = 1 s``: a landmark in view gives about 9 rows/s, clutter
 ``lambda T`` about 0.3, so ``P(>= 4) ~ 3e-4``) and the sensor's detection
-probability (``detection_probability`` 0.9: the merge test of ``pipeline.tracks`` then
+probability (``detection_probability`` 0.9: the merge test of ``fuser.tracks`` then
 merges a duplicate track that met its landmark's track in a message or two), and, for
 reference, the default
 association with the package defaults (``defaults``) and with ``independent`` fusion
@@ -221,7 +221,7 @@ def score_fuser(fuser, measurements: Dict[tuple, NDArray[np.int64]], world: simu
 
     Parameters
     ----------
-    fuser : pipeline.fuser.Fuser
+    fuser : fuser.Fuser
         After the run, with its ``association_log``.
     measurements : dict
         ``(robot, stamp_ns) -> true IDs`` of every observation message

@@ -20,7 +20,6 @@ from pathlib import Path
 import sys
 
 from landmark_ros.core import gaussian, landmarks, pose2, sensors
-from landmark_ros.core._arrays import sandwich
 from landmark_ros.eval import plotting
 import numpy as np
 
@@ -36,6 +35,12 @@ MC_SMALL_SCALE = 0.01
 
 EXIT_NO_MATPLOTLIB = 2
 """Exit status of ``main`` when ``--plot`` is asked for without matplotlib."""
+
+
+def sandwich(J, P):
+    """Return ``J P J^T``, symmetrised: J (m, n) or (N, m, n), P (n, n) or (N, n, n)."""
+    out = J @ P @ np.swapaxes(J, -1, -2)
+    return 0.5 * (out + np.swapaxes(out, -1, -2))
 
 
 def inputs():

@@ -3,9 +3,9 @@ Monte Carlo consistency of the three fusion methods in the simulator (ROS-free).
 
 ``python -m landmark_ros.eval.montecarlo [--seeds 50] [--duration 20]`` runs the simulator
 (``landmark_ros.sim.simulation``) for many seeds and drives the pipeline the nodes run
-with it: one ``pipeline.observer.Observer`` per robot (its noise parameters are the
+with it: one ``observer.Observer`` per robot (its noise parameters are the
 simulator's), fed with the poses and observation messages in the order and with the
-stamps the ``landmark_sim`` node publishes them, and one ``pipeline.fuser.Fuser`` per
+stamps the ``landmark_sim`` node publishes them, and one ``fuser.Fuser`` per
 fusion method, fed with every observer's landmark batches and fused every
 ``update_period_s`` of simulated time, as the ``landmark_fuser`` node's timer does.
 It then averages the NEES of the fused landmarks, per seed and over all seeds. A
@@ -31,8 +31,8 @@ biased
 range, bearing, mixed
     White noise as ``white``, with every robot range-only, every robot bearing-only,
     or one robot of each kind (``SimConfig.sensor_kinds``): the observers send the
-    partial rows as views (``landmark_constraints``), the fusers place the landmarks
-    from them (``pipeline.views``, delayed initialisation) and update them one view
+    partial rows as views (``partial_observations``), the fusers place the landmarks
+    from them (``fuser.partial``, delayed initialisation) and update them one view
     at a time. The plain EKF (``independent``) is the exact model to first order and
     must be inside the interval; CI and split CI must not be above it.
 shared_frame
@@ -62,9 +62,9 @@ import time
 
 from landmark_ros.core.landmark_map import FUSION_METHODS
 from landmark_ros.eval.metrics import anees_interval, evaluate
+from landmark_ros.fuser.fuser import Fuser
+from landmark_ros.observer.observer import ObservationMessage, Observer
 from landmark_ros.pipeline.config import FuserConfig, ObserverConfig
-from landmark_ros.pipeline.fuser import Fuser
-from landmark_ros.pipeline.observer import ObservationMessage, Observer
 from landmark_ros.sim import simulation
 import numpy as np
 
@@ -160,13 +160,13 @@ def fuse_simulation(sim, methods=FUSION_METHODS, gate_probability=0.999, configs
 
     """
     sources = [f'/robot{robot + 1}/landmarks' for robot in range(sim.robots)]
-    views = [f'/robot{robot + 1}/landmark_constraints' for robot in range(sim.robots)]
+    views = [f'/robot{robot + 1}/partial_observations' for robot in range(sim.robots)]
     observers = [Observer(observer_config(sim.config)) for _ in range(sim.robots)]
     fusers = {method: Fuser(FuserConfig(fusion=method, gate_probability=gate_probability,
                                         min_observations=1), sources,
-                            constraint_sources=views)
+                            partial_sources=views)
               for method in methods} if configs is None else {
-                  name: Fuser(config, sources, constraint_sources=views)
+                  name: Fuser(config, sources, partial_sources=views)
                   for name, config in configs.items()}
     if measurements is not None:
         for fuser in fusers.values():
@@ -185,9 +185,10 @@ def fuse_simulation(sim, methods=FUSION_METHODS, gate_probability=0.999, configs
                 fuser.add_landmarks(sources[robot], batch.stamp_ns, batch.ids, batch.m,
                                     batch.P, batch.P_dep, now_ns=now_ns,
                                     classes=batch.classes, scan=batch.scan)
-                if len(batch.constraints):
-                    fuser.add_constraints(views[robot], batch.stamp_ns,
-                                          batch.constraints.columns(), now_ns=now_ns)
+                if len(batch.partial_observations):
+                    fuser.add_partial_observations(views[robot], batch.stamp_ns,
+                                                   batch.partial_observations.columns(),
+                                                   now_ns=now_ns)
 
     while next_pose < pose_end or next_observation < observation_end:
         pose_stamp = sim.pose_stamp_ns(next_pose)

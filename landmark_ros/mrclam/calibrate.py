@@ -283,7 +283,7 @@ def calibrate(dataset, min_pair=10, bins=10):
        ``bearing_correlated_fraction`` and ``noise_correlation_time_s``. The errors of
        consecutive sightings are far from independent (the viewing geometry, the
        camera latency while the robot turns): a fuser that treats thousands of views
-       as independent becomes over-confident (``pipeline.views.CorrelatedNoise``).
+       as independent becomes over-confident (``fuser.partial.CorrelatedNoise``).
 
     Parameters
     ----------

@@ -7,7 +7,7 @@ the same code as the nodes, then the fused maps against the true landmark positi
     landmark_mrclam [DATASET] [--config config/mrclam.yaml] [--fusion METHOD]
                     [--through-nodes [--no-progress] [--keep-logs] [--domain-id N]]
                     [--sensor rb|range|bearing] [--json FILE] [--plot FILE] [--calibrate]
-                    [--export-bag OUT] [--hide-ids]
+                    [--export-bag OUT (deprecated)] [--hide-ids]
 
 ``DATASET`` is a MRCLAM directory (default: ``shared/data/mrclam/dataset6`` beside the
 repository). Sightings, poses and ground truth come from ``landmark_ros.mrclam.data``:
@@ -22,10 +22,10 @@ Modes
 -----
 offline (default)
     ``landmark_ros.mrclam.offline``: the pipeline objects the nodes run, without ROS.
-    One ``pipeline.observer.Observer`` per robot gets, in global time order (ties by
+    One ``observer.Observer`` per robot gets, in global time order (ties by
     robot number), the robot's pose at each measurement stamp, then that stamp's
     observation message (integer nanosecond stamps, as the player publishes them);
-    one ``pipeline.fuser.Fuser`` per fusion method gets every landmark batch, source
+    one ``fuser.Fuser`` per fusion method gets every landmark batch, source
     the robot's landmark topic ``/robotN/landmarks``, and fuses its queue every chunk
     (the same map as row by row). One map per fusion method, all three unless
     ``--fusion`` names one.
@@ -34,7 +34,7 @@ offline (default)
     loaded for this mode only): the same data over DDS (loopback only, private
     ROS_DOMAIN_ID 100-149 from the process ID unless ``--domain-id``) through the real
     nodes, in processes started by
-    ``landmark_ros.demo.launcher``: one ``landmark_observer`` per robot (namespace
+    ``landmark_ros.ros.launcher``: one ``landmark_observer`` per robot (namespace
     ``robotN``) and one ``landmark_fuser`` per fusion method, all running at once on
     the same observer outputs (namespace ``/mrclam/METHOD``), all with
     ``--params-file`` the config file, plus the transport overrides printed at start
@@ -56,14 +56,14 @@ offline (default)
     the maps differ by millimetres to centimetres (covariance intersection).
 ``--sensor range`` / ``--sensor bearing``
     The offline replay with the bearings (ranges) dropped: each observer turns the
-    range-only (bearing-only) rows into ``landmark_constraints`` and the fusers place
-    the landmarks from those views (``pipeline.views``). With ``--through-nodes`` the
+    range-only (bearing-only) rows into ``partial_observations`` and the fusers place
+    the landmarks from those partial observations (``fuser.partial``). With ``--through-nodes`` the
     player publishes the clouds without the dropped field and the fusers also take
-    ``/robotN/landmark_constraints`` (``player.Player``); not with ``--hide-ids``.
+    ``/robotN/partial_observations`` (``player.Player``); not with ``--hide-ids``.
 ``--hide-ids``
     Landmarks without IDs: the observation messages go without their ``id`` field
     (through the nodes: every row ``UNKNOWN_ID``),
-    the fusers associate the sightings (``pipeline.tracks``, parameter
+    the fusers associate the sightings (``fuser.tracks``, parameter
     ``association``) and each summary entry gains ``association_accuracy`` (a sighting
     is right when it went to the confirmed track matched, by optimal assignment on
     positions within 1 m, to its true landmark), ``oracle_accuracy`` (each sighting to
@@ -79,12 +79,10 @@ offline (default)
 ``--calibrate``
     Estimate the sensor model from ground truth and print suggested YAML values
     (``landmark_ros.mrclam.calibrate.calibrate`` documents the procedure).
-``--export-bag OUT``
-    Write the dataset as a rosbag2 (MCAP) directory ``OUT`` for ``landmark_bag`` or
-    ``ros2 bag play`` and stop (no replay): ``landmark_ros.bag.export.export_dataset``
-    with the config's ``pose_stddev``, imported for this mode only (it uses the ROS
-    message classes). ``OUT`` must not exist; a bag error prints one line and exits
-    with code 2.
+``--export-bag OUT`` (deprecated, removed in the next release)
+    Runs ``landmark_bag --from-mrclam DATASET -o OUT --config CONFIG`` (the bag tool
+    owns the export; this replay does not import it) after a deprecation warning on
+    stderr, and passes its output and exit code on.
 
 Output
 ------
@@ -117,6 +115,7 @@ their 2-sigma ellipses (matplotlib, ``landmark_ros.eval.plotting``).
 
 import argparse
 from pathlib import Path
+import subprocess
 import sys
 import time
 
@@ -145,7 +144,7 @@ def parse_args(argv=None):
                         help='one fusion method (default: all three)')
     parser.add_argument('--sensor', choices=SENSORS, default='rb',
                         help='rb: range and bearing; range: bearings dropped (range-only '
-                        'views); bearing: ranges dropped (bearing-only views)')
+                        'observations); bearing: ranges dropped (bearing-only observations)')
     parser.add_argument('--through-nodes', action='store_true',
                         help='replay over DDS through landmark_observer and landmark_fuser '
                         'processes')
@@ -155,8 +154,9 @@ def parse_args(argv=None):
     parser.add_argument('--calibrate', action='store_true',
                         help='estimate the sensor model from ground truth and print it')
     parser.add_argument('--export-bag', type=Path, default=None, metavar='OUT',
-                        help='write the dataset as a rosbag2 (MCAP) directory OUT for '
-                        'landmark_bag and stop (OUT must not exist)')
+                        help='deprecated (removed in the next release): use landmark_bag '
+                        '--from-mrclam DATASET -o OUT; writes the dataset as a rosbag2 (MCAP) '
+                        'directory OUT for landmark_bag and stops (OUT must not exist)')
     parser.add_argument('--json', type=Path, default=None, help='write the results as JSON')
     parser.add_argument('--plot', type=Path, default=None, help='draw the maps (PNG, PDF...)')
     parser.add_argument('--no-progress', action='store_true',
@@ -170,23 +170,26 @@ def parse_args(argv=None):
     return parser.parse_args(argv)
 
 
-def export_bag(dataset, config, path):
-    """Write the dataset as a bag for ``landmark_bag``; return the exit code."""
-    # ROS message classes, imported for this mode only (as the player).
-    from landmark_ros.bag.export import export_dataset
-    from landmark_ros.bag.storage import BagError
+def export_bag(dataset_path, config, path):
+    """
+    Forward the deprecated ``--export-bag`` to ``landmark_bag --from-mrclam``; return its code.
+
+    The bag tool sits above the replay (``bag/`` imports ``mrclam/``, not the reverse), so
+    the export runs as the bag tool's command in a child process; its output is passed on.
+    """
+    print('landmark_mrclam: --export-bag is deprecated and will be removed in the next '
+          f'release: use landmark_bag --from-mrclam {dataset_path} -o {path} '
+          f'--config {config.path}', file=sys.stderr)
+    command = [sys.executable, '-m', 'landmark_ros.bag.cli', '--from-mrclam',
+               str(dataset_path), '-o', str(path), '--config', str(config.path)]
     try:
-        counts = export_dataset(dataset, config.pose_stddev, path)
-    except BagError as error:
-        print(f'landmark_mrclam: {error}', file=sys.stderr)
-        return 2
+        done = subprocess.run(command, capture_output=True, text=True, check=False)
     except KeyboardInterrupt:
         print('landmark_mrclam: interrupted: no bag written', file=sys.stderr)
         return 130
-    total = sum(counts.values())
-    print(f'wrote {path}: {total} messages on {len(counts)} topics '
-          f'(then: landmark_bag {path} -o OUTPUT --config {config.path})')
-    return 0
+    sys.stdout.write(done.stdout)
+    sys.stderr.write(done.stderr.replace('landmark_bag: ', 'landmark_mrclam: '))
+    return done.returncode
 
 
 def main(argv=None):
@@ -203,7 +206,7 @@ def main(argv=None):
     print(dataset_report(dataset))
     print(f'config {config.path}; loaded in {load_s:.2f} s')
     if args.export_bag is not None:
-        return export_bag(dataset, config, args.export_bag)
+        return export_bag(args.dataset or default_dataset_path(), config, args.export_bag)
     if args.calibrate:
         try:
             calibration = calibrate(dataset)
@@ -252,9 +255,11 @@ def main(argv=None):
         fill_node_association(offline, results, document['agreement'])
         timing.update({k: info[k] for k in ('wall_s', 'startup_s', 'play_wall_s', 'speedup')})
         document['nodes'] = {k: info[k] for k in ('clouds', 'rows', 'rows_out',
-                                                  'constraint_rows_out', 'barriers',
+                                                  'partial_rows_out', 'barriers',
                                                   'barrier_rounds', 'probes', 'fusers',
                                                   'observers', 'cloud_mismatch', 'cpu_s')}
+        # Deprecated alias of partial_rows_out, removed in the next release.
+        document['nodes']['constraint_rows_out'] = document['nodes']['partial_rows_out']
     print()
     print(report(results))
     if args.hide_ids:

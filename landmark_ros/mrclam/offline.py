@@ -1,8 +1,8 @@
 """
 The offline replay: the dataset through the pipeline objects of the nodes (ROS-free).
 
-Per robot one ``pipeline.observer.Observer`` and per fusion method one
-``pipeline.fuser.Fuser``, built from the very YAML sections the nodes read
+Per robot one ``observer.Observer`` and per fusion method one
+``fuser.Fuser``, built from the very YAML sections the nodes read
 (``ObserverConfig`` / ``FuserConfig.from_values``), are fed what the nodes receive in
 ``--through-nodes``: for every observation message (one per robot and measurement
 stamp, ``Rows.messages``), in global time order with ties by robot number, the
@@ -15,8 +15,8 @@ a batch gives the same map as its rows one by one). Time is integer nanoseconds
 report.
 
 ``sensor`` keeps both columns (``rb``) or drops one: ``range`` sends range-only rows,
-``bearing`` bearing-only rows; the observers turn them into constraints (partial
-views), which go to every fuser's constraint source ``/robotN/landmark_constraints``.
+``bearing`` bearing-only rows; the observers turn them into partial observations, which
+go to every fuser's partial source ``/robotN/partial_observations``.
 """
 
 from collections import Counter
@@ -24,19 +24,19 @@ from dataclasses import dataclass, replace
 from typing import Dict, Iterator, List, Sequence, Tuple
 
 from landmark_ros.eval.metrics import evaluate_association
+from landmark_ros.fuser.fuser import Fuser
+from landmark_ros.fuser.tracks import ASSOCIATION_COUNTERS
 from landmark_ros.mrclam.report import method_result, MethodResult
-from landmark_ros.pipeline.fuser import Fuser
-from landmark_ros.pipeline.observer import (LandmarkBatch, NOT_PROBLEMS, ObservationMessage,
+from landmark_ros.observer.observer import (LandmarkBatch, NOT_PROBLEMS, ObservationMessage,
                                             Observer)
-from landmark_ros.pipeline.tracks import ASSOCIATION_COUNTERS
 import numpy as np
 
 FUSE_CHUNK = 1024
 """Messages the fusers queue before ``Fuser.fuse_queued`` (at most ``max_queue_messages``)."""
 
 FUSER_NOT_PROBLEMS = frozenset({'messages_in', 'observations_in', 'fused', 'gated_out',
-                                'constraints_in', 'views_fused', 'views_gated',
-                                'landmarks_initialised', 'views_superseded',
+                                'partial_in', 'partial_fused', 'partial_gated',
+                                'landmarks_initialised', 'partial_superseded',
                                 'landmarks_reinitialised', *ASSOCIATION_COUNTERS})
 
 SENSORS = ('rb', 'range', 'bearing')
@@ -159,10 +159,10 @@ def run_offline(dataset, config, methods, chunk=FUSE_CHUNK, sensor='rb',
     observers = [Observer(config.observer) for _ in dataset.robots]
     if sensor not in SENSORS:
         raise ValueError(f'sensor must be one of {SENSORS}, got {sensor!r}')
-    constraint_topics = [topic.rsplit('/', 1)[0] + '/landmark_constraints'
-                         for topic in rows.topics]
+    partial_observation_topics = [topic.rsplit('/', 1)[0] + '/partial_observations'
+                                  for topic in rows.topics]
     fusers = {method: Fuser(replace(config.fuser, fusion=method), rows.topics,
-                            constraint_sources=constraint_topics)
+                            partial_sources=partial_observation_topics)
               for method in methods}
     limit = max(1, min(int(chunk), config.fuser.max_queue_messages))
     queued = messages = 0
@@ -181,9 +181,9 @@ def run_offline(dataset, config, methods, chunk=FUSE_CHUNK, sensor='rb',
                     whole = added == b - a
                     sightings[method].append(
                         (rows.ids[a:b], batch.m, batch.P) if whole else None)
-            if len(batch.constraints):
-                fuser.add_constraints(constraint_topics[robot], batch.stamp_ns,
-                                      batch.constraints.columns())
+            if len(batch.partial_observations):
+                fuser.add_partial_observations(partial_observation_topics[robot], batch.stamp_ns,
+                                               batch.partial_observations.columns())
         messages += 1
         queued += 1
         if queued >= limit:
@@ -202,8 +202,8 @@ def run_offline(dataset, config, methods, chunk=FUSE_CHUNK, sensor='rb',
                 record['track_id'] = record['id']
                 record['id'] = association.track_to_true.get(record['id'], record['id'])
         result = method_result(method, records, dataset.landmarks,
-                               sum(c['fused'] + c['views_fused'] for c in counts),
-                               sum(c['gated_out'] + c['views_gated'] for c in counts))
+                               sum(c['fused'] + c['partial_fused'] for c in counts),
+                               sum(c['gated_out'] + c['partial_gated'] for c in counts))
         result.sensor = sensor
         result.landmarks_initialised = sum(c['landmarks_initialised'] for c in counts)
         result.association = association

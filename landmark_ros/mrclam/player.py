@@ -2,7 +2,7 @@
 The replay through the real nodes, over DDS (the only ROS module of ``mrclam``).
 
 ``run_through_nodes`` starts one ``landmark_observer`` per robot and one
-``landmark_fuser`` per fusion method as processes (``landmark_ros.demo.launcher``) in
+``landmark_fuser`` per fusion method as processes (``landmark_ros.ros.launcher``) in
 a private ROS domain on the loopback interface, with ``--params-file`` the replay's
 config plus the transport overrides ``OBSERVER_TRANSPORT`` and ``FUSER_TRANSPORT``.
 ``Player`` publishes the dataset into them in global time order with flow control
@@ -23,16 +23,17 @@ import time
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseWithCovarianceStamped
-from landmark_ros.demo.launcher import Launcher, ProcessExitedError
 from landmark_ros.eval.metrics import evaluate_association
+from landmark_ros.fuser import map_file
 from landmark_ros.mrclam.offline import observe
 from landmark_ros.mrclam.report import method_result
-from landmark_ros.pipeline import map_file
+from landmark_ros.observer.observer import Observer
 from landmark_ros.pipeline.config import FuserConfig
-from landmark_ros.pipeline.observer import Observer
+from landmark_ros.pipeline.counters import without_deprecated
 from landmark_ros.pipeline.rows import UNKNOWN_ID
 from landmark_ros.ros.cloud import CloudWriter
 from landmark_ros.ros.conversions import stamp_ns
+from landmark_ros.ros.launcher import Launcher, ProcessExitedError
 from landmark_ros.ros.schemas import observation_message, pose_message
 from landmark_ros.ros.schemas import read_landmarks
 import numpy as np
@@ -113,10 +114,11 @@ def observer_arguments(robot, config_path):
     return arguments
 
 
-def fuser_arguments(method, topics, config_path, map_path, constraint_topics=None):
-    """Return the ROS arguments of one fuser process (``constraint_topics``: if given)."""
+def fuser_arguments(method, topics, config_path, map_path, partial_observation_topics=None):
+    """Return the ROS arguments of one fuser process (``partial_observation_topics``: if given)."""
     arguments = ['-r', f'__ns:=/mrclam/{method}', '--params-file', str(config_path)]
-    extra = {} if constraint_topics is None else {'constraint_topics': list(constraint_topics)}
+    extra = {} if partial_observation_topics is None else {
+        'partial_observation_topics': list(partial_observation_topics)}
     for name, value in dict(FUSER_TRANSPORT, input_topics=list(topics), fusion=method,
                             map_file=str(map_path), **extra).items():
         arguments += _param(name, value)
@@ -134,9 +136,9 @@ _PARTIAL_WRITERS = {'range': CloudWriter((('id', np.uint32), ('range', np.float6
 """Observation clouds of one column, by the column kept (``--sensor range|bearing``)."""
 
 
-def constraint_topic(landmarks_topic):
-    """Return a robot's ``landmark_constraints`` topic beside its ``landmarks`` one."""
-    return landmarks_topic.rsplit('/', 1)[0] + '/landmark_constraints'
+def partial_topic(landmarks_topic):
+    """Return a robot's ``partial_observations`` topic beside its ``landmarks`` one."""
+    return landmarks_topic.rsplit('/', 1)[0] + '/partial_observations'
 
 
 def stamped_messages(stamp_ns, frame_id, pose, P_pose, ids, z, sensor='rb'):
@@ -181,12 +183,12 @@ def stamped_messages(stamp_ns, frame_id, pose, P_pose, ids, z, sensor='rb'):
     return pose_msg, writer.message(header, rows)
 
 
-def expected_constraints(rows, config, sensor):
+def expected_partial(rows, config, sensor):
     """
-    Return, per cloud, whether its observer publishes a ``landmark_constraints`` cloud.
+    Return, per cloud, whether its observer publishes a ``partial_observations`` cloud.
 
     The observers' own pipeline (``offline.observe``, fresh ``Observer`` objects of
-    the config) on the very clouds the player sends: a cloud gives constraints when
+    the config) on the very clouds the player sends: a cloud gives partial observations when
     some of its partial rows pass the observer's checks.
 
     Returns
@@ -200,7 +202,7 @@ def expected_constraints(rows, config, sensor):
         return np.zeros(count, bool)
     robots = int(rows.robot.max()) + 1 if len(rows) else 0
     observers = [Observer(config.observer) for _ in range(robots)]
-    flags = [bool(len(batch.constraints))
+    flags = [bool(len(batch.partial_observations))
              for _, batch in observe(rows, observers, config.P_pose, sensor)]
     if len(flags) != count:
         raise ReplayError(f'the observers placed {len(flags)} of {count} clouds offline')
@@ -341,9 +343,9 @@ class Player:
 
     With ``sensor`` ``range`` or ``bearing`` the clouds go without the dropped column
     (``stamped_messages``), each observer publishes an empty ``landmarks`` cloud per
-    cloud (still the pace) and a ``landmark_constraints`` cloud when some partial rows
-    pass its checks (``expected_constraints``: the observers' pipeline run on the same
-    clouds), which the fusers take from ``constraint_topics``. The player subscribes
+    cloud (still the pace) and a ``partial_observations`` cloud when some partial rows
+    pass its checks (``expected_partial``: the observers' pipeline run on the same
+    clouds), which the fusers take from ``partial_observation_topics``. The player subscribes
     to those too (stamps checked as the outputs), and a cloud counts as out of its
     observer only once both its outputs arrived; a barrier then covers both
     subscriptions of every robot (each pass takes up to ``FUSER_BATCH`` waiting clouds
@@ -371,13 +373,13 @@ class Player:
         for j in range(len(self.starts)):
             self.expected_ns[self.msg_robot[j]].append(int(self.msg_stamps_ns[j]))
         self.sensor = sensor
-        flags = expected_constraints(rows, config, sensor)
-        # Per robot: constraint stamps expected, and how many among its first k clouds.
-        self.constraint_ns = [self.msg_stamps_ns[self.msg_robot == r][
+        flags = expected_partial(rows, config, sensor)
+        # Per robot: partial observation stamps expected, and how many among its first k clouds.
+        self.partial_ns = [self.msg_stamps_ns[self.msg_robot == r][
             flags[self.msg_robot == r]].tolist() for r in range(len(self.robots))]
-        self.constraints_before = [np.concatenate(([0], np.cumsum(
+        self.partial_before = [np.concatenate(([0], np.cumsum(
             flags[self.msg_robot == r]))).tolist() for r in range(len(self.robots))]
-        self.constraint_topics = [constraint_topic(r.landmarks_topic) for r in self.robots]
+        self.partial_observation_topics = [partial_topic(r.landmarks_topic) for r in self.robots]
         reliable = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000,
                               reliability=ReliabilityPolicy.RELIABLE)
         latched = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
@@ -387,7 +389,7 @@ class Player:
         quiet_pub = {'event_callbacks': PublisherEventCallbacks(use_default_callbacks=False)}
         quiet_sub = {'event_callbacks': SubscriptionEventCallbacks(
             use_default_callbacks=False)}
-        self.pose_pubs, self.obs_pubs, self.out_subs, self.constraint_subs = [], [], [], []
+        self.pose_pubs, self.obs_pubs, self.out_subs, self.partial_subs = [], [], [], []
         for index, robot in enumerate(self.robots):
             self.pose_pubs.append(node.create_publisher(
                 PoseWithCovarianceStamped, f'/{robot.name}/pose', reliable, **quiet_pub))
@@ -397,9 +399,9 @@ class Player:
                 PointCloud2, robot.landmarks_topic,
                 lambda msg, index=index: self._on_output(msg, index), reliable, **quiet_sub))
             if sensor != 'rb':
-                self.constraint_subs.append(node.create_subscription(
-                    PointCloud2, self.constraint_topics[index],
-                    lambda msg, index=index: self._on_constraints(msg, index), reliable,
+                self.partial_subs.append(node.create_subscription(
+                    PointCloud2, self.partial_observation_topics[index],
+                    lambda msg, index=index: self._on_partial_observations(msg, index), reliable,
                     **quiet_sub))
         self.fused = {}
         self.fused_subs, self.barrier_clients, self.save_clients = [], [], []
@@ -420,8 +422,8 @@ class Player:
         self.sent = [0] * count
         self.out = [0] * count
         self.landmarks_out = [0] * count
-        self.constraints_out = [0] * count
-        self.constraint_rows_out = 0
+        self.partial_out = [0] * count
+        self.partial_rows_out = 0
         self.taken = [0] * count
         self.probes_sent = [0] * count
         self.probes_out = [0] * count
@@ -450,25 +452,25 @@ class Player:
         self.rows_out += msg.width * msg.height
         self._advance(index)
 
-    def _on_constraints(self, msg, index):
+    def _on_partial_observations(self, msg, index):
         stamp = stamp_ns(msg.header.stamp)
-        k = self.constraints_out[index]
-        expected = self.constraint_ns[index]
+        k = self.partial_out[index]
+        expected = self.partial_ns[index]
         expected = expected[k] if k < len(expected) else None
         if stamp != expected:
-            raise ReplayError(f'{self.robots[index].name}: constraints output stamped {stamp} '
-                              f'ns, expected {expected} ns (constraint cloud {k}): lost, or '
-                              'the observer node and its pipeline disagree')
-        self.constraints_out[index] += 1
-        self.constraint_rows_out += msg.width * msg.height
+            raise ReplayError(f'{self.robots[index].name}: partial observations stamped {stamp} '
+                              f'ns, expected {expected} ns (partial observation cloud {k}): '
+                              'lost, or the observer node and its pipeline disagree')
+        self.partial_out[index] += 1
+        self.partial_rows_out += msg.width * msg.height
         self._advance(index)
 
     def _advance(self, index):
-        """Count the clouds whose outputs (landmarks, and constraints if any) all arrived."""
-        before = self.constraints_before[index]
+        """Count the clouds whose outputs (landmarks, partial observations if any) all came."""
+        before = self.partial_before[index]
         out = self.out[index]
         while (out < self.landmarks_out[index]
-               and before[out + 1] <= self.constraints_out[index]):
+               and before[out + 1] <= self.partial_out[index]):
             out += 1
         if out != self.out[index]:
             self.out[index] = out
@@ -477,8 +479,8 @@ class Player:
     def _on_diagnostics(self, msg):
         stamp = stamp_ns(msg.header.stamp)
         for status in msg.status:
-            self.diagnostics[status.name] = (stamp, {kv.key: kv.value for kv in status.values},
-                                             status.message)
+            values = without_deprecated({kv.key: kv.value for kv in status.values})
+            self.diagnostics[status.name] = (stamp, values, status.message)
 
     # Helpers ---------------------------------------------------------------------------
 
@@ -515,7 +517,7 @@ class Player:
             if entry is None or entry[0] != main[0]:
                 return None
             sources[robot.landmarks_topic] = entry[1]
-        for topic in self.constraint_topics if self.constraint_subs else ():
+        for topic in self.partial_observation_topics if self.partial_subs else ():
             entry = self.diagnostics.get(f'{name}: {topic}')
             if entry is None or entry[0] != main[0]:
                 return None
@@ -626,13 +628,14 @@ class Player:
         def matched():
             return (all(p.get_subscription_count() > 0 for p in self.pose_pubs + self.obs_pubs)
                     and all(s.get_publisher_count() > 0 for s in self.out_subs + self.fused_subs
-                            + self.constraint_subs)
+                            + self.partial_subs)
                     and all(c.service_is_ready() for c in self.barrier_clients
                             + self.save_clients)
                     and all(self.node.count_subscribers(r.landmarks_topic) >= 1 + len(
                         self.methods) for r in self.robots)
                     and all(self.node.count_subscribers(t) >= 1 + len(self.methods)
-                            for t in (self.constraint_topics if self.constraint_subs else ())))
+                            for t in (self.partial_observation_topics if self.partial_subs
+                                      else ())))
         self.spin_until(matched, timeout_s, 'the nodes to start and match')
 
     def probe(self, timeout_s=60.0):
@@ -647,7 +650,7 @@ class Player:
                 sources = self.fuser_sources(method)
                 if sources is None or any(int(v.get('messages_in', 0)) < 1
                                           for k, v in sources.items()
-                                          if k not in self.constraint_topics):
+                                          if k not in self.partial_observation_topics):
                     return False
             return True
 
@@ -732,7 +735,7 @@ class Player:
             def fused(method=method):
                 sources = self.fuser_sources(method, newer_than_ns=after)
                 return sources is not None and all(
-                    v.get('queued_messages') == '0' and v.get('queued_views') == '0'
+                    v.get('queued_messages') == '0' and v.get('queued_partial') == '0'
                     for v in sources.values())
             self.spin_until(fused, timeout_s, f'the {method} fuser to fuse its queue')
         final = {}
@@ -791,7 +794,7 @@ def run_through_nodes(dataset, config, methods, progress=None, keep_logs=False, 
     """
     Replay the dataset through the real nodes; return the results per method.
 
-    The nodes run as processes of ``landmark_ros.demo.launcher.Launcher`` (stopped with
+    The nodes run as processes of ``landmark_ros.ros.launcher.Launcher`` (stopped with
     SIGINT, then SIGTERM and SIGKILL, whatever happens) in a private ROS domain on the
     loopback interface; this process joins it with its own context. ``progress``
     chooses the progress bar as in ``progress_bar`` (None: only on a terminal).
@@ -799,8 +802,8 @@ def run_through_nodes(dataset, config, methods, progress=None, keep_logs=False, 
     its ``association`` (``hidden_association``) and its records take the IDs of the
     true landmarks matched (``track_id`` keeps the fuser's). ``sensor`` ``range`` or
     ``bearing`` drops a column of every cloud (``Player``) and gives each fuser the
-    ``constraint_topics`` ``/robotN/landmark_constraints``; the fusers' ``constraints_in``
-    must then equal the constraint rows the player received (else ``cloud_mismatch``).
+    ``partial_observation_topics`` ``/robotN/partial_observations``; the fusers' ``partial_in``
+    must then equal the partial observation rows the player received (else ``cloud_mismatch``).
 
     Returns
     -------
@@ -817,7 +820,7 @@ def run_through_nodes(dataset, config, methods, progress=None, keep_logs=False, 
     work = Path(tempfile.mkdtemp(prefix='landmark_mrclam_'))
     rows = dataset.rows()
     topics = [robot.landmarks_topic for robot in dataset.robots]
-    constraint_topics = None if sensor == 'rb' else [constraint_topic(t) for t in topics]
+    partial_observation_topics = None if sensor == 'rb' else [partial_topic(t) for t in topics]
     config_path = Path(config.path).resolve()
     context = Context()
     node = executor = None
@@ -836,7 +839,7 @@ def run_through_nodes(dataset, config, methods, progress=None, keep_logs=False, 
             map_paths[method] = work / f'{method}.json'
             launcher.start_module(f'fuser_{method}', 'landmark_ros.nodes.fuser',
                                   fuser_arguments(method, topics, config_path,
-                                                  map_paths[method], constraint_topics))
+                                                  map_paths[method], partial_observation_topics))
         rclpy.init(args=['landmark_mrclam'], context=context, domain_id=domain)
         node = rclpy.create_node('landmark_mrclam_player', context=context,
                                  start_parameter_services=False)
@@ -874,9 +877,9 @@ def run_through_nodes(dataset, config, methods, progress=None, keep_logs=False, 
             except ReplayError:
                 mismatch[method] = 'fused_landmarks never matched the saved map'
             sources = final[method]['sources']
-            used = sum(int(v.get('fused', 0)) + int(v.get('views_fused', 0))
+            used = sum(int(v.get('fused', 0)) + int(v.get('partial_fused', 0))
                        for v in sources.values())
-            rejected = sum(int(v.get('gated_out', 0)) + int(v.get('views_gated', 0))
+            rejected = sum(int(v.get('gated_out', 0)) + int(v.get('partial_gated', 0))
                            for v in sources.values())
             association = hidden_association(records, dataset.landmarks) if hide_ids else None
             results[method] = method_result(method, records, dataset.landmarks, used, rejected)
@@ -884,11 +887,12 @@ def run_through_nodes(dataset, config, methods, progress=None, keep_logs=False, 
             results[method].sensor = sensor
             results[method].landmarks_initialised = sum(
                 int(v.get('landmarks_initialised', 0)) for v in sources.values())
-            if constraint_topics:
-                taken = sum(int(sources[t].get('constraints_in', 0)) for t in constraint_topics)
-                if taken != player.constraint_rows_out:
-                    mismatch[method] = (f'constraints_in {taken}, constraint rows published '
-                                        f'{player.constraint_rows_out}')
+            if partial_observation_topics:
+                taken = sum(int(sources[t].get('partial_in', 0))
+                            for t in partial_observation_topics)
+                if taken != player.partial_rows_out:
+                    mismatch[method] = (f'partial_in {taken}, partial observation rows published '
+                                        f'{player.partial_rows_out}')
         observers = {r.name: player.diagnostics[f'/{r.name}/landmark_observer'][1]
                      for r in dataset.robots}
         info = {
@@ -898,7 +902,7 @@ def run_through_nodes(dataset, config, methods, progress=None, keep_logs=False, 
             'speedup': dataset.duration / player.play_wall_s if player.play_wall_s else None,
             'clouds': int(len(player.starts)), 'rows': int(len(rows)),
             'rows_out': int(player.rows_out),
-            'constraint_rows_out': int(player.constraint_rows_out),
+            'partial_rows_out': int(player.partial_rows_out),
             'barriers': player.barriers, 'barrier_rounds': player.barrier_rounds,
             'probes': list(player.probes_sent),
             'fusers': {m: final[m]['sources'] for m in methods},

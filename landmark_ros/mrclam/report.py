@@ -36,7 +36,7 @@ class MethodResult:
     sensor: str = 'rb'
     """Which columns the replay kept: ``rb`` (range-bearing), ``range`` or ``bearing``."""
     landmarks_initialised: int = 0
-    """Landmarks placed from partial views (``pipeline.views``)."""
+    """Landmarks placed from partial observations (``fuser.partial``)."""
     association: object = None
     """``eval.metrics.AssociationSummary`` of a run without IDs (``--hide-ids``), else None."""
 
@@ -322,7 +322,7 @@ def format_node_info(info):
              f'{info["wall_s"]:.1f} s in all with {info["startup_s"]:.1f} s start-up; '
              f'{info["barriers"]} barriers ({info["barrier_rounds"]} rounds)']
     keys = ('poses_in', 'observation_messages_in', 'observations_in', 'landmarks_out')
-    partial = ('partial_rows', 'constraints_out')  # counted once there are partial rows
+    partial = ('partial_rows', 'partial_out')  # counted once there are partial rows
     for name, values in info['observers'].items():
         problems = {k: v for k, v in values.items() if k not in keys + partial + (
             'pose_buffer_size', 'pending_messages') and v != '0'}
@@ -332,9 +332,9 @@ def format_node_info(info):
     for method, sources in info['fusers'].items():
         parts = [f'{topic} in {v.get("messages_in")} msgs/{v.get("observations_in")} rows, '
                  f'fused {v.get("fused", 0)}, gated {v.get("gated_out", 0)}'
-                 if 'constraints_in' not in v else
-                 f'{topic} in {v.get("messages_in")} msgs/{v.get("constraints_in")} views, '
-                 f'fused {v.get("views_fused", 0)}, gated {v.get("views_gated", 0)}, '
+                 if 'partial_in' not in v else
+                 f'{topic} in {v.get("messages_in")} msgs/{v.get("partial_in")} partial, '
+                 f'fused {v.get("partial_fused", 0)}, gated {v.get("partial_gated", 0)}, '
                  f'initialised {v.get("landmarks_initialised", 0)}'
                  for topic, v in sources.items()]
         lines.append(f'  fuser {method}: ' + '; '.join(parts))

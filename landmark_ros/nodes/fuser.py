@@ -3,7 +3,7 @@ landmark_fuser: the landmark observations of several robots in, one fused map ou
 
 Subscribes every topic of ``input_topics`` (landmark clouds, one source each),
 queues their rows and fuses them by landmark ID in batches with
-``landmark_ros.pipeline.fuser.Fuser``; every topic of ``constraint_topics`` (partial
+``landmark_ros.fuser.fuser.Fuser``; every topic of ``partial_observation_topics`` (partial
 views: range-only and bearing-only, one source each) too. Publishes the confirmed map on
 ``fused_landmarks`` (transient local: late subscribers get it), the landmarks changed
 since the last update on ``fused_landmark_updates``, RViz markers on
@@ -15,9 +15,9 @@ import sys
 import time
 
 from diagnostic_msgs.msg import DiagnosticArray
+from landmark_ros.fuser.fuser import Fuser, LandmarkMessage
+from landmark_ros.fuser.publishing import PublicationSchedule
 from landmark_ros.pipeline.config import FuserConfig
-from landmark_ros.pipeline.fuser import Fuser, LandmarkMessage
-from landmark_ros.pipeline.publishing import PublicationSchedule
 from landmark_ros.ros import diagnostics, guard, qos, runner
 from landmark_ros.ros.cloud import CloudError
 from landmark_ros.ros.cloud_bytes import read_cloud_bytes
@@ -25,8 +25,8 @@ from landmark_ros.ros.conversions import stamp_ns
 from landmark_ros.ros.markers import delete_all, delete_markers, landmark_markers
 from landmark_ros.ros.params import declare_config, keep_in_sync
 from landmark_ros.ros.qos import LATCHED  # noqa: F401 (the map outputs' QoS, re-exported)
-from landmark_ros.ros.schemas import (landmark_message, NOT_MERGED, read_constraints,
-                                      read_landmark_clouds)
+from landmark_ros.ros.schemas import (landmark_message, NOT_MERGED, read_landmark_clouds,
+                                      read_partial_observations)
 from landmark_ros.ros.subscriptions import BurstGroup, take_waiting
 import numpy as np
 from rclpy.event_handler import SubscriptionEventCallbacks
@@ -72,18 +72,18 @@ class LandmarkFuser(Node):
                 raw=True, event_callbacks=self._no_events(), callback_group=self._inputs)
         self._source_of = {topic: subscription.topic_name
                            for topic, subscription in self._subscriptions_by_topic.items()}
-        self._constraint_subs = {}
-        for topic in (topic for topic in config.constraint_topics if topic):
-            self._constraint_subs[topic] = self.create_subscription(
+        self._partial_subs = {}
+        for topic in (topic for topic in config.partial_observation_topics if topic):
+            self._partial_subs[topic] = self.create_subscription(
                 PointCloud2, topic, self._guard(
-                    lambda msg, topic=topic: self.on_constraints(msg, topic),
-                    'constraints callback'),
+                    lambda msg, topic=topic: self.on_partial_observations(msg, topic),
+                    'partial observations callback'),
                 qos.reliable_input(config.input_depth), qos_overriding_options=overrides,
                 event_callbacks=self._no_events())
-        self._constraint_source_of = {topic: subscription.topic_name
-                                      for topic, subscription in self._constraint_subs.items()}
+        self._partial_source_of = {topic: subscription.topic_name
+                                   for topic, subscription in self._partial_subs.items()}
         self.fuser = Fuser(config, list(self._source_of.values()), self.get_logger(),
-                           list(self._constraint_source_of.values()))
+                           list(self._partial_source_of.values()))
         keep_in_sync(self, lambda: self.fuser.config, self._apply_config)
         self._markers_stale = True
         self.fuser.load()
@@ -123,8 +123,8 @@ class LandmarkFuser(Node):
         """
         inputs = [(self._source_of[topic], subscription)
                   for topic, subscription in self._subscriptions_by_topic.items()]
-        inputs += [(self._constraint_source_of[topic], subscription)
-                   for topic, subscription in self._constraint_subs.items()]
+        inputs += [(self._partial_source_of[topic], subscription)
+                   for topic, subscription in self._partial_subs.items()]
         for source, subscription in inputs:
             for info in self.get_publishers_info_by_topic(subscription.topic_name):
                 gid = bytes(info.endpoint_gid)
@@ -236,20 +236,20 @@ class LandmarkFuser(Node):
         self.fuser.reject(source, 'messages_in')
         self.fuser.reject(source, error.reason, 1, f'message dropped: {error}')
 
-    def on_constraints(self, msg, topic):
-        """Decode constraint clouds (this one and those waiting) and queue their views."""
-        source = self._constraint_source_of[topic]
+    def on_partial_observations(self, msg, topic):
+        """Decode partial observation clouds (this one and those waiting) and queue their views."""
+        source = self._partial_source_of[topic]
         now = self.get_clock().now().nanoseconds
-        for cloud in [msg] + take_waiting(self._constraint_subs[topic], PointCloud2,
+        for cloud in [msg] + take_waiting(self._partial_subs[topic], PointCloud2,
                                           self.config.max_batch_messages - 1):
             try:
-                columns = read_constraints(cloud)
+                columns = read_partial_observations(cloud)
             except CloudError as error:
                 self.fuser.reject(source, 'messages_in')
                 self.fuser.reject(source, error.reason, 1, f'message dropped: {error}')
                 continue
-            self.fuser.add_constraints(source, stamp_ns(cloud.header.stamp), columns,
-                                       cloud.header.frame_id, now)
+            self.fuser.add_partial_observations(source, stamp_ns(cloud.header.stamp), columns,
+                                                cloud.header.frame_id, now)
 
     def fuse_queued(self):
         """Fuse every queued row, in arrival order, in one batch."""

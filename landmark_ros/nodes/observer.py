@@ -6,24 +6,25 @@ odometry`` ``odometry``, nav_msgs/Odometry, instead) and ``observations``
 (sensor_msgs/PointCloud2 with ``id``, ``range``, ``bearing`` and optional noise
 fields); publishes ``landmarks`` (PointCloud2: ``id``, ``x``, ``y``, ``z``,
 ``cov_xx``, ``cov_xy``, ``cov_yy`` and the dependent part ``cov_dep_*``),
-``landmark_constraints`` (the partial rows: range-only and bearing-only views, see
-``pipeline.views``), ``landmark_markers`` and ``/diagnostics``.
-The node only converts messages: the work is ``landmark_ros.pipeline.observer.Observer``.
+``partial_observations`` (the partial rows: range-only and bearing-only views, see
+``fuser.partial``), ``landmark_markers`` and ``/diagnostics``.
+The node only converts messages: the work is ``landmark_ros.observer.observer.Observer``.
 """
 
 import sys
 
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseWithCovarianceStamped
+from landmark_ros.observer.observer import ObservationMessage, Observer
 from landmark_ros.pipeline.config import ObserverConfig
-from landmark_ros.pipeline.observer import ObservationMessage, Observer
 from landmark_ros.ros import diagnostics, guard, qos, runner
 from landmark_ros.ros.cloud import CloudError, read_columns
 from landmark_ros.ros.conversions import (InputError, pose_from_msg, pose_from_odometry,
                                           stamp_ns)
 from landmark_ros.ros.markers import landmark_markers
 from landmark_ros.ros.params import declare_config, keep_in_sync
-from landmark_ros.ros.schemas import constraint_message, landmark_message, OBSERVATION_FIELDS
+from landmark_ros.ros.schemas import (landmark_message, OBSERVATION_FIELDS,
+                                      partial_observation_message)
 from landmark_ros.ros.subscriptions import take_waiting
 from nav_msgs.msg import Odometry
 import numpy as np
@@ -61,9 +62,15 @@ class LandmarkObserver(Node):
         self.landmark_pub = self.create_publisher(
             PointCloud2, 'landmarks', qos.reliable_output(config.output_depth),
             qos_overriding_options=overrides)
-        self.constraint_pub = self.create_publisher(
-            PointCloud2, 'landmark_constraints', qos.reliable_output(config.output_depth),
+        self.partial_pub = self.create_publisher(
+            PointCloud2, 'partial_observations', qos.reliable_output(config.output_depth),
             qos_overriding_options=overrides)
+        self.deprecated_partial_pub = None  # landmark_constraints, for one more release
+        if config.publish_landmark_constraints:
+            self.get_logger().warning('publish_landmark_constraints is deprecated: fusers '
+                                      'take partial_observations (partial_observation_topics)')
+            self.deprecated_partial_pub = self.create_publisher(
+                PointCloud2, 'landmark_constraints', qos.reliable_output(config.output_depth))
         # No QoS event handlers on the auxiliary outputs: each is a waitable that
         # every message pays for in the executor.
         quiet = PublisherEventCallbacks(use_default_callbacks=False)
@@ -193,9 +200,11 @@ class LandmarkObserver(Node):
             self.landmark_pub.publish(landmark_message(
                 header, batch.ids, batch.m, batch.P, batch.P_dep, out=self._landmark_msg,
                 classes=batch.classes, scan=batch.scan))
-            if len(batch.constraints):
-                self.constraint_pub.publish(constraint_message(header,
-                                                               batch.constraints.columns()))
+            if len(batch.partial_observations):
+                msg = partial_observation_message(header, batch.partial_observations.columns())
+                self.partial_pub.publish(msg)
+                if self.deprecated_partial_pub is not None:
+                    self.deprecated_partial_pub.publish(msg)
             if markers:
                 for i, landmark_id in enumerate(batch.ids.tolist()):
                     self._latest_markers[landmark_id] = (header, batch.m[i], batch.P[i])

@@ -1,1 +1,1 @@
-"""ROS-free pipeline: the observer and fuser logic as objects (numpy, scipy)."""
+"""What the observer, the fuser and the localizer share: config, counters, rows (ROS-free)."""

@@ -199,6 +199,10 @@ class ObserverConfig(ConfigBase):
     log_throttle_s: float = param(
         5.0, 'Shortest interval between two log lines about the same problem [s].',
         low=0.0, high=3600.0)
+    publish_landmark_constraints: bool = param(
+        False, 'Deprecated, removed in the next release: also publish the partial '
+        'observations on their former topic landmark_constraints, for fusers still '
+        'subscribed to it (constraint_topics).', read_only=True)
 
     def check(self) -> None:
         """Check relations between fields."""
@@ -206,6 +210,14 @@ class ObserverConfig(ConfigBase):
             raise ValueError('max_pose_gap_s must not exceed pose_buffer_s')
         if self.pose_type not in POSE_TYPES:
             raise ValueError(f'pose_type must be one of {POSE_TYPES}, got {self.pose_type!r}')
+
+
+DEPRECATED_PARAMETERS = frozenset({'constraint_topics', 'publish_landmark_constraints'})
+"""Parameters kept for one release under a former name or for a former topic: declared
+and documented, left out of the shipped YAML files; they go in the next release."""
+
+DEFAULT_PARTIAL_OBSERVATION_TOPICS = ('partial_observations',)
+"""Default of ``FuserConfig.partial_observation_topics``."""
 
 
 @dataclass(frozen=True)
@@ -218,9 +230,13 @@ class FuserConfig(ConfigBase):
     input_topics: Tuple[str, ...] = param(
         ('landmarks',), 'Landmark topics to fuse, one per robot (each one source).',
         read_only=True)
+    partial_observation_topics: Tuple[str, ...] = param(
+        DEFAULT_PARTIAL_OBSERVATION_TOPICS, 'Topics of partial observations (range-only, '
+        "bearing-only rows), one per robot (each one source); [''] disables.", read_only=True)
     constraint_topics: Tuple[str, ...] = param(
-        ('landmark_constraints',), 'Topics of partial views (range-only, bearing-only '
-        "rows), one per robot (each one source); [''] disables.", read_only=True)
+        ('',), 'Deprecated name of partial_observation_topics, removed in the next release: '
+        'its topics replace the default partial_observation_topics, with a warning.',
+        read_only=True)
     min_triangulation_angle_deg: float = param(
         5.0, 'Smallest angle two bearing rays must cross at before the views of a '
         'landmark may place it [deg].', read_only=True, low=0.0, high=90.0)
@@ -338,13 +354,40 @@ class FuserConfig(ConfigBase):
             raise ValueError('input_topics must list at least one topic name')
         if len(set(self.input_topics)) != len(self.input_topics):
             raise ValueError('input_topics must not repeat a topic')
-        topics = [topic for topic in self.constraint_topics if topic]
+        self._take_deprecated_topics()
+        topics = [topic for topic in self.partial_observation_topics if topic]
         if len(set(topics)) != len(topics) or set(topics) & set(self.input_topics):
-            raise ValueError('constraint_topics must not repeat a topic nor name an input '
-                             'topic')
+            raise ValueError('partial_observation_topics must not repeat a topic nor name an '
+                             'input topic')
         if self.shard_index >= self.shard_count:
             raise ValueError(f'shard_index must be below shard_count ({self.shard_count}), '
                              f'got {self.shard_index}')
+
+    def _take_deprecated_topics(self) -> None:
+        """Let the deprecated ``constraint_topics``, when set, give the partial topics."""
+        old = tuple(topic for topic in self.constraint_topics if topic)
+        if not old or old == self.partial_observation_topics:
+            return
+        if self.partial_observation_topics != DEFAULT_PARTIAL_OBSERVATION_TOPICS:
+            raise ValueError('constraint_topics is the deprecated name of '
+                             'partial_observation_topics: set only partial_observation_topics')
+        object.__setattr__(self, 'partial_observation_topics', old)
+
+    def deprecations(self) -> Tuple[str, ...]:
+        """
+        Return a warning per deprecated parameter that is set (the fuser logs them).
+
+        Returns
+        -------
+        tuple of str
+            Empty when no deprecated parameter is set.
+
+        """
+        if not any(self.constraint_topics):
+            return ()
+        return ('parameter constraint_topics is deprecated and will be removed in the next '
+                'release: rename it partial_observation_topics (its topics '
+                f'{list(self.partial_observation_topics)} are used)',)
 
 
 def markdown_table(config_class: Type[ConfigBase]) -> str:

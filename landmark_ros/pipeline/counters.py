@@ -63,6 +63,23 @@ class Counters:
         return self.counts[name]
 
 
+DEPRECATED_KEYS = {
+    'constraints_in': 'partial_in', 'constraints_out': 'partial_out',
+    'views_fused': 'partial_fused', 'views_gated': 'partial_gated',
+    'views_too_close': 'partial_too_close', 'views_dropped': 'partial_dropped',
+    'views_superseded': 'partial_superseded', 'queued_views': 'queued_partial',
+    'constraint_nonfinite': 'partial_nonfinite',
+}
+"""Former diagnostics keys and their new names: for one release, a status also carries each
+present new key under its old name (same value), so that dashboards keep working; they go in
+the next release. Readers of the package's own statuses drop them (``without_deprecated``)."""
+
+
+def without_deprecated(values: Mapping[str, Any]) -> Dict[str, Any]:
+    """Return diagnostics key-values without the deprecated aliases of ``DEPRECATED_KEYS``."""
+    return {key: value for key, value in values.items() if key not in DEPRECATED_KEYS}
+
+
 def status_values(
         counters: Mapping[str, int], extra: Optional[Mapping[str, Any]] = None,
 ) -> List[Tuple[str, str]]:
@@ -79,10 +96,15 @@ def status_values(
     Returns
     -------
     list of (str, str)
+        The extra values, the counters sorted by key, then the deprecated alias of each
+        renamed key present (``DEPRECATED_KEYS``, sorted by old name).
 
     """
     values = [(key, str(value)) for key, value in (extra or {}).items()]
     values += [(key, str(counters[key])) for key in sorted(counters)]
+    present = dict(values)
+    values += [(old, present[new]) for old, new in sorted(DEPRECATED_KEYS.items())
+               if new in present and old not in present]
     return values
 
 

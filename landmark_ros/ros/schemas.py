@@ -14,8 +14,8 @@ accept clouds without ``cov_dep_*`` (dependent part zero).
 
 ``fused_landmarks`` (fuser out): the landmark fields then ``observations`` UINT32.
 
-``landmark_constraints`` (observer out, fuser in; partial views, see
-``pipeline.views``): ``id`` UINT32, ``kind`` UINT8 (0 range, 1 bearing), ``value``
+``partial_observations`` (observer out, fuser in; partial views, see
+``fuser.partial``): ``id`` UINT32, ``kind`` UINT8 (0 range, 1 bearing), ``value``
 [m or rad], ``variance``, ``variance_dep`` (independent noise and bias variances),
 ``sensor_x``, ``sensor_y``, ``sensor_theta`` (sensor pose in the world),
 ``sensor_cov_xx``, ``_xy``, ``_xt``, ``_yy``, ``_yt``, ``_tt`` (its covariance) FLOAT64,
@@ -38,8 +38,8 @@ from typing import NamedTuple
 
 
 from geometry_msgs.msg import PoseWithCovarianceStamped
-from landmark_ros.pipeline.tracks import Scan
-from landmark_ros.pipeline.views import CONSTRAINT_COLUMNS
+from landmark_ros.pipeline.partial_rows import PARTIAL_COLUMNS
+from landmark_ros.pipeline.scan import Scan
 from landmark_ros.ros.cloud import CloudError, CloudWriter, FieldSpec, INTEGER_TYPES
 from landmark_ros.ros.cloud import columns_of, read_columns, read_records
 from landmark_ros.ros.cloud import REAL_TYPES
@@ -80,13 +80,13 @@ _OBSERVATION_NOISE_WRITER = CloudWriter((
     ('id', np.uint32), ('range', np.float64), ('bearing', np.float64),
     ('range_variance', np.float64), ('bearing_variance', np.float64),
     ('range_bearing_covariance', np.float64)))
-CONSTRAINT_SCHEMA = tuple(
+PARTIAL_SCHEMA = tuple(
     (name, np.uint32 if name in ('id', 'view_group') else np.uint8 if name == 'kind'
-     else np.float64) for name in CONSTRAINT_COLUMNS)
-CONSTRAINT_FIELDS = tuple(
+     else np.float64) for name in PARTIAL_COLUMNS)
+PARTIAL_FIELDS = tuple(
     FieldSpec(name, INTEGER_TYPES if dtype is not np.float64 else REAL_TYPES)
-    for name, dtype in CONSTRAINT_SCHEMA)
-CONSTRAINT_WRITER = CloudWriter(CONSTRAINT_SCHEMA)
+    for name, dtype in PARTIAL_SCHEMA)
+PARTIAL_WRITER = CloudWriter(PARTIAL_SCHEMA)
 LANDMARK_WRITER = CloudWriter(LANDMARK_SCHEMA)
 FUSED_WRITER = CloudWriter(FUSED_SCHEMA)
 _REMOVED_WRITER = CloudWriter(FUSED_SCHEMA + (('merged_into', np.uint32),))
@@ -122,7 +122,7 @@ class LandmarkExtras(NamedTuple):
     classes: np.ndarray
     """Landmark classes, int64, shape (N,); zero when absent."""
     scan: object
-    """``pipeline.tracks.Scan`` of the message (from its first row); None when absent."""
+    """``fuser.tracks.Scan`` of the message (from its first row); None when absent."""
 
 
 def make_header(stamp_s, frame_id):
@@ -213,7 +213,7 @@ def landmark_message(header, ids, m, P_m, P_dep=None, observations=None, out=Non
         A message to fill instead of a new one.
     classes : array_like of int, shape (N,), optional
         Landmark classes; given (or with ``observations``), the cloud has ``class``.
-    scan : landmark_ros.pipeline.tracks.Scan, optional
+    scan : landmark_ros.fuser.tracks.Scan, optional
         Robot pose terms of the message, written to every row (``SCAN_FIELDS``, and
         ``BIAS_FIELDS`` when it has a bias); not with ``observations``.
     merged_into : array_like of int, shape (N,), optional
@@ -453,16 +453,16 @@ def _scan(columns, index):
     return Scan(np.array([v['robot_x'], v['robot_y']]), P_pose, R_bias, sensor_xy)
 
 
-def constraint_message(header, columns, out=None):
+def partial_observation_message(header, columns, out=None):
     """
-    Return a ``landmark_constraints`` cloud.
+    Return a ``partial_observations`` cloud.
 
     Parameters
     ----------
     header : std_msgs.msg.Header
         Stamp and world frame.
     columns : dict of str to ndarray, shape (N,)
-        ``pipeline.views.CONSTRAINT_COLUMNS`` (``Constraints.columns``).
+        ``pipeline.partial_rows.PARTIAL_COLUMNS`` (``PartialObservations.columns``).
     out : sensor_msgs.msg.PointCloud2, optional
         A message to fill instead of a new one.
 
@@ -471,15 +471,15 @@ def constraint_message(header, columns, out=None):
     sensor_msgs.msg.PointCloud2
 
     """
-    rows = CONSTRAINT_WRITER.rows(len(columns['id']))
-    for name in CONSTRAINT_COLUMNS:
+    rows = PARTIAL_WRITER.rows(len(columns['id']))
+    for name in PARTIAL_COLUMNS:
         rows[name] = columns[name]
-    return CONSTRAINT_WRITER.message(header, rows, out)
+    return PARTIAL_WRITER.message(header, rows, out)
 
 
-def read_constraints(msg):
+def read_partial_observations(msg):
     """
-    Return the columns of a ``landmark_constraints`` cloud.
+    Return the columns of a ``partial_observations`` cloud.
 
     Raises
     ------
@@ -487,4 +487,4 @@ def read_constraints(msg):
         If a field is missing, of the wrong type, or the data length is wrong.
 
     """
-    return read_columns(msg, CONSTRAINT_FIELDS)
+    return read_columns(msg, PARTIAL_FIELDS)

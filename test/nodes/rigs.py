@@ -6,7 +6,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from landmark_ros.nodes.fuser import LandmarkFuser
 from landmark_ros.nodes.observer import LandmarkObserver
-from landmark_ros.pipeline.observer import THROUGHPUT_COUNTERS
+from landmark_ros.observer.observer import THROUGHPUT_COUNTERS
 from landmark_ros.ros.qos import LATCHED
 from landmark_ros.ros.schemas import landmark_message, observation_message, read_landmarks
 import numpy as np

@@ -19,7 +19,7 @@ import time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from landmark_ros.nodes.observer import LandmarkObserver
-from landmark_ros.pipeline.config import ObserverConfig
+from landmark_ros.pipeline.config import DEPRECATED_PARAMETERS, ObserverConfig
 from landmark_ros.ros.schemas import observation_message
 import numpy as np
 import pytest
@@ -424,7 +424,7 @@ def test_shipped_yaml_applies_to_a_namespaced_node(ros_env):
     assert node.get_fully_qualified_name() == '/robot1/landmark_observer'
     key, values = yaml_sections(SHIPPED_YAML)
     assert key == '/**/landmark_observer'
-    assert set(values) == {spec.name for spec in fields(ObserverConfig)}
+    assert set(values) == {spec.name for spec in fields(ObserverConfig)} - DEPRECATED_PARAMETERS
     for name, value in values.items():
         assert param_value(node, name) == value, name
         assert type(param_value(node, name)) is type(value), name
@@ -516,7 +516,7 @@ def test_max_wait_change_at_run_time_takes_effect(env):
 
 GOOD_ROWS = [(1, 4.0, 0.7, NAN, NAN, NAN), (2, 2.5, -1.2, 0.09, 0.01, 0.02)]
 BAD_ROWS = {
-    # One of range and bearing NaN is a partial row (pipeline.views), not a bad one.
+    # One of range and bearing NaN is a partial row (fuser.partial), not a bad one.
     'observation_nonfinite': [(3, NAN, NAN, NAN, NAN, NAN), (4, 1.0, INF, NAN, NAN, NAN),
                               (5, -INF, 0.2, NAN, NAN, NAN), (6, 2.0, -INF, NAN, NAN, NAN),
                               (7, INF, 0.2, NAN, NAN, NAN)],
@@ -619,7 +619,7 @@ def _short_row_step(msg):
 
 
 BAD_MESSAGES = {
-    # Without range or bearing a cloud is bearing-only or range-only (pipeline.views).
+    # Without range or bearing a cloud is bearing-only or range-only (fuser.partial).
     'id_float32': ('unsupported_field_type', retyped('id', np.float32)),
     'range_int32': ('unsupported_field_type', retyped('range', np.int32)),
     'bearing_count_2': ('unsupported_field_type', edited(_field('bearing', count=2))),

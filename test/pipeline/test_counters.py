@@ -61,3 +61,18 @@ def test_counters_zero_throttle_logs_every_time():
     for _ in range(3):
         counters.add('x', 1, 'd')
     assert lines == ['x x1: d'] * 3
+
+
+def test_renamed_keys_keep_their_old_name_for_one_release():
+    # A status carries each renamed key also under its old name, same value, after the
+    # others; the package's own readers drop the aliases.
+    values = diagnostics.status_values({'partial_gated': 3, 'fused': 2},
+                                       {'queued_partial': 0})
+    assert values == [('queued_partial', '0'), ('fused', '2'), ('partial_gated', '3'),
+                      ('queued_views', '0'), ('views_gated', '3')]
+    assert diagnostics.without_deprecated(dict(values)) == {
+        'queued_partial': '0', 'fused': '2', 'partial_gated': '3'}
+    # No alias without its new key, and every alias names a new key once.
+    assert diagnostics.status_values({'fused': 1}) == [('fused', '1')]
+    assert len(set(diagnostics.DEPRECATED_KEYS.values())) == len(diagnostics.DEPRECATED_KEYS)
+    assert not set(diagnostics.DEPRECATED_KEYS) & set(diagnostics.DEPRECATED_KEYS.values())

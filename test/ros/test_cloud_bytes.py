@@ -1,6 +1,6 @@
 """Tests of ros.cloud_bytes: serialized PointCloud2 read without building the message."""
 
-from landmark_ros.pipeline.tracks import Scan
+from landmark_ros.pipeline.scan import Scan
 from landmark_ros.ros import cloud_bytes
 from landmark_ros.ros.cloud import CloudError, read_columns
 from landmark_ros.ros.cloud_bytes import read_cloud_bytes

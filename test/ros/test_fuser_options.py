@@ -3,8 +3,8 @@
 import os
 import stat
 
+from landmark_ros.fuser import map_file
 from landmark_ros.nodes.fuser import LandmarkFuser
-from landmark_ros.pipeline import map_file
 from landmark_ros.ros.schemas import landmark_message
 import numpy as np
 import pytest

@@ -1,8 +1,8 @@
 """The Monte Carlo study of landmarks without IDs computes its quantities right."""
 
 from landmark_ros.eval import association_study as study
+from landmark_ros.fuser.fuser import Fuser
 from landmark_ros.pipeline.config import FuserConfig
-from landmark_ros.pipeline.fuser import Fuser
 from landmark_ros.pipeline.rows import UNKNOWN_ID
 from landmark_ros.sim import simulation
 import numpy as np

@@ -17,9 +17,9 @@ import subprocess
 import sys
 import time
 
-from landmark_ros.demo.launcher import (Launcher, ManagedProcess, mapped_by_anyone,
-                                        ProcessExitedError, ros_module_command, SHM_DIR,
-                                        shm_files_of, write_params_file)
+from landmark_ros.ros.launcher import (Launcher, ManagedProcess, mapped_by_anyone,
+                                       ProcessExitedError, ros_module_command, SHM_DIR,
+                                       shm_files_of, write_params_file)
 import numpy as np
 import pytest
 import yaml
@@ -352,7 +352,7 @@ def test_tracks_are_matched_to_the_truth_by_position():
 
 def test_short_demo_run_with_a_mixed_team(tmp_path):
     # Robot 1 range-bearing, robot 2 range-only, robot 3 bearing-only: the partial
-    # robots' views go through landmark_constraints to the fuser's constraint topics.
+    # robots' views go through partial_observations to the fuser's partial observation topics.
     ports_before = set().union(*(port_files(d) for d in range(150, 200)))
     code, output, children, shm = run_demo(
         tmp_path, '--duration', '10', '--sensors', 'rb,range,bearing', '--no-plot')
@@ -369,8 +369,8 @@ def test_short_demo_run_with_a_mixed_team(tmp_path):
     assert match and int(match.group(2)) >= 1, output
     params = yaml.safe_load((tmp_path / 'log' / 'demo' / 'params.yaml').read_text())
     fuser = params['/landmark_fuser']['ros__parameters']
-    assert fuser['constraint_topics'] == ['/robot2/landmark_constraints',
-                                          '/robot3/landmark_constraints']
+    assert fuser['partial_observation_topics'] == ['/robot2/partial_observations',
+                                                   '/robot3/partial_observations']
     assert re.search(r'average NEES .*: consistent', output), output
     assert_nothing_left(children, shm, domain_of(output), ports_before)
 

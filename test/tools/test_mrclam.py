@@ -21,8 +21,8 @@ from landmark_ros.mrclam.cli import main
 from landmark_ros.mrclam.config import load_config
 from landmark_ros.mrclam.data import (interpolate_poses, load_dataset, read_table,
                                       seconds_to_stamps_ns)
-from landmark_ros.pipeline.observer import Observer
-from landmark_ros.pipeline.rows import landmarks_from_rows, observation_noise
+from landmark_ros.observer.observer import Observer
+from landmark_ros.observer.rows import landmarks_from_rows, observation_noise
 from landmark_ros.ros.conversions import seconds_to_ns
 import numpy as np
 import pytest
@@ -356,11 +356,12 @@ def test_one_method_and_plot(noisy_dataset, tmp_path):
 
 
 def test_export_bag_then_landmark_bag_gives_the_replay_map(noisy_dataset, tmp_path, capsys):
-    # The README's path: landmark_mrclam --export-bag, then landmark_bag on the bag.
+    # landmark_bag --from-mrclam, then landmark_bag on the bag.
     from landmark_ros.bag import cli as bag_cli
     directory = noisy_dataset[0]
     bag, fused = tmp_path / 'dataset_bag', tmp_path / 'fused'
-    assert main([str(directory), '--export-bag', str(bag)]) == 0
+    assert bag_cli.main(['--from-mrclam', str(directory), '-o', str(bag),
+                         '--config', str(CONFIG)]) == 0
     printed = capsys.readouterr().out
     assert f'wrote {bag}:' in printed
     assert '== summary' not in printed  # the export stops before any replay
@@ -377,10 +378,24 @@ def test_export_bag_then_landmark_bag_gives_the_replay_map(noisy_dataset, tmp_pa
         assert entry[key] == pytest.approx(expected[key], rel=1e-9, abs=1e-12)
     # An existing output: one line on stderr, exit code 2, the bag left as it was.
     before = sorted(p.name for p in bag.iterdir())
-    assert main([str(directory), '--export-bag', str(bag)]) == 2
+    assert bag_cli.main(['--from-mrclam', str(directory), '-o', str(bag)]) == 2
     error = capsys.readouterr().err
-    assert error.startswith('landmark_mrclam: ') and error.count('\n') == 1, error
+    assert error.startswith('landmark_bag: ') and error.count('\n') == 1, error
     assert sorted(p.name for p in bag.iterdir()) == before
+
+
+def test_the_deprecated_export_bag_option_still_writes_the_bag(noisy_dataset, tmp_path, capsys):
+    directory = noisy_dataset[0]
+    bag = tmp_path / 'dataset_bag'
+    assert main([str(directory), '--export-bag', str(bag)]) == 0
+    out = capsys.readouterr()
+    assert '--export-bag is deprecated' in out.err and 'landmark_bag --from-mrclam' in out.err
+    assert f'wrote {bag}:' in out.out and list(bag.glob('*.mcap'))
+    assert '== summary' not in out.out  # the export stops before any replay
+    # Its errors keep the replay's prefix and exit code.
+    assert main([str(directory), '--export-bag', str(bag)]) == 2
+    error = capsys.readouterr().err.splitlines()
+    assert error[-1].startswith('landmark_mrclam: error: '), error
 
 
 def test_missing_dataset_is_an_error(tmp_path, capsys):

@@ -30,8 +30,8 @@ def test_partial_sensor_through_nodes_agrees_with_offline(noisy_dataset, tmp_pat
     assert entry['max_mean_diff_m'] < MEAN_TOLERANCE_M, entry
     nodes = document['nodes']
     assert not nodes['cloud_mismatch']
-    # Partial rows only: no landmark rows out, every placement from constraint views.
-    assert nodes['rows_out'] == 0 and nodes['constraint_rows_out'] > 0
+    # Partial rows only: no landmark rows out, every placement from partial observations.
+    assert nodes['rows_out'] == 0 and nodes['partial_rows_out'] > 0
     (offline,) = json.loads(offline_json.read_text())['summary']
     (summary,) = document['summary']
     assert summary['sensor'] == offline['sensor'] == sensor

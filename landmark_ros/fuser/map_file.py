@@ -11,7 +11,7 @@ import datetime
 import json
 import os
 import tempfile
-from typing import Any, Dict, List, Mapping, Optional, Sequence
+from typing import Any, Dict, List, Mapping, Optional, Sequence, Tuple
 
 from landmark_ros.pipeline.rows import landmark_row_problems, MAX_LABEL_ID
 import numpy as np
@@ -20,13 +20,21 @@ FORMAT = 'landmark_ros/map'
 VERSION = 1
 
 
+WAITING_KEY = 'waiting_partial_observations'
+"""Key of the partial observations waiting to place a landmark."""
+
+DEPRECATED_WAITING_KEY = 'waiting_views'
+"""Its former name: still read, never written (removed in the next release)."""
+
+
 class MapFileError(ValueError):
     """A map file that cannot be used: unreadable, corrupt, or of another version."""
 
 
 def save(path: str, records: Sequence[Mapping[str, Any]], world_frame: str, fusion: str,
          next_id: Optional[int] = None, tracks: Optional[Mapping[str, Any]] = None,
-         waiting_views: Optional[Sequence[Mapping[str, Any]]] = None) -> None:
+         waiting_partial_observations: Optional[Sequence[Mapping[str, Any]]] = None,
+         ) -> None:
     """
     Write the map to ``path`` atomically.
 
@@ -44,13 +52,15 @@ def save(path: str, records: Sequence[Mapping[str, Any]], world_frame: str, fusi
         The next landmark ID the fuser allocates to landmarks found without an ID
         (kept so that an ID is never given twice, across restarts); omitted when None.
     tracks : dict, optional
-        The tracks of landmarks found without IDs (``pipeline.tracks.Tracker.to_dict``:
+        The tracks of landmarks found without IDs (``fuser.tracks.Tracker.to_dict``:
         tentative tracks and their rows, merge bookkeeping), so that a restart resumes
         them; omitted when None (files without it load with no tracks).
-    waiting_views : list of dict, optional
-        Range-only and bearing-only views of landmarks not placed yet
-        (``pipeline.views.PartialViews.waiting_records``), so that a restart keeps
-        them; omitted when None or empty (files without it load as before).
+    waiting_partial_observations : list of dict, optional
+        Partial observations (range-only, bearing-only) of landmarks not placed yet
+        (``fuser.partial.PartialFusion.waiting_records``), so that a restart keeps
+        them; omitted when None or empty (files without it load as before). Files
+        that name it ``waiting_views`` (deprecated) still load
+        (``waiting_partial_records``).
 
     """
     document = {
@@ -65,8 +75,8 @@ def save(path: str, records: Sequence[Mapping[str, Any]], world_frame: str, fusi
         document['next_id'] = int(next_id)
     if tracks is not None:
         document['tracks'] = dict(tracks)
-    if waiting_views:
-        document['waiting_views'] = list(waiting_views)
+    if waiting_partial_observations:
+        document[WAITING_KEY] = list(waiting_partial_observations)
     directory = os.path.dirname(os.path.abspath(path))
     handle, temporary = tempfile.mkstemp(prefix='.' + os.path.basename(path) + '.',
                                          suffix='.tmp', dir=directory)
@@ -253,3 +263,34 @@ def check_records(records: Sequence[Dict[str, Any]]) -> None:
         _, reasons = landmark_row_problems(ids[one], m[one], P[one], P_dep[one])
         raise ValueError(f'landmark record {bad} (id {int(ids[bad])}): rejected as '
                          f"{', '.join(sorted(reasons))}")
+
+
+def waiting_partial_records(document: Mapping[str, Any]) -> Tuple[Any, bool]:
+    """
+    Return a loaded map file's waiting partial observations, under either key.
+
+    Parameters
+    ----------
+    document : dict
+        A map file as ``load`` returns it.
+
+    Returns
+    -------
+    records : object
+        The value of ``WAITING_KEY`` or, in a file written before the rename, of
+        ``DEPRECATED_WAITING_KEY``; an empty list when neither is there. Checked by
+        ``fuser.partial.parse_waiting_records``.
+    deprecated : bool
+        Whether the records came from ``DEPRECATED_WAITING_KEY``.
+
+    Raises
+    ------
+    ValueError
+        If the file holds both keys (one of them would be dropped silently).
+
+    """
+    if WAITING_KEY in document and DEPRECATED_WAITING_KEY in document:
+        raise ValueError(f'both {WAITING_KEY} and {DEPRECATED_WAITING_KEY}')
+    if DEPRECATED_WAITING_KEY in document:
+        return document[DEPRECATED_WAITING_KEY], True
+    return document.get(WAITING_KEY, []), False

@@ -1,12 +1,12 @@
-"""Tests of pipeline.map_file: versioned JSON, atomic save, load checks, move_aside."""
+"""Tests of fuser.map_file: versioned JSON, atomic save, load checks, move_aside."""
 
 import datetime
 import json
 import os
 
 from landmark_ros.core.landmark_map import LandmarkMap
-from landmark_ros.pipeline import map_file
-from landmark_ros.pipeline.map_file import MapFileError
+from landmark_ros.fuser import map_file
+from landmark_ros.fuser.map_file import MapFileError
 import numpy as np
 import pytest
 

@@ -16,13 +16,15 @@ from dataclasses import dataclass, field, replace
 from typing import Any, Callable, Deque, Dict, List, Optional, Sequence, Tuple
 
 from landmark_ros.core.covariance import COVARIANCE_PROBLEMS, covariance_status
+from landmark_ros.observer.partial import (CorrelatedNoise, partial_observations_from_rows,
+                                           split_partial)
+from landmark_ros.observer.rows import landmarks_from_rows, observation_noise
 from landmark_ros.pipeline import pose_buffer
 from landmark_ros.pipeline.config import ObserverConfig
 from landmark_ros.pipeline.counters import Counters, Status
-from landmark_ros.pipeline.rows import landmarks_from_rows, observation_noise, UNKNOWN_ID
-from landmark_ros.pipeline.tracks import Scan
-from landmark_ros.pipeline.views import (Constraints, constraints_from_rows, CorrelatedNoise,
-                                         no_constraints, split_partial)
+from landmark_ros.pipeline.partial_rows import no_partial_observations, PartialObservations
+from landmark_ros.pipeline.rows import UNKNOWN_ID
+from landmark_ros.pipeline.scan import Scan
 import numpy as np
 from numpy.typing import NDArray
 
@@ -30,7 +32,7 @@ THROUGHPUT_COUNTERS = frozenset(
     {'poses_in', 'observation_messages_in', 'observations_in', 'landmarks_out'})
 """Counters that are not problems; every other counter names a rejection reason."""
 
-NOT_PROBLEMS = THROUGHPUT_COUNTERS | {'partial_rows', 'constraints_out'}
+NOT_PROBLEMS = THROUGHPUT_COUNTERS | {'partial_rows', 'partial_out'}
 """``THROUGHPUT_COUNTERS`` and those of the partial rows (counted once there are any)."""
 
 
@@ -47,7 +49,7 @@ class ObservationMessage:
         ``range`` [m], ``bearing`` [rad], optional ``id`` (absent: every row is
         unlabelled, ``UNKNOWN_ID``), ``class`` and the noise fields. Without
         ``bearing`` the rows are range-only, without ``range`` bearing-only; a row
-        with one of the two NaN is partial (``views.split_partial``).
+        with one of the two NaN is partial (``partial.split_partial``).
     frame_id : str or None
         The message's frame, checked against ``sensor_frame``; None skips the check.
     token : object
@@ -90,7 +92,7 @@ class LandmarkBatch:
         Their dependent parts (pose and bias terms) [m^2].
     token : object
         The message's ``token``.
-    constraints : views.Constraints
+    partial_observations : pipeline.partial_rows.PartialObservations
         The message's partial rows (range-only, bearing-only) as views in the world;
         empty when it had none.
     classes : ndarray of int64, shape (K,), optional
@@ -108,7 +110,7 @@ class LandmarkBatch:
     P: NDArray[np.float64]
     P_dep: NDArray[np.float64]
     token: Any = None
-    constraints: Constraints = field(default_factory=no_constraints)
+    partial_observations: PartialObservations = field(default_factory=no_partial_observations)
     classes: Optional[NDArray[np.int64]] = None
     scan: Optional[Scan] = None
 
@@ -375,7 +377,7 @@ class Observer:
         """
         ready = [(replace(item, columns=_with_ids(item.columns)), pose, P_pose)
                  for item, pose, P_pose in ready]
-        ready, constraints = self._partial(ready)
+        ready, found_partial = self._partial(ready)
         counts = [item.rows for item, _, _ in ready]
         columns = [item.columns for item, _, _ in ready]
         noise = [self.noise(c) for c in columns]
@@ -409,7 +411,7 @@ class Observer:
         for (item, pose_k, P_pose_k), c, count, end in zip(ready, columns, counts, ends):
             batch = LandmarkBatch(item.stamp_ns, ids[start:end], m[start:end],
                                   P_m[start:end], P_dep[start:end], item.token,
-                                  constraints.get(id(item), no_constraints()))
+                                  found_partial.get(id(item), no_partial_observations()))
             unlabelled = bool((batch.ids == UNKNOWN_ID).any())
             if unlabelled or 'class' in c:
                 classes = np.zeros(end - start, np.int64)
@@ -423,30 +425,30 @@ class Observer:
         return batches
 
     def _partial(self, ready: Sequence[MessageWithPose]
-                 ) -> Tuple[List[MessageWithPose], Dict[int, Constraints]]:
-        """Take the partial rows out of messages; return the rest and their constraints."""
-        out, constraints = [], {}
+                 ) -> Tuple[List[MessageWithPose], Dict[int, PartialObservations]]:
+        """Take the partial rows out of messages; return the rest and their observations."""
+        out, found_by_item = [], {}
         for item, pose, P_pose in ready:
             self._view_group = (self._view_group + 1) % (1 << 32)
             columns, partial = split_partial(item.columns)
             if partial.any():
                 rows = {name: np.asarray(values)[partial] for name, values in columns.items()}
-                found, reasons = constraints_from_rows(
+                found, reasons = partial_observations_from_rows(
                     rows, self.noise(rows), pose, P_pose, self._sensor_pose, self._R_bias,
                     self._view_group, item.stamp_ns, self._correlated)
                 self.counters.add('partial_rows', int(partial.sum()))
                 for reason, count in reasons.items():
                     self.counters.add(reason, count, f'{count} of {int(partial.sum())} '
                                       'partial rows rejected')
-                self.counters.add('constraints_out', len(found))
+                self.counters.add('partial_out', len(found))
                 columns = {name: np.asarray(values)[~partial]
                            for name, values in columns.items()}
                 item = replace(item, columns=columns)
-                constraints[id(item)] = found
+                found_by_item[id(item)] = found
             elif columns is not item.columns:
                 item = replace(item, columns=columns)
             out.append((item, pose, P_pose))
-        return out, constraints
+        return out, found_by_item
 
     def _scan(self, pose: NDArray[np.float64], P_pose: NDArray[np.float64]) -> Scan:
         """Return the pose (and bias) terms of a message's joint covariance."""

@@ -1,6 +1,6 @@
-"""Tests of pipeline.publishing.PublicationSchedule: one timer, each output at most its rate."""
+"""Tests of fuser.publishing.PublicationSchedule: one timer, each output at most its rate."""
 
-from landmark_ros.pipeline.publishing import PublicationSchedule
+from landmark_ros.fuser.publishing import PublicationSchedule
 import pytest
 
 

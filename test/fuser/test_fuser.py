@@ -1,13 +1,13 @@
-"""Tests of pipeline.fuser.Fuser, without ROS: queues, checks, fusion, status, map file."""
+"""Tests of fuser.Fuser, without ROS: queues, checks, fusion, status, map file."""
 
 import json
 import logging
 
 from landmark_ros.core.landmark_map import LandmarkMap
-from landmark_ros.pipeline import map_file
+from landmark_ros.fuser import map_file
+from landmark_ros.fuser.fuser import Fuser, LandmarkMessage
+from landmark_ros.fuser.map_file import check_records
 from landmark_ros.pipeline.config import FuserConfig
-from landmark_ros.pipeline.fuser import Fuser, LandmarkMessage
-from landmark_ros.pipeline.map_file import check_records
 from landmark_ros.pipeline.rows import UNKNOWN_ID
 import numpy as np
 import pytest

@@ -1,13 +1,13 @@
-"""Tests of landmarks without IDs: pipeline.tracks through Observer and Fuser, without ROS."""
+"""Tests of landmarks without IDs: fuser.tracks through Observer and Fuser, without ROS."""
 
 from collections import Counter
 import json
 
+from landmark_ros.fuser.fuser import Fuser
+from landmark_ros.observer.observer import ObservationMessage, Observer
 from landmark_ros.pipeline.config import FuserConfig, ObserverConfig
-from landmark_ros.pipeline.fuser import Fuser
-from landmark_ros.pipeline.observer import ObservationMessage, Observer
 from landmark_ros.pipeline.rows import UNKNOWN_ID
-from landmark_ros.pipeline.tracks import Scan
+from landmark_ros.pipeline.scan import Scan
 import numpy as np
 import pytest
 
@@ -241,7 +241,7 @@ def test_partial_rows_without_an_id_are_rejected_by_the_observer():
     observer.add_pose(S, np.zeros(3), np.zeros((3, 3)))
     columns = {'range': np.array([2.0, 3.0])}
     (batch,) = observer.add_observations([ObservationMessage(S, columns)], S)
-    assert len(batch.ids) == 0 and len(batch.constraints) == 0
+    assert len(batch.ids) == 0 and len(batch.partial_observations) == 0
     assert observer.counters.counts['partial_without_id'] == 2
 
 
@@ -392,7 +392,7 @@ def test_a_file_without_tracks_loads_and_a_bad_tracks_section_is_moved_aside(tmp
 
 
 def test_shard_of_position_numbers_the_cells():
-    from landmark_ros.pipeline.tracks import shard_of_position
+    from landmark_ros.fuser.tracks import shard_of_position
     m = np.array([[5.0, 5.0], [25.0, 5.0], [-5.0, 5.0], [5.0, 25.0], [np.nan, 1.0]])
     # Cells (0, 0), (1, 0), (-1, 0), (0, 1); side 20 m; 3 shards.
     assert shard_of_position(m, 20.0, 3).tolist() == [0, 1, 2, 31 % 3, 0]
@@ -426,5 +426,5 @@ def test_shards_split_rows_without_ids_by_cell_and_own_their_ids(rng):
 
 def shard_of(m):
     """Return the shard (of 2, 20 m cells) of positions."""
-    from landmark_ros.pipeline.tracks import shard_of_position
+    from landmark_ros.fuser.tracks import shard_of_position
     return shard_of_position(m, 20.0, 2)

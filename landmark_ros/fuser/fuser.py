@@ -5,10 +5,10 @@ The ``landmark_fuser`` node, the MRCLAM replay, the Monte Carlo study and the
 benchmarks all drive this one object. Rows are checked (``rows.landmark_row_problems``)
 and queued per source in bounded queues; ``fuse_queued`` fuses everything queued, in
 arrival order, with one ``LandmarkMap.update`` (a batch gives the map its rows would
-give one by one). Partial views (range-only, bearing-only rows of the constraint sources,
-``add_constraints``) are checked by ``views.constraint_row_problems`` and handled by
-``views.PartialViews`` on the same map, before the queued landmark rows of the same
-``fuse_queued``. Time is integer nanoseconds throughout.
+give one by one). Partial observations (range-only, bearing-only rows of the partial
+sources, ``add_partial_observations``) are checked by ``partial.partial_row_problems`` and
+handled by ``partial.PartialFusion`` on the same map, before the queued landmark rows of the
+same ``fuse_queued``. Time is integer nanoseconds throughout.
 """
 
 from collections import Counter
@@ -16,20 +16,20 @@ import itertools
 from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 from landmark_ros.core.landmark_map import LandmarkMap, MapSnapshot, UpdateResult
-from landmark_ros.pipeline import map_file
+from landmark_ros.fuser import map_file
+from landmark_ros.fuser.partial import (NOT_PROBLEMS as PARTIAL_COUNTS, parse_waiting_records,
+                                        partial_row_problems, PartialFusion, views_from_columns)
+from landmark_ros.fuser.sources import LandmarkMessage, Queued, Source
+from landmark_ros.fuser.tracks import shard_of_position, Tracker
 from landmark_ros.pipeline.config import FuserConfig
 from landmark_ros.pipeline.counters import Counters, Logger, Status
 from landmark_ros.pipeline.rows import (landmark_row_problems, load_row_kernel, MAX_LABEL_ID,
                                         UNKNOWN_ID)
-from landmark_ros.pipeline.sources import LandmarkMessage, Queued, Source
-from landmark_ros.pipeline.tracks import Scan, shard_of_position, Tracker
-from landmark_ros.pipeline.views import (constraint_row_problems, NOT_PROBLEMS as VIEW_COUNTS,
-                                         parse_waiting_records, PartialViews,
-                                         views_from_columns)
+from landmark_ros.pipeline.scan import Scan
 import numpy as np
 from numpy.typing import NDArray
 
-NOT_PROBLEMS = frozenset({'landmarks_confirmed', 'saves', 'other_shard'}) | VIEW_COUNTS
+NOT_PROBLEMS = frozenset({'landmarks_confirmed', 'saves', 'other_shard'}) | PARTIAL_COUNTS
 """Fuser counters that do not make its status a warning (a re-initialisation does)."""
 
 
@@ -65,9 +65,9 @@ class Fuser:
     logger : object, optional
         With ``info``, ``warning`` and ``error`` methods taking one string (an rclpy
         logger or a ``logging.Logger``).
-    constraint_sources : sequence of str
-        The sources of partial views (``add_constraints``; the nodes use the resolved
-        ``constraint_topics``); none by default.
+    partial_sources : sequence of str
+        The sources of partial observations (``add_partial_observations``; the nodes use
+        the resolved ``partial_observation_topics``); none by default.
 
     Raises
     ------
@@ -78,18 +78,20 @@ class Fuser:
 
     def __init__(self, config: FuserConfig, sources: Sequence[str],
                  logger: Optional[Logger] = None,
-                 constraint_sources: Sequence[str] = ()) -> None:
-        sources = list(sources) + list(constraint_sources)
+                 partial_sources: Sequence[str] = ()) -> None:
+        sources = list(sources) + list(partial_sources)
         if len(set(sources)) != len(sources):
             raise ValueError(f'input_topics name one topic twice once resolved: {list(sources)}')
         self.config = config
         self.logger = logger or _Quiet()
+        for warning in config.deprecations():
+            self.logger.warning(warning)
         self.counters = Counters(self.logger.warning, config.log_throttle_s)
         load_row_kernel()   # compile now rather than on the first message
         self.map = LandmarkMap(config.fusion, config.gate_probability,
                                config.min_observations, config.max_consecutive_rejections)
         self.sources: Dict[str, Source] = {
-            name: Source(name, optional=name in constraint_sources) for name in sources}
+            name: Source(name, optional=name in partial_sources) for name in sources}
         self._sequence = itertools.count()
         self._reported: Dict[str, int] = {}
         self.map_changed = False
@@ -99,13 +101,14 @@ class Fuser:
         self._updated: List[NDArray[np.int64]] = []
         self._removed: List[tuple] = []
         self.tracker = Tracker(config)
-        """Association of the rows without an ID (``pipeline.tracks``)."""
+        """Association of the rows without an ID (``fuser.tracks``)."""
         self.association_log: Optional[List[Tuple[str, int, NDArray[np.int64]]]] = None
         """Set to a list to record, per message with rows without an ID, in fuse order,
         ``(source, stamp_ns, ids)``: the ID each such row got (-1: dropped as ambiguous)."""
-        self.views = PartialViews(self.map, config.min_triangulation_angle_deg,
-                                  config.max_views_per_landmark, config.gate_probability,
-                                  config.max_consecutive_rejections, config.max_curvature_ratio)
+        self.partial = PartialFusion(self.map, config.min_triangulation_angle_deg,
+                                     config.max_views_per_landmark, config.gate_probability,
+                                     config.max_consecutive_rejections,
+                                     config.max_curvature_ratio)
 
     def reconfigure(self, config: FuserConfig) -> None:
         """Apply new parameters (those that may change at run time)."""
@@ -263,19 +266,21 @@ class Fuser:
                                   classes, message.scan, unlabelled))
         return count
 
-    def add_constraints(self, source: str, stamp_ns: int, columns: Dict[str, NDArray[Any]],
-                        frame_id: Optional[str] = None, now_ns: Optional[int] = None) -> int:
+    def add_partial_observations(self, source: str, stamp_ns: int,
+                                 columns: Dict[str, NDArray[Any]],
+                                 frame_id: Optional[str] = None,
+                                 now_ns: Optional[int] = None) -> int:
         """
-        Check the rows of one constraint message (partial views) and queue the valid ones.
+        Check the rows of one partial observation message and queue the valid ones.
 
         Parameters
         ----------
         source : str
-            One of the constraint sources.
+            One of the partial sources.
         stamp_ns : int
             The message stamp [ns].
         columns : dict of str to ndarray, shape (N,)
-            ``views.CONSTRAINT_COLUMNS``.
+            ``pipeline.partial_rows.PARTIAL_COLUMNS``.
         frame_id : str, optional
             The message's frame, checked against ``world_frame``; None skips the check.
         now_ns : int, optional
@@ -287,36 +292,36 @@ class Fuser:
             The rows queued.
 
         """
-        state = self._arrive(source, frame_id, now_ns, 'constraints')
+        state = self._arrive(source, frame_id, now_ns, 'partial observations')
         if state is None:
             return 0
         ids = np.asarray(columns['id'])
-        state.counts['constraints_in'] += len(ids)
-        valid, reasons = constraint_row_problems(columns)
+        state.counts['partial_in'] += len(ids)
+        valid, reasons = partial_row_problems(columns)
         if self.config.shard_count > 1:
             other = valid & (ids % self.config.shard_count != self.config.shard_index)
             if other.any():
                 state.counts['other_shard'] += int(other.sum())
                 valid &= ~other
         for reason, count in reasons.items():
-            self.reject(source, reason, count, f'{count} of {len(valid)} constraint rows '
-                        'rejected')
+            self.reject(source, reason, count, f'{count} of {len(valid)} partial observation '
+                        'rows rejected')
         if not valid.any():
             return 0
         if not valid.all():
             columns = {name: np.asarray(values)[valid] for name, values in columns.items()}
-        self.views.add(source, stamp_ns, np.asarray(columns['id']).astype(np.int64),
-                       views_from_columns(columns), np.asarray(columns['view_group']))
+        self.partial.add(source, stamp_ns, np.asarray(columns['id']).astype(np.int64),
+                         views_from_columns(columns), np.asarray(columns['view_group']))
         return int(valid.sum())
 
-    def _fuse_views(self) -> None:
-        """Take the queued views: buffer, initialise or update landmarks (``views``)."""
-        if not self.views.queue:
+    def _fuse_partial(self) -> None:
+        """Take the queued partial observations: buffer, place or update landmarks."""
+        if not self.partial.queue:
             return
-        result = self.views.fuse()
+        result = self.partial.fuse()
         for name, counts in result.counts.items():
             for reason, count in counts.items():
-                if reason in ('views_gated', 'views_too_close', 'views_dropped'):
+                if reason in ('partial_gated', 'partial_too_close', 'partial_dropped'):
                     self.reject(name, reason, count)
                 else:
                     self.sources[name].counts[reason] += count
@@ -332,7 +337,7 @@ class Fuser:
 
     def fuse_queued(self) -> Optional[UpdateResult]:
         """
-        Fuse every queued row, in arrival order, in one batch (the queued views first).
+        Fuse every queued row, in arrival order, in one batch (queued partial observations first).
 
         Returns
         -------
@@ -340,7 +345,7 @@ class Fuser:
             What the update did; None when nothing was queued.
 
         """
-        self._fuse_views()
+        self._fuse_partial()
         items = []
         for state in self.sources.values():
             items += [(item, state.name) for item in state.queue]
@@ -356,7 +361,7 @@ class Fuser:
         # Rows without an ID: message by message, each associated with the map as the
         # messages before it left it; labelled messages in between go in one batch.
         # Expiry (before) and merging (after) go with each such message, so the map
-        # does not depend on where the batches begin and end (``pipeline.tracks``).
+        # does not depend on where the batches begin and end (``fuser.tracks``).
         results, group = [], []
         for item, name in items:
             now_ns = self.tracker.advance(item.stamp_ns)
@@ -504,7 +509,7 @@ class Fuser:
         count = len(self.map)
         self.map.reset()
         self.tracker.reset()
-        self.views.reset()
+        self.partial.reset()
         for state in self.sources.values():
             state.queue.clear()
         self._updated = []
@@ -530,7 +535,7 @@ class Fuser:
         """
         statuses = []
         stale = []
-        views_waiting = Counter(entry[0] for entry in self.views.queue)
+        partial_waiting = Counter(entry[0] for entry in self.partial.queue)
         for state in self.sources.values():
             age = None if state.last_message_ns is None else (
                 now_ns - state.last_message_ns) * 1e-9
@@ -540,7 +545,7 @@ class Fuser:
                 stale.append(state.name)
             extra = {'age_s': 'never' if age is None else f'{age:.3f}',
                      'stale': str(is_stale).lower(), 'queued_messages': len(state.queue),
-                     'queued_views': views_waiting[state.name]}
+                     'queued_partial': partial_waiting[state.name]}
             statuses.append(Status('warn' if is_stale else 'ok',
                                    'stale' if is_stale else 'ok', dict(state.counts), extra,
                                    state.name))
@@ -570,7 +575,7 @@ class Fuser:
             map_file.save(self.config.map_file, records, self.config.world_frame,
                           self.config.fusion, next_id=self.tracker.next_id,
                           tracks=self.tracker.to_dict(),
-                          waiting_views=self.views.waiting_records())
+                          waiting_partial_observations=self.partial.waiting_records())
         except (OSError, ValueError) as error:
             self.counters.add('save_failed', 1, f'cannot save {self.config.map_file}: {error}')
             return False
@@ -593,10 +598,15 @@ class Fuser:
                     0 <= next_id <= MAX_LABEL_ID + 1):
                 raise ValueError(f'next_id {next_id!r} is not an integer in '
                                  f'[0, {MAX_LABEL_ID + 1}]')
-            waiting = parse_waiting_records(document.get('waiting_views', []))
+            records, deprecated = map_file.waiting_partial_records(document)
+            waiting = parse_waiting_records(records)
+            if deprecated:
+                self.logger.warning(
+                    f'map file {path}: key {map_file.DEPRECATED_WAITING_KEY!r} is deprecated, '
+                    f'read as {map_file.WAITING_KEY!r} (the next save writes the new key)')
             self.map.load_records(document['landmarks'])
-            self.views.reset()
-            self.views.restore(waiting)
+            self.partial.reset()
+            self.partial.restore(waiting)
             self.tracker.reset()
             self.tracker.next_id = max(next_id, self.config.first_new_id)
             for record in document['landmarks']:
@@ -607,7 +617,7 @@ class Fuser:
             except ValueError:
                 self.map.reset()
                 self.tracker.reset()
-                self.views.reset()
+                self.partial.reset()
                 raise
         except FileNotFoundError:
             self.logger.info(f'no map file {path} yet: starting with an empty map')

@@ -38,6 +38,7 @@ from landmark_ros.core.gating import chi2_threshold
 from landmark_ros.core.landmark_map import LandmarkMap, MapSnapshot, UpdateResult
 from landmark_ros.pipeline.config import FuserConfig
 from landmark_ros.pipeline.rows import MAX_LABEL_ID, UNKNOWN_ID
+from landmark_ros.pipeline.scan import Scan
 import numpy as np
 from numpy.typing import NDArray
 
@@ -78,30 +79,6 @@ def shard_of_position(m: NDArray[np.float64], cell_m: float,
     cells[finite] = np.floor(np.clip(m[finite] / cell_m, -1e15, 1e15))
     return ((cells[:, 0].astype(np.int64) + 31 * cells[:, 1].astype(np.int64))
             % int(shard_count)).astype(np.int64)
-
-
-@dataclass(frozen=True)
-class Scan:
-    """
-    What the joint covariance of one message's rows needs (``association.scan_covariance``).
-
-    Attributes
-    ----------
-    robot_xy : ndarray, shape (2,) [m]
-        Robot position the message was observed from.
-    P_pose : ndarray, shape (3, 3)
-        Covariance of the robot pose (x [m], y [m], theta [rad]).
-    R_bias : ndarray, shape (2, 2), optional
-        Covariance of the sensor bias (range [m^2], bearing [rad^2]); None for none.
-    sensor_xy : ndarray, shape (2,) [m], optional
-        Sensor position in the world (with ``R_bias``).
-
-    """
-
-    robot_xy: NDArray[np.float64]
-    P_pose: NDArray[np.float64]
-    R_bias: Optional[NDArray[np.float64]] = None
-    sensor_xy: Optional[NDArray[np.float64]] = None
 
 
 @dataclass

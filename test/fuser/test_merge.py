@@ -1,12 +1,13 @@
-"""Merging the tracks of landmarks without IDs: the co-occurrence test (pipeline.tracks)."""
+"""Merging the tracks of landmarks without IDs: the co-occurrence test (fuser.tracks)."""
 
 from collections import Counter
 import json
 
+from landmark_ros.fuser.fuser import Fuser
+from landmark_ros.fuser.tracks import together_log_likelihood_ratio
 from landmark_ros.pipeline.config import FuserConfig
-from landmark_ros.pipeline.fuser import Fuser
 from landmark_ros.pipeline.rows import UNKNOWN_ID
-from landmark_ros.pipeline.tracks import Scan, together_log_likelihood_ratio
+from landmark_ros.pipeline.scan import Scan
 import numpy as np
 import pytest
 from scipy import stats

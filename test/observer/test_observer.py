@@ -1,8 +1,8 @@
-"""Tests of pipeline.observer.Observer, without ROS: poses, waiting, rows, stamps, status."""
+"""Tests of observer.Observer, without ROS: poses, waiting, rows, stamps, status."""
 
 from landmark_ros.core.landmarks import landmark_to_world_dependent
+from landmark_ros.observer.observer import ObservationMessage, Observer
 from landmark_ros.pipeline.config import ObserverConfig
-from landmark_ros.pipeline.observer import ObservationMessage, Observer
 from landmark_ros.pipeline.pose_buffer import interpolate
 import numpy as np
 import pytest

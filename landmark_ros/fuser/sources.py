@@ -1,5 +1,5 @@
 """
-What the fuser (``pipeline.fuser``) keeps per input: its queue of messages and counters.
+What the fuser (``fuser.fuser``) keeps per input: its queue of messages and counters.
 
 ``LandmarkMessage`` is a message as the fuser takes it (``Fuser.add_landmarks``);
 ``Queued`` the rows of one message once checked and queued; ``Source`` an input topic's
@@ -10,7 +10,7 @@ from collections import Counter, deque
 from dataclasses import dataclass, field
 from typing import Any, Deque, NamedTuple, Optional
 
-from landmark_ros.pipeline.tracks import Scan
+from landmark_ros.pipeline.scan import Scan
 import numpy as np
 from numpy.typing import NDArray
 
@@ -75,4 +75,4 @@ class Source:
     counts: Counter[str] = field(default_factory=Counter)
     last_message_ns: Optional[int] = None
     optional: bool = False
-    """A constraint source: not stale before its first message (rb-only teams)."""
+    """A partial source: not stale before its first message (rb-only teams)."""

@@ -1,0 +1,1 @@
+"""The fuser: sources, tracks, partial observations, publishing schedule, map file (ROS-free)."""

@@ -1,0 +1,201 @@
+"""
+The observer's side of partial observations: range-only and bearing-only rows (ROS-free).
+
+Observation rows that carry only a range or only a bearing (a cloud without the other
+column, or a NaN in it) become partial observations: one scalar view each, with the
+sensor pose in the world and its covariance (``core.partial.views_from_robot``),
+published on ``partial_observations`` (rows of ``pipeline.partial_rows``). Time is
+integer nanoseconds.
+"""
+
+from collections import Counter
+from typing import Any, Dict, Optional, Tuple
+
+from landmark_ros.core.partial import BEARING, RANGE, views_from_robot
+from landmark_ros.core.sensors import MIN_RANGE
+from landmark_ros.pipeline.partial_rows import no_partial_observations, PartialObservations
+from landmark_ros.pipeline.rows import first_problems, MAX_ID, UNKNOWN_ID
+import numpy as np
+from numpy.typing import NDArray
+
+
+def split_partial(
+        columns: Dict[str, NDArray[Any]]) -> Tuple[Dict[str, NDArray[Any]], NDArray[np.bool_]]:
+    """
+    Fill a missing ``range`` or ``bearing`` column with NaN; find the partial rows.
+
+    A row is partial when exactly one of its range and bearing is NaN (a cloud
+    without the column is all NaN there); a row with both NaN stays a full row (the
+    range-bearing checks reject it as non-finite).
+
+    Parameters
+    ----------
+    columns : dict of str to ndarray, shape (N,)
+        ``id`` and at least one of ``range`` [m] and ``bearing`` [rad].
+
+    Returns
+    -------
+    columns : dict of str to ndarray, shape (N,)
+        With both ``range`` and ``bearing``.
+    partial : ndarray of bool, shape (N,)
+
+    """
+    count = len(columns['id'])
+    if 'range' not in columns or 'bearing' not in columns:
+        columns = dict(columns)
+        for name in ('range', 'bearing'):
+            if name not in columns:
+                columns[name] = np.full(count, np.nan)
+    r = np.asarray(columns['range'], dtype=np.float64)
+    b = np.asarray(columns['bearing'], dtype=np.float64)
+    return columns, np.isnan(r) != np.isnan(b)
+
+
+class CorrelatedNoise:
+    """
+    Time-correlated sensor noise: the information a view adds after a recent one.
+
+    The noise of a view is modelled as white noise plus a first-order Gauss-Markov
+    (exponentially correlated) part holding ``fraction`` of its variance, with
+    correlation time ``tau``: two views of one landmark ``dt`` apart by the same
+    sensor have errors correlated by ``rho = fraction * exp(-dt / tau)``. The fuser
+    treats views as independent, so each view's variance is inflated so that a run of
+    views carries the information of the correlated sequence: the correlated part by
+    ``(1 + rho1) / (1 - rho1) = coth(dt / (2 tau))`` with ``rho1 = exp(-dt / tau)``
+    and ``dt`` the time since the previous view of the landmark (of that kind) by this
+    sensor, the white part as it is. The factor is the variance of the mean of a
+    first-order autoregressive sequence relative to independent samples (Bayley and
+    Hammersley, "The effective number of independent observations in an autocorrelated
+    time series", J. R. Stat. Soc. Suppl. 8(2), 1946). The first view of a landmark,
+    or one after a long gap, keeps its variance (factor 1).
+
+    Parameters
+    ----------
+    range_fraction, bearing_fraction : float
+        In [0, 1): share of the range (bearing) noise variance that is correlated.
+    correlation_time_s : float
+        ``tau`` [s]; 0 means white noise (factor 1 always).
+    max_landmarks : int
+        Landmarks remembered; beyond, the least recently seen are forgotten (their
+        next view counts as a first one).
+
+    """
+
+    def __init__(self, range_fraction: float, bearing_fraction: float,
+                 correlation_time_s: float, max_landmarks: int = 100000) -> None:
+        self.fraction = np.array([range_fraction, bearing_fraction], dtype=np.float64)
+        self.tau_ns = float(correlation_time_s) * 1e9
+        self.max_landmarks = int(max_landmarks)
+        self.last_ns: Dict[Tuple[int, int], int] = {}
+
+    @property
+    def enabled(self) -> bool:
+        """Return whether the noise is correlated at all."""
+        return self.tau_ns > 0.0 and bool(self.fraction.any())
+
+    def factors(self, stamp_ns: int, ids: NDArray[np.int64],
+                kinds: NDArray[np.int64]) -> NDArray[np.float64]:
+        """
+        Return the variance factor of each view and remember the views' stamps.
+
+        Parameters
+        ----------
+        stamp_ns : int
+            Stamp of the views [ns].
+        ids, kinds : ndarray of int, shape (K,)
+            Landmark IDs and view kinds (``RANGE``, ``BEARING``).
+
+        Returns
+        -------
+        ndarray, shape (K,)
+            ``(1 - f) + f coth(dt / (2 tau))`` (at least 1); 1 for a first view. Two
+            views of one landmark in one message (``dt`` 0) are capped at
+            ``dt = 1 ns``.
+
+        """
+        count = len(ids)
+        if not self.enabled or not count:
+            return np.ones(count)
+        gaps = np.full(count, np.inf)
+        for k, key in enumerate(zip(np.asarray(ids).tolist(), np.asarray(kinds).tolist())):
+            last = self.last_ns.pop(key, None)  # re-inserted below: most recent last
+            if last is not None:
+                gaps[k] = max(abs(int(stamp_ns) - last), 1)
+            self.last_ns[key] = int(stamp_ns)
+        while len(self.last_ns) > self.max_landmarks:
+            del self.last_ns[next(iter(self.last_ns))]
+        f = self.fraction[np.asarray(kinds, np.int64)]
+        with np.errstate(divide='ignore', over='ignore'):
+            coth = 1.0 / np.tanh(gaps / (2.0 * self.tau_ns))
+        return (1.0 - f) + f * coth
+
+
+def partial_observations_from_rows(columns: Dict[str, NDArray[Any]], R: NDArray[np.float64],
+                                   pose: NDArray[np.float64], P_pose: NDArray[np.float64],
+                                   sensor_pose: Optional[NDArray[np.float64]],
+                                   R_bias: Optional[NDArray[np.float64]],
+                                   view_group: int, stamp_ns: int = 0,
+                                   correlated: Optional[CorrelatedNoise] = None
+                                   ) -> Tuple[PartialObservations, Counter[str]]:
+    """
+    Turn the partial rows of one message into checked partial observations.
+
+    Parameters
+    ----------
+    columns : dict of str to ndarray, shape (K,)
+        The partial rows only: ``id``, ``range`` [m], ``bearing`` [rad], one of them NaN.
+    R : ndarray, shape (2, 2) or (K, 2, 2)
+        Noise covariance of the rows (``rows.observation_noise``); the diagonal entry
+        of the measured column is the view's variance.
+    pose : ndarray, shape (3,)
+        Robot pose in the world.
+    P_pose : ndarray, shape (3, 3)
+        Its covariance.
+    sensor_pose : ndarray, shape (3,), optional
+        Sensor pose in the robot frame; None means the robot origin.
+    R_bias : ndarray, shape (2, 2), optional
+        Covariance of the sensor bias; its diagonal gives ``R_bias`` of the views.
+    view_group : int
+        In [0, 2^32 - 1]: the number every view of this pose gets.
+    stamp_ns : int
+        Stamp of the message [ns] (for ``correlated``).
+    correlated : CorrelatedNoise, optional
+        Time-correlated noise: the valid views' variances are multiplied by its
+        ``factors`` (and their stamps remembered); None keeps them.
+
+    Returns
+    -------
+    PartialObservations
+    reasons : collections.Counter
+        Rows rejected, by reason (``invalid_id``, ``range_not_positive``,
+        ``variance_not_positive``, ``observation_nonfinite``).
+
+    """
+    ids = np.asarray(columns['id'])
+    r = np.asarray(columns['range'], dtype=np.float64)
+    b = np.asarray(columns['bearing'], dtype=np.float64)
+    count = len(ids)
+    kind = np.where(np.isnan(r), BEARING, RANGE)
+    y = np.where(kind == RANGE, r, b)
+    R = np.broadcast_to(R, (count, 2, 2))
+    variance = np.where(kind == RANGE, R[:, 0, 0], R[:, 1, 1])
+    bias = np.zeros(count) if R_bias is None else np.where(kind == RANGE, R_bias[0, 0],
+                                                           R_bias[1, 1])
+    with np.errstate(invalid='ignore'):
+        valid, reasons = first_problems(count, [
+            ('observation_nonfinite', ~np.isfinite(y)),
+            ('range_not_positive', (kind == RANGE) & ~(y >= MIN_RANGE)),
+            ('invalid_id', (ids < 0) | (ids > MAX_ID)),
+            # Views are gathered by ID: no association of partial rows (yet).
+            ('partial_without_id', ids == UNKNOWN_ID),
+            ('variance_not_positive', ~(variance > 0.0) | ~np.isfinite(variance)),
+        ])
+    if not valid.any():
+        return no_partial_observations(), reasons
+    variance = variance[valid]
+    if correlated is not None:
+        variance = variance * correlated.factors(stamp_ns, ids[valid], kind[valid])
+    views = views_from_robot(kind[valid], pose, P_pose, y[valid], variance,
+                             bias[valid], sensor_pose)
+    return PartialObservations(ids[valid].astype(np.int64), views,
+                               np.full(int(valid.sum()), view_group, np.int64)), reasons
