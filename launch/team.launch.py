@@ -146,7 +146,7 @@ def rviz_installed():
         return False
     try:
         prefix = get_package_prefix('rviz2')
-    except (PackageNotFoundError, ValueError):
+    except (PackageNotFoundError, ValueError, OSError):   # OSError: no AMENT_PREFIX_PATH
         return False
     return os.access(os.path.join(prefix, 'lib', 'rviz2', 'rviz2'), os.X_OK)
 
