@@ -11,12 +11,13 @@ landmark_bag: run a recorded bag through the landmark pipeline offline, faster t
 topics ``/<name>/observations`` unless ``--robots`` lists them). ``OUTPUT`` is the bag
 directory to create with what the nodes would have published
 (``landmark_ros.bag.process``), in the storage ``--storage`` names (``mcap``, Jazzy's
-default, or ``sqlite3``; by default the input's, as ``ros2 bag`` users expect). ``--config`` is the parameter file the nodes take with
-``--params-file``: its ``landmark_observer`` sections (node-name keys as ROS matches
-them, ``/**:`` included) configure each robot's observer, its ``landmark_fuser``
-sections the fuser. When the bag holds ``/ground_truth_landmarks`` the fused map is
-evaluated as ``landmark_mrclam`` does (``--json`` writes ``{"input", "output",
-"robots", "speedup", "summary": [entry]}``, the entry as in the replay's JSON).
+default, or ``sqlite3``; by default the input's, as ``ros2 bag`` users expect).
+``--config`` is the parameter file the nodes take with ``--params-file``: its
+``landmark_observer`` sections (node-name keys as ROS matches them, ``/**:`` included)
+configure each robot's observer, its ``landmark_fuser`` sections the fuser. When the
+bag holds ``/ground_truth_landmarks`` the fused map is evaluated as ``landmark_mrclam``
+does (``--json`` writes ``{"input", "output", "robots", "speedup", "summary": [entry]}``,
+the entry as in the replay's JSON).
 
 A bag that cannot be used (missing, truncated, a missing topic, a topic of another
 message type), an invalid parameter or an existing output prints one line and exits

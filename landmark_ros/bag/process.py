@@ -29,8 +29,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from landmark_ros.bag.params import load_config
 from landmark_ros.bag.storage import BagError, BagOutput, msgtype, one_line, open_bag
-from landmark_ros.bag.storage import storage_of
-from landmark_ros.bag.storage import read_message
+from landmark_ros.bag.storage import read_message, storage_of
 from landmark_ros.pipeline.config import FuserConfig, ObserverConfig
 from landmark_ros.pipeline.fuser import Fuser
 from landmark_ros.pipeline.observer import ObservationMessage, Observer

@@ -31,7 +31,7 @@ FAILED_CHECK_DEADLINE_S = 60.0
 
 @pytest.fixture(scope='module')
 def install(tmp_path_factory):
-    """The install directory of a colcon workspace holding the package."""
+    """Build a colcon workspace holding the package; return its install directory."""
     require_tools()
     return build_workspace(tmp_path_factory.mktemp('launch_ws'))
 
@@ -113,7 +113,7 @@ def test_bearing_only_robot_among_four_named_robots_is_fused(install, tmp_path):
 
 
 def check_failed_before_start(team, expected):
-    """The launch failed with one error line matching ``expected``; nothing started."""
+    """Check the launch failed with one error line matching ``expected``, nothing started."""
     code = team.wait(FAILED_CHECK_DEADLINE_S)
     output = team.output()
     assert code not in (None, 0), output

@@ -1,4 +1,5 @@
-"""The RViz configuration and the team launch file describe the team they claim to.
+"""
+The RViz configuration and the team launch file describe the team they claim to.
 
 The launch file with stand-ins for launch and launch_ros (no ROS tools needed), and with
 the real ones when installed; ``test/launch`` runs it with ``ros2 launch``.
@@ -178,9 +179,8 @@ def test_sim_starts_the_named_robots(fake_launch, context):
     sim = start(fake_launch, context)[-1]
     assert sim.kwargs['executable'] == sim.kwargs['name'] == 'landmark_sim'
     assert sim.kwargs['parameters'] == [context['sim_params'], {'robots': 4}]
-    assert sim.kwargs['remappings'] == [
-        (f'robot2/{topic}', f'/scout/{topic}') for topic in ('pose', 'true_pose',
-                                                               'observations')]
+    topics = ('pose', 'true_pose', 'observations')
+    assert sim.kwargs['remappings'] == [(f'robot2/{t}', f'/scout/{t}') for t in topics]
 
 
 def test_fusion_argument_overrides_the_file(fake_launch, context):

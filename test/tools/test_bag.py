@@ -6,8 +6,8 @@ exported, processed with ``landmark_bag`` and compared with the offline replay o
 ``landmark_mrclam``: the same map to 1e-9. The output bag is read back with ``rosbags``.
 Bad bags (a missing topic, a truncated file, a topic of an unknown type) exit with code 2
 and leave nothing behind. The output is MCAP or SQLite 3 (``--storage``, by default the
-input's), read back with ``rosbags`` either way. The dataset-6 test runs the first two minutes of the real data
-and skips when the data is absent.
+input's), read back with ``rosbags`` either way. The dataset-6 test runs the first two
+minutes of the real data and skips when the data is absent.
 """
 
 from dataclasses import replace
