@@ -40,7 +40,21 @@ $(STAMP): setup.py setup.cfg package.xml requirements-ros.txt requirements-dev.t
 	@touch $(VENV)/AMENT_IGNORE $(VENV)/COLCON_IGNORE
 	@touch $@
 
-test: venv
+# The ROS 2 command-line tools (ros2 launch, topic, param ...; launch, launch_ros) from
+# ../shared/ros-tools when it is there (CI has it): test/launch runs ros2 launch with them
+# and skips without. Installed once per venv; a no-op while the stamp is newer.
+ROS_TOOLS := $(wildcard ../shared/ros-tools/install.sh)
+ROS_TOOLS_STAMP := $(VENV)/.ros-tools-stamp
+.PHONY: ros-tools
+ros-tools: venv
+ifneq ($(ROS_TOOLS),)
+ros-tools: $(ROS_TOOLS_STAMP)
+$(ROS_TOOLS_STAMP): $(STAMP) $(ROS_TOOLS) $(wildcard ../shared/ros-tools/wheels/*.whl)
+	bash $(ROS_TOOLS) $(VENV)
+	@touch $@
+endif
+
+test: venv ros-tools
 	@# compile the split-CI kernel and the fuser's row check into numba's disk cache once,
 	@# before the nodes start
 	$(VPY) -c 'from landmark_ros.core import _fold_kernel; _fold_kernel.load()'

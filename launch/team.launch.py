@@ -1,27 +1,64 @@
 """
 Launch a landmark_ros team: one landmark_observer per robot and one landmark_fuser.
 
-    ros2 launch landmark_ros team.launch.py
+    ros2 launch landmark_ros team.launch.py sim:=true      # the whole simulated demo
     ros2 launch landmark_ros team.launch.py robots:='alpha beta' \
-        observer_params:=/path/observer.yaml fuser_params:=/path/fuser.yaml rviz:=true
+        observer_params:=/path/observer.yaml fuser_params:=/path/fuser.yaml \
+        fusion:=covariance_intersection rviz:=true
 
 Each observer runs in its robot's namespace (``/<robot>/landmark_observer``: ``pose``
-or ``odometry`` and ``observations`` in, ``landmarks`` out) with ``observer_params``;
-the fuser reads ``fuser_params`` and fuses ``/<robot>/landmarks`` of every robot (its
-``input_topics`` follow ``robots``, whatever the file says). The parameter files key
-on the node names ``landmark_observer`` and ``landmark_fuser``, as the shipped ones do.
+or ``odometry`` and ``observations`` in, ``landmarks`` and the partial observations
+out) with ``observer_params``. The fuser reads ``fuser_params`` and fuses the outputs
+of every robot named in ``robots``: its per-robot topic parameters (``FUSER_INPUTS``)
+follow ``robots``, whatever the file says. The parameter files key on the node names
+``landmark_observer``, ``landmark_fuser`` and ``landmark_sim``, as the shipped ones do.
+
+``sim:=true`` also starts ``landmark_sim`` with ``sim_params`` and as many robots as
+``robots`` names, its ``robot<i>/...`` topics remapped to the names given. ``fusion``
+('' keeps the file's value) sets the fuser's fusion method.
+
+Everything is checked before any process starts (``check_team``): the robot names, that
+each parameter file exists and parses as YAML, the fusion method, and with
+``rviz:=true`` that rviz2 is installed. A failed check ends the launch with one line
+(exit code 1) and no process started. A team process that exits with an error once
+started shuts the whole launch down, so no part of the team is left running alone.
 """
 
+from importlib import import_module
+import os
 import re
 
 from launch import LaunchDescription
-from launch.actions import DeclareLaunchArgument, OpaqueFunction
-from launch.conditions import IfCondition
+from launch.actions import DeclareLaunchArgument, OpaqueFunction, Shutdown
 from launch.substitutions import LaunchConfiguration, PathJoinSubstitution
 from launch_ros.actions import Node
 from launch_ros.substitutions import FindPackageShare
+import yaml
 
 PACKAGE = 'landmark_ros'
+
+FUSER_INPUTS = {
+    'input_topics': 'landmarks',
+    'partial_observation_topics': 'partial_observations',
+}
+"""Fuser parameter -> the topic, relative to each robot's namespace, that it lists per
+robot: the one place that names the per-robot topics the fuser subscribes."""
+
+SIM_TOPICS = ('pose', 'true_pose', 'observations')
+"""The per-robot topics of landmark_sim, remapped to the robot names given."""
+
+STOP_TIMEOUT_S = '20'
+"""Seconds a team process has between Ctrl-C (SIGINT) and SIGTERM: a node that loaded
+numba spends one to a few seconds unloading it at exit on a busy machine, more than
+launch's default of 5 s."""
+
+FUSION_MODULES = ('landmark_ros.fusion', 'landmark_ros.fusion.landmark_map',
+                  'landmark_ros.core.landmark_map')
+"""Where ``FUSION_METHODS`` may be found (the first that has it is used)."""
+
+
+class TeamError(RuntimeError):
+    """A launch argument that cannot start the team; the message is one line."""
 
 
 def robot_names(text):
@@ -51,62 +88,200 @@ def robot_names(text):
     return names
 
 
-def team_nodes(robots, observer_params, fuser_params):
+def fuser_topics(robots):
     """
-    Return the Node actions of a team: the observers, then the fuser.
+    Return the fuser's per-robot topic parameters for ``robots``.
+
+    Parameters
+    ----------
+    robots : list of str
+        Robot names.
+
+    Returns
+    -------
+    dict of str to list of str
+        ``FUSER_INPUTS`` parameter -> ``/<robot>/<topic>`` for each robot, in order.
+
+    """
+    return {parameter: [f'/{robot}/{topic}' for robot in robots]
+            for parameter, topic in FUSER_INPUTS.items()}
+
+
+def sim_remappings(robots):
+    """Return the remappings of landmark_sim's ``robot<i>/<topic>`` to the names given."""
+    return [(f'robot{i}/{topic}', f'/{robot}/{topic}')
+            for i, robot in enumerate(robots, start=1) if robot != f'robot{i}'
+            for topic in SIM_TOPICS]
+
+
+def fusion_methods():
+    """Return the fusion method names the package knows (None when none is found)."""
+    for name in FUSION_MODULES:
+        try:
+            return tuple(import_module(name).FUSION_METHODS)
+        except (ImportError, AttributeError):
+            continue
+    return None
+
+
+def check_params_file(argument, path):
+    """Raise TeamError unless ``path`` is a readable YAML parameter file."""
+    if not os.path.isfile(path):
+        raise TeamError(f'{argument}: no such parameter file: {path}')
+    try:
+        with open(path, encoding='utf-8') as stream:
+            document = yaml.safe_load(stream)
+    except (OSError, UnicodeDecodeError, yaml.YAMLError) as error:
+        problem = ' '.join(str(error).split())
+        raise TeamError(f'{argument}: cannot read {path}: {problem}') from None
+    if not isinstance(document, dict):
+        raise TeamError(f'{argument}: {path} is no ROS parameter file (not a mapping)')
+
+
+def rviz_installed():
+    """Return whether the rviz2 package and its executable are installed."""
+    try:
+        from ament_index_python.packages import get_package_prefix, PackageNotFoundError
+    except ImportError:
+        return False
+    try:
+        prefix = get_package_prefix('rviz2')
+    except (PackageNotFoundError, ValueError, OSError):   # OSError: no AMENT_PREFIX_PATH
+        return False
+    return os.access(os.path.join(prefix, 'lib', 'rviz2', 'rviz2'), os.X_OK)
+
+
+def check_team(arguments):
+    """
+    Check the launch arguments before anything starts; return the robot names.
+
+    Parameters
+    ----------
+    arguments : dict of str to str
+        The launch arguments, performed.
+
+    Returns
+    -------
+    list of str
+
+    Raises
+    ------
+    TeamError
+        With one line naming the argument: no robot or a repeated one, a parameter
+        file that is missing or not YAML, an unknown fusion method, ``sim`` or
+        ``rviz`` neither true nor false, or ``rviz:=true`` without rviz2 installed.
+
+    """
+    try:
+        robots = robot_names(arguments['robots'])
+    except ValueError as error:
+        raise TeamError(str(error)) from None
+    flags = {}
+    for name in ('sim', 'rviz'):
+        text = arguments[name].strip().lower()
+        if text not in ('true', 'false'):
+            raise TeamError(f'{name}: expected true or false, got {arguments[name]!r}')
+        flags[name] = text == 'true'
+    files = ['observer_params', 'fuser_params'] + (['sim_params'] if flags['sim'] else [])
+    for name in files:
+        check_params_file(name, arguments[name])
+    methods = fusion_methods()
+    if arguments['fusion'] and methods is not None and arguments['fusion'] not in methods:
+        raise TeamError(f"fusion: {arguments['fusion']!r} is not one of {', '.join(methods)}")
+    if flags['rviz'] and not rviz_installed():
+        raise TeamError("rviz: package 'rviz2' is not installed (install ros-jazzy-rviz2, "
+                        'or launch without rviz:=true)')
+    return robots
+
+
+def on_failure(event, context):
+    """Shut the launch down when a team process exits with an error (not at shutdown)."""
+    if event.returncode == 0 or context.is_shutdown:
+        return None
+    return [Shutdown(reason=f'{event.process_name} exited with code {event.returncode}: '
+                            'stopping the team')]
+
+
+def team_nodes(robots, arguments):
+    """
+    Return the Node actions of a team: the observers, the fuser, then sim and RViz.
 
     Parameters
     ----------
     robots : list of str
         Robot names, each the namespace of its observer.
-    observer_params, fuser_params : str
-        Parameter files of the observers and of the fuser.
+    arguments : dict of str to str
+        The launch arguments (``check_team`` accepted them).
 
     Returns
     -------
     list of launch_ros.actions.Node
 
     """
-    observers = [
-        Node(package=PACKAGE, executable='landmark_observer', name='landmark_observer',
-             namespace=robot, parameters=[observer_params], output='screen')
-        for robot in robots]
-    fuser = Node(package=PACKAGE, executable='landmark_fuser', name='landmark_fuser',
-                 parameters=[fuser_params,
-                             {'input_topics': [f'/{robot}/landmarks' for robot in robots]}],
-                 output='screen')
-    return observers + [fuser]
+    common = {'package': PACKAGE, 'output': 'screen', 'on_exit': on_failure,
+              'sigterm_timeout': STOP_TIMEOUT_S}
+    nodes = [Node(executable='landmark_observer', name='landmark_observer', namespace=robot,
+                  parameters=[arguments['observer_params']], **common) for robot in robots]
+    overrides = fuser_topics(robots)
+    if arguments['fusion']:
+        overrides['fusion'] = arguments['fusion']
+    nodes.append(Node(executable='landmark_fuser', name='landmark_fuser',
+                      parameters=[arguments['fuser_params'], overrides], **common))
+    if arguments['sim'].strip().lower() == 'true':
+        nodes.append(Node(executable='landmark_sim', name='landmark_sim',
+                          parameters=[arguments['sim_params'], {'robots': len(robots)}],
+                          remappings=sim_remappings(robots), **common))
+    if arguments['rviz'].strip().lower() == 'true':
+        nodes.append(Node(package='rviz2', executable='rviz2', name='rviz2',
+                          arguments=['-d', arguments['rviz_config']]))
+    return nodes
+
+
+ARGUMENTS = ('robots', 'observer_params', 'fuser_params', 'sim', 'sim_params', 'fusion',
+             'rviz', 'rviz_config')
 
 
 def _team(context):
-    def value(name):
-        return LaunchConfiguration(name).perform(context)
-    return team_nodes(robot_names(value('robots')), value('observer_params'),
-                      value('fuser_params'))
+    arguments = {name: LaunchConfiguration(name).perform(context) for name in ARGUMENTS}
+    return team_nodes(check_team(arguments), arguments)
 
 
 def generate_launch_description():
-    """Return the team: arguments, observers and fuser, RViz on request."""
+    """Return the team: arguments, then one action that checks them and starts it."""
     share = FindPackageShare(PACKAGE)
     return LaunchDescription([
         DeclareLaunchArgument(
             'robots', default_value='robot1 robot2 robot3',
             description='Robot names, separated by spaces or commas; each is the namespace '
-                        'of one landmark_observer.'),
+                        'of one landmark_observer, and the fuser subscribes to the outputs '
+                        'of each.'),
         DeclareLaunchArgument(
             'observer_params',
             default_value=PathJoinSubstitution([share, 'config', 'observer.yaml']),
-            description='Parameter file of every landmark_observer.'),
+            description='Parameter file of every landmark_observer (must exist).'),
         DeclareLaunchArgument(
             'fuser_params',
             default_value=PathJoinSubstitution([share, 'config', 'fuser.yaml']),
-            description='Parameter file of the landmark_fuser (input_topics come from '
-                        'robots).'),
+            description='Parameter file of the landmark_fuser (must exist; its per-robot '
+                        'topics come from robots).'),
+        DeclareLaunchArgument(
+            'sim', default_value='false',
+            description='Also start landmark_sim, simulating the robots named in robots.'),
+        DeclareLaunchArgument(
+            'sim_params',
+            default_value=PathJoinSubstitution([share, 'config', 'sim.yaml']),
+            description='Parameter file of landmark_sim with sim:=true (its robots parameter '
+                        'comes from robots).'),
+        DeclareLaunchArgument(
+            'fusion', default_value='',
+            description="The fuser's fusion method (independent, covariance_intersection, "
+                        "split_covariance_intersection, ...); '' keeps fuser_params' value."),
         DeclareLaunchArgument(
             'rviz', default_value='false',
-            description='Also start RViz with rviz/landmarks.rviz (robot1..robot3 markers).'),
+            description='Also start RViz with rviz_config; rviz2 must be installed.'),
+        DeclareLaunchArgument(
+            'rviz_config',
+            default_value=PathJoinSubstitution([share, 'rviz', 'landmarks.rviz']),
+            description='RViz configuration (the shipped one shows robot1..robot3).'),
         OpaqueFunction(function=_team),
-        Node(package='rviz2', executable='rviz2', name='rviz2',
-             arguments=['-d', PathJoinSubstitution([share, 'rviz', 'landmarks.rviz'])],
-             condition=IfCondition(LaunchConfiguration('rviz'))),
     ])

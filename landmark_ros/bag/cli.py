@@ -3,20 +3,22 @@ landmark_bag: run a recorded bag through the landmark pipeline offline, faster t
 
 ::
 
-    landmark_bag INPUT -o OUTPUT [--config PARAMS_FILE] [--json FILE] [--robots NAMES]
-                 [--no-progress]
+    landmark_bag INPUT -o OUTPUT [--storage {mcap,sqlite3}] [--config PARAMS_FILE]
+                 [--json FILE] [--robots NAMES] [--no-progress]
     landmark_bag --from-mrclam DATASET -o OUTPUT [--config PARAMS_FILE]
 
 ``INPUT`` is a rosbag2 (directory, ``.mcap`` or ``.db3``) with ``/<robot>/pose`` and
 ``/<robot>/observations`` per robot (the observers' inputs; robots are found by the
 topics ``/<name>/observations`` unless ``--robots`` lists them). ``OUTPUT`` is the bag
-directory (MCAP) to create with what the nodes would have published
-(``landmark_ros.bag.process``). ``--config`` is the parameter file the nodes take with
-``--params-file``: its ``landmark_observer`` sections (node-name keys as ROS matches
-them, ``/**:`` included) configure each robot's observer, its ``landmark_fuser``
-sections the fuser. When the bag holds ``/ground_truth_landmarks`` the fused map is
-evaluated as ``landmark_mrclam`` does (``--json`` writes ``{"input", "output",
-"robots", "speedup", "summary": [entry]}``, the entry as in the replay's JSON).
+directory to create with what the nodes would have published
+(``landmark_ros.bag.process``), in the storage ``--storage`` names (``mcap``, Jazzy's
+default, or ``sqlite3``; by default the input's, as ``ros2 bag`` users expect).
+``--config`` is the parameter file the nodes take with ``--params-file``: its
+``landmark_observer`` sections (node-name keys as ROS matches them, ``/**:`` included)
+configure each robot's observer, its ``landmark_fuser`` sections the fuser. When the
+bag holds ``/ground_truth_landmarks`` the fused map is evaluated as ``landmark_mrclam``
+does (``--json`` writes ``{"input", "output", "robots", "speedup", "summary": [entry]}``,
+the entry as in the replay's JSON).
 
 ``--from-mrclam DATASET`` writes a MRCLAM dataset directory as such a bag instead
 (``landmark_ros.bag.export``: poses, observations, ``/ground_truth_landmarks``; the pose
@@ -36,7 +38,7 @@ from landmark_ros.bag.export import export_dataset, pose_stddev_from_config
 from landmark_ros.bag.params import read_document
 from landmark_ros.bag.process import process_bag
 from landmark_ros.bag.report import evaluate_map, format_report
-from landmark_ros.bag.storage import BagError
+from landmark_ros.bag.storage import BagError, STORAGES
 from landmark_ros.mrclam.data import DEFAULT_POSE_STDDEV
 
 PROG = 'landmark_bag'
@@ -46,7 +48,7 @@ def parse_args(argv=None):
     """Parse the command line (argparse exits with code 2 on a usage error)."""
     parser = argparse.ArgumentParser(
         prog=PROG, description='Run a recorded bag through landmark_observer (one per robot) '
-        'and landmark_fuser offline; write their outputs as a bag (MCAP).')
+        'and landmark_fuser offline; write their outputs as a bag.')
     parser.add_argument('input', type=Path, nargs='?', default=None,
                         help='input rosbag2 (directory, .mcap or .db3)')
     parser.add_argument('--from-mrclam', type=Path, default=None, metavar='DATASET',
@@ -54,6 +56,8 @@ def parse_args(argv=None):
                              'as a bag OUTPUT and stop')
     parser.add_argument('-o', '--output', type=Path, required=True,
                         help='output bag directory to create (must not exist)')
+    parser.add_argument('--storage', choices=sorted(STORAGES), default=None,
+                        help="storage of the output bag (default: the input's)")
     parser.add_argument('--config', type=Path, default=None, metavar='PARAMS_FILE',
                         help='ROS parameter file with landmark_observer and landmark_fuser '
                              'sections (as for --params-file); default: the parameter '
@@ -119,7 +123,7 @@ def main(argv=None):
     update, close = _progress_bar(not args.no_progress)
     try:
         document = read_document(args.config) if args.config is not None else None
-        result = process_bag(args.input, args.output, document, robots, update)
+        result = process_bag(args.input, args.output, document, robots, update, args.storage)
     except (BagError, ValueError) as error:
         close()
         print(f'{PROG}: error: {error}', file=sys.stderr)

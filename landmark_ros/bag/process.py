@@ -29,7 +29,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from landmark_ros.bag.params import load_config
 from landmark_ros.bag.storage import BagError, BagOutput, msgtype, one_line, open_bag
-from landmark_ros.bag.storage import read_message
+from landmark_ros.bag.storage import read_message, storage_of
 from landmark_ros.fuser.fuser import Fuser
 from landmark_ros.fuser.publishing import PublicationSchedule
 from landmark_ros.observer.observer import ObservationMessage, Observer
@@ -345,7 +345,8 @@ def _ns(seconds):
     return max(1, int(round(seconds * 1e9)))
 
 
-def process_bag(input_path, output_path, document=None, robots=None, progress=None):
+def process_bag(input_path, output_path, document=None, robots=None, progress=None,
+                storage=None):
     """
     Run a recorded bag through the observers and the fuser; write what they publish.
 
@@ -356,7 +357,7 @@ def process_bag(input_path, output_path, document=None, robots=None, progress=No
         ``/<robot>/odometry``) and ``/<robot>/observations`` per robot, optionally
         ``/ground_truth_landmarks``.
     output_path : str or Path
-        The output bag directory (MCAP) to create; written atomically.
+        The output bag directory to create; written atomically.
     document : dict, optional
         A ROS parameter file (``params.read_document``): sections ``landmark_observer``
         (per robot: ``/<robot>/landmark_observer``) and ``landmark_fuser``.
@@ -364,6 +365,8 @@ def process_bag(input_path, output_path, document=None, robots=None, progress=No
         Robot names; by default every ``<name>`` with a topic ``/<name>/observations``.
     progress : callable, optional
         ``progress(messages_done, messages_total)``, called now and then.
+    storage : str, optional
+        Storage of the output, ``mcap`` or ``sqlite3``; by default the input's.
 
     Returns
     -------
@@ -386,7 +389,7 @@ def process_bag(input_path, output_path, document=None, robots=None, progress=No
         names = list(robots) if robots else find_robots(topics)
         if not names:
             raise BagError(f'{input_path}: no topic /<robot>/observations: no robot to run')
-        with BagOutput(output_path) as out:
+        with BagOutput(output_path, storage or storage_of(input_path)) as out:
             pipeline = BagPipeline(names, document, out)
             inputs = pipeline.input_topics()
             for topic, (message_class, _) in inputs.items():

@@ -23,9 +23,14 @@ from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness
 from rosbags.interfaces import QosReliability, QosTime
 from rosbags.rosbag2 import Reader, ReaderError, StoragePlugin, Writer, WriterError
 from rosbags.typesys import get_typestore, Stores
+import yaml
 
 BAG_VERSION = 9
 """rosbag2 metadata version of the bags written (the one ROS 2 Jazzy writes)."""
+
+STORAGES = {'mcap': StoragePlugin.MCAP, 'sqlite3': StoragePlugin.SQLITE3}
+"""Storage identifiers of the bags written (``ros2 bag record --storage``): MCAP, Jazzy's
+default, or SQLite 3, the default before it."""
 
 
 class BagError(Exception):
@@ -110,6 +115,35 @@ def open_bag(path):
     return reader
 
 
+def storage_of(path):
+    """
+    Return the storage identifier (``mcap`` or ``sqlite3``) of a bag ``open_bag`` opened.
+
+    Parameters
+    ----------
+    path : str or Path
+        A bag directory (its ``metadata.yaml`` names the storage) or a ``.mcap`` /
+        ``.db3`` file.
+
+    Returns
+    -------
+    str
+        A key of ``STORAGES``; ``mcap`` for a storage this package does not write.
+
+    """
+    path = Path(path)
+    if path.is_dir():
+        try:
+            with open(path / 'metadata.yaml', encoding='utf-8') as stream:
+                metadata = yaml.safe_load(stream)['rosbag2_bagfile_information']
+            identifier = metadata['storage_identifier']
+        except (OSError, yaml.YAMLError, KeyError, TypeError):
+            identifier = None
+    else:
+        identifier = {'.db3': 'sqlite3', '.mcap': 'mcap'}.get(path.suffix)
+    return identifier if identifier in STORAGES else 'mcap'
+
+
 def one_line(error):
     """Return an exception's message on one line, with its type when it is empty."""
     text = ' '.join(str(error).split())
@@ -135,7 +169,7 @@ def read_message(raw, message_class, topic):
 
 class BagOutput:
     """
-    A rosbag2 (MCAP) written atomically: into a temporary directory, renamed at the end.
+    A rosbag2 written atomically: into a temporary directory, renamed at the end.
 
     Use as a context manager: leaving the block normally closes the bag and renames it
     to ``path``; leaving it with an exception (or ``KeyboardInterrupt``) deletes
@@ -145,15 +179,21 @@ class BagOutput:
     ----------
     path : str or Path
         The bag directory to create; it must not exist, its parent must.
+    storage : str
+        ``mcap`` or ``sqlite3`` (``STORAGES``).
 
     Raises
     ------
     BagError
         If ``path`` exists or its parent directory does not.
+    ValueError
+        If ``storage`` is none of ``STORAGES``.
 
     """
 
-    def __init__(self, path):
+    def __init__(self, path, storage='mcap'):
+        if storage not in STORAGES:
+            raise ValueError(f"storage must be one of {', '.join(STORAGES)}, got {storage!r}")
         self.path = Path(path)
         if self.path.exists() or self.path.is_symlink():
             raise BagError(f'{self.path} exists already: not overwriting it')
@@ -167,7 +207,7 @@ class BagOutput:
                                                 dir=parent))
         try:
             self._writer = Writer(self._temporary / self.path.name, version=BAG_VERSION,
-                                  storage_plugin=StoragePlugin.MCAP)
+                                  storage_plugin=STORAGES[storage])
             self._writer.open()
         except (WriterError, OSError) as error:
             shutil.rmtree(self._temporary, ignore_errors=True)

@@ -155,8 +155,12 @@ def _layout_dtype(msg, specs):
         names.append(spec.name)
         formats.append(dtype.newbyteorder('>' if msg.is_bigendian else '<'))
         offsets.append(field.offset)
-    return np.dtype({'names': names, 'formats': formats, 'offsets': offsets,
-                     'itemsize': msg.point_step})
+    # In offset order, whatever the order of the specs: a structured dtype with fields
+    # out of order cannot be exported as a buffer (``read_landmark_clouds`` joins them).
+    order = sorted(range(len(names)), key=offsets.__getitem__)
+    return np.dtype({'names': [names[k] for k in order],
+                     'formats': [formats[k] for k in order],
+                     'offsets': [offsets[k] for k in order], 'itemsize': msg.point_step})
 
 
 def _column_type(dtype):

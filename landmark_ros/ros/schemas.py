@@ -6,18 +6,33 @@ The PointCloud2 schemas of the package's topics, with writers and readers.
 (FLOAT32 or FLOAT64), optional ``class`` (any integer type), ``range_variance``,
 ``bearing_variance``, ``range_bearing_covariance``.
 
-``landmarks`` (observer out, fuser in): ``id`` UINT32, ``x``, ``y``, ``z``,
-``cov_xx``, ``cov_xy``, ``cov_yy``, ``cov_dep_xx``, ``cov_dep_xy``, ``cov_dep_yy``
-FLOAT64, little-endian, in this order. ``cov_*`` is the total covariance, ``cov_dep_*``
-its dependent part (pose and bias: correlated between observations); readers
-accept clouds without ``cov_dep_*`` (dependent part zero).
+``landmarks`` (observer out, fuser in), ``fused_landmarks``, ``fused_landmark_updates``
+(fuser out) and ``ground_truth_landmarks`` (sim out) start alike, little-endian:
 
-``fused_landmarks`` (fuser out): the landmark fields then ``observations`` UINT32.
+========== ======= ====== ==============================================================
+field      type    offset meaning
+========== ======= ====== ==============================================================
+x, y, z    FLOAT32 0 4 8  position [m] for display: RViz's PointCloud2 display and PCL
+                          (``fromROSMsg``) read only FLOAT32 ``x y z``; z is 0
+id         UINT32  12     landmark ID (``UNKNOWN_ID`` 4294967295: none)
+mean_x,    FLOAT64 16 24  the position estimate [m] at full precision: what the package's
+mean_y                    readers use (``x``, ``y`` are it rounded to float32: 0.5 mm
+                          off 10 km from the origin, 2 cm at 300 km)
+cov_xx,    FLOAT64 32...  total covariance [m^2]
+cov_xy,
+cov_yy
+cov_dep_*  FLOAT64        its dependent part (pose and bias: correlated between
+                          observations); readers accept clouds without it (zero)
+========== ======= ====== ==============================================================
 
-``partial_observations`` (observer out, fuser in; partial views, see
-``fuser.partial``): ``id`` UINT32, ``kind`` UINT8 (0 range, 1 bearing), ``value``
-[m or rad], ``variance``, ``variance_dep`` (independent noise and bias variances),
-``sensor_x``, ``sensor_y``, ``sensor_theta`` (sensor pose in the world),
+Readers take ``mean_x``, ``mean_y`` when the cloud has them and ``x``, ``y`` (FLOAT32 or
+FLOAT64) otherwise, so clouds of other tools and bags recorded with the earlier layout
+(``id`` first, FLOAT64 ``x y z``, no ``mean_*``) read as before.
+
+``partial_observations`` (observer out, fuser in; see ``fuser.partial``;
+no position, so nothing for RViz to draw): ``id`` UINT32, ``kind`` UINT8 (0 range,
+1 bearing), ``value`` [m or rad], ``variance``, ``variance_dep`` (independent noise and
+bias variances), ``sensor_x``, ``sensor_y``, ``sensor_theta`` (sensor pose in the world),
 ``sensor_cov_xx``, ``_xy``, ``_xt``, ``_yy``, ``_yt``, ``_tt`` (its covariance) FLOAT64,
 ``view_group`` UINT32, little-endian, in this order.
 ``landmarks`` gains ``class`` UINT32 when the message had a ``class`` or a row without
@@ -56,8 +71,12 @@ OBSERVATION_FIELDS = (
     FieldSpec('bearing_variance', REAL_TYPES, required=False),
     FieldSpec('range_bearing_covariance', REAL_TYPES, required=False),
 )
-LANDMARK_SCHEMA = (
-    ('id', np.uint32), ('x', np.float64), ('y', np.float64), ('z', np.float64),
+DISPLAY_FIELDS = ('x', 'y', 'z')
+"""FLOAT32 position fields at offsets 0, 4, 8 of every landmark cloud (RViz, PCL)."""
+MEAN_FIELDS = ('mean_x', 'mean_y')
+"""FLOAT64 position estimate of every landmark cloud, read before ``x``, ``y``."""
+LANDMARK_SCHEMA = tuple((name, np.float32) for name in DISPLAY_FIELDS) + (
+    ('id', np.uint32), ('mean_x', np.float64), ('mean_y', np.float64),
     ('cov_xx', np.float64), ('cov_xy', np.float64), ('cov_yy', np.float64),
     ('cov_dep_xx', np.float64), ('cov_dep_xy', np.float64), ('cov_dep_yy', np.float64),
 )
@@ -70,9 +89,10 @@ BIAS_FIELDS = ('bias_cov_rr', 'bias_cov_rb', 'bias_cov_bb', 'sensor_x', 'sensor_
 """Sensor bias covariance (range [m^2], bearing [rad^2]) and sensor position [m]."""
 LANDMARK_FIELDS = tuple(
     FieldSpec(name, INTEGER_TYPES if name in ('id', 'observations', 'class') else REAL_TYPES,
-              required=name not in DEPENDENT_FIELDS + ('observations', 'class'))
-    for name, _ in FUSED_SCHEMA) + tuple(
+              required=name not in MEAN_FIELDS + DEPENDENT_FIELDS + ('observations', 'class'))
+    for name, _ in FUSED_SCHEMA if name != 'z') + tuple(
     FieldSpec(name, REAL_TYPES, required=False) for name in SCAN_FIELDS + BIAS_FIELDS)
+"""What the readers take: ``z`` is not read, ``mean_*`` replace ``x``, ``y`` when there."""
 
 _OBSERVATION_WRITER = CloudWriter((('id', np.uint32), ('range', np.float64),
                                    ('bearing', np.float64)))
@@ -235,7 +255,8 @@ def landmark_message(header, ids, m, P_m, P_dep=None, observations=None, out=Non
         writer = LANDMARK_WRITER if classes is None else _CLASS_WRITER
     rows = writer.rows(len(m))
     rows['id'] = np.asarray(ids).reshape(-1)
-    rows['x'], rows['y'] = m[:, 0], m[:, 1]
+    rows['x'], rows['y'] = m[:, 0], m[:, 1]           # rounded to float32
+    rows['mean_x'], rows['mean_y'] = m[:, 0], m[:, 1]
     rows['cov_xx'], rows['cov_xy'], rows['cov_yy'] = P_m[:, 0, 0], P_m[:, 0, 1], P_m[:, 1, 1]
     if P_dep is not None:
         P_dep = np.asarray(P_dep, dtype=np.float64).reshape(-1, 2, 2)
@@ -405,7 +426,8 @@ def _landmarks_of(columns, scans=False):
     of every row (None without the fields either way).
     """
     count = len(columns['x'])
-    for group, what in ((DEPENDENT_FIELDS, 'the dependent covariance'),
+    for group, what in ((MEAN_FIELDS, 'the position estimate'),
+                        (DEPENDENT_FIELDS, 'the dependent covariance'),
                         (SCAN_FIELDS, 'the robot pose terms'),
                         (BIAS_FIELDS, 'the sensor bias terms')):
         present = [name for name in group if name in columns]
@@ -429,7 +451,8 @@ def _landmarks_of(columns, scans=False):
         scan = None
     else:
         scan = _Scans(columns) if scans else _scan(columns, 0)
-    return (Landmarks(columns['id'], np.stack([columns['x'], columns['y']], axis=1),
+    x, y = MEAN_FIELDS if MEAN_FIELDS[0] in columns else ('x', 'y')
+    return (Landmarks(columns['id'], np.stack([columns[x], columns[y]], axis=1),
                       matrices('cov_xx', 'cov_xy', 'cov_yy'),
                       matrices(*DEPENDENT_FIELDS),
                       columns.get('observations', np.ones(count, np.int64))),

@@ -46,8 +46,9 @@ M_TEXTBOOK = np.array([2.44943102, 5.72815634])
 PM_CASE1 = np.array([[0.58879177, -0.13171532], [-0.13171532, 0.30120823]])
 PM_CASE2 = np.array([[0.94677477, -0.23978943], [-0.23978943, 0.94322523]])
 
-LANDMARK_NAMES = ['id', 'x', 'y', 'z', 'cov_xx', 'cov_xy', 'cov_yy',
+LANDMARK_NAMES = ['x', 'y', 'z', 'id', 'mean_x', 'mean_y', 'cov_xx', 'cov_xy', 'cov_yy',
                   'cov_dep_xx', 'cov_dep_xy', 'cov_dep_yy']
+LANDMARK_FORMATS = ['<f4'] * 3 + ['<u4'] + ['<f8'] * 8
 THROUGHPUT = {'poses_in', 'observation_messages_in', 'observations_in', 'landmarks_out'}
 POINT_FIELD_TYPES = {
     np.dtype(np.int8): PointField.INT8, np.dtype(np.uint8): PointField.UINT8,
@@ -199,22 +200,27 @@ def test_textbook_case(env, case, P_pose, P_expected, noise):
 
     assert stamp_tuple(msg.header.stamp) == stamp_tuple(sent.header.stamp)
     assert msg.header.frame_id == 'map'
-    # Layout: UINT32 id then six little-endian FLOAT64, in order, non-overlapping.
+    # Layout: FLOAT32 x y z at 0, 4, 8 (RViz, PCL), UINT32 id, then little-endian
+    # FLOAT64 (the estimate at full precision, covariances), in order, non-overlapping.
     assert [f.name for f in msg.fields] == LANDMARK_NAMES
-    assert [f.datatype for f in msg.fields] == [PointField.UINT32] + [PointField.FLOAT64] * 9
+    assert [f.datatype for f in msg.fields] == \
+        [PointField.FLOAT32] * 3 + [PointField.UINT32] + [PointField.FLOAT64] * 8
     assert all(f.count == 1 for f in msg.fields)
     assert msg.is_bigendian is False
-    sizes = [4] + [8] * 9
+    sizes = [4] * 4 + [8] * 8
     offsets = [f.offset for f in msg.fields]
-    assert all(offsets[i] + sizes[i] <= offsets[i + 1] for i in range(9))
+    assert offsets[:3] == [0, 4, 8]
+    assert all(offsets[i] + sizes[i] <= offsets[i + 1] for i in range(11))
     assert offsets[-1] + 8 <= msg.point_step
     assert (msg.height, msg.width) == (1, 1)
     assert msg.row_step == msg.point_step and len(msg.data) == msg.row_step
     raw = np.frombuffer(bytes(msg.data), np.dtype({
-        'names': LANDMARK_NAMES, 'formats': ['<u4'] + ['<f8'] * 9, 'offsets': offsets,
+        'names': LANDMARK_NAMES, 'formats': LANDMARK_FORMATS, 'offsets': offsets,
         'itemsize': msg.point_step}))
     assert raw['id'][0] == 7 and raw['z'][0] == 0.0
-    np.testing.assert_allclose([raw['x'][0], raw['y'][0]], M_TEXTBOOK, rtol=0, atol=1e-8)
+    np.testing.assert_allclose([raw['mean_x'][0], raw['mean_y'][0]], M_TEXTBOOK, rtol=0,
+                               atol=1e-8)
+    assert [raw['x'][0], raw['y'][0]] == [np.float32(v) for v in M_TEXTBOOK]
     np.testing.assert_allclose([raw['cov_xx'][0], raw['cov_xy'][0], raw['cov_yy'][0]],
                                [P_expected[0, 0], P_expected[0, 1], P_expected[1, 1]],
                                rtol=0, atol=1e-8)

@@ -5,8 +5,9 @@ A small synthetic MRCLAM dataset (``test_mrclam.make_dataset``, noisy, two robot
 exported, processed with ``landmark_bag`` and compared with the offline replay of
 ``landmark_mrclam``: the same map to 1e-9. The output bag is read back with ``rosbags``.
 Bad bags (a missing topic, a truncated file, a topic of an unknown type) exit with code 2
-and leave nothing behind. The dataset-6 test runs the first two minutes of the real data
-and skips when the data is absent.
+and leave nothing behind. The output is MCAP or SQLite 3 (``--storage``, by default the
+input's), read back with ``rosbags`` either way. The dataset-6 test runs the first two
+minutes of the real data and skips when the data is absent.
 """
 
 from dataclasses import replace
@@ -20,7 +21,7 @@ from landmark_ros.bag import cli as bag_cli
 from landmark_ros.bag.export import export_dataset, pose_stddev_from_config
 from landmark_ros.bag.params import key_pattern, load_config, node_parameters, read_document
 from landmark_ros.bag.process import process_bag
-from landmark_ros.bag.storage import BagError, BagOutput, open_bag, typestore
+from landmark_ros.bag.storage import BagError, BagOutput, open_bag, storage_of, typestore
 from landmark_ros.mrclam.config import load_config as load_replay_config
 from landmark_ros.mrclam.data import load_dataset
 from landmark_ros.mrclam.offline import run_offline
@@ -35,6 +36,7 @@ from rosbags.rosbag2 import Writer
 from sensor_msgs.msg import PointCloud2
 from test_mrclam import make_dataset
 from visualization_msgs.msg import MarkerArray
+import yaml
 
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 
@@ -364,3 +366,72 @@ def test_dataset6_first_minutes_give_the_replay_map(tmp_path):
     assert len(offline.records) >= 10
     assert_same_map(result.fuser.map.to_records(), offline.records)
     assert result.speedup > 1.0
+
+
+# Storage: MCAP or SQLite 3, by default the input's ----------------------------------------
+
+def copy_bag(bag, path, storage):
+    """Write every message of ``bag`` into a new bag of ``storage`` at ``path``."""
+    reader = open_bag(bag)
+    try:
+        with BagOutput(path, storage) as out:
+            for topic, info in reader.topics.items():
+                out.add_topic(topic, CLASSES[info.msgtype])
+            for connection, time_ns, raw in reader.messages():
+                out.write(connection.topic, time_ns,
+                          deserialize_message(bytes(raw), CLASSES[connection.msgtype]))
+    finally:
+        reader.close()
+
+
+def bag_storage(path):
+    """Return the storage identifier ``metadata.yaml`` names and the storage files' suffixes."""
+    metadata = yaml.safe_load((path / 'metadata.yaml').read_text())
+    information = metadata['rosbag2_bagfile_information']
+    suffixes = {Path(name).suffix for name in information['relative_file_paths']}
+    return information['storage_identifier'], suffixes
+
+
+@pytest.mark.parametrize('given, option, expected', [
+    ('mcap', None, 'mcap'), ('sqlite3', None, 'sqlite3'),
+    ('mcap', 'sqlite3', 'sqlite3'), ('sqlite3', 'mcap', 'mcap')])
+def test_output_storage_is_the_inputs_unless_chosen(noisy, tmp_path, capsys, given, option,
+                                                    expected):
+    _, bag = noisy
+    if given != 'mcap':
+        copy_bag(bag, tmp_path / 'input', given)
+        bag = tmp_path / 'input'
+    assert bag_storage(bag)[0] == given
+    out = tmp_path / 'out'
+    code, err = run_cli(capsys, bag, '-o', out, '--config', CONFIG,
+                        *(['--storage', option] if option else []))
+    assert code == 0, err
+    assert bag_storage(out) == (expected, {'.mcap' if expected == 'mcap' else '.db3'})
+    # rosbags reads it back, and the map is that of the MCAP input with default storage.
+    final = read_landmarks(read_bag(out)['/fused_landmarks'][1][-1][1])
+    reference = tmp_path / 'reference'
+    process_bag(noisy[1], reference, read_document(CONFIG))
+    want = read_landmarks(read_bag(reference)['/fused_landmarks'][1][-1][1])
+    assert final.ids.tolist() == want.ids.tolist()
+    np.testing.assert_array_equal(final.m, want.m)
+    np.testing.assert_array_equal(final.P, want.P)
+
+
+def test_single_file_inputs_give_their_storage(noisy, tmp_path):
+    _, bag = noisy
+    copy_bag(bag, tmp_path / 'lite', 'sqlite3')
+    db3, = (tmp_path / 'lite').glob('*.db3')
+    mcap, = bag.glob('*.mcap')
+    assert storage_of(db3) == 'sqlite3' and storage_of(mcap) == 'mcap'
+    assert storage_of(tmp_path / 'lite') == 'sqlite3' and storage_of(bag) == 'mcap'
+
+
+def test_unknown_storage_is_a_usage_error(noisy, tmp_path, capsys):
+    _, bag = noisy
+    with pytest.raises(SystemExit) as exit_:
+        bag_cli.main([str(bag), '-o', str(tmp_path / 'out'), '--storage', 'parquet'])
+    assert exit_.value.code == 2
+    assert "invalid choice: 'parquet'" in capsys.readouterr().err
+    with pytest.raises(ValueError, match='storage must be one of'):
+        BagOutput(tmp_path / 'out', 'parquet')
+    assert_nothing_left(tmp_path, tmp_path / 'out')
