@@ -12,7 +12,7 @@ the float64 estimate back, from these clouds and from the earlier FLOAT64 layout
 from pathlib import Path
 
 from hypothesis import given, settings, strategies as st
-from landmark_ros.pipeline.tracks import Scan
+from landmark_ros.pipeline.scan import Scan
 from landmark_ros.ros.cloud import CloudError, CloudWriter
 from landmark_ros.ros.cloud_bytes import read_cloud_bytes
 from landmark_ros.ros.schemas import landmark_message, make_header, read_landmark_clouds
