@@ -16,13 +16,14 @@ PYTEST_ARGS ?=
 PYTEST := $(VPY) -m pytest -q -p no:cacheprovider -ra
 
 .DEFAULT_GOAL := help
-.PHONY: help venv test lint bench clean
+.PHONY: help venv test lint bench clean fuzz
 
 help:
 	@echo 'landmark_ros make targets:'
 	@echo '  venv   create/update .venv (ROS Jazzy wheels, dev tools, package editable)'
 	@echo '  test   run the whole test suite (extra pytest args: PYTEST_ARGS="...")'
 	@echo '  lint   run only the flake8 / pep257 linter tests'
+	@echo '  fuzz   the input fuzz tests with FUZZ_EXAMPLES (5000) random examples each'
 	@echo '  bench  run every bench/bench_*.py, then one summary (also bench/results.md)'
 	@echo '  demo   simulated 3-robot run: sim, observers, fuser; table + demo.png (DEMO_ARGS="...")'
 	@echo '  clean  remove .venv, build artefacts and __pycache__'
@@ -45,6 +46,13 @@ test: venv
 	$(VPY) -c 'from landmark_ros.core import _fold_kernel; _fold_kernel.load()'
 	$(VPY) -c 'from landmark_ros.pipeline import rows; rows.load_row_kernel()'
 	$(PYTEST) test $(PYTEST_ARGS)
+
+# The property-based fuzz tests of the cloud readers and the bag reader (test/*/test_fuzz_*.py),
+# each with FUZZ_EXAMPLES examples from a random seed (make test runs few, derandomized).
+FUZZ_EXAMPLES ?= 5000
+fuzz: venv
+	LANDMARK_FUZZ_EXAMPLES=$(FUZZ_EXAMPLES) LANDMARK_FUZZ_RANDOM=1 \
+		$(PYTEST) --hypothesis-show-statistics $$(ls test/*/test_fuzz_*.py) $(PYTEST_ARGS)
 
 lint: venv
 	$(PYTEST) test -m linter $(PYTEST_ARGS)

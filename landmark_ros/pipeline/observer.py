@@ -64,8 +64,8 @@ class ObservationMessage:
 
     @property
     def rows(self) -> int:
-        """Return the number of rows."""
-        return len(next(iter(self.columns.values())))
+        """Return the number of rows (0 for a message without columns)."""
+        return max((len(values) for values in self.columns.values()), default=0)
 
 
 MessageWithPose = Tuple[ObservationMessage, NDArray[np.float64], NDArray[np.float64]]
@@ -300,6 +300,11 @@ class Observer:
                               f"'{sensor_frame}': message dropped")
             return False
         self.counters.add('observations_in', message.rows)
+        if 'range' not in message.columns and 'bearing' not in message.columns:
+            self.counters.add('missing_field', max(message.rows, 1),
+                              "observation message with neither 'range' nor 'bearing': "
+                              'dropped')
+            return False
         if message.stamp_ns <= 0:
             self.counters.add('observation_stamp_zero', message.rows,
                               'observation message with a zero stamp: dropped')
