@@ -16,10 +16,11 @@ from dataclasses import dataclass, field, replace
 from typing import Any, Callable, Deque, Dict, List, Optional, Sequence, Tuple
 
 from landmark_ros.core.covariance import COVARIANCE_PROBLEMS, covariance_status
-from landmark_ros.pipeline import pose_buffer
+from landmark_ros.pipeline import limits, pose_buffer
 from landmark_ros.pipeline.config import ObserverConfig
 from landmark_ros.pipeline.counters import Counters, Status
-from landmark_ros.pipeline.rows import landmarks_from_rows, observation_noise, UNKNOWN_ID
+from landmark_ros.pipeline.rows import (first_problems, landmarks_from_rows, observation_noise,
+                                        UNKNOWN_ID)
 from landmark_ros.pipeline.tracks import Scan
 from landmark_ros.pipeline.views import (Constraints, constraints_from_rows, CorrelatedNoise,
                                          no_constraints, split_partial)
@@ -202,6 +203,10 @@ class Observer:
             self.counters.add(f'pose_{COVARIANCE_PROBLEMS[status]}', 1,
                               f'(x, y, yaw) covariance {P_pose.tolist()}: dropped')
             return []
+        reason, detail = limits.pose_problem(pose, P_pose)
+        if reason:
+            self.counters.add(reason, 1, f'{detail}: dropped')
+            return []
         if stamp_ns <= 0:
             self.counters.add('pose_stamp_zero', 1, 'pose with a zero stamp: dropped')
             return []
@@ -378,7 +383,7 @@ class Observer:
             One per message, in order.
 
         """
-        ready = [(replace(item, columns=_with_ids(item.columns)), pose, P_pose)
+        ready = [(replace(item, columns=self._plausible(_with_ids(item.columns))), pose, P_pose)
                  for item, pose, P_pose in ready]
         ready, constraints = self._partial(ready)
         counts = [item.rows for item, _, _ in ready]
@@ -426,6 +431,17 @@ class Observer:
             start, row = end, row + count
         self.counters.add('landmarks_out', len(ids))
         return batches
+
+    def _plausible(self, columns: Dict[str, NDArray[Any]]) -> Dict[str, NDArray[Any]]:
+        """Return the rows of a message within ``limits``; count the others by reason."""
+        count = len(columns['id'])
+        valid, reasons = first_problems(count, limits.observation_problems(columns, count))
+        if not reasons:
+            return columns
+        for reason, rejected in reasons.items():
+            self.counters.add(reason, rejected, f'{rejected} of {count} observation rows '
+                              'outside the plausible ranges (pipeline.limits)')
+        return {name: np.asarray(values)[valid] for name, values in columns.items()}
 
     def _partial(self, ready: Sequence[MessageWithPose]
                  ) -> Tuple[List[MessageWithPose], Dict[int, Constraints]]:

@@ -26,6 +26,7 @@ from landmark_ros.core.partial import (BEARING, GATED, Initialisation, initialis
                                        InitialiseParams, RANGE, TOO_CLOSE, update, UPDATED,
                                        Views, views_from_robot)
 from landmark_ros.core.sensors import MIN_RANGE
+from landmark_ros.pipeline.limits import partial_problems
 from landmark_ros.pipeline.rows import first_problems, MAX_ID, UNKNOWN_ID
 import numpy as np
 from numpy.typing import NDArray
@@ -265,7 +266,7 @@ def constraints_from_rows(columns: Dict[str, NDArray[Any]], R: NDArray[np.float6
             # Views are gathered by ID: no association of partial rows (yet).
             ('partial_without_id', ids == UNKNOWN_ID),
             ('variance_not_positive', ~(variance > 0.0) | ~np.isfinite(variance)),
-        ])
+        ] + partial_problems({}, kind, y, variance, RANGE))
     if not valid.any():
         return no_constraints(), reasons
     variance = variance[valid]
@@ -296,7 +297,9 @@ def constraint_row_problems(
         Rejected rows per reason (each counted once, under its first problem):
         ``constraint_nonfinite``, ``invalid_id``, ``invalid_kind``,
         ``range_not_positive``, ``variance_not_positive``, ``variance_dep_negative``,
-        ``sensor_covariance_not_psd``.
+        ``sensor_covariance_not_psd``, then the ``limits.partial_problems``
+        (``range_out_of_range``, ``bearing_out_of_range``, ``variance_out_of_range``,
+        ``pose_out_of_range``).
 
     """
     ids = np.asarray(columns['id'])
@@ -314,6 +317,7 @@ def constraint_row_problems(
         if count and finite.any():
             psd[finite] = np.linalg.eigvalsh(P_s[finite])[:, 0] >= -1e-9 * scale[finite]
         value = np.asarray(columns['value'], dtype=np.float64)
+        plausible = partial_problems(columns, kind, value, columns['variance'], RANGE)
         return first_problems(count, [
             ('constraint_nonfinite', ~finite),
             ('invalid_id', (ids < 0) | (ids >= UNKNOWN_ID)),
@@ -322,7 +326,7 @@ def constraint_row_problems(
             ('variance_not_positive', ~(np.asarray(columns['variance']) > 0.0)),
             ('variance_dep_negative', ~(np.asarray(columns['variance_dep']) >= 0.0)),
             ('sensor_covariance_not_psd', ~psd),
-        ])
+        ] + plausible)
 
 
 def sensor_covariance(columns: Dict[str, NDArray[Any]]) -> NDArray[np.float64]:
