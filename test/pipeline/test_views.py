@@ -438,7 +438,7 @@ def test_waiting_views_survive_a_restart(tmp_path):
 @pytest.mark.parametrize('field, value', [
     ('kind', 3), ('variance', -1.0), ('value', 'x'), ('stamp_ns', 1.5), ('id', 2 ** 70),
     ('source', 4), ('sensor_cov_xx', -1.0)])
-def test_a_bad_waiting_view_moves_the_map_file_aside(tmp_path, field, value):
+def test_a_bad_waiting_view_is_quarantined_and_the_map_kept(tmp_path, field, value):
     path = str(tmp_path / 'map.json')
     f = fuser(map_file=path)
     f.add_landmarks(LANDMARKS[0], S, np.array([1]), np.array([[1.0, 2.0]]),
@@ -453,9 +453,10 @@ def test_a_bad_waiting_view_moves_the_map_file_aside(tmp_path, field, value):
         json.dump(document, stream)
     again = fuser(map_file=path, min_observations=1)
     again.load()
-    assert len(again.map) == 0 and not again.views.waiting
-    assert again.counters['map_file_rejected'] == 1
-    assert len(list(tmp_path.glob('map.json.bad-*'))) == 1
+    assert len(again.map) == len(document['landmarks']) and not again.views.waiting
+    assert again.counters['map_records_rejected'] == 1
+    assert again.counters['map_file_rejected'] == 0
+    assert len(list(tmp_path.glob('map.json.quarantine-*'))) == 1
 
 
 @pytest.mark.parametrize('ratio, expected', [(0.5, 0.5), (2.0, 2.0), (0.0, None)])
