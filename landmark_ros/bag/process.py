@@ -41,7 +41,6 @@ from landmark_ros.ros.conversions import stamp_ns
 from landmark_ros.ros.markers import landmark_markers
 from landmark_ros.ros.schemas import landmark_message, OBSERVATION_FIELDS, read_landmarks
 from nav_msgs.msg import Odometry
-from rosbags.rosbag2 import ReaderError
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header
 from visualization_msgs.msg import MarkerArray
@@ -80,6 +79,11 @@ class Result:
     """``id -> (x, y)`` of the last ``/ground_truth_landmarks`` message, or None."""
     messages_in: int = 0
     counts: Dict[str, int] = field(default_factory=dict)
+    messages_expected: int = 0
+    """Messages of the input topics the bag's metadata lists."""
+    damage: Dict[str, int] = field(default_factory=dict)
+    """Skipped records, chunks and messages by reason; ``messages_missing`` is the
+    shortfall of messages read against ``messages_expected``. Empty: the bag was whole."""
     """Messages written per output topic."""
     bag_duration_s: float = 0.0
     wall_s: float = 0.0
@@ -325,20 +329,50 @@ class BagPipeline:
         self._statuses = []
 
 
-def _messages(reader, connections, path):
-    """Yield the reader's messages; a read error becomes a one-line BagError."""
-    iterator = iter(reader.messages(connections=connections))
-    count = 0
+class _Damage:
+    """What a damaged bag cost: skipped records and chunks by reason."""
+
+    def __init__(self):
+        self.counts = {}
+
+    def add(self, reason, count=1):
+        self.counts[reason] = self.counts.get(reason, 0) + count
+
+
+def _read_reason(error):
+    """Return the named reason of an exception raised while reading bag records."""
+    name = type(error).__name__
+    if 'zstd' in name.lower() or 'zstd' in str(error).lower() or 'lz4' in str(error).lower():
+        return 'chunk_undecompressable'
+    if 'corrupt' in name.lower() or 'database' in str(error).lower():
+        return 'storage_corrupt'
+    return 'record_unreadable'
+
+
+def _messages(reader, connections, damage, resumes=64):
+    """
+    Yield the reader's messages; skip past unreadable records where the reader can.
+
+    A read error is counted in ``damage`` by reason (``_read_reason``); reading then
+    resumes after the last message read (bag time + 1 ns). Reading stops when a resume
+    gives nothing new or after ``resumes`` of them; the caller compares what was read
+    with the bag's metadata.
+    """
+    start = None
     while True:
+        iterator = iter(reader.messages(connections=connections, start=start))
+        progressed = False
         try:
-            item = next(iterator)
-        except StopIteration:
+            for item in iterator:
+                progressed = True
+                start = item[1] + 1
+                yield item
             return
-        except (ReaderError, OSError, ValueError, KeyError, IndexError, EOFError) as error:
-            raise BagError(f'{path}: cannot read the bag after {count} messages '
-                           f'({one_line(error)}): truncated or corrupt?') from error
-        count += 1
-        yield item
+        except Exception as error:  # noqa: B902 - storage back ends raise many kinds
+            damage.add(_read_reason(error))
+            resumes -= 1
+            if not progressed or resumes <= 0:
+                return
 
 
 def _ns(seconds):
@@ -368,12 +402,17 @@ def process_bag(input_path, output_path, document=None, robots=None, progress=No
     Returns
     -------
     Result
+        With ``damage``: a bag damaged past its opening (a corrupt record, chunk or
+        message) is processed as far as it can be read, the rest counted by reason
+        (``storage_corrupt``, ``chunk_undecompressable``, ``record_unreadable``,
+        ``unknown_connection``, ``message_undecodable``, ``messages_missing``: the
+        shortfall against the bag's metadata). The output holds what was read.
 
     Raises
     ------
     BagError
-        If the bag cannot be read (missing, truncated, not a bag), lacks a topic the
-        robots need, holds one of another message type, or has no robot at all; no
+        If the bag cannot be opened (missing, cut before its index, not a bag), lacks
+        a topic the robots need, holds one of another message type, or has no robot at all; no
         output is left behind.
     ValueError
         If a parameter value is invalid.
@@ -398,15 +437,24 @@ def process_bag(input_path, output_path, document=None, robots=None, progress=No
             total = sum(c.msgcount for c in connections)
             done = 0
             first = last = None
-            for connection, time_ns, raw in _messages(reader, connections, input_path):
+            damage = _Damage()
+            for connection, time_ns, raw in _messages(reader, connections, damage):
+                done += 1
+                message_class, handle = inputs.get(connection.topic, (None, None))
+                if handle is None:
+                    damage.add('unknown_connection')
+                    continue
+                try:
+                    message = read_message(raw, message_class, connection.topic)
+                except BagError:
+                    damage.add('message_undecodable')
+                    continue
                 if first is None:
                     first = time_ns
                     pipeline.start(time_ns)
                 last = time_ns
                 pipeline.advance(time_ns)
-                message_class, handle = inputs[connection.topic]
-                handle(read_message(raw, message_class, connection.topic), time_ns)
-                done += 1
+                handle(message, time_ns)
                 if progress is not None and not done % 256:
                     progress(done, total)
             if first is not None:
@@ -415,7 +463,9 @@ def process_bag(input_path, output_path, document=None, robots=None, progress=No
                 progress(done, total)
     finally:
         reader.close()
+    if done < total:
+        damage.add('messages_missing', total - done)
     duration = 0.0 if first is None else (last - first) * 1e-9
     return Result(names, pipeline.fuser, pipeline.observers, pipeline.truth, done,
-                  dict(out.counts), duration, time.monotonic() - started,
-                  time.process_time() - cpu_started)
+                  dict(out.counts), total, dict(damage.counts), duration,
+                  time.monotonic() - started, time.process_time() - cpu_started)

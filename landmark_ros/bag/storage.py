@@ -105,7 +105,7 @@ def open_bag(path):
     try:
         reader = Reader(path)
         reader.open()
-    except (ReaderError, OSError, ValueError, KeyError, TypeError) as error:
+    except Exception as error:  # noqa: B902 - storage back ends (apsw, zstd) raise many kinds
         raise BagError(f'{path}: not a readable rosbag2 ({one_line(error)})') from error
     return reader
 

@@ -1,0 +1,135 @@
+"""
+Damaged bags through ``landmark_bag``: the readable part processed, the rest counted.
+
+A good bag is written with ``rosbags`` (MCAP through ``BagOutput``, and sqlite3), then
+damaged: one message record's channel id changed, the file cut short, bytes
+overwritten anywhere (a hypothesis fuzz). The property: ``process_bag`` returns (with
+``damage`` counting what was skipped, by reason) or raises ``BagError``; the CLI exits
+0, 2 or 3 without a traceback.
+"""
+
+import os
+from pathlib import Path
+import shutil
+import struct
+
+from geometry_msgs.msg import PoseWithCovarianceStamped
+from hypothesis import given, HealthCheck, settings, strategies as st
+from landmark_ros.bag import cli as bag_cli
+from landmark_ros.bag.process import process_bag
+from landmark_ros.bag.storage import BagError, BagOutput, open_bag, typestore
+from landmark_ros.ros.schemas import make_header, observation_message, pose_message
+import numpy as np
+import pytest
+from rclpy.serialization import serialize_message
+from rosbags.rosbag2 import StoragePlugin, Writer
+from sensor_msgs.msg import PointCloud2
+
+COUNT = 60
+"""Poses and observation messages each: 120 messages."""
+EXAMPLES = max(10, int(os.environ.get('LANDMARK_FUZZ_EXAMPLES', '150')) // 50)
+
+
+def messages():
+    """Yield ``(topic, time_ns, message)`` of one robot seeing two landmarks."""
+    for k in range(COUNT):
+        t = 1.0 + 0.1 * k
+        yield '/robot1/pose', int(t * 1e9), pose_message(t, [0.1 * k, 0.0, 0.0],
+                                                         np.eye(3) * 1e-3)
+        yield '/robot1/observations', int(t * 1e9) + 1000, observation_message(
+            make_header(t, ''), [1, 2], np.array([[4.0, 0.3], [5.0, -0.4]]))
+
+
+def write_mcap(path):
+    with BagOutput(path) as out:
+        out.add_topic('/robot1/pose', PoseWithCovarianceStamped)
+        out.add_topic('/robot1/observations', PointCloud2)
+        for topic, time_ns, msg in messages():
+            out.write(topic, time_ns, msg)
+    return next(Path(path).glob('*.mcap'))
+
+
+def write_sqlite(path):
+    writer = Writer(path, version=9, storage_plugin=StoragePlugin.SQLITE3)
+    writer.open()
+    classes = {'/robot1/pose': 'geometry_msgs/msg/PoseWithCovarianceStamped',
+               '/robot1/observations': 'sensor_msgs/msg/PointCloud2'}
+    connections = {topic: writer.add_connection(topic, name, typestore=typestore())
+                   for topic, name in classes.items()}
+    for topic, time_ns, msg in messages():
+        writer.write(connections[topic], time_ns, serialize_message(msg))
+    writer.close()
+    return next(Path(path).glob('*.db3'))
+
+
+@pytest.fixture(scope='module')
+def good_bags(tmp_path_factory):
+    base = tmp_path_factory.mktemp('bags')
+    return {'mcap': write_mcap(base / 'mcap'), 'sqlite3': write_sqlite(base / 'sqlite3')}
+
+
+def run(bag_file, out, capsys):
+    code = bag_cli.main([str(bag_file), '-o', str(out), '--no-progress'])
+    captured = capsys.readouterr()
+    assert 'Traceback' not in captured.err
+    return code, captured
+
+
+def test_a_whole_bag_exits_0_with_no_damage(good_bags, tmp_path, capsys):
+    code, captured = run(good_bags['mcap'], tmp_path / 'out', capsys)
+    assert code == 0 and 'damaged' not in captured.out
+
+
+def test_an_unknown_channel_id_is_a_reported_shortfall(good_bags, tmp_path):
+    bag = tmp_path / 'bag.mcap'
+    data = bytearray(good_bags['mcap'].read_bytes())
+    raw = serialize_message(pose_message(1.0 + 0.1 * 30, [3.0, 0.0, 0.0], np.eye(3) * 1e-3))
+    at = bytes(data).find(raw)
+    assert at > 0
+    # A message record: opcode, length, channel id (uint16), sequence, two times, data.
+    struct.pack_into('<H', data, at - 4 - 22, 0xFFFF)
+    bag.write_bytes(bytes(data))
+    result = process_bag(bag, tmp_path / 'out')
+    assert result.messages_expected == 2 * COUNT
+    assert result.messages_in < 2 * COUNT and sum(result.damage.values()) > 0
+    assert result.damage.get('messages_missing') == 2 * COUNT - result.messages_in
+    code = bag_cli.main([str(bag), '-o', str(tmp_path / 'out2'), '--no-progress',
+                         '--json', str(tmp_path / 'r.json')])
+    assert code == bag_cli.EXIT_DAMAGED
+
+
+@pytest.mark.parametrize('kind', ['mcap', 'sqlite3'])
+def test_a_bag_cut_short_is_processed_or_refused_in_one_line(good_bags, tmp_path, capsys, kind):
+    source = good_bags[kind]
+    bag = tmp_path / source.name
+    data = source.read_bytes()
+    bag.write_bytes(data[:int(len(data) * 0.6)])
+    code, captured = run(bag, tmp_path / 'out', capsys)
+    assert code in (2, bag_cli.EXIT_DAMAGED)
+    if code == 2:
+        assert captured.err.count('\n') == 1 and not (tmp_path / 'out').exists()
+    else:
+        assert 'input damaged' in captured.out
+
+
+@settings(max_examples=EXAMPLES, deadline=None, derandomize=os.environ.get(
+    'LANDMARK_FUZZ_RANDOM', '') != '1', database=None, suppress_health_check=list(HealthCheck))
+@given(kind=st.sampled_from(['mcap', 'sqlite3']), where=st.floats(0.0, 1.0),
+       junk=st.binary(min_size=1, max_size=16))
+def test_damaged_bytes_anywhere_give_damage_counts_or_a_bag_error(
+        good_bags, tmp_path_factory, kind, where, junk):
+    source = good_bags[kind]
+    directory = tmp_path_factory.mktemp('fuzz')
+    bag = directory / source.name
+    data = bytearray(source.read_bytes())
+    at = min(int(where * len(data)), len(data) - len(junk))
+    data[at:at + len(junk)] = junk
+    bag.write_bytes(bytes(data))
+    try:
+        result = process_bag(bag, directory / 'out')
+    except BagError:
+        assert not (directory / 'out').exists()
+    else:
+        missing = result.messages_expected - result.messages_in
+        assert missing <= 0 or result.damage.get('messages_missing') == missing
+    shutil.rmtree(directory, ignore_errors=True)
