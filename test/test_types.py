@@ -44,6 +44,7 @@ REQUIRED = [
     'landmark_ros.pipeline.config',
     'landmark_ros.pipeline.counters',
     'landmark_ros.pipeline.fuser',
+    'landmark_ros.pipeline.limits',
     'landmark_ros.pipeline.map_file',
     'landmark_ros.pipeline.observer',
     'landmark_ros.pipeline.pose_buffer',

@@ -28,7 +28,7 @@ from typing import Callable, Dict, List, Optional
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from landmark_ros.bag.params import load_config
-from landmark_ros.bag.storage import BagError, BagOutput, msgtype, one_line, open_bag
+from landmark_ros.bag.storage import BagError, BagOutput, msgtype, open_bag
 from landmark_ros.bag.storage import read_message
 from landmark_ros.pipeline.config import FuserConfig, ObserverConfig
 from landmark_ros.pipeline.fuser import Fuser

@@ -689,11 +689,10 @@ class Fuser:
         except OSError as error:
             written = f'(not written: {error})'
         self.counters.add('map_records_rejected', len(rejected))
-        first = rejected[0]
+        section, index, reason = (rejected[0][key] for key in ('section', 'index', 'reason'))
         self.logger.error(
-            f"map file {path}: {len(rejected)} record(s) rejected, the rest loaded; first: "
-            f"{first['section']} record {first['index']} {first['reason']}; rejected records "
-            f'in {written}')
+            f'map file {path}: {len(rejected)} record(s) rejected, the rest loaded; first: '
+            f'{section} record {index} {reason}; rejected records in {written}')
 
 
 def _combine(results: Sequence[UpdateResult]) -> UpdateResult:

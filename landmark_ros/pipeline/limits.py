@@ -97,7 +97,7 @@ def outside(values: NDArray[Any], low: float, high: float) -> NDArray[np.bool_]:
     """
     values = np.asarray(values, dtype=np.float64)
     with np.errstate(invalid='ignore'):
-        return np.isfinite(values) & ((values < low) | (values > high))
+        return np.asarray(np.isfinite(values) & ((values < low) | (values > high)))
 
 
 def observation_problems(columns: Mapping[str, NDArray[Any]],
@@ -206,8 +206,8 @@ def partial_problems(columns: Mapping[str, NDArray[Any]], kind: NDArray[Any],
 
 def landmark_problems(m: NDArray[np.float64]) -> List[Tuple[str, NDArray[np.bool_]]]:
     """Return the plausibility check of landmark positions ``m``, shape (N, 2) [m]."""
-    return [('landmark_out_of_range',
-             outside(m, -MAX_COORDINATE, MAX_COORDINATE).reshape(len(m), 2).any(axis=1))]
+    far = outside(m, -MAX_COORDINATE, MAX_COORDINATE).reshape(len(m), 2)
+    return [('landmark_out_of_range', np.asarray(far.any(axis=1)))]
 
 
 def table() -> List[Dict[str, str]]:
@@ -215,4 +215,3 @@ def table() -> List[Dict[str, str]]:
     return [{'quantity': limit.quantity, 'unit': limit.unit, 'low': f'{limit.low:.6g}',
              'high': f'{limit.high:.6g}', 'reason': limit.reason, 'where': limit.where}
             for limit in LIMITS]
-

@@ -65,7 +65,7 @@ class ObservationMessage:
 
     @property
     def rows(self) -> int:
-        """Return the number of rows (0 for a message without columns)."""
+        """Return how many rows the message has (0 without columns)."""
         return max((len(values) for values in self.columns.values()), default=0)
 
 

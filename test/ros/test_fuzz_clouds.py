@@ -14,17 +14,15 @@ count as ``internal_error``) ever comes out.
 
 import os
 
-from hypothesis import HealthCheck, settings
-from hypothesis import given, strategies as st
+from hypothesis import given, HealthCheck, settings, strategies as st
 from landmark_ros.pipeline.config import FuserConfig, ObserverConfig
 from landmark_ros.pipeline.fuser import Fuser
 from landmark_ros.pipeline.observer import ObservationMessage, Observer
 from landmark_ros.ros.cloud import CloudError, read_columns
 from landmark_ros.ros.cloud_bytes import read_cloud_bytes
-from landmark_ros.ros.schemas import (LANDMARK_SCHEMA, OBSERVATION_FIELDS, read_constraints,
-                                      read_landmark_cloud, read_landmark_clouds, read_removed,
-                                      SCAN_FIELDS)
-from landmark_ros.ros.schemas import CONSTRAINT_SCHEMA
+from landmark_ros.ros.schemas import (CONSTRAINT_SCHEMA, LANDMARK_SCHEMA, OBSERVATION_FIELDS,
+                                      read_constraints, read_landmark_cloud,
+                                      read_landmark_clouds, read_removed, SCAN_FIELDS)
 import numpy as np
 import pytest
 from rclpy.serialization import serialize_message

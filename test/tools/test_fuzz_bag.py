@@ -17,7 +17,7 @@ from geometry_msgs.msg import PoseWithCovarianceStamped
 from hypothesis import given, HealthCheck, settings, strategies as st
 from landmark_ros.bag import cli as bag_cli
 from landmark_ros.bag.process import process_bag
-from landmark_ros.bag.storage import BagError, BagOutput, open_bag, typestore
+from landmark_ros.bag.storage import BagError, BagOutput, typestore
 from landmark_ros.ros.schemas import make_header, observation_message, pose_message
 import numpy as np
 import pytest
