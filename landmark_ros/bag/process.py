@@ -28,6 +28,7 @@ from typing import Callable, Dict, List, Optional
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from landmark_ros.bag.params import load_config
+from landmark_ros.bag.salvage import salvage_mcap
 from landmark_ros.bag.storage import BagError, BagOutput, msgtype, open_bag
 from landmark_ros.bag.storage import read_message
 from landmark_ros.pipeline.config import FuserConfig, ObserverConfig
@@ -334,6 +335,8 @@ class _Damage:
 
     def __init__(self):
         self.counts = {}
+        self.salvaged = False
+        """Whether ``salvage`` read (part of) the bag: its reasons are counted."""
 
     def add(self, reason, count=1):
         self.counts[reason] = self.counts.get(reason, 0) + count
@@ -351,28 +354,53 @@ def _read_reason(error):
 
 def _messages(reader, connections, damage, resumes=64):
     """
-    Yield the reader's messages; skip past unreadable records where the reader can.
+    Yield the reader's messages; past an unreadable record, what can still be read.
 
-    A read error is counted in ``damage`` by reason (``_read_reason``); reading then
-    resumes after the last message read (bag time + 1 ns). Reading stops when a resume
-    gives nothing new or after ``resumes`` of them; the caller compares what was read
-    with the bag's metadata.
+    A read error is counted in ``damage`` by reason (``_read_reason``). An MCAP bag is
+    then read on by ``salvage.salvage_mcap`` (record by record, from after the last
+    message read, each skipped record or chunk counted by its own reason); another
+    storage resumes after the last message read (bag time + 1 ns), until a resume gives
+    nothing new or after ``resumes`` of them. The caller compares what was read with
+    the bag's metadata.
     """
     start = None
     while True:
-        iterator = iter(reader.messages(connections=connections, start=start))
         progressed = False
         try:
-            for item in iterator:
+            for item in reader.messages(connections=connections, start=start):
                 progressed = True
                 start = item[1] + 1
                 yield item
             return
         except Exception as error:  # noqa: B902 - storage back ends raise many kinds
+            files = _mcap_files(reader)
+            if files:
+                yield from _salvaged(files, connections, damage, start)
+                return
             damage.add(_read_reason(error))
             resumes -= 1
             if not progressed or resumes <= 0:
                 return
+
+
+def _mcap_files(reader):
+    """Return the MCAP files of an open reader ([] for another storage)."""
+    storage = getattr(reader, 'storage', reader)       # a file, or a bag directory
+    storages = getattr(storage, 'storages', None) or [storage]
+    return [part.path for part in storages
+            if type(part).__name__.lower().startswith('mcap') and hasattr(part, 'path')]
+
+
+def _salvaged(files, connections, damage, start):
+    """Yield ``(connection, time_ns, raw)`` of what ``salvage_mcap`` reads of ``files``."""
+    damage.salvaged = True
+    by_topic = {}
+    for connection in connections:
+        by_topic.setdefault(connection.topic, connection)
+    for path in files:
+        for topic, time_ns, raw in salvage_mcap(path, damage.add, start):
+            if topic in by_topic:
+                yield by_topic[topic], time_ns, raw
 
 
 def _ns(seconds):
@@ -404,9 +432,9 @@ def process_bag(input_path, output_path, document=None, robots=None, progress=No
     Result
         With ``damage``: a bag damaged past its opening (a corrupt record, chunk or
         message) is processed as far as it can be read, the rest counted by reason
-        (``storage_corrupt``, ``chunk_undecompressable``, ``record_unreadable``,
-        ``unknown_connection``, ``message_undecodable``, ``messages_missing``: the
-        shortfall against the bag's metadata). The output holds what was read.
+        (those of ``salvage`` for MCAP, ``storage_corrupt`` or ``record_unreadable``
+        for sqlite3, ``message_undecodable``, ``messages_missing``: the shortfall
+        against the bag's metadata). The output holds what was read.
 
     Raises
     ------
@@ -440,10 +468,7 @@ def process_bag(input_path, output_path, document=None, robots=None, progress=No
             damage = _Damage()
             for connection, time_ns, raw in _messages(reader, connections, damage):
                 done += 1
-                message_class, handle = inputs.get(connection.topic, (None, None))
-                if handle is None:
-                    damage.add('unknown_connection')
-                    continue
+                message_class, handle = inputs[connection.topic]
                 try:
                     message = read_message(raw, message_class, connection.topic)
                 except BagError:
@@ -457,14 +482,17 @@ def process_bag(input_path, output_path, document=None, robots=None, progress=No
                 handle(message, time_ns)
                 if progress is not None and not done % 256:
                     progress(done, total)
+            if done < total:
+                damage.add('messages_missing', total - done)
+                if not damage.salvaged:     # read quietly short: find out why
+                    for _ in _salvaged(_mcap_files(reader), connections, damage, None):
+                        pass
             if first is not None:
                 pipeline.advance(last + _ns(pipeline.settle_s()))
             if progress is not None:
                 progress(done, total)
     finally:
         reader.close()
-    if done < total:
-        damage.add('messages_missing', total - done)
     duration = 0.0 if first is None else (last - first) * 1e-9
     return Result(names, pipeline.fuser, pipeline.observers, pipeline.truth, done,
                   dict(out.counts), total, dict(damage.counts), duration,

@@ -17,12 +17,13 @@ from geometry_msgs.msg import PoseWithCovarianceStamped
 from hypothesis import given, HealthCheck, settings, strategies as st
 from landmark_ros.bag import cli as bag_cli
 from landmark_ros.bag.process import process_bag
-from landmark_ros.bag.storage import BagError, BagOutput, typestore
+from landmark_ros.bag.storage import BagError, BagOutput, open_bag, typestore
 from landmark_ros.ros.schemas import make_header, observation_message, pose_message
 import numpy as np
 import pytest
 from rclpy.serialization import serialize_message
 from rosbags.rosbag2 import StoragePlugin, Writer
+from rosbags.rosbag2.enums import CompressionFormat, CompressionMode
 from sensor_msgs.msg import PointCloud2
 
 COUNT = 60
@@ -87,15 +88,91 @@ def test_an_unknown_channel_id_is_a_reported_shortfall(good_bags, tmp_path):
     at = bytes(data).find(raw)
     assert at > 0
     # A message record: opcode, length, channel id (uint16), sequence, two times, data.
-    struct.pack_into('<H', data, at - 4 - 22, 0xFFFF)
+    struct.pack_into('<H', data, at - 22, 0xFFFF)
     bag.write_bytes(bytes(data))
     result = process_bag(bag, tmp_path / 'out')
-    assert result.messages_expected == 2 * COUNT
-    assert result.messages_in < 2 * COUNT and sum(result.damage.values()) > 0
-    assert result.damage.get('messages_missing') == 2 * COUNT - result.messages_in
+    assert result.messages_expected == 2 * COUNT and result.messages_in == 2 * COUNT - 1
+    assert result.damage == {'unknown_channel': 1, 'messages_missing': 1}
+    assert result.counts['/robot1/landmarks'] == COUNT
     code = bag_cli.main([str(bag), '-o', str(tmp_path / 'out2'), '--no-progress',
                          '--json', str(tmp_path / 'r.json')])
     assert code == bag_cli.EXIT_DAMAGED
+
+
+def write_zstd_chunks(path):
+    """Write a zstd-compressed MCAP bag of about three chunks; return its file."""
+    writer = Writer(path, version=9, storage_plugin=StoragePlugin.MCAP)
+    writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
+    writer.open()
+    classes = {'/robot1/pose': 'geometry_msgs/msg/PoseWithCovarianceStamped',
+               '/robot1/observations': 'sensor_msgs/msg/PointCloud2'}
+    connections = {topic: writer.add_connection(topic, name, typestore=typestore())
+                   for topic, name in classes.items()}
+    for topic, time_ns, msg in messages():
+        if topic.endswith('observations'):      # padded rows: 40 kB a message
+            msg.point_step, msg.row_step = 20000, 40000
+            rows = np.frombuffer(bytes(msg.data), np.uint8).reshape(2, -1)
+            padded = np.zeros((2, 20000), np.uint8)
+            padded[:, :rows.shape[1]] = rows
+            msg.data = padded.tobytes()
+        writer.write(connections[topic], time_ns, serialize_message(msg))
+    writer.close()
+    return next(Path(path).glob('*.mcap'))
+
+
+def test_a_corrupt_zstd_chunk_costs_only_its_messages(tmp_path, capsys):
+    source = write_zstd_chunks(tmp_path / 'zstd')
+    reader = open_bag(source)
+    chunks = sorted(reader.storage.chunks, key=lambda c: c.chunk_start_offset)
+    reader.close()
+    assert len(chunks) >= 3
+    middle = chunks[1]
+    data = bytearray(source.read_bytes())
+    # The zstd frame's magic number: opcode, length, three times and the CRC, 'zstd'.
+    at = middle.chunk_start_offset + 9 + 28 + 4 + len('zstd') + 8
+    assert bytes(data[at:at + 4]) == b'\x28\xb5\x2f\xfd'
+    data[at:at + 4] = b'\xff' * 4
+    bag = tmp_path / 'bad.mcap'
+    bag.write_bytes(bytes(data))
+    result = process_bag(bag, tmp_path / 'out')
+    lost = 2 * COUNT - result.messages_in
+    assert result.damage == {'chunk_undecompressable': 1, 'messages_missing': lost}
+    # The first and the last chunk read: only the middle one's messages are lost.
+    assert 0 < lost < 2 * COUNT // 2
+    assert result.counts['/robot1/landmarks'] > 0
+    code, captured = run(bag, tmp_path / 'out2', capsys)
+    assert code == bag_cli.EXIT_DAMAGED and 'chunk_undecompressable' in captured.out
+    written = open_bag(tmp_path / 'out2')
+    assert written.message_count == sum(result.counts.values())
+    written.close()
+
+
+def message_record(data, k):
+    """Return the offset of the message record of pose ``k`` in an uncompressed MCAP."""
+    raw = serialize_message(pose_message(1.0 + 0.1 * k, [0.1 * k, 0.0, 0.0], np.eye(3) * 1e-3))
+    at = bytes(data).find(raw)
+    assert at > 0
+    return at - 22 - 9          # opcode, length, then channel id, sequence, two times
+
+
+@pytest.mark.parametrize('damage, reason', [('length', 'record_length_invalid'),
+                                            ('opcode', 'opcode_invalid')])
+def test_one_bad_record_is_counted_and_what_can_be_read_is(good_bags, tmp_path, damage,
+                                                           reason):
+    data = bytearray(good_bags['mcap'].read_bytes())
+    at = message_record(data, 30)
+    if damage == 'length':
+        struct.pack_into('<Q', data, at + 1, 2 ** 40)
+    else:
+        data[at] = 0x42
+    bag = tmp_path / 'bad.mcap'
+    bag.write_bytes(bytes(data))
+    result = process_bag(bag, tmp_path / 'out')
+    assert result.damage[reason] == 1
+    assert result.damage['messages_missing'] == 2 * COUNT - result.messages_in
+    # A bad opcode costs one message; a bad length the rest of its chunk (nothing says
+    # where the next record starts), never what came before.
+    assert result.messages_in == (2 * COUNT - 1 if damage == 'opcode' else 60)
 
 
 @pytest.mark.parametrize('kind', ['mcap', 'sqlite3'])
