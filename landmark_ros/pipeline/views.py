@@ -27,7 +27,8 @@ from landmark_ros.core.partial import (BEARING, GATED, Initialisation, initialis
                                        Views, views_from_robot)
 from landmark_ros.core.sensors import MIN_RANGE
 from landmark_ros.pipeline.limits import partial_problems
-from landmark_ros.pipeline.rows import first_problems, MAX_ID, UNKNOWN_ID
+from landmark_ros.pipeline.rows import (first_problems, landmark_row_problems, MAX_ID,
+                                        UNKNOWN_ID)
 import numpy as np
 from numpy.typing import NDArray
 
@@ -533,6 +534,26 @@ class PartialViews:
         return initialise(Views.concatenate(b.views for b in buffer), self.params,
                           bias_group, pose_group)
 
+    def _set(self, count: Counter[str], landmark_id: int,
+             estimate: Tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]],
+             stamp_ns: int, views: int) -> bool:
+        """
+        Set a landmark's estimate if it passes the live landmark row checks.
+
+        The checks the map-file loader applies (``rows.landmark_row_problems``): an
+        estimate that would not load back is not stored, and is counted as
+        ``partial_result_<reason>`` against the view's source.
+        """
+        m, P, P_dep = estimate
+        _, reasons = landmark_row_problems(np.array([landmark_id], np.int64), m[None],
+                                           P[None], P_dep[None])
+        if reasons:
+            for reason in reasons:
+                count[f'partial_result_{reason}'] += 1
+            return False
+        self.map.set_estimate(landmark_id, m, P, P_dep, VIEW_SOURCE, stamp_ns, views)
+        return True
+
     def fuse(self) -> ViewResult:
         """
         Take every queued view in arrival order: buffer, initialise or update.
@@ -568,14 +589,12 @@ class PartialViews:
                     if self.streak[landmark_id] >= self.max_consecutive_rejections:
                         self.streak[landmark_id] = 0
                         placed = self._initialise(recent)
-                        if placed.ok:
-                            self.map.set_estimate(landmark_id, placed.m, placed.P_m,
-                                                  placed.P_m_dep, VIEW_SOURCE, stamp_ns, 0)
+                        if placed.ok and self._set(count, landmark_id, (
+                                placed.m, placed.P_m, placed.P_m_dep), stamp_ns, 0):
                             count['landmarks_reinitialised'] += 1
                             changed.append(landmark_id)
-                    if status == UPDATED:
-                        self.map.set_estimate(landmark_id, result.m[0], result.P_m[0],
-                                              result.P_m_dep[0], VIEW_SOURCE, stamp_ns, 1)
+                    if status == UPDATED and self._set(count, landmark_id, (
+                            result.m[0], result.P_m[0], result.P_m_dep[0]), stamp_ns, 1):
                         count['views_fused'] += 1
                         changed.append(landmark_id)
                     elif status == GATED:
@@ -593,8 +612,9 @@ class PartialViews:
                 if not placed.ok:
                     self.wait_reasons[placed.reason] += 1
                     continue
-                self.map.set_estimate(landmark_id, placed.m, placed.P_m, placed.P_m_dep,
-                                      VIEW_SOURCE, stamp_ns, len(buffer))
+                if not self._set(count, landmark_id, (placed.m, placed.P_m, placed.P_m_dep),
+                                 stamp_ns, len(buffer)):
+                    continue
                 for b in buffer:
                     counts.setdefault(b.source, Counter())['views_fused'] += 1
                 count['landmarks_initialised'] += 1
