@@ -9,7 +9,9 @@ named reason a value outside it is counted under); the checks below are the only
 implementation, used by the observer (range-bearing, range-only and bearing-only
 rows, poses), the fuser (landmark and partial observation rows) and the map-file
 loader, so the live path and the loader accept the same values. ``LIMITS`` is the
-source of the bad-input table in the docs.
+source of the bad-input table in the docs (``markdown()``). Configured noise
+(``ObserverConfig``: ``range_stddev`` <= 1000 m, ``bearing_stddev`` <= pi rad) stays
+within ``MAX_VARIANCE`` by its parameter ranges; ``sensor_pose`` is checked here.
 
 NaN and infinity are not judged here: each path rejects them first under its own
 ``*_nonfinite`` reason. Variances are checked against the covariance checks' own
@@ -72,6 +74,10 @@ LIMITS: Tuple[Limit, ...] = (
           'pose_variance_out_of_range', 'poses, odometry'),
     Limit('landmark x, y', 'm', -MAX_COORDINATE, MAX_COORDINATE, 'landmark_out_of_range',
           'landmark rows, fused landmarks, map-file landmarks and tracks'),
+    Limit('sensor_pose x, y (configured)', 'm', -MAX_RANGE, MAX_RANGE, 'ValueError at start',
+          'observer parameters'),
+    Limit('sensor_pose yaw (configured)', 'rad', -MAX_ANGLE, MAX_ANGLE, 'ValueError at start',
+          'observer parameters'),
     Limit('landmark covariance diagonal', 'm^2', MIN_VARIANCE, MAX_VARIANCE,
           'covariance_too_small / covariance_too_large',
           'observer results, landmark rows, fused landmarks, map file'),
@@ -208,6 +214,14 @@ def landmark_problems(m: NDArray[np.float64]) -> List[Tuple[str, NDArray[np.bool
     """Return the plausibility check of landmark positions ``m``, shape (N, 2) [m]."""
     far = outside(m, -MAX_COORDINATE, MAX_COORDINATE).reshape(len(m), 2)
     return [('landmark_out_of_range', np.asarray(far.any(axis=1)))]
+
+
+def markdown() -> str:
+    """Return ``LIMITS`` as a Markdown table (the source of the docs' bad-input table)."""
+    head = ['quantity', 'unit', 'low', 'high', 'reason', 'where']
+    lines = ['| ' + ' | '.join(head) + ' |', '|' + ' --- |' * len(head)]
+    lines += ['| ' + ' | '.join(row[key] for key in head) + ' |' for row in table()]
+    return '\n'.join(lines) + '\n'
 
 
 def table() -> List[Dict[str, str]]:

@@ -1,5 +1,7 @@
 """Plausible ranges (``pipeline.limits``): the same limit and reason on every path."""
 
+from dataclasses import fields
+
 from landmark_ros.core.partial import BEARING, RANGE, Views
 from landmark_ros.pipeline import limits
 from landmark_ros.pipeline.config import ObserverConfig
@@ -94,3 +96,17 @@ def test_odometry_without_a_pose_is_recognised():
     assert limits.odometry_pose_missing(np.zeros(3), np.zeros(36))
     assert not limits.odometry_pose_missing(np.zeros(3), np.eye(6).ravel())
     assert not limits.odometry_pose_missing(np.array([1.0, 0.0, 0.0]), np.zeros(36))
+
+
+def test_configured_noise_stays_within_the_variance_limit_and_sensor_pose_is_checked():
+    specs = {spec.name: spec.metadata for spec in fields(ObserverConfig)}
+    for name in ('range_stddev', 'bearing_stddev', 'range_bias_stddev', 'bearing_bias_stddev'):
+        assert specs[name]['high'] ** 2 <= limits.MAX_VARIANCE
+    with pytest.raises(ValueError, match='sensor_pose'):
+        ObserverConfig(sensor_pose=(0.0, 0.0, 1e17))
+    ObserverConfig(sensor_pose=(0.3, -0.1, 3.0))
+
+
+def test_the_markdown_table_has_a_row_per_limit():
+    text = limits.markdown()
+    assert text.count('\n') == len(limits.LIMITS) + 2 and 'bearing_out_of_range' in text
