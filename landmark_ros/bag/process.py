@@ -433,8 +433,8 @@ def process_bag(input_path, output_path, document=None, robots=None, progress=No
         With ``damage``: a bag damaged past its opening (a corrupt record, chunk or
         message) is processed as far as it can be read, the rest counted by reason
         (those of ``salvage`` for MCAP, ``storage_corrupt`` or ``record_unreadable``
-        for sqlite3, ``message_undecodable``, ``messages_missing``: the shortfall
-        against the bag's metadata). The output holds what was read.
+        for sqlite3, ``message_undecodable``, ``ground_truth_unreadable``,
+        ``messages_missing``: the shortfall against the bag's metadata). The output holds what was read.
 
     Raises
     ------
@@ -479,7 +479,10 @@ def process_bag(input_path, output_path, document=None, robots=None, progress=No
                     pipeline.start(time_ns)
                 last = time_ns
                 pipeline.advance(time_ns)
-                handle(message, time_ns)
+                try:
+                    handle(message, time_ns)
+                except BagError:        # a ground truth cloud that cannot be read
+                    damage.add('ground_truth_unreadable')
                 if progress is not None and not done % 256:
                     progress(done, total)
             if done < total:

@@ -19,13 +19,11 @@ from landmark_ros.core.landmark_map import LandmarkMap, MapSnapshot, UpdateResul
 from landmark_ros.pipeline import map_file
 from landmark_ros.pipeline.config import FuserConfig
 from landmark_ros.pipeline.counters import Counters, Logger, Status
-from landmark_ros.pipeline.rows import (landmark_row_problems, load_row_kernel, MAX_LABEL_ID,
-                                        UNKNOWN_ID)
+from landmark_ros.pipeline.rows import landmark_row_problems, load_row_kernel, UNKNOWN_ID
 from landmark_ros.pipeline.sources import LandmarkMessage, Queued, Source
 from landmark_ros.pipeline.tracks import Scan, shard_of_position, Tracker
 from landmark_ros.pipeline.views import (constraint_row_problems, NOT_PROBLEMS as VIEW_COUNTS,
-                                         parse_waiting_records, PartialViews,
-                                         views_from_columns)
+                                         PartialViews, views_from_columns)
 import numpy as np
 from numpy.typing import NDArray
 
@@ -639,47 +637,25 @@ class Fuser:
 
     def _restore(self, document: Dict[str, Any]) -> List[Dict[str, Any]]:
         """Restore what ``document`` holds that passes the checks; return what did not."""
-        landmarks = document['landmarks']
-        records, bad = map_file.split_records(landmarks)
-        rejected = [{'section': 'landmarks', 'index': i, 'reason': reason,
-                     'record': landmarks[i]} for i, reason in bad]
-
-        def drop(section, error):
-            rejected.append({'section': section, 'index': None, 'reason': f'{error}',
-                             'record': document.get(section)})
-
-        next_id = document.get('next_id', self.config.first_new_id)
-        if isinstance(next_id, bool) or not isinstance(next_id, int) or not (
-                0 <= next_id <= MAX_LABEL_ID + 1):
-            drop('next_id', f'next_id {next_id!r} is not an integer in [0, {MAX_LABEL_ID + 1}]')
-            next_id = self.config.first_new_id   # allocation still skips IDs the map knows
-        waiting_records = document.get('waiting_views', [])
-        if not isinstance(waiting_records, list):
-            drop('waiting_views', 'not a list')
-            waiting_records = []
-        waiting = []
-        for i, record in enumerate(waiting_records):   # each on its own
-            try:
-                waiting += parse_waiting_records([record])
-            except ValueError as error:
-                rejected.append({'section': 'waiting_views', 'index': i,
-                                 'reason': f'{error}', 'record': record})
+        loaded = map_file.parse_sections(document, self.config.first_new_id)
+        rejected = list(loaded.rejected)
         self.map.reset()
-        self.map.load_records(records)
+        self.map.load_records(loaded.records)
         self.views.reset()
-        self.views.restore(waiting)
+        self.views.restore(loaded.waiting)
         self.tracker.reset()
-        self.tracker.next_id = max(next_id, self.config.first_new_id)
-        self.reserved_from = map_file.reserved_from(document, self.config.first_new_id)
-        for record in records:
+        self.tracker.next_id = loaded.next_id
+        self.reserved_from = loaded.reserved_from
+        for record in loaded.records:
             if record.get('class', 0):
                 self.tracker.classes[record['id']] = record['class']
         try:
             self.tracker.restore(document.get('tracks'), self.map)
         except ValueError as error:
             self.tracker.reset()
-            self.tracker.next_id = max(next_id, self.config.first_new_id)
-            drop('tracks', error)
+            self.tracker.next_id = loaded.next_id
+            rejected.append({'section': 'tracks', 'index': None, 'reason': f'{error}',
+                             'record': document.get('tracks')})
         return rejected
 
     def _quarantine(self, path: str, rejected: List[Dict[str, Any]]) -> None:

@@ -13,9 +13,10 @@ import datetime
 import json
 import os
 import tempfile
-from typing import Any, Dict, List, Mapping, Optional, Sequence, Tuple
+from typing import Any, Dict, List, Mapping, NamedTuple, Optional, Sequence, Tuple
 
 from landmark_ros.pipeline.rows import landmark_row_problems, MAX_LABEL_ID
+from landmark_ros.pipeline.views import parse_waiting_records
 import numpy as np
 
 FORMAT = 'landmark_ros/map'
@@ -264,6 +265,65 @@ def check_records(records: Sequence[Dict[str, Any]]) -> None:
     if bad:
         index, reason = bad[0]
         raise ValueError(f'landmark record {index}: {reason}')
+
+
+class Sections(NamedTuple):
+    """What ``parse_sections`` keeps of a map document."""
+
+    records: List[Dict[str, Any]]
+    """The valid landmark records."""
+    next_id: int
+    """The next ID to allocate (at least ``first_new_id``)."""
+    waiting: List[Any]
+    """The valid waiting partial observations (``views.parse_waiting_records``)."""
+    reserved_from: int
+    """Start of the reserved ID range (``reserved_from``)."""
+    rejected: List[Dict[str, Any]]
+    """``{'section', 'index', 'reason', 'record'}`` per rejected record or section."""
+
+
+def parse_sections(document: Mapping[str, Any], first_new_id: int) -> Sections:
+    """
+    Check each landmark record, ``next_id`` and each waiting partial observation alone.
+
+    Parameters
+    ----------
+    document : dict
+        As ``load`` returns it.
+    first_new_id : int
+        The configured ``first_new_id``.
+
+    Returns
+    -------
+    Sections
+        The valid parts; every bad record (or a malformed ``next_id`` or waiting list)
+        in ``rejected``. The tracks are checked by ``Tracker.restore``.
+
+    """
+    landmarks = document['landmarks']
+    records, bad = split_records(landmarks)
+    rejected = [{'section': 'landmarks', 'index': i, 'reason': reason,
+                 'record': landmarks[i]} for i, reason in bad]
+    next_id = document.get('next_id', first_new_id)
+    if isinstance(next_id, bool) or not isinstance(next_id, int) or not (
+            0 <= next_id <= MAX_LABEL_ID + 1):
+        rejected.append({'section': 'next_id', 'index': None, 'record': next_id,
+                         'reason': f'not an integer in [0, {MAX_LABEL_ID + 1}]'})
+        next_id = first_new_id   # allocation still skips the IDs the map knows
+    waiting_records = document.get('waiting_views', [])
+    if not isinstance(waiting_records, list):
+        rejected.append({'section': 'waiting_views', 'index': None, 'reason': 'not a list',
+                         'record': waiting_records})
+        waiting_records = []
+    waiting: List[Any] = []
+    for i, record in enumerate(waiting_records):   # each on its own
+        try:
+            waiting += parse_waiting_records([record])
+        except ValueError as error:
+            rejected.append({'section': 'waiting_views', 'index': i, 'reason': f'{error}',
+                             'record': record})
+    return Sections(records, max(next_id, first_new_id), waiting,
+                    reserved_from(document, first_new_id), rejected)
 
 
 def split_records(records: Sequence[Any]) -> Tuple[List[Dict[str, Any]], List[Tuple[int, str]]]:
