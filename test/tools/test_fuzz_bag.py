@@ -8,6 +8,7 @@ overwritten anywhere (a hypothesis fuzz). The property: ``process_bag`` returns 
 0, 2 or 3 without a traceback.
 """
 
+import json
 import os
 from pathlib import Path
 import shutil
@@ -97,6 +98,9 @@ def test_an_unknown_channel_id_is_a_reported_shortfall(good_bags, tmp_path):
     code = bag_cli.main([str(bag), '-o', str(tmp_path / 'out2'), '--no-progress',
                          '--json', str(tmp_path / 'r.json')])
     assert code == bag_cli.EXIT_DAMAGED
+    report = json.loads((tmp_path / 'r.json').read_text())
+    assert report['input_damage'] == result.damage
+    assert (report['messages_read'], report['messages_expected']) == (119, 120)
 
 
 def write_zstd_chunks(path):
