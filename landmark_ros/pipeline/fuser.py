@@ -656,6 +656,9 @@ class Fuser:
             self.tracker.next_id = loaded.next_id
             rejected.append({'section': 'tracks', 'index': None, 'reason': f'{error}',
                              'record': document.get('tracks')})
+        rejected += [{'section': 'tracks', 'index': landmark_id, 'record': None,
+                      'reason': f"tentative track rejected as {', '.join(reasons)}"}
+                     for landmark_id, reasons in self.tracker.rejected_tracks]
         return rejected
 
     def _quarantine(self, path: str, rejected: List[Dict[str, Any]]) -> None:

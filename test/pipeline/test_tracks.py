@@ -393,6 +393,25 @@ def test_a_file_without_tracks_loads_and_a_bad_tracks_section_is_quarantined(tmp
     assert len(list(tmp_path.glob('map.json.quarantine-*'))) == 1
 
 
+def test_a_tentative_track_with_a_bad_row_is_dropped_alone(tmp_path, rng):
+    path = tmp_path / 'map.json'
+    config = FuserConfig(min_observations=4, map_file=str(path))
+    fuser = Fuser(config, SOURCES)
+    _feed_unlabelled(fuser, list(_unlabelled_messages(rng))[:13])
+    assert fuser.save()
+    document = json.loads(path.read_text())
+    tentative = document['tracks']['tentative']
+    good = dict(json.loads(json.dumps(tentative[0])), id=tentative[0]['id'] + 100)  # valid
+    tentative.append(good)
+    tentative[0]['rows'][0]['mean'] = [1e17, 0.0]
+    path.write_text(json.dumps(document))
+    again = Fuser(config, SOURCES)
+    again.load()
+    assert sorted(again.tracker.tentative) == sorted(t['id'] for t in tentative[1:])
+    assert again.tracker.rejected_tracks == [(tentative[0]['id'], ['landmark_out_of_range'])]
+    assert again.counters['map_records_rejected'] == 1
+
+
 def test_shard_of_position_numbers_the_cells():
     from landmark_ros.pipeline.tracks import shard_of_position
     m = np.array([[5.0, 5.0], [25.0, 5.0], [-5.0, 5.0], [5.0, 25.0], [np.nan, 1.0]])
