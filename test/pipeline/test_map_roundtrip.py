@@ -114,3 +114,12 @@ def test_the_issue_example_never_reaches_the_map_file(tmp_path):
     again = Fuser(FuserConfig(map_file=path), LANDMARKS, constraint_sources=VIEWS)
     again.load()
     assert again.counters['map_records_rejected'] == 0
+
+
+def test_a_partial_observation_in_the_reserved_id_range_is_refused():
+    fuser = Fuser(FuserConfig(), LANDMARKS, constraint_sources=VIEWS)
+    first = FuserConfig().first_new_id
+    sensors = np.array([[0.0, 0.0, 0.0], [6.0, 0.0, 0.0]])
+    queued = fuser.add_constraints(VIEWS[0], S, partial_columns(
+        [9, first + 1], [RANGE, RANGE], [5.0, 5.0], sensors, 0.01))
+    assert queued == 1 and fuser.counters['id_reserved'] == 1
