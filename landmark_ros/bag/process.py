@@ -434,7 +434,8 @@ def process_bag(input_path, output_path, document=None, robots=None, progress=No
         message) is processed as far as it can be read, the rest counted by reason
         (those of ``salvage`` for MCAP, ``storage_corrupt`` or ``record_unreadable``
         for sqlite3, ``message_undecodable``, ``ground_truth_unreadable``,
-        ``messages_missing``: the shortfall against the bag's metadata). The output holds what was read.
+        ``messages_missing``: the shortfall against the bag's metadata). The output
+        holds what was read.
 
     Raises
     ------

@@ -93,7 +93,7 @@ class _Walk:
         self.channels: Dict[int, str] = {}
 
     def record(self, opcode, content) -> Iterator[Salvaged]:
-        """Yield the messages of one record (a message, or the messages of a chunk)."""
+        """Yield what one record holds: a message, the messages of a chunk, or nothing."""
         try:
             if opcode == OP_CHANNEL:
                 (channel_id,) = _U16.unpack_from(content, 0)

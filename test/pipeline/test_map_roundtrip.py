@@ -85,7 +85,7 @@ def test_whatever_the_live_path_saves_loads_back(tmp_path_factory, exponent, rep
     assert again.tracker.to_dict() == fuser.tracker.to_dict()
 
 
-@pytest.mark.xfail(strict=True, reason='known gap: the map\'s own fusion of rows at the '
+@pytest.mark.xfail(strict=True, reason="known gap: the map's own fusion of rows at the "
                    'variance floor goes below it; the loader then quarantines that record')
 def test_rows_fused_below_the_variance_floor_load_back(tmp_path):
     path = str(tmp_path / 'map.json')
