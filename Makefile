@@ -16,7 +16,7 @@ PYTEST_ARGS ?=
 PYTEST := $(VPY) -m pytest -q -p no:cacheprovider -ra
 
 .DEFAULT_GOAL := help
-.PHONY: help venv test lint bench docs clean
+.PHONY: help venv test lint bench docs clean fuzz
 
 help:
 	@echo 'landmark_ros make targets:'
@@ -25,6 +25,7 @@ help:
 	@echo '  lint   run only the flake8 / pep257 linter tests'
 	@echo '  bench  run every bench/bench_*.py, then one summary (also docs/benchmarks.md)'
 	@echo '  docs   regenerate the generated parts of docs/ (parameters, cloud schemas)'
+	@echo '  fuzz   the input fuzz tests with FUZZ_EXAMPLES (5000) random examples each'
 	@echo '  demo   simulated 3-robot run: sim, observers, fuser; table + demo.png (DEMO_ARGS="...")'
 	@echo '  clean  remove .venv, build artefacts and __pycache__'
 	@echo 'ROS_AUTOMATIC_DISCOVERY_RANGE=$(ROS_AUTOMATIC_DISCOVERY_RANGE) is exported to all targets.'
@@ -60,6 +61,13 @@ test: venv ros-tools
 	$(VPY) -c 'from landmark_ros.core import _fold_kernel; _fold_kernel.load()'
 	$(VPY) -c 'from landmark_ros.pipeline import rows; rows.load_row_kernel()'
 	$(PYTEST) test $(PYTEST_ARGS)
+
+# The property-based fuzz tests of the cloud readers and the bag reader (test/*/test_fuzz_*.py),
+# each with FUZZ_EXAMPLES examples from a random seed (make test runs few, derandomized).
+FUZZ_EXAMPLES ?= 5000
+fuzz: venv
+	LANDMARK_FUZZ_EXAMPLES=$(FUZZ_EXAMPLES) LANDMARK_FUZZ_RANDOM=1 \
+		$(PYTEST) --hypothesis-show-statistics $$(ls test/*/test_fuzz_*.py) $(PYTEST_ARGS)
 
 lint: venv
 	$(PYTEST) test -m linter $(PYTEST_ARGS)

@@ -45,6 +45,7 @@ REQUIRED = [
     'landmark_ros.pipeline.config',
     'landmark_ros.pipeline.counters',
     'landmark_ros.pipeline.partial_rows',
+    'landmark_ros.pipeline.limits',
     'landmark_ros.pipeline.pose_buffer',
     'landmark_ros.pipeline.rows',
     'landmark_ros.pipeline.scan',

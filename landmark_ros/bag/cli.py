@@ -24,9 +24,14 @@ the entry as in the replay's JSON).
 (``landmark_ros.bag.export``: poses, observations, ``/ground_truth_landmarks``; the pose
 standard deviations from the ``landmark_mrclam`` section of ``--config``) and stops.
 
-A bag that cannot be used (missing, truncated, a missing topic, a topic of another
-message type), an invalid parameter or an existing output prints one line and exits
-with code 2, leaving no output behind.
+Exit codes: 0 the input bag was whole and everything was written; 3 the bag was
+damaged (an unreadable record or chunk, an undecodable message, fewer messages than
+its metadata lists): the readable part was processed, the output bag is complete for
+it, and the summary and the JSON (``input_damage``, ``messages_expected``,
+``messages_read``) count what was skipped by reason; 2 a bag that cannot be used
+(missing, cut before its index, a missing topic, a topic of another message type),
+an invalid parameter or an existing output: one line, no output left behind; 130
+interrupted.
 """
 
 import argparse
@@ -42,6 +47,8 @@ from landmark_ros.bag.storage import BagError, STORAGES
 from landmark_ros.mrclam.data import DEFAULT_POSE_STDDEV
 
 PROG = 'landmark_bag'
+EXIT_DAMAGED = 3
+"""Exit code of a damaged input bag processed as far as it could be read."""
 
 
 def parse_args(argv=None):
@@ -138,10 +145,16 @@ def main(argv=None):
           f'({", ".join(result.robots)}), {result.bag_duration_s:.1f} s of bag time in '
           f'{result.wall_s:.2f} s ({result.cpu_s:.2f} s CPU): {result.speedup:.0f} x real time')
     print(f'wrote {args.output}: {counts}')
+    if result.damage:
+        damage = ', '.join(f'{reason} {count}' for reason, count in sorted(result.damage.items()))
+        print(f'input damaged: read {result.messages_in} of {result.messages_expected} '
+              f'messages the metadata lists; skipped: {damage}')
     document = {'input': str(args.input), 'output': str(args.output), 'robots': result.robots,
                 'bag_duration_s': result.bag_duration_s, 'wall_s': result.wall_s,
                 'cpu_s': result.cpu_s, 'messages_out': result.counts,
-                'speedup': result.speedup if result.wall_s > 0.0 else None}
+                'speedup': result.speedup if result.wall_s > 0.0 else None,
+                'messages_expected': result.messages_expected,
+                'messages_read': result.messages_in, 'input_damage': result.damage}
     if result.truth is not None:
         entry, results, summary = evaluate_map(result.fuser, result.truth)
         print()
@@ -157,7 +170,7 @@ def main(argv=None):
         except (OSError, ValueError) as error:
             print(f'{PROG}: error: cannot write {args.json}: {error}', file=sys.stderr)
             return 2
-    return 0
+    return EXIT_DAMAGED if result.damage else 0
 
 
 if __name__ == '__main__':

@@ -28,6 +28,7 @@ from typing import Callable, Dict, List, Optional
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from landmark_ros.bag.params import load_config
+from landmark_ros.bag.salvage import salvage_mcap
 from landmark_ros.bag.storage import BagError, BagOutput, msgtype, one_line, open_bag
 from landmark_ros.bag.storage import read_message, storage_of
 from landmark_ros.fuser.fuser import Fuser
@@ -41,7 +42,6 @@ from landmark_ros.ros.conversions import stamp_ns
 from landmark_ros.ros.markers import landmark_markers
 from landmark_ros.ros.schemas import landmark_message, OBSERVATION_FIELDS, read_landmarks
 from nav_msgs.msg import Odometry
-from rosbags.rosbag2 import ReaderError
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header
 from visualization_msgs.msg import MarkerArray
@@ -80,6 +80,11 @@ class Result:
     """``id -> (x, y)`` of the last ``/ground_truth_landmarks`` message, or None."""
     messages_in: int = 0
     counts: Dict[str, int] = field(default_factory=dict)
+    messages_expected: int = 0
+    """Messages of the input topics the bag's metadata lists."""
+    damage: Dict[str, int] = field(default_factory=dict)
+    """Skipped records, chunks and messages by reason; ``messages_missing`` is the
+    shortfall of messages read against ``messages_expected``. Empty: the bag was whole."""
     """Messages written per output topic."""
     bag_duration_s: float = 0.0
     wall_s: float = 0.0
@@ -325,20 +330,77 @@ class BagPipeline:
         self._statuses = []
 
 
-def _messages(reader, connections, path):
-    """Yield the reader's messages; a read error becomes a one-line BagError."""
-    iterator = iter(reader.messages(connections=connections))
-    count = 0
+class _Damage:
+    """What a damaged bag cost: skipped records and chunks by reason."""
+
+    def __init__(self):
+        self.counts = {}
+        self.salvaged = False
+        """Whether ``salvage`` read (part of) the bag: its reasons are counted."""
+
+    def add(self, reason, count=1):
+        self.counts[reason] = self.counts.get(reason, 0) + count
+
+
+def _read_reason(error):
+    """Return the named reason of an exception raised while reading bag records."""
+    name = type(error).__name__
+    if 'zstd' in name.lower() or 'zstd' in str(error).lower() or 'lz4' in str(error).lower():
+        return 'chunk_undecompressable'
+    if 'corrupt' in name.lower() or 'database' in str(error).lower():
+        return 'storage_corrupt'
+    return 'record_unreadable'
+
+
+def _messages(reader, connections, damage, resumes=64):
+    """
+    Yield the reader's messages; past an unreadable record, what can still be read.
+
+    A read error is counted in ``damage`` by reason (``_read_reason``). An MCAP bag is
+    then read on by ``salvage.salvage_mcap`` (record by record, from after the last
+    message read, each skipped record or chunk counted by its own reason); another
+    storage resumes after the last message read (bag time + 1 ns), until a resume gives
+    nothing new or after ``resumes`` of them. The caller compares what was read with
+    the bag's metadata.
+    """
+    start = None
     while True:
+        progressed = False
         try:
-            item = next(iterator)
-        except StopIteration:
+            for item in reader.messages(connections=connections, start=start):
+                progressed = True
+                start = item[1] + 1
+                yield item
             return
-        except (ReaderError, OSError, ValueError, KeyError, IndexError, EOFError) as error:
-            raise BagError(f'{path}: cannot read the bag after {count} messages '
-                           f'({one_line(error)}): truncated or corrupt?') from error
-        count += 1
-        yield item
+        except Exception as error:  # noqa: B902 - storage back ends raise many kinds
+            files = _mcap_files(reader)
+            if files:
+                yield from _salvaged(files, connections, damage, start)
+                return
+            damage.add(_read_reason(error))
+            resumes -= 1
+            if not progressed or resumes <= 0:
+                return
+
+
+def _mcap_files(reader):
+    """Return the MCAP files of an open reader ([] for another storage)."""
+    storage = getattr(reader, 'storage', reader)       # a file, or a bag directory
+    storages = getattr(storage, 'storages', None) or [storage]
+    return [part.path for part in storages
+            if type(part).__name__.lower().startswith('mcap') and hasattr(part, 'path')]
+
+
+def _salvaged(files, connections, damage, start):
+    """Yield ``(connection, time_ns, raw)`` of what ``salvage_mcap`` reads of ``files``."""
+    damage.salvaged = True
+    by_topic = {}
+    for connection in connections:
+        by_topic.setdefault(connection.topic, connection)
+    for path in files:
+        for topic, time_ns, raw in salvage_mcap(path, damage.add, start):
+            if topic in by_topic:
+                yield by_topic[topic], time_ns, raw
 
 
 def _ns(seconds):
@@ -371,12 +433,18 @@ def process_bag(input_path, output_path, document=None, robots=None, progress=No
     Returns
     -------
     Result
+        With ``damage``: a bag damaged past its opening (a corrupt record, chunk or
+        message) is processed as far as it can be read, the rest counted by reason
+        (those of ``salvage`` for MCAP, ``storage_corrupt`` or ``record_unreadable``
+        for sqlite3, ``message_undecodable``, ``ground_truth_unreadable``,
+        ``messages_missing``: the shortfall against the bag's metadata). The output
+        holds what was read.
 
     Raises
     ------
     BagError
-        If the bag cannot be read (missing, truncated, not a bag), lacks a topic the
-        robots need, holds one of another message type, or has no robot at all; no
+        If the bag cannot be opened (missing, cut before its index, not a bag), lacks
+        a topic the robots need, holds one of another message type, or has no robot at all; no
         output is left behind.
     ValueError
         If a parameter value is invalid.
@@ -401,17 +469,31 @@ def process_bag(input_path, output_path, document=None, robots=None, progress=No
             total = sum(c.msgcount for c in connections)
             done = 0
             first = last = None
-            for connection, time_ns, raw in _messages(reader, connections, input_path):
+            damage = _Damage()
+            for connection, time_ns, raw in _messages(reader, connections, damage):
+                done += 1
+                message_class, handle = inputs[connection.topic]
+                try:
+                    message = read_message(raw, message_class, connection.topic)
+                except BagError:
+                    damage.add('message_undecodable')
+                    continue
                 if first is None:
                     first = time_ns
                     pipeline.start(time_ns)
                 last = time_ns
                 pipeline.advance(time_ns)
-                message_class, handle = inputs[connection.topic]
-                handle(read_message(raw, message_class, connection.topic), time_ns)
-                done += 1
+                try:
+                    handle(message, time_ns)
+                except BagError:        # a ground truth cloud that cannot be read
+                    damage.add('ground_truth_unreadable')
                 if progress is not None and not done % 256:
                     progress(done, total)
+            if done < total:
+                damage.add('messages_missing', total - done)
+                if not damage.salvaged:     # read quietly short: find out why
+                    for _ in _salvaged(_mcap_files(reader), connections, damage, None):
+                        pass
             if first is not None:
                 pipeline.advance(last + _ns(pipeline.settle_s()))
             if progress is not None:
@@ -420,5 +502,5 @@ def process_bag(input_path, output_path, document=None, robots=None, progress=No
         reader.close()
     duration = 0.0 if first is None else (last - first) * 1e-9
     return Result(names, pipeline.fuser, pipeline.observers, pipeline.truth, done,
-                  dict(out.counts), duration, time.monotonic() - started,
-                  time.process_time() - cpu_started)
+                  dict(out.counts), total, dict(damage.counts), duration,
+                  time.monotonic() - started, time.process_time() - cpu_started)

@@ -21,7 +21,7 @@ import tempfile
 from rclpy.serialization import deserialize_message, serialize_message
 from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness
 from rosbags.interfaces import QosReliability, QosTime
-from rosbags.rosbag2 import Reader, ReaderError, StoragePlugin, Writer, WriterError
+from rosbags.rosbag2 import Reader, StoragePlugin, Writer, WriterError
 from rosbags.typesys import get_typestore, Stores
 import yaml
 
@@ -110,7 +110,7 @@ def open_bag(path):
     try:
         reader = Reader(path)
         reader.open()
-    except (ReaderError, OSError, ValueError, KeyError, TypeError) as error:
+    except Exception as error:  # noqa: B902 - storage back ends (apsw, zstd) raise many kinds
         raise BagError(f'{path}: not a readable rosbag2 ({one_line(error)})') from error
     return reader
 

@@ -23,8 +23,7 @@ from landmark_ros.fuser.sources import LandmarkMessage, Queued, Source
 from landmark_ros.fuser.tracks import shard_of_position, Tracker
 from landmark_ros.pipeline.config import FuserConfig
 from landmark_ros.pipeline.counters import Counters, Logger, Status
-from landmark_ros.pipeline.rows import (landmark_row_problems, load_row_kernel, MAX_LABEL_ID,
-                                        UNKNOWN_ID)
+from landmark_ros.pipeline.rows import landmark_row_problems, load_row_kernel, UNKNOWN_ID
 from landmark_ros.pipeline.scan import Scan
 import numpy as np
 from numpy.typing import NDArray
@@ -102,6 +101,10 @@ class Fuser:
         self._removed: List[tuple] = []
         self.tracker = Tracker(config)
         """Association of the rows without an ID (``fuser.tracks``)."""
+        self.reserved_from = int(config.first_new_id)
+        """Start of the IDs this fuser allocates (to ``MAX_LABEL_ID``): a labelled row
+        with one is rejected as ``id_reserved``, so an allocated ID never names another
+        landmark. Kept in the map file (``first_new_id``): a restart keeps the range."""
         self.association_log: Optional[List[Tuple[str, int, NDArray[np.int64]]]] = None
         """Set to a list to record, per message with rows without an ID, in fuse order,
         ``(source, stamp_ns, ids)``: the ID each such row got (-1: dropped as ambiguous)."""
@@ -202,9 +205,19 @@ class Fuser:
         m, P, P_dep = (np.concatenate([np.asarray(getattr(message, name), np.float64)
                                        for message in every]) for name in ('m', 'P', 'P_dep'))
         valid, _ = landmark_row_problems(ids, m, P, P_dep)
+        bounds = np.cumsum([0] + [len(message.ids) for message in every])
+        reserved = valid & (ids >= self.reserved_from) & (ids != UNKNOWN_ID)
+        if reserved.any():
+            valid &= ~reserved
+            sources = [source for source, kept in taken for _ in kept]
+            for source, count in zip(sources, _per_message(reserved, bounds)):
+                if count:
+                    self.reject(source, 'id_reserved', count,
+                                f'labelled rows with IDs from first_new_id '
+                                f'{self.reserved_from} up: those are the IDs of landmarks '
+                                'found without an ID')
         # Per message, from one pass over the burst: rows that passed the checks, those
         # of another shard, and those queued (with how many lack an ID).
-        bounds = np.cumsum([0] + [len(message.ids) for message in every])
         passed = _per_message(valid, bounds)
         other = self._other_shard(ids, m)
         if other is not None:
@@ -298,6 +311,10 @@ class Fuser:
         ids = np.asarray(columns['id'])
         state.counts['partial_in'] += len(ids)
         valid, reasons = partial_row_problems(columns)
+        reserved = valid & (ids >= self.reserved_from)
+        if reserved.any():
+            valid &= ~reserved
+            reasons['id_reserved'] += int(reserved.sum())
         if self.config.shard_count > 1:
             other = valid & (ids % self.config.shard_count != self.config.shard_index)
             if other.any():
@@ -574,6 +591,7 @@ class Fuser:
                 record['class'] = self.tracker.classes.get(record['id'], 0)
             map_file.save(self.config.map_file, records, self.config.world_frame,
                           self.config.fusion, next_id=self.tracker.next_id,
+                          first_new_id=self.reserved_from,
                           tracks=self.tracker.to_dict(),
                           waiting_partial_observations=self.partial.waiting_records())
         except (OSError, ValueError) as error:
@@ -584,7 +602,16 @@ class Fuser:
         return True
 
     def load(self) -> None:
-        """Load ``map_file`` if set; move an unusable file aside and start empty."""
+        """
+        Load ``map_file`` if set: every valid record is kept, the bad ones quarantined.
+
+        A file that cannot be parsed at all (not JSON, not a map, another version or
+        frame) is moved aside and the fuser starts empty. Otherwise each landmark
+        record is checked on its own (``map_file.split_records``: the live row checks),
+        and a malformed ``next_id``, waiting partial observations or tracks section is
+        dropped on its own; what was dropped is written to a quarantine file beside the
+        map and counted in ``map_records_rejected``.
+        """
         path = self.config.map_file
         if not path:
             return
@@ -592,33 +619,6 @@ class Fuser:
             self.logger.info(f'removed {stale}, left by an interrupted save')
         try:
             document = map_file.load(path, self.config.world_frame)
-            map_file.check_records(document['landmarks'])
-            next_id = document.get('next_id', self.config.first_new_id)
-            if isinstance(next_id, bool) or not isinstance(next_id, int) or not (
-                    0 <= next_id <= MAX_LABEL_ID + 1):
-                raise ValueError(f'next_id {next_id!r} is not an integer in '
-                                 f'[0, {MAX_LABEL_ID + 1}]')
-            records, deprecated = map_file.waiting_partial_records(document)
-            waiting = parse_waiting_records(records)
-            if deprecated:
-                self.logger.warning(
-                    f'map file {path}: key {map_file.DEPRECATED_WAITING_KEY!r} is deprecated, '
-                    f'read as {map_file.WAITING_KEY!r} (the next save writes the new key)')
-            self.map.load_records(document['landmarks'])
-            self.partial.reset()
-            self.partial.restore(waiting)
-            self.tracker.reset()
-            self.tracker.next_id = max(next_id, self.config.first_new_id)
-            for record in document['landmarks']:
-                if record.get('class', 0):
-                    self.tracker.classes[record['id']] = record['class']
-            try:
-                self.tracker.restore(document.get('tracks'), self.map)
-            except ValueError:
-                self.map.reset()
-                self.tracker.reset()
-                self.partial.reset()
-                raise
         except FileNotFoundError:
             self.logger.info(f'no map file {path} yet: starting with an empty map')
             return
@@ -631,12 +631,57 @@ class Fuser:
             self.logger.error(f'map file {path} is unusable ({error}); moved it to {moved} '
                               'and starting with an empty map')
             return
+        rejected = self._restore(document)
+        if rejected:
+            self._quarantine(path, rejected)
         if document.get('fusion') != self.config.fusion:
             self.logger.warning(
                 f"map file {path} was made with fusion {document.get('fusion')!r}, this "
                 f'fuser uses {self.config.fusion!r}')
         self.map_changed = True
         self.logger.info(f'loaded {len(self.map)} landmarks from {path}')
+
+    def _restore(self, document: Dict[str, Any]) -> List[Dict[str, Any]]:
+        """Restore what ``document`` holds that passes the checks; return what did not."""
+        loaded = map_file.parse_sections(document, self.config.first_new_id)
+        rejected = list(loaded.rejected)
+        if loaded.deprecated_key:
+            self.logger.warning(
+                f'map file: key {map_file.DEPRECATED_WAITING_KEY!r} is deprecated, read as '
+                f'{map_file.WAITING_KEY!r} (the next save writes the new key)')
+        self.map.reset()
+        self.map.load_records(loaded.records)
+        self.partial.reset()
+        self.partial.restore(loaded.waiting)
+        self.tracker.reset()
+        self.tracker.next_id = loaded.next_id
+        self.reserved_from = loaded.reserved_from
+        for record in loaded.records:
+            if record.get('class', 0):
+                self.tracker.classes[record['id']] = record['class']
+        try:
+            self.tracker.restore(document.get('tracks'), self.map)
+        except ValueError as error:
+            self.tracker.reset()
+            self.tracker.next_id = loaded.next_id
+            rejected.append({'section': 'tracks', 'index': None, 'reason': f'{error}',
+                             'record': document.get('tracks')})
+        rejected += [{'section': 'tracks', 'index': landmark_id, 'record': None,
+                      'reason': f"tentative track rejected as {', '.join(reasons)}"}
+                     for landmark_id, reasons in self.tracker.rejected_tracks]
+        return rejected
+
+    def _quarantine(self, path: str, rejected: List[Dict[str, Any]]) -> None:
+        """Write rejected map-file records beside the map; count and log them."""
+        try:
+            written = map_file.quarantine(path, rejected)
+        except OSError as error:
+            written = f'(not written: {error})'
+        self.counters.add('map_records_rejected', len(rejected))
+        section, index, reason = (rejected[0][key] for key in ('section', 'index', 'reason'))
+        self.logger.error(
+            f'map file {path}: {len(rejected)} record(s) rejected, the rest loaded; first: '
+            f'{section} record {index} {reason}; rejected records in {written}')
 
 
 def _combine(results: Sequence[UpdateResult]) -> UpdateResult:

@@ -3,17 +3,20 @@ Save and load the fused map as versioned, human-readable JSON, atomically (ROS-f
 
 A save writes a temporary file in the same directory, flushes and fsyncs it, then
 renames it over the map file (and fsyncs the directory), so a crash at any moment
-leaves either the previous map or the new one, never a torn file. ``check_records``
-checks loaded landmark records exactly as live landmark rows are checked.
+leaves either the previous map or the new one, never a torn file. ``split_records``
+checks loaded landmark records exactly as live landmark rows are checked; the loader
+keeps every good record and writes the bad ones to a quarantine file beside the map
+(``quarantine``); only a file that cannot be parsed at all is moved aside.
 """
 
 import datetime
 import json
 import os
 import tempfile
-from typing import Any, Dict, List, Mapping, Optional, Sequence, Tuple
+from typing import Any, Dict, List, Mapping, NamedTuple, Optional, Sequence, Tuple
 
 from landmark_ros.pipeline.rows import landmark_row_problems, MAX_LABEL_ID
+from landmark_ros.fuser.partial import parse_waiting_records
 import numpy as np
 
 FORMAT = 'landmark_ros/map'
@@ -34,7 +37,7 @@ class MapFileError(ValueError):
 def save(path: str, records: Sequence[Mapping[str, Any]], world_frame: str, fusion: str,
          next_id: Optional[int] = None, tracks: Optional[Mapping[str, Any]] = None,
          waiting_partial_observations: Optional[Sequence[Mapping[str, Any]]] = None,
-         ) -> None:
+         first_new_id: Optional[int] = None) -> None:
     """
     Write the map to ``path`` atomically.
 
@@ -61,6 +64,9 @@ def save(path: str, records: Sequence[Mapping[str, Any]], world_frame: str, fusi
         them; omitted when None or empty (files without it load as before). Files
         that name it ``waiting_views`` (deprecated) still load
         (``waiting_partial_records``).
+    first_new_id : int, optional
+        Start of the reserved ID range (``Fuser.reserved_from``): IDs from it up are
+        the fuser's own, never taken from labelled input; omitted when None.
 
     """
     document = {
@@ -73,6 +79,8 @@ def save(path: str, records: Sequence[Mapping[str, Any]], world_frame: str, fusi
     }
     if next_id is not None:
         document['next_id'] = int(next_id)
+    if first_new_id is not None:
+        document['first_new_id'] = int(first_new_id)
     if tracks is not None:
         document['tracks'] = dict(tracks)
     if waiting_partial_observations:
@@ -195,6 +203,32 @@ def load(path: str, world_frame: str) -> Dict[str, Any]:
     return document
 
 
+def reserved_from(document: Mapping[str, Any], first_new_id: int) -> int:
+    """
+    Return the start of the reserved ID range after loading ``document``.
+
+    The smaller of the file's ``first_new_id`` and the configured one: IDs the fuser
+    allocated before a restart stay reserved even if ``first_new_id`` was raised. A
+    file without the key (or with a malformed one) keeps the configured start.
+
+    Parameters
+    ----------
+    document : dict
+        As ``load`` returns it.
+    first_new_id : int
+        The configured ``first_new_id``.
+
+    Returns
+    -------
+    int
+
+    """
+    saved = document.get('first_new_id')
+    if isinstance(saved, bool) or not isinstance(saved, int) or not 0 <= saved <= MAX_LABEL_ID:
+        return int(first_new_id)
+    return min(saved, int(first_new_id))
+
+
 def move_aside(path: str, now: Optional[datetime.datetime] = None) -> str:
     """
     Rename an unusable map file out of the way and return its new name.
@@ -233,36 +267,167 @@ def check_records(records: Sequence[Dict[str, Any]]) -> None:
     Raises
     ------
     ValueError
-        Naming the first bad record and why: a malformed field, an ID that is not an
-        integer in [0, 2^32 - 1], or a row reason of ``rows.landmark_row_problems``.
+        Naming the first bad record and why (``split_records``' reason).
 
     """
-    count = len(records)
-    ids = np.zeros(count, np.int64)
-    m = np.zeros((count, 2))
-    P = np.zeros((count, 2, 2))
-    P_dep = np.zeros((count, 2, 2))
+    _, bad = split_records(records)
+    if bad:
+        index, reason = bad[0]
+        raise ValueError(f'landmark record {index}: {reason}')
+
+
+class Sections(NamedTuple):
+    """What ``parse_sections`` keeps of a map document."""
+
+    records: List[Dict[str, Any]]
+    """The valid landmark records."""
+    next_id: int
+    """The next ID to allocate (at least ``first_new_id``)."""
+    waiting: List[Any]
+    """The valid waiting partial observations (``fuser.partial.parse_waiting_records``)."""
+    reserved_from: int
+    """Start of the reserved ID range (``reserved_from``)."""
+    rejected: List[Dict[str, Any]]
+    """``{'section', 'index', 'reason', 'record'}`` per rejected record or section."""
+    deprecated_key: bool = False
+    """Whether the waiting records came from ``DEPRECATED_WAITING_KEY``."""
+
+
+def parse_sections(document: Mapping[str, Any], first_new_id: int) -> Sections:
+    """
+    Check each landmark record, ``next_id`` and each waiting partial observation alone.
+
+    Parameters
+    ----------
+    document : dict
+        As ``load`` returns it.
+    first_new_id : int
+        The configured ``first_new_id``.
+
+    Returns
+    -------
+    Sections
+        The valid parts; every bad record (or a malformed ``next_id`` or waiting list)
+        in ``rejected``. The tracks are checked by ``Tracker.restore``.
+
+    """
+    landmarks = document['landmarks']
+    records, bad = split_records(landmarks)
+    rejected = [{'section': 'landmarks', 'index': i, 'reason': reason,
+                 'record': landmarks[i]} for i, reason in bad]
+    next_id = document.get('next_id', first_new_id)
+    if isinstance(next_id, bool) or not isinstance(next_id, int) or not (
+            0 <= next_id <= MAX_LABEL_ID + 1):
+        rejected.append({'section': 'next_id', 'index': None, 'record': next_id,
+                         'reason': f'not an integer in [0, {MAX_LABEL_ID + 1}]'})
+        next_id = first_new_id   # allocation still skips the IDs the map knows
+    try:
+        waiting_records, deprecated = waiting_partial_records(document)
+    except ValueError as error:
+        rejected.append({'section': WAITING_KEY, 'index': None, 'reason': f'{error}',
+                         'record': None})
+        waiting_records, deprecated = [], False
+    if not isinstance(waiting_records, list):
+        rejected.append({'section': WAITING_KEY, 'index': None, 'reason': 'not a list',
+                         'record': waiting_records})
+        waiting_records = []
+    waiting: List[Any] = []
+    for i, record in enumerate(waiting_records):   # each on its own
+        try:
+            waiting += parse_waiting_records([record])
+        except ValueError as error:
+            rejected.append({'section': WAITING_KEY, 'index': i, 'reason': f'{error}',
+                             'record': record})
+    return Sections(records, max(next_id, first_new_id), waiting,
+                    reserved_from(document, first_new_id), rejected, deprecated)
+
+
+def split_records(records: Sequence[Any]) -> Tuple[List[Dict[str, Any]], List[Tuple[int, str]]]:
+    """
+    Separate the usable landmark records from the bad ones, with the live row checks.
+
+    Each record is parsed on its own (a malformed field, an ID that is not an integer
+    in [0, 2^32 - 2], a class that is not an integer), then every parsed record goes
+    through ``rows.landmark_row_problems``, the fuser's check of live landmark rows
+    (which includes the plausible ranges of ``pipeline.limits``).
+
+    Parameters
+    ----------
+    records : sequence
+        As ``LandmarkMap.to_records`` writes them (anything, in a damaged file).
+
+    Returns
+    -------
+    good : list of dict
+        The usable records, in file order.
+    bad : list of (int, str)
+        Index and reason of each rejected record, in file order.
+
+    """
+    parsed, bad = [], []
     for i, record in enumerate(records):
         try:
-            raw = record['id']
-            if isinstance(raw, bool) or not isinstance(raw, int) or not 0 <= raw <= MAX_LABEL_ID:
-                raise ValueError(f'id {raw!r} is not an integer in [0, {MAX_LABEL_ID}]')
-            landmark_class = record.get('class', 0)
-            if isinstance(landmark_class, bool) or not isinstance(landmark_class, int):
-                raise ValueError(f'class {landmark_class!r} is not an integer')
-            ids[i] = raw
-            m[i] = np.array(record['mean'], dtype=np.float64).reshape(2)
-            P[i] = np.array(record['covariance'], dtype=np.float64).reshape(2, 2)
-            P_dep[i] = np.array(record['covariance_dependent'], dtype=np.float64).reshape(2, 2)
-        except (KeyError, TypeError, ValueError) as error:
-            raise ValueError(f'landmark record {i}: {error}') from error
-    valid, _ = landmark_row_problems(ids, m, P, P_dep)
-    if not valid.all():
-        bad = int(np.flatnonzero(~valid)[0])
-        one = slice(bad, bad + 1)
-        _, reasons = landmark_row_problems(ids[one], m[one], P[one], P_dep[one])
-        raise ValueError(f'landmark record {bad} (id {int(ids[bad])}): rejected as '
-                         f"{', '.join(sorted(reasons))}")
+            parsed.append((i, record) + _parse_record(record))
+        except (KeyError, TypeError, ValueError, AttributeError) as error:
+            bad.append((i, f'{error}'))
+    if parsed:
+        ids = np.array([p[2] for p in parsed], np.int64)
+        m, P, P_dep = (np.array([p[k] for p in parsed]) for k in (3, 4, 5))
+        valid, _ = landmark_row_problems(ids, m, P, P_dep)
+        for ok, (i, _, landmark_id, m_i, P_i, P_dep_i) in zip(valid, parsed):
+            if not ok:
+                _, reasons = landmark_row_problems(
+                    np.array([landmark_id]), m_i[None], P_i[None], P_dep_i[None])
+                bad.append((i, f"id {landmark_id} rejected as {', '.join(sorted(reasons))}"))
+        good = [record for ok, (_, record, *_rest) in zip(valid, parsed) if ok]
+    else:
+        good = []
+    return good, sorted(bad)
+
+
+def _parse_record(record):
+    """Return ``(id, m, P, P_dep)`` of one landmark record, or raise."""
+    raw = record['id']
+    if isinstance(raw, bool) or not isinstance(raw, int) or not 0 <= raw <= MAX_LABEL_ID:
+        raise ValueError(f'id {raw!r} is not an integer in [0, {MAX_LABEL_ID}]')
+    landmark_class = record.get('class', 0)
+    if isinstance(landmark_class, bool) or not isinstance(landmark_class, int):
+        raise ValueError(f'class {landmark_class!r} is not an integer')
+    return (raw, np.array(record['mean'], dtype=np.float64).reshape(2),
+            np.array(record['covariance'], dtype=np.float64).reshape(2, 2),
+            np.array(record['covariance_dependent'], dtype=np.float64).reshape(2, 2))
+
+
+def quarantine(path: str, bad: Sequence[Mapping[str, Any]],
+               now: Optional[datetime.datetime] = None) -> str:
+    """
+    Write rejected records beside the map file (``<path>.quarantine-<time>.json``).
+
+    Parameters
+    ----------
+    path : str
+        Map file.
+    bad : list of dict
+        ``{'section', 'index', 'reason', 'record'}`` per rejected record.
+    now : datetime.datetime, optional
+        Time for the name; the current UTC time by default.
+
+    Returns
+    -------
+    str
+        The file written.
+
+    """
+    now = now or datetime.datetime.now(datetime.timezone.utc)
+    base = f"{path}.quarantine-{now.strftime('%Y%m%dT%H%M%SZ')}"
+    target, counter = base + '.json', 1
+    while os.path.exists(target):
+        target, counter = f'{base}-{counter}.json', counter + 1
+    with open(target, 'w') as stream:
+        json.dump({'format': FORMAT + '/quarantine', 'map_file': path,
+                   'rejected': list(bad)}, stream, indent=1, default=str)
+        stream.write('\n')
+    return target
 
 
 def waiting_partial_records(document: Mapping[str, Any]) -> Tuple[Any, bool]:

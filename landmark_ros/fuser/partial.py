@@ -24,7 +24,8 @@ from landmark_ros.core.partial import (BEARING, GATED, Initialisation, initialis
 from landmark_ros.core.sensors import MIN_RANGE
 from landmark_ros.pipeline.partial_rows import (PARTIAL_COLUMNS, PartialObservations,
                                                 sensor_covariance)
-from landmark_ros.pipeline.rows import first_problems, UNKNOWN_ID
+from landmark_ros.pipeline.limits import partial_problems
+from landmark_ros.pipeline.rows import first_problems, landmark_row_problems, UNKNOWN_ID
 import numpy as np
 from numpy.typing import NDArray
 
@@ -53,7 +54,9 @@ def partial_row_problems(
         Rejected rows per reason (each counted once, under its first problem):
         ``partial_nonfinite``, ``invalid_id``, ``invalid_kind``,
         ``range_not_positive``, ``variance_not_positive``, ``variance_dep_negative``,
-        ``sensor_covariance_not_psd``.
+        ``sensor_covariance_not_psd``, then the ``limits.partial_problems``
+        (``range_out_of_range``, ``bearing_out_of_range``, ``variance_out_of_range``,
+        ``pose_out_of_range``).
 
     """
     ids = np.asarray(columns['id'])
@@ -71,6 +74,7 @@ def partial_row_problems(
         if count and finite.any():
             psd[finite] = np.linalg.eigvalsh(P_s[finite])[:, 0] >= -1e-9 * scale[finite]
         value = np.asarray(columns['value'], dtype=np.float64)
+        plausible = partial_problems(columns, kind, value, columns['variance'], RANGE)
         return first_problems(count, [
             ('partial_nonfinite', ~finite),
             ('invalid_id', (ids < 0) | (ids >= UNKNOWN_ID)),
@@ -79,7 +83,7 @@ def partial_row_problems(
             ('variance_not_positive', ~(np.asarray(columns['variance']) > 0.0)),
             ('variance_dep_negative', ~(np.asarray(columns['variance_dep']) >= 0.0)),
             ('sensor_covariance_not_psd', ~psd),
-        ])
+        ] + plausible)
 
 
 def views_from_columns(columns: Dict[str, NDArray[Any]]) -> Views:
@@ -277,6 +281,26 @@ class PartialFusion:
         return initialise(Views.concatenate(b.views for b in buffer), self.params,
                           bias_group, pose_group)
 
+    def _set(self, count: Counter[str], landmark_id: int,
+             estimate: Tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]],
+             stamp_ns: int, views: int) -> bool:
+        """
+        Set a landmark's estimate if it passes the live landmark row checks.
+
+        The checks the map-file loader applies (``rows.landmark_row_problems``): an
+        estimate that would not load back is not stored, and is counted as
+        ``partial_result_<reason>`` against the observation's source.
+        """
+        m, P, P_dep = estimate
+        _, reasons = landmark_row_problems(np.array([landmark_id], np.int64), m[None],
+                                           P[None], P_dep[None])
+        if reasons:
+            for reason in reasons:
+                count[f'partial_result_{reason}'] += 1
+            return False
+        self.map.set_estimate(landmark_id, m, P, P_dep, PARTIAL_SOURCE, stamp_ns, views)
+        return True
+
     def fuse(self) -> PartialResult:
         """
         Take every queued view in arrival order: buffer, initialise or update.
@@ -312,14 +336,12 @@ class PartialFusion:
                     if self.streak[landmark_id] >= self.max_consecutive_rejections:
                         self.streak[landmark_id] = 0
                         placed = self._initialise(recent)
-                        if placed.ok:
-                            self.map.set_estimate(landmark_id, placed.m, placed.P_m,
-                                                  placed.P_m_dep, PARTIAL_SOURCE, stamp_ns, 0)
+                        if placed.ok and self._set(count, landmark_id, (
+                                placed.m, placed.P_m, placed.P_m_dep), stamp_ns, 0):
                             count['landmarks_reinitialised'] += 1
                             changed.append(landmark_id)
-                    if status == UPDATED:
-                        self.map.set_estimate(landmark_id, result.m[0], result.P_m[0],
-                                              result.P_m_dep[0], PARTIAL_SOURCE, stamp_ns, 1)
+                    if status == UPDATED and self._set(count, landmark_id, (
+                            result.m[0], result.P_m[0], result.P_m_dep[0]), stamp_ns, 1):
                         count['partial_fused'] += 1
                         changed.append(landmark_id)
                     elif status == GATED:
@@ -337,8 +359,9 @@ class PartialFusion:
                 if not placed.ok:
                     self.wait_reasons[placed.reason] += 1
                     continue
-                self.map.set_estimate(landmark_id, placed.m, placed.P_m, placed.P_m_dep,
-                                      PARTIAL_SOURCE, stamp_ns, len(buffer))
+                if not self._set(count, landmark_id, (placed.m, placed.P_m, placed.P_m_dep),
+                                 stamp_ns, len(buffer)):
+                    continue
                 for b in buffer:
                     counts.setdefault(b.source, Counter())['partial_fused'] += 1
                 count['landmarks_initialised'] += 1

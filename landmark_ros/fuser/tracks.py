@@ -37,7 +37,7 @@ from landmark_ros.core.association import (Association, Candidates, candidates,
 from landmark_ros.core.gating import chi2_threshold
 from landmark_ros.core.landmark_map import LandmarkMap, MapSnapshot, UpdateResult
 from landmark_ros.pipeline.config import FuserConfig
-from landmark_ros.pipeline.rows import MAX_LABEL_ID, UNKNOWN_ID
+from landmark_ros.pipeline.rows import landmark_row_problems, MAX_LABEL_ID, UNKNOWN_ID
 from landmark_ros.pipeline.scan import Scan
 import numpy as np
 from numpy.typing import NDArray
@@ -130,6 +130,8 @@ class Tracker:
         """A merged (retired) ID -> the ID it was merged into."""
         self.now_ns: Optional[int] = None
         """The newest observation stamp fused so far [ns] (the clock of expiry)."""
+        self.rejected_tracks: List[Tuple[int, List[str]]] = []
+        """Tentative tracks the last ``restore`` dropped: ``(ID, reasons)``."""
 
     def reset(self) -> None:
         """Forget the tracks and classes; the allocator goes on (IDs are never reused)."""
@@ -140,6 +142,7 @@ class Tracker:
         self.together.clear()
         self.merged_into.clear()
         self.now_ns = None
+        self.rejected_tracks = []
         self.dirty = True
 
     def advance(self, stamp_ns: int) -> int:
@@ -522,6 +525,7 @@ class Tracker:
                 rows += [(landmark_id, *row) for row in track_rows]
         except (KeyError, TypeError, ValueError) as error:
             raise ValueError(f'tracks section: {error}') from error
+        rows = self._checked_rows(tracks, rows)
         rows.sort(key=lambda row: row[5])
         if rows:
             landmark_map.update(np.array([r[0] for r in rows], np.int64),
@@ -536,6 +540,30 @@ class Tracker:
                 self.classes[landmark_id] = track.landmark_class
         self.dirty = True
         return len(tracks)
+
+    def _checked_rows(self, tracks: Dict[int, Any], rows: List[Any]) -> List[Any]:
+        """
+        Drop the tentative tracks with a row the live row checks refuse; return the rest.
+
+        The rows of a track go through ``rows.landmark_row_problems``, the check of live
+        landmark rows; each track dropped is listed in ``rejected_tracks`` as
+        ``(track ID, reasons)``.
+        """
+        self.rejected_tracks = []
+        if not rows:
+            return rows
+        valid, _ = landmark_row_problems(
+            np.array([r[0] for r in rows], np.int64), np.array([r[1] for r in rows]),
+            np.array([r[2] for r in rows]), np.array([r[3] for r in rows]))
+        bad = sorted({rows[k][0] for k in np.flatnonzero(~valid)})
+        for landmark_id in bad:
+            mine = [r for r in rows if r[0] == landmark_id]
+            _, reasons = landmark_row_problems(
+                np.array([r[0] for r in mine], np.int64), np.array([r[1] for r in mine]),
+                np.array([r[2] for r in mine]), np.array([r[3] for r in mine]))
+            self.rejected_tracks.append((landmark_id, sorted(reasons)))
+            del tracks[landmark_id]
+        return [r for r in rows if r[0] not in bad]
 
     def resolve(self, landmark_id: int) -> int:
         """Return the ID a landmark ended up as, following merges."""

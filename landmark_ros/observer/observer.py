@@ -19,11 +19,11 @@ from landmark_ros.core.covariance import COVARIANCE_PROBLEMS, covariance_status
 from landmark_ros.observer.partial import (CorrelatedNoise, partial_observations_from_rows,
                                            split_partial)
 from landmark_ros.observer.rows import landmarks_from_rows, observation_noise
-from landmark_ros.pipeline import pose_buffer
+from landmark_ros.pipeline import limits, pose_buffer
 from landmark_ros.pipeline.config import ObserverConfig
 from landmark_ros.pipeline.counters import Counters, Status
 from landmark_ros.pipeline.partial_rows import no_partial_observations, PartialObservations
-from landmark_ros.pipeline.rows import UNKNOWN_ID
+from landmark_ros.pipeline.rows import first_problems, UNKNOWN_ID
 from landmark_ros.pipeline.scan import Scan
 import numpy as np
 from numpy.typing import NDArray
@@ -66,8 +66,8 @@ class ObservationMessage:
 
     @property
     def rows(self) -> int:
-        """Return the number of rows."""
-        return len(next(iter(self.columns.values())))
+        """Return how many rows the message has (0 without columns)."""
+        return max((len(values) for values in self.columns.values()), default=0)
 
 
 MessageWithPose = Tuple[ObservationMessage, NDArray[np.float64], NDArray[np.float64]]
@@ -204,6 +204,10 @@ class Observer:
             self.counters.add(f'pose_{COVARIANCE_PROBLEMS[status]}', 1,
                               f'(x, y, yaw) covariance {P_pose.tolist()}: dropped')
             return []
+        reason, detail = limits.pose_problem(pose, P_pose)
+        if reason:
+            self.counters.add(reason, 1, f'{detail}: dropped')
+            return []
         if stamp_ns <= 0:
             self.counters.add('pose_stamp_zero', 1, 'pose with a zero stamp: dropped')
             return []
@@ -302,6 +306,11 @@ class Observer:
                               f"'{sensor_frame}': message dropped")
             return False
         self.counters.add('observations_in', message.rows)
+        if 'range' not in message.columns and 'bearing' not in message.columns:
+            self.counters.add('missing_field', max(message.rows, 1),
+                              "observation message with neither 'range' nor 'bearing': "
+                              'dropped')
+            return False
         if message.stamp_ns <= 0:
             self.counters.add('observation_stamp_zero', message.rows,
                               'observation message with a zero stamp: dropped')
@@ -375,7 +384,7 @@ class Observer:
             One per message, in order.
 
         """
-        ready = [(replace(item, columns=_with_ids(item.columns)), pose, P_pose)
+        ready = [(replace(item, columns=self._plausible(_with_ids(item.columns))), pose, P_pose)
                  for item, pose, P_pose in ready]
         ready, found_partial = self._partial(ready)
         counts = [item.rows for item, _, _ in ready]
@@ -423,6 +432,17 @@ class Observer:
             start, row = end, row + count
         self.counters.add('landmarks_out', len(ids))
         return batches
+
+    def _plausible(self, columns: Dict[str, NDArray[Any]]) -> Dict[str, NDArray[Any]]:
+        """Return the rows of a message within ``limits``; count the others by reason."""
+        count = len(columns['id'])
+        valid, reasons = first_problems(count, limits.observation_problems(columns, count))
+        if not reasons:
+            return columns
+        for reason, rejected in reasons.items():
+            self.counters.add(reason, rejected, f'{rejected} of {count} observation rows '
+                              'outside the plausible ranges (pipeline.limits)')
+        return {name: np.asarray(values)[valid] for name, values in columns.items()}
 
     def _partial(self, ready: Sequence[MessageWithPose]
                  ) -> Tuple[List[MessageWithPose], Dict[int, PartialObservations]]:

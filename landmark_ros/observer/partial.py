@@ -13,6 +13,7 @@ from typing import Any, Dict, Optional, Tuple
 
 from landmark_ros.core.partial import BEARING, RANGE, views_from_robot
 from landmark_ros.core.sensors import MIN_RANGE
+from landmark_ros.pipeline.limits import partial_problems
 from landmark_ros.pipeline.partial_rows import no_partial_observations, PartialObservations
 from landmark_ros.pipeline.rows import first_problems, MAX_ID, UNKNOWN_ID
 import numpy as np
@@ -189,7 +190,7 @@ def partial_observations_from_rows(columns: Dict[str, NDArray[Any]], R: NDArray[
             # Views are gathered by ID: no association of partial rows (yet).
             ('partial_without_id', ids == UNKNOWN_ID),
             ('variance_not_positive', ~(variance > 0.0) | ~np.isfinite(variance)),
-        ])
+        ] + partial_problems({}, kind, y, variance, RANGE))
     if not valid.any():
         return no_partial_observations(), reasons
     variance = variance[valid]

@@ -14,6 +14,7 @@ from landmark_ros.core.covariance import (COVARIANCE_PROBLEMS, COVARIANCE_RANGE_
                                           covariance_status)
 from landmark_ros.core.landmarks import landmark_to_world_dependent
 from landmark_ros.core.sensors import MIN_RANGE
+from landmark_ros.pipeline.limits import landmark_problems
 from landmark_ros.pipeline.rows import first_problems, MAX_ID, range_status
 import numpy as np
 from numpy.typing import NDArray
@@ -166,9 +167,12 @@ def landmarks_from_rows(
             finite = np.isfinite(m.sum(axis=1) + P_m.sum(axis=(1, 2)) + P_dep.sum(axis=(1, 2)))
     # Only covariances the core handles leave the observer (core.gaussian's range).
     status = range_status(P_m, finite)
-    good = finite & (status == 0)
+    far = finite & landmark_problems(m)[0][1]
+    good = finite & (status == 0) & ~far
     if not good.all():
         reasons['result_nonfinite'] += int((~finite).sum())
+        if far.any():
+            reasons['result_landmark_out_of_range'] += int(far.sum())
         for code, name in COVARIANCE_RANGE_PROBLEMS.items():
             count = int((finite & (status == code)).sum())
             if count:

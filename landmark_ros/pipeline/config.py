@@ -11,6 +11,8 @@ import math
 from typing import (Any, ClassVar, Dict, Mapping, Optional, Sequence, Tuple, Type, TypeVar,
                     Union)
 
+from landmark_ros.pipeline.limits import MAX_ANGLE, MAX_RANGE
+
 
 def param(default: Union[float, str, Sequence[Union[float, str]]], description: str,
           read_only: bool = False, low: Optional[float] = None,
@@ -210,6 +212,10 @@ class ObserverConfig(ConfigBase):
             raise ValueError('max_pose_gap_s must not exceed pose_buffer_s')
         if self.pose_type not in POSE_TYPES:
             raise ValueError(f'pose_type must be one of {POSE_TYPES}, got {self.pose_type!r}')
+        x, y, yaw = self.sensor_pose
+        if max(abs(x), abs(y)) > MAX_RANGE or abs(yaw) > MAX_ANGLE:
+            raise ValueError(f'sensor_pose {list(self.sensor_pose)} is outside |x|, |y| <= '
+                             f'{MAX_RANGE:g} m, |yaw| <= {MAX_ANGLE:.4g} rad (pipeline.limits)')
 
 
 DEPRECATED_PARAMETERS = frozenset({'constraint_topics', 'publish_landmark_constraints'})

@@ -14,6 +14,7 @@ from landmark_ros.core.covariance import (COVARIANCE_ASYMMETRIC, COVARIANCE_NOT_
                                           COVARIANCE_RANGE_PROBLEMS,
                                           covariance_range_status, covariance_status,
                                           MAX_CONDITION, MAX_VARIANCE, MIN_VARIANCE)
+from landmark_ros.pipeline.limits import landmark_problems, MAX_COORDINATE
 import numpy as np
 from numpy.typing import NDArray
 
@@ -113,6 +114,7 @@ def _landmark_row_problems(
         dependent = _psd_2x2(dep) & _psd_2x2(rest)
         in_range = range_status(P, finite & definite) == 0
         valid = finite & definite & in_range & dependent & (ids >= 0) & (ids <= MAX_ID)
+        valid &= ~landmark_problems(m)[0][1]
         if valid.all():
             return valid, Counter()
         total = np.atleast_1d(covariance_status(np.where(finite[:, None, None], P, 0.0)))
@@ -126,16 +128,17 @@ def _landmark_row_problems(
     checks.append(('covariance_singular', ~definite))
     checks += [(name, span == code) for code, name in COVARIANCE_RANGE_PROBLEMS.items()]
     checks.append(('dependent_part_invalid', ~dependent))
-    return first_problems(len(ids), checks)
+    return first_problems(len(ids), checks + landmark_problems(m))
 
 
 def _clean_rows(ids, m, P, P_dep, limits, out):
     # out[i]: row i passes every check of _landmark_row_problems, by a sufficient test
     # with the same operations (entries finite and below 1e150, so no sum overflows;
     # the fast range test only). False: the vectorised checks decide.
-    min_variance, max_variance, max_condition, max_id = limits
+    min_variance, max_variance, max_condition, max_id, max_coordinate = limits
     for i in range(len(ids)):
-        ok = 0 <= ids[i] <= max_id
+        ok = 0 <= ids[i] <= max_id and abs(m[i, 0]) <= max_coordinate and abs(
+            m[i, 1]) <= max_coordinate
         for v in (m[i, 0], m[i, 1], P[i, 0, 0], P[i, 0, 1], P[i, 1, 0], P[i, 1, 1],
                   P_dep[i, 0, 0], P_dep[i, 0, 1], P_dep[i, 1, 0], P_dep[i, 1, 1]):
             if not abs(v) < 1e150:
@@ -178,7 +181,7 @@ def load_row_kernel() -> bool:
         if kernel is not None:     # compile for the types the fuser passes
             one = np.zeros((1, 2, 2))
             kernel(np.zeros(1, np.int64), np.zeros((1, 2)), one, one,
-                   (1.0, 1.0, 1.0, np.int64(MAX_ID)), np.empty(1, np.bool_))
+                   (1.0, 1.0, 1.0, np.int64(MAX_ID), 1.0), np.empty(1, np.bool_))
         _ROW_KERNEL.append(kernel)
     return _ROW_KERNEL[0] is not None
 
@@ -194,7 +197,8 @@ def _surely_valid(ids, m, P, P_dep):
     if m.shape != (len(ids), 2) or P.shape != P_dep.shape or P.shape != (len(ids), 2, 2):
         return None
     out = np.empty(len(ids), np.bool_)
-    limits = (float(MIN_VARIANCE), float(MAX_VARIANCE), float(MAX_CONDITION), np.int64(MAX_ID))
+    limits = (float(MIN_VARIANCE), float(MAX_VARIANCE), float(MAX_CONDITION), np.int64(MAX_ID),
+              float(MAX_COORDINATE))
     kernel(ids, m, P, P_dep, limits, out)
     return out
 

@@ -27,6 +27,8 @@ REAL_TYPES = (PointField.FLOAT32, PointField.FLOAT64)
 INTEGER_TYPES = (PointField.INT8, PointField.UINT8, PointField.INT16, PointField.UINT16,
                  PointField.INT32, PointField.UINT32)
 DATATYPES = {np.dtype(t): code for code, t in NUMPY_TYPES.items()}
+MAX_POINT_STEP = 2 ** 31 - 1
+"""Largest ``point_step`` read [bytes] (numpy's largest record size)."""
 
 
 class CloudError(ValueError):
@@ -74,7 +76,8 @@ def read_columns(msg, specs):
     Raises
     ------
     CloudError
-        ``missing_field``, ``unsupported_field_type`` or ``data_length_mismatch``.
+        ``missing_field``, ``unsupported_field_type``, ``point_step_invalid`` (zero
+        with points) or ``data_length_mismatch``; nothing else, whatever the layout.
 
     """
     return columns_of(read_records(msg, specs))
@@ -104,6 +107,10 @@ def read_records(msg, specs):
     fields = getattr(msg, 'layout', None) or tuple(
         (f.name, f.offset, f.datatype, f.count) for f in msg.fields)
     layout = (fields, msg.point_step, msg.is_bigendian)
+    if not 0 <= msg.point_step <= MAX_POINT_STEP or (msg.point_step == 0 and msg.width):
+        raise CloudError('point_step_invalid',
+                         f'point_step {msg.point_step} for width {msg.width} (1 to '
+                         f'{MAX_POINT_STEP} bytes)')
     dtype = entry[1].get(layout)
     if dtype is None:
         dtype = entry[1][layout] = _layout_dtype(msg, specs)

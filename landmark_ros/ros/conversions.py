@@ -3,6 +3,7 @@
 import math
 
 from landmark_ros.core.covariance import COVARIANCE_PROBLEMS, covariance_status
+from landmark_ros.pipeline.limits import odometry_pose_missing
 import numpy as np
 
 
@@ -121,7 +122,9 @@ def pose_from_odometry(msg, world_frame, base_frame=''):
 
     The pose part is read with every check of ``pose_from_msg`` (its header frame must
     be ``world_frame``, its 6x6 row-major covariance gives the (x, y, yaw) block); the
-    twist is ignored.
+    twist is ignored. A message whose pose is the origin with an all-zero covariance
+    carries no pose (twist-only odometry, e.g. wheel encoders): it is refused as
+    ``odometry_pose_missing`` instead of being taken as an exact pose at the origin.
 
     Parameters
     ----------
@@ -140,10 +143,15 @@ def pose_from_odometry(msg, world_frame, base_frame=''):
     Raises
     ------
     InputError
-        ``pose_wrong_child_frame``, or any reason of ``pose_from_msg``.
+        ``pose_wrong_child_frame``, ``odometry_pose_missing``, or any reason of
+        ``pose_from_msg``.
 
     """
     pose, P_pose = pose_from_msg(msg, world_frame)
+    if odometry_pose_missing(pose, np.asarray(msg.pose.covariance, dtype=np.float64)):
+        raise InputError('odometry_pose_missing',
+                         'odometry with a zero pose and a zero pose covariance (twist only): '
+                         'not a pose; use a pose source (a localizer, a fused odometry)')
     if base_frame and msg.child_frame_id != base_frame:
         raise InputError('pose_wrong_child_frame',
                          f"odometry of frame '{msg.child_frame_id}', expected '{base_frame}'")

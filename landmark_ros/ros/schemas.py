@@ -2,7 +2,10 @@
 The PointCloud2 schemas of the package's topics, with writers and readers.
 
 ``observations`` (into ``landmark_observer``): ``id`` (any integer type; absent or
-``UNKNOWN_ID`` = 4294967295: a row without an ID), ``range`` [m], ``bearing`` [rad]
+``UNKNOWN_ID`` = 4294967295: a row without an ID; IDs from the fuser's
+``first_new_id`` (1000000000) up are reserved for landmarks it finds without an ID and
+are rejected at the fuser as ``id_reserved``, the range kept in its map file),
+``range`` [m], ``bearing`` [rad]
 (FLOAT32 or FLOAT64), optional ``class`` (any integer type), ``range_variance``,
 ``bearing_variance``, ``range_bearing_covariance``.
 

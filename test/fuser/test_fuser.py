@@ -201,11 +201,13 @@ def saved_map(tmp_path, rng):
     ('id', 1.5, 'is not an integer in'),
     ('id', True, 'is not an integer in'),
     ('covariance', [[-1.0, 0.0], [0.0, -1.0]], 'covariance_not_psd'),
+    ('covariance', [[4.4e-201, 0.0], [0.0, 4.4e-201]], 'covariance_too_small'),
     ('mean', [0.0, 'x'], 'could not convert'),
+    ('mean', [1e17, 0.0], 'landmark_out_of_range'),
     ('covariance_dependent', [[1.0, 0.0], [0.0, 1.0]], 'dependent_part_invalid'),
     ('mean', [1.0], 'cannot reshape'),
 ])
-def test_bad_record_moves_the_file_aside_and_names_the_record(
+def test_a_bad_record_is_quarantined_and_the_others_kept(
         tmp_path, rng, caplog, field, value, reason):
     path, document = saved_map(tmp_path, rng)
     document['landmarks'][1][field] = value
@@ -215,17 +217,55 @@ def test_bad_record_moves_the_file_aside_and_names_the_record(
     fuser = Fuser(FuserConfig(map_file=path), SOURCES, logger)
     with caplog.at_level(logging.ERROR, 'fuser-test'):
         fuser.load()
-    assert len(fuser.map) == 0 and fuser.counters['map_file_rejected'] == 1
-    assert 'landmark record 1' in caplog.text and reason in caplog.text
-    assert len(list(tmp_path.glob('map.json.bad-*'))) == 1
-    assert not (tmp_path / 'map.json').exists()
+    assert sorted(fuser.snapshot()[0].tolist()) == [0, 2]
+    assert fuser.counters['map_records_rejected'] == 1
+    assert fuser.counters['map_file_rejected'] == 0
+    assert 'landmarks record 1' in caplog.text and reason in caplog.text
+    quarantined, = tmp_path.glob('map.json.quarantine-*.json')
+    rejected = json.loads(quarantined.read_text())['rejected']
+    assert [(r['section'], r['index']) for r in rejected] == [('landmarks', 1)]
+    assert (tmp_path / 'map.json').exists() and not list(tmp_path.glob('map.json.bad-*'))
+
+
+@pytest.mark.parametrize('section, value', [
+    ('next_id', 'many'), ('tracks', {'tentative': 'x'}), ('waiting_views', [{'id': 'x'}])])
+def test_a_bad_section_is_quarantined_and_the_landmarks_kept(tmp_path, rng, section, value):
+    path, document = saved_map(tmp_path, rng)
+    document[section] = value
+    with open(path, 'w') as stream:
+        json.dump(document, stream)
+    fuser = Fuser(FuserConfig(map_file=path), SOURCES)
+    fuser.load()
+    assert sorted(fuser.snapshot()[0].tolist()) == [0, 1, 2]
+    assert fuser.counters['map_records_rejected'] == 1
+    assert fuser.tracker.next_id >= FuserConfig().first_new_id
+
+
+def test_a_labelled_row_in_the_reserved_range_never_takes_an_allocated_id(tmp_path, rng):
+    path = str(tmp_path / 'map.json')
+    fuser = Fuser(FuserConfig(map_file=path), SOURCES)
+    first = FuserConfig().first_new_id
+    _, m, P, P_dep = rows(3, rng)
+    fuser.add_landmarks(SOURCES[0], S, np.array([1, first, first + 1]), m, P, P_dep)
+    fuser.fuse_queued()
+    assert fuser.counters['id_reserved'] == 2
+    assert fuser.sources[SOURCES[0]].counts['id_reserved'] == 2
+    assert fuser.snapshot()[0].tolist() in ([], [1])
+    assert fuser.save()
+    # A restart with a higher first_new_id keeps the range the file was made with.
+    again = Fuser(FuserConfig(map_file=path, first_new_id=first + 10 ** 6), SOURCES)
+    again.load()
+    assert again.reserved_from == first
+    _, m, P, P_dep = rows(1, rng)
+    again.add_landmarks(SOURCES[1], S, np.array([first + 1]), m, P, P_dep)
+    assert again.counters['id_reserved'] == 1
 
 
 def test_check_records_takes_exactly_the_live_row_checks(tmp_path, rng):
     _, document = saved_map(tmp_path, rng)
     check_records(document['landmarks'])                  # a file the fuser wrote passes
     document['landmarks'][2]['mean'] = [0.0, float('nan')]
-    with pytest.raises(ValueError, match='record 2 .*landmark_nonfinite'):
+    with pytest.raises(ValueError, match='record 2: .*landmark_nonfinite'):
         check_records(document['landmarks'])
 
 

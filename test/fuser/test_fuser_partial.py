@@ -444,7 +444,7 @@ def test_waiting_partial_observations_survive_a_restart(tmp_path):
 @pytest.mark.parametrize('field, value', [
     ('kind', 3), ('variance', -1.0), ('value', 'x'), ('stamp_ns', 1.5), ('id', 2 ** 70),
     ('source', 4), ('sensor_cov_xx', -1.0)])
-def test_a_bad_waiting_partial_observation_moves_the_map_file_aside(tmp_path, field, value):
+def test_a_bad_waiting_partial_observation_is_quarantined_and_the_map_kept(tmp_path, field, value):
     path = str(tmp_path / 'map.json')
     f = fuser(map_file=path)
     f.add_landmarks(LANDMARKS[0], S, np.array([1]), np.array([[1.0, 2.0]]),
@@ -459,9 +459,10 @@ def test_a_bad_waiting_partial_observation_moves_the_map_file_aside(tmp_path, fi
         json.dump(document, stream)
     again = fuser(map_file=path, min_observations=1)
     again.load()
-    assert len(again.map) == 0 and not again.partial.waiting
-    assert again.counters['map_file_rejected'] == 1
-    assert len(list(tmp_path.glob('map.json.bad-*'))) == 1
+    assert len(again.map) == len(document['landmarks']) and not again.partial.waiting
+    assert again.counters['map_records_rejected'] == 1
+    assert again.counters['map_file_rejected'] == 0
+    assert len(list(tmp_path.glob('map.json.quarantine-*'))) == 1
 
 
 class _Warnings:
@@ -506,7 +507,7 @@ def test_a_map_file_with_the_deprecated_waiting_views_key_loads_with_a_warning(t
     assert 'waiting_views' not in saved and len(saved['waiting_partial_observations']) == 1
 
 
-def test_a_map_file_with_both_waiting_keys_is_moved_aside(tmp_path):
+def test_a_map_file_with_both_waiting_keys_quarantines_the_waiting_section(tmp_path):
     path = str(tmp_path / 'map.json')
     document = _saved_with_a_waiting_observation(path)
     document['waiting_views'] = document['waiting_partial_observations']
@@ -514,7 +515,10 @@ def test_a_map_file_with_both_waiting_keys_is_moved_aside(tmp_path):
         json.dump(document, stream)
     again = fuser(map_file=path)
     again.load()
-    assert not again.partial.waiting and again.counters['map_file_rejected'] == 1
+    assert not again.partial.waiting and again.counters['map_records_rejected'] == 1
+    assert again.counters['map_file_rejected'] == 0
+    assert len(again.map) == len(document['landmarks'])
+    assert len(list(tmp_path.glob('map.json.quarantine-*'))) == 1
 
 
 def test_the_deprecated_constraint_topics_parameter_still_names_the_partial_sources():

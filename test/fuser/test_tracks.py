@@ -173,32 +173,33 @@ def test_allocated_ids_persist_across_a_restart_and_never_collide(tmp_path, rng)
     config = FuserConfig(map_file=path, first_new_id=100)
     fuser = Fuser(config, SOURCES[:1])
     C = np.broadcast_to(1e-2 * np.eye(2), (1, 2, 2)).copy()
-    # A labelled landmark already holds 100: the allocator skips it.
+    # A labelled row may not take 100: IDs from first_new_id up are the allocator's.
     fuser.add_landmarks(SOURCES[0], S, [100], np.array([[50.0, 50.0]]), C, 0 * C)
     for k in range(2):
         fuser.add_landmarks(SOURCES[0], (k + 2) * S, [UNKNOWN_ID], np.array([[0.0, 0.0]]), C,
                             0 * C, classes=[4])
     fuser.add_landmarks(SOURCES[0], 5 * S, [UNKNOWN_ID], np.array([[9.0, 9.0]]), C, 0 * C)
     fuser.fuse_queued()
-    assert fuser.snapshot().ids.tolist() == [101]
+    assert fuser.counters['id_reserved'] == 1
+    assert fuser.snapshot().ids.tolist() == [100]
     assert fuser.save()
     document = json.load(open(path))
-    assert document['next_id'] == 103 and document['version'] == 1
+    assert document['next_id'] == 102 and document['version'] == 1
     assert [r['class'] for r in document['landmarks']] == [4]
 
     restarted = Fuser(config, SOURCES[:1])
     restarted.load()
-    assert restarted.tracker.next_id == 103
-    assert restarted.classes_of(np.array([101])).tolist() == [4]
+    assert restarted.tracker.next_id == 102
+    assert restarted.classes_of(np.array([100])).tolist() == [4]
     for k in range(2):
         restarted.add_landmarks(SOURCES[0], (k + 10) * S, [UNKNOWN_ID],
                                 np.array([[-7.0, 3.0]]), C, 0 * C)
-    # Of class 4, like landmark 101: associated with it.
+    # Of class 4, like landmark 100: associated with it.
     restarted.add_landmarks(SOURCES[0], 12 * S, [UNKNOWN_ID], np.array([[0.01, 0.0]]), C, 0 * C,
                             classes=[4])
     restarted.fuse_queued()
     ids, _, _, _, observations = restarted.snapshot()
-    assert ids.tolist() == [101, 103] and observations.tolist() == [3, 2]
+    assert ids.tolist() == [100, 102] and observations.tolist() == [3, 2]
 
 
 def test_labelled_rows_with_classes_fuse_exactly_as_before(rng):
@@ -369,7 +370,7 @@ def test_a_restart_resumes_tentative_tracks_and_merge_bookkeeping(tmp_path, rng)
     assert restarted.tracker.next_id == running.tracker.next_id
 
 
-def test_a_file_without_tracks_loads_and_a_bad_tracks_section_is_moved_aside(tmp_path, rng):
+def test_a_file_without_tracks_loads_and_a_bad_tracks_section_is_quarantined(tmp_path, rng):
     path = tmp_path / 'map.json'
     config = FuserConfig(min_observations=4, map_file=str(path))
     fuser = Fuser(config, SOURCES)
@@ -387,8 +388,28 @@ def test_a_file_without_tracks_loads_and_a_bad_tracks_section_is_moved_aside(tmp
     path.write_text(json.dumps(document))
     bad = Fuser(config, SOURCES)
     bad.load()
-    assert len(bad.map) == 0 and not bad.tracker.tentative
-    assert bad.counters.counts['map_file_rejected'] == 1 and not path.exists()
+    assert len(bad.map) == landmarks and not bad.tracker.tentative
+    assert bad.counters.counts['map_records_rejected'] == 1 and path.exists()
+    assert len(list(tmp_path.glob('map.json.quarantine-*'))) == 1
+
+
+def test_a_tentative_track_with_a_bad_row_is_dropped_alone(tmp_path, rng):
+    path = tmp_path / 'map.json'
+    config = FuserConfig(min_observations=4, map_file=str(path))
+    fuser = Fuser(config, SOURCES)
+    _feed_unlabelled(fuser, list(_unlabelled_messages(rng))[:13])
+    assert fuser.save()
+    document = json.loads(path.read_text())
+    tentative = document['tracks']['tentative']
+    good = dict(json.loads(json.dumps(tentative[0])), id=tentative[0]['id'] + 100)  # valid
+    tentative.append(good)
+    tentative[0]['rows'][0]['mean'] = [1e17, 0.0]
+    path.write_text(json.dumps(document))
+    again = Fuser(config, SOURCES)
+    again.load()
+    assert sorted(again.tracker.tentative) == sorted(t['id'] for t in tentative[1:])
+    assert again.tracker.rejected_tracks == [(tentative[0]['id'], ['landmark_out_of_range'])]
+    assert again.counters['map_records_rejected'] == 1
 
 
 def test_shard_of_position_numbers_the_cells():

@@ -112,7 +112,23 @@ def test_tiny_noise_with_an_exact_pose_never_leaves_the_observer(env):
     observer.obs_pub.publish(msg)
     assert env.spin_until(lambda: observer.landmarks.messages, DEADLINE_S)
     assert observer.landmarks.messages[0].width == 1                # landmark 8 only
-    assert observer.node.counters['result_covariance_too_small'] == 1
+    # 1e-200 is outside the plausible variances (pipeline.limits): refused as input.
+    assert observer.node.counters['noise_variance_out_of_range'] == 1
+
+
+def test_malformed_clouds_are_named_reasons_never_internal_error(env):
+    observer = ObserverRig(env, unique_namespace(env) + '/robot1')
+    observer.pose_pub.publish(pose_message(10.0, [1.0, 2.0, 0.5], np.eye(3) * 1e-3))
+    assert env.spin_until(lambda: observer.node.counters['poses_in'] == 1, DEADLINE_S)
+    zero_step = PointCloud2(width=3, height=1, point_step=0, row_step=0)
+    for msg in (PointCloud2(), zero_step):
+        msg.header = header(10.0, 'camera')
+        observer.obs_pub.publish(msg)
+    assert env.spin_until(lambda: observer.node.counters['point_step_invalid'] == 1
+                          and observer.node.counters['missing_field'] == 1, DEADLINE_S)
+    observer.obs_pub.publish(observation_message(header(10.0, 'camera'), [7], [[4.0, 0.7]]))
+    assert env.spin_until(lambda: observer.landmarks.messages, DEADLINE_S)
+    assert observer.node.counters['internal_error'] == 0
 
 
 # Stops under load ------------------------------------------------------------------------

@@ -533,7 +533,11 @@ BAD_ROWS = {
                                  (4, 3.0, 0.1, NAN, NAN, -0.5)],
     'noise_covariance_nonfinite': [(3, 3.0, 0.1, INF, NAN, NAN), (4, 3.0, 0.1, NAN, INF, NAN),
                                    (5, 3.0, 0.1, NAN, NAN, INF)],
-    'result_nonfinite': [(3, 1e200, 0.3, NAN, NAN, NAN)],
+    # Finite but implausible (pipeline.limits): refused before the maths.
+    'range_out_of_range': [(3, 1e200, 0.3, NAN, NAN, NAN)],
+    'bearing_out_of_range': [(3, 3.0, 1e17, NAN, NAN, NAN)],
+    'noise_variance_out_of_range': [(3, 3.0, 0.1, 1e-200, NAN, NAN),
+                                    (4, 3.0, 0.1, NAN, 1e13, NAN)],
 }
 
 

@@ -170,3 +170,16 @@ def test_pose_from_odometry_checks_the_child_frame_after_the_pose_checks():
     # The pose path and the odometry path read the same pose.
     same = PoseWithCovarianceStamped(header=odometry(1.0).header, pose=odometry(1.0).pose)
     np.testing.assert_array_equal(pose_from_msg(same, 'odom')[1], P_pose)
+
+
+def test_twist_only_odometry_is_refused_as_a_missing_pose():
+    msg = Odometry(header=header(1.0, 'odom'), child_frame_id='base_link')
+    msg.pose.pose.orientation.w = 1.0          # an identity pose, zero covariance
+    msg.twist.twist.linear.x = 0.5
+    with pytest.raises(InputError) as error:
+        pose_from_odometry(msg, 'odom', 'base_link')
+    assert error.value.reason == 'odometry_pose_missing'
+    # An exact pose elsewhere, or the origin with a covariance, is still a pose.
+    msg.pose.covariance = np.eye(6).ravel().tolist()
+    np.testing.assert_array_equal(pose_from_odometry(msg, 'odom', 'base_link')[0], 0.0)
+    pose_from_odometry(odometry(1.0, P_pose=np.zeros((3, 3))), 'odom', 'base_link')
