@@ -29,7 +29,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from landmark_ros.bag.params import load_config
 from landmark_ros.bag.salvage import salvage_mcap
-from landmark_ros.bag.storage import BagError, BagOutput, msgtype, one_line, open_bag
+from landmark_ros.bag.storage import BagError, BagOutput, msgtype, open_bag
 from landmark_ros.bag.storage import read_message, storage_of
 from landmark_ros.fuser.fuser import Fuser
 from landmark_ros.fuser.publishing import PublicationSchedule

@@ -17,7 +17,7 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 from landmark_ros.core.landmark_map import LandmarkMap, MapSnapshot, UpdateResult
 from landmark_ros.fuser import map_file
-from landmark_ros.fuser.partial import (NOT_PROBLEMS as PARTIAL_COUNTS, parse_waiting_records,
+from landmark_ros.fuser.partial import (NOT_PROBLEMS as PARTIAL_COUNTS,
                                         partial_row_problems, PartialFusion, views_from_columns)
 from landmark_ros.fuser.sources import LandmarkMessage, Queued, Source
 from landmark_ros.fuser.tracks import shard_of_position, Tracker

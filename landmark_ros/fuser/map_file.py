@@ -15,8 +15,8 @@ import os
 import tempfile
 from typing import Any, Dict, List, Mapping, NamedTuple, Optional, Sequence, Tuple
 
-from landmark_ros.pipeline.rows import landmark_row_problems, MAX_LABEL_ID
 from landmark_ros.fuser.partial import parse_waiting_records
+from landmark_ros.pipeline.rows import landmark_row_problems, MAX_LABEL_ID
 import numpy as np
 
 FORMAT = 'landmark_ros/map'

@@ -22,9 +22,9 @@ from landmark_ros.core.partial import (BEARING, GATED, Initialisation, initialis
                                        InitialiseParams, RANGE, TOO_CLOSE, update, UPDATED,
                                        Views)
 from landmark_ros.core.sensors import MIN_RANGE
+from landmark_ros.pipeline.limits import partial_problems
 from landmark_ros.pipeline.partial_rows import (PARTIAL_COLUMNS, PartialObservations,
                                                 sensor_covariance)
-from landmark_ros.pipeline.limits import partial_problems
 from landmark_ros.pipeline.rows import first_problems, landmark_row_problems, UNKNOWN_ID
 import numpy as np
 from numpy.typing import NDArray

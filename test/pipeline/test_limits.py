@@ -3,12 +3,12 @@
 from dataclasses import fields
 
 from landmark_ros.core.partial import BEARING, RANGE, Views
+from landmark_ros.fuser.partial import partial_row_problems
+from landmark_ros.observer.observer import ObservationMessage, Observer
 from landmark_ros.pipeline import limits
 from landmark_ros.pipeline.config import ObserverConfig
-from landmark_ros.observer.observer import ObservationMessage, Observer
-from landmark_ros.pipeline.rows import _landmark_row_problems, landmark_row_problems
-from landmark_ros.fuser.partial import partial_row_problems
 from landmark_ros.pipeline.partial_rows import PartialObservations
+from landmark_ros.pipeline.rows import _landmark_row_problems, landmark_row_problems
 import numpy as np
 import pytest
 
@@ -56,7 +56,8 @@ def constraint_columns(kind, y, R, theta=0.0):
     """Return two constraint rows; the second has ``y``, ``R`` and ``theta`` as sent."""
     views = Views(np.array([kind, kind]), np.zeros((2, 3)), np.zeros((2, 3, 3)),
                   np.array([1.0, 1.0]), np.array([0.01, 0.01]), np.zeros(2))
-    columns = PartialObservations(np.array([1, 2], np.int64), views, np.zeros(2, np.int64)).columns()
+    columns = PartialObservations(np.array([1, 2], np.int64), views,
+                                  np.zeros(2, np.int64)).columns()
     columns = {name: np.array(values) for name, values in columns.items()}
     columns['value'][1], columns['variance'][1], columns['sensor_theta'][1] = y, R, theta
     return columns

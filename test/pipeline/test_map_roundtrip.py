@@ -14,11 +14,11 @@ import json
 from hypothesis import given, HealthCheck, settings, strategies as st
 from landmark_ros.core.covariance import MAX_VARIANCE, MIN_VARIANCE
 from landmark_ros.core.partial import BEARING, RANGE, Views
-from landmark_ros.pipeline.config import FuserConfig
 from landmark_ros.fuser.fuser import Fuser
+from landmark_ros.pipeline.config import FuserConfig
+from landmark_ros.pipeline.partial_rows import PartialObservations
 from landmark_ros.pipeline.rows import UNKNOWN_ID
 from landmark_ros.pipeline.scan import Scan
-from landmark_ros.pipeline.partial_rows import PartialObservations
 import numpy as np
 import pytest
 
@@ -81,7 +81,8 @@ def test_whatever_the_live_path_saves_loads_back(tmp_path_factory, exponent, rep
     assert again.counters['map_file_rejected'] == 0
     for a, b in zip(again.snapshot(), fuser.snapshot(), strict=True):
         np.testing.assert_array_equal(a, b)
-    assert len(again.partial.waiting_records()) == len(document.get('waiting_partial_observations', []))
+    waiting = document.get('waiting_partial_observations', [])
+    assert len(again.partial.waiting_records()) == len(waiting)
     assert again.tracker.to_dict() == fuser.tracker.to_dict()
 
 
@@ -106,8 +107,8 @@ def test_the_issue_example_never_reaches_the_map_file(tmp_path):
     path = str(tmp_path / 'map.json')
     fuser = Fuser(FuserConfig(map_file=path), LANDMARKS, partial_sources=VIEWS)
     sensors = np.array([[0.0, 0.0, 0.0], [6.0, 0.0, 0.0]])
-    fuser.add_partial_observations(VIEWS[0], S, partial_columns([9, 9], [RANGE, RANGE], [5.0, 5.0],
-                                                       sensors, 1e-200))
+    fuser.add_partial_observations(VIEWS[0], S, partial_columns(
+        [9, 9], [RANGE, RANGE], [5.0, 5.0], sensors, 1e-200))
     fuser.fuse_queued()
     assert fuser.counters['variance_out_of_range'] == 2
     assert fuser.save()

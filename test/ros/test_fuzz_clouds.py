@@ -15,14 +15,14 @@ count as ``internal_error``) ever comes out.
 import os
 
 from hypothesis import given, HealthCheck, settings, strategies as st
-from landmark_ros.pipeline.config import FuserConfig, ObserverConfig
 from landmark_ros.fuser.fuser import Fuser
 from landmark_ros.observer.observer import ObservationMessage, Observer
+from landmark_ros.pipeline.config import FuserConfig, ObserverConfig
 from landmark_ros.ros.cloud import CloudError, read_columns
 from landmark_ros.ros.cloud_bytes import read_cloud_bytes
-from landmark_ros.ros.schemas import (CONSTRAINT_SCHEMA, LANDMARK_SCHEMA, OBSERVATION_FIELDS,
-                                      read_partial_observations, read_landmark_cloud,
-                                      read_landmark_clouds, read_removed, SCAN_FIELDS)
+from landmark_ros.ros.schemas import (LANDMARK_SCHEMA, OBSERVATION_FIELDS, PARTIAL_SCHEMA,
+                                      read_landmark_cloud, read_landmark_clouds,
+                                      read_partial_observations, read_removed, SCAN_FIELDS)
 import numpy as np
 import pytest
 from rclpy.serialization import serialize_message
@@ -34,7 +34,7 @@ FUZZ = settings(max_examples=EXAMPLES, deadline=None, derandomize=not RANDOM,
                 database=None, suppress_health_check=list(HealthCheck))
 
 NAMES = sorted({name for name, _ in LANDMARK_SCHEMA} | {s.name for s in OBSERVATION_FIELDS}
-               | {name for name, _ in CONSTRAINT_SCHEMA} | set(SCAN_FIELDS)
+               | {name for name, _ in PARTIAL_SCHEMA} | set(SCAN_FIELDS)
                | {'merged_into', 'observations', 'junk'})
 
 
