@@ -15,6 +15,10 @@ class LocalizerConfig(ConfigBase):
     odom_frame: str = param('odom', 'frame of the odometry (child of the map frame)',
                             read_only=True)
     base_frame: str = param('base_link', 'frame of the robot', read_only=True)
+    map_file: str = param('', "landmark map file (the fuser's map_file format) read at start; "
+                          "'' takes the map from fused_landmarks only", read_only=True)
+    input_depth: int = param(50, 'input queue depth', low=1, high=10000, read_only=True)
+    diagnostics_period_s: float = param(1.0, 'diagnostics period [s]', low=0.01)
     odometry_alphas: Tuple[float, float, float, float] = param(
         (0.01, 0.0005, 0.01, 0.0005),
         'odometry motion noise (Probabilistic Robotics 5.4) a1 [rad^2/rad^2], a2 '
