@@ -63,7 +63,9 @@ print(json.dumps({
 FORBIDDEN = ('rclpy', 'rcl', 'rcl_interfaces', 'rosidl*', '*_msgs', '*_srvs',
              '*_interfaces', 'rpyutils', 'ament_index_python', 'builtin_interfaces')
 
-ROS_FREE = ['landmark_ros.core', 'landmark_ros.pipeline', 'landmark_ros.sim',
+ROS_FREE = ['landmark_ros.core', 'landmark_ros.pipeline', 'landmark_ros.localizer',
+            'landmark_ros.sim', 'landmark_ros.mrclam.localize',
+            'landmark_ros.mrclam.localize_data', 'landmark_ros.mrclam.localize_cli',
             'landmark_ros.eval', 'landmark_ros.mrclam.data', 'landmark_ros.mrclam.config',
             'landmark_ros.mrclam.offline', 'landmark_ros.mrclam.calibrate',
             'landmark_ros.mrclam.report']

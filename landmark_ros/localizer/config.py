@@ -6,6 +6,7 @@ from typing import Tuple
 from landmark_ros.localizer.update import CORRELATIONS
 from landmark_ros.pipeline.config import ConfigBase, param
 
+
 @dataclass(frozen=True)
 class LocalizerConfig(ConfigBase):
     """Parameters of ``landmark_localizer`` and of ``localizer.Localizer``."""
@@ -35,6 +36,9 @@ class LocalizerConfig(ConfigBase):
     bearing_correlated_fraction: float = param(
         0.0, 'share of the bearing noise variance that is time-correlated', low=0.0,
         high=1.0)
+    noise_correlation_time_s: float = param(
+        0.0, 'correlation time of the time-correlated noise part [s]: the sightings of a '
+        'landmark within it share that part (0: none)', low=0.0)
     correlation: str = param(
         'split_ci', 'map-pose correlation: independent (plain EKF) or split_ci (consistent '
         'for any correlation of the map with the pose)')
@@ -55,9 +59,10 @@ class LocalizerConfig(ConfigBase):
     max_yaw_rate: float = param(6.0, 'a faster turn is a jump [rad/s]', low=0.0)
     jump_position_stddev: float = param(0.3, 'position noise added at a jump [m]', low=0.0)
     jump_heading_stddev: float = param(0.3, 'heading noise added at a jump [rad]', low=0.0)
-    initial_pose: Tuple[float, float, float] = param((0.0, 0.0, 0.0), 'pose at start (x [m], y [m], yaw [rad])')
-    initial_stddev: Tuple[float, float, float] = param((0.1, 0.1, 0.05),
-                                  'its standard deviations (x [m], y [m], yaw [rad])')
+    initial_pose: Tuple[float, float, float] = param(
+        (0.0, 0.0, 0.0), 'pose at start (x [m], y [m], yaw [rad])')
+    initial_stddev: Tuple[float, float, float] = param(
+        (0.1, 0.1, 0.05), 'its standard deviations (x [m], y [m], yaw [rad])')
     robot_stddev_floor: float = param(
         0.0, 'added to the position standard deviation of another robot [m] (its marker)',
         low=0.0)

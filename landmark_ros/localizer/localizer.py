@@ -82,6 +82,8 @@ class Batch:
     """Overrides the config's (``'split_ci'`` for other robots)."""
     label: str = 'rows'
     """Counter prefix: ``rows`` (landmarks) or ``robot_rows`` (other robots)."""
+    shared: Optional[NDArray[np.float64]] = None
+    """Per row, how many sightings share its time-correlated error (>= 1), shape (N,)."""
     result: Optional[UpdateResult] = None
 
 
@@ -137,6 +139,7 @@ class Localizer:
         self._nis: deque = deque(maxlen=config.nis_window)
         self._last_update_ns: Optional[int] = None
         self._gated_in_a_row = 0
+        self._sightings: dict = {}
 
     def configure(self, config: LocalizerConfig) -> None:
         """Take a new config (parameters changed at run time)."""
@@ -162,6 +165,7 @@ class Localizer:
         Parameters
         ----------
         ids : ndarray of int, shape (N,)
+            Landmark IDs.
         m : ndarray, shape (N, 2)
             Positions [m].
         P_m : ndarray, shape (N, 2, 2)
@@ -366,7 +370,7 @@ class Localizer:
             return 0
         k = index[keep]
         self._apply_at(Batch(int(stamp_ns), self._map_m[k], self._map_P[k], z[keep], R[keep],
-                             kind[keep]))
+                             kind[keep], shared=self._shared(int(stamp_ns), ids[keep])))
         return int(keep.sum())
 
     def add_robot_sighting(self, stamp_ns: int, z: NDArray[np.float64],
@@ -388,6 +392,32 @@ class Localizer:
         P_m = other.P[:2, :2] + np.eye(2) * self.config.robot_stddev_floor ** 2
         self._apply_at(Batch(int(stamp_ns), other.x[None, :2], P_m[None], z, R,
                              np.array([RANGE_BEARING]), 'split_ci', 'robot_rows'))
+
+    def _shared(self, stamp_ns, ids):
+        """
+        Return per row the sightings of its landmark within the correlation time.
+
+        The time-correlated part of the noise (``*_correlated_fraction``, correlation
+        time ``noise_correlation_time_s``) repeats across the sightings of a landmark
+        made within that time: n sightings that share one error carry the information
+        of one, so each counts with its correlated variance times n (the sightings of
+        the trailing correlation time, this one included). Without a correlation time
+        the count is 1. In steady state (a landmark seen at a steady rate) each
+        sighting weighs 1/n and the sightings of one correlation time weigh one; right
+        after a first encounter the k-th weighs 1/k, so the first n weigh the harmonic
+        sum H(n) (about 5 for 100): over-confident by that factor at most.
+        """
+        tau = int(self.config.noise_correlation_time_s * 1e9)
+        shared = np.ones(len(ids))
+        if tau <= 0:
+            return shared
+        for row, landmark in enumerate(ids.tolist()):
+            seen = self._sightings.setdefault(landmark, deque())
+            seen.append(stamp_ns)
+            while seen and seen[0] <= stamp_ns - tau:
+                seen.popleft()
+            shared[row] = sum(1 for t in seen if t <= stamp_ns)
+        return shared
 
     def sensor_noise(self, z: NDArray[np.float64]) -> NDArray[np.float64]:
         """Return the config's noise of observations ``z`` (N, 2), shape (N, 2, 2)."""
@@ -456,9 +486,10 @@ class Localizer:
 
     def _update(self, x, P, batch):
         try:
-            result = update(x, P, batch.m, batch.P_m, batch.z, batch.R * self._white,
-                            batch.kind, self.settings, batch.correlation,
-                            batch.R * self._correlated)
+            shared = 1.0 if batch.shared is None else batch.shared[:, None, None]
+            R = batch.R * (self._white + self._correlated * shared)
+            result = update(x, P, batch.m, batch.P_m, batch.z, R, batch.kind, self.settings,
+                            batch.correlation)
         except ValueError as error:
             self.counters.add('update_failed', len(batch.z), detail=str(error))
             return x, P

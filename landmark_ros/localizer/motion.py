@@ -207,6 +207,7 @@ def odometry_noise_terms(deltas: NDArray[np.float64]) -> NDArray[np.float64]:
     Parameters
     ----------
     deltas : ndarray, shape (N, 3)
+        Motions ``(dx, dy, dtheta)``.
 
     Returns
     -------

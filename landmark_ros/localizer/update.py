@@ -134,7 +134,8 @@ def _row_gate(x, P, m, P_m, z, R, kind, settings):
     d2 = np.empty(len(z))
     full = kind == RANGE_BEARING
     if full.any():
-        d2[full] = np.einsum('ni,ni->n', nu[full], np.linalg.solve(S[full], nu[full][..., None])[..., 0])
+        solved = np.linalg.solve(S[full], nu[full][..., None])[..., 0]
+        d2[full] = np.einsum('ni,ni->n', nu[full], solved)
     for k, c in ((RANGE, 0), (BEARING, 1)):
         sel = kind == k
         if sel.any():
@@ -202,8 +203,7 @@ def split_ci_weight(P: NDArray[np.float64], H: NDArray[np.float64], R_s: NDArray
 def update(x: NDArray[np.float64], P: NDArray[np.float64], m: NDArray[np.float64],
            P_m: NDArray[np.float64], z: NDArray[np.float64], R: NDArray[np.float64],
            kind: NDArray[np.int64], settings: UpdateSettings,
-           correlation: Optional[str] = None,
-           R_dep: Optional[NDArray[np.float64]] = None) -> UpdateResult:
+           correlation: Optional[str] = None) -> UpdateResult:
     """
     Update the pose from N landmark sightings: gate each row, then one (iterated) update.
 
@@ -225,13 +225,9 @@ def update(x: NDArray[np.float64], P: NDArray[np.float64], m: NDArray[np.float64
     kind : ndarray of int, shape (N,)
         ``RANGE_BEARING``, ``RANGE`` or ``BEARING`` per row.
     settings : UpdateSettings
+        Gates, correlation and iteration (``LocalizerConfig``).
     correlation : str, optional
         Overrides ``settings.correlation``.
-    R_dep : ndarray, shape (N, 2, 2), optional
-        The time-correlated part of the sensor noise (slowly varying errors that
-        repeat from one sighting to the next): with ``split_ci`` it joins the map term
-        (unknown correlation with the pose, which earlier sightings made), with
-        ``independent`` it is added to ``R``.
 
     Returns
     -------
@@ -243,14 +239,9 @@ def update(x: NDArray[np.float64], P: NDArray[np.float64], m: NDArray[np.float64
         If a landmark is closer than ``sensors.MIN_RANGE`` to the pose.
 
     """
-    n = len(z)
     correlation = correlation or settings.correlation
     z = np.where(np.isfinite(z), z, 0.0)
-    if R_dep is not None:
-        if correlation != 'split_ci':
-            R, R_dep = R + R_dep, None
-    d2, passed = _row_gate(x, P, m, P_m, z, R if R_dep is None else R + R_dep, kind,
-                           settings)
+    d2, passed = _row_gate(x, P, m, P_m, z, R, kind, settings)
     used = passed.copy()
     if not used.any():
         return UpdateResult(x, P, used, ~passed, math.nan, 0, 1.0, 0)
@@ -259,8 +250,6 @@ def update(x: NDArray[np.float64], P: NDArray[np.float64], m: NDArray[np.float64
     rows_g = idx[rows]
     _, J_z_m = sensors.observe_jacobians(x, m[idx])
     M_rows = J_z_m @ P_m[idx] @ J_z_m.transpose(0, 2, 1)
-    if R_dep is not None:
-        M_rows = M_rows + R_dep[idx]
     R_s, M_s = _blocks(R[idx], rows, comps), _blocks(M_rows, rows, comps)
     z_s = z[rows_g, comps]
     h0, H0 = _stack(x, m, rows_g, comps)

@@ -109,9 +109,11 @@ def run(dataset, extras, config, the_map=None, cooperative=False, delay_s=0.0,
     Parameters
     ----------
     dataset : mrclam.data.Dataset
+        The loaded dataset (sightings, ground truth).
     extras : dict
         ``localize_data.RobotExtras`` by robot number.
     config : LocalizerConfig
+        The localizer parameters (every robot the same).
     the_map : tuple (ids, m, P_m), optional
         None: dead reckoning (no sightings).
     cooperative : bool

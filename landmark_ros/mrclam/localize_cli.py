@@ -92,4 +92,3 @@ def calibrate(args, dataset, document):
         document['odometry_calibration'] = result
         write_json(args.json, document)
     return 0
-

@@ -91,8 +91,8 @@ def _windows(extras, robot, window_s, delay_s=0.0):
         c0, s0 = math.cos(poses[start, 2]), math.sin(poses[start, 2])
         rot = np.array([[c0, s0, 0.0], [-s0, c0, 0.0], [0.0, 0.0, 1.0]])
         Ps = rot @ Ps @ rot.T
-        error = motion.between(poses[start], poses[end]) - motion.between(truth[start],
-                                                                           truth[end])
+        error = (motion.between(poses[start], poses[end])
+                 - motion.between(truth[start], truth[end]))
         error[2] = motion.wrap(error[2])
         yield error, Ps
         start = end

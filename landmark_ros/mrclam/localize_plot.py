@@ -16,7 +16,9 @@ def plot_run(path, dataset, tracks, title, ellipse_every_s=20.0):
     dataset : mrclam.data.Dataset
         For the true landmarks.
     tracks : list of mrclam.localize.Track
+        One per robot: estimates and truth at the odometry stamps.
     title : str
+        Figure title.
     ellipse_every_s : float
         Time between two drawn 2-sigma ellipses [s].
 

@@ -24,6 +24,7 @@ def odometry_motion(msg, previous, odom_frame):
     Parameters
     ----------
     msg : nav_msgs.msg.Odometry
+        The message.
     previous : tuple (stamp_ns, bool) or None
         The previous message's stamp and whether it held a pose.
     odom_frame : str
