@@ -311,3 +311,21 @@ def test_correlated_noise_sharing_makes_repeated_biased_sightings_honest():
     # over-confident by that harmonic sum (documented in Localizer._shared).
     assert final_nees(0.0) > 8.0 * final_nees(8.0)
     assert final_nees(8.0) < 6.8 * 5.2 * 1.2
+
+
+def test_simulated_wheel_odometry_follows_the_documented_model():
+    from landmark_ros.sim.odometry import wheel_odometry
+    alphas = (0.05, 0.5, 0.05, 0.01)
+    truth = np.array([[0.0, 0.0, 0.0], [0.2, 0.05, 0.3]])
+    generator = np.random.default_rng(7)
+    steps = np.array([wheel_odometry(truth, alphas, generator)[1] for _ in range(4000)])
+    e = steps - truth[1]
+    e[:, 2] = (e[:, 2] + math.pi) % (2 * math.pi) - math.pi
+    Q = motion.odometry_noise(motion.between(truth[0], truth[1]), alphas)
+    np.testing.assert_allclose(np.cov(e.T), Q, rtol=0.15, atol=2e-5)
+
+
+def test_monte_carlo_pose_nees_is_near_three():
+    from landmark_ros.eval.localization_montecarlo import run_seed
+    means = [run_seed(seed, duration_s=20.0)[0] for seed in range(3)]
+    assert 2.0 < np.mean(means) < 4.0, means
