@@ -51,3 +51,33 @@ def wheel_odometry(true_poses, alphas, generator):
         step = np.array([trans * math.cos(rot1), trans * math.sin(rot1), rot1 + rot2])
         odom[k] = motion.compose(odom[k - 1], step)
     return odom
+
+
+class WheelOdometry:
+    """
+    Wheel odometry of one robot, one true pose at a time (``wheel_odometry`` step by step).
+
+    Parameters
+    ----------
+    alphas : sequence of 4 float
+        The odometry model's parameters.
+    generator : numpy.random.Generator
+        Source of the errors.
+
+    """
+
+    def __init__(self, alphas, generator):
+        self.alphas = tuple(alphas)
+        self.generator = generator
+        self._true = None
+        self.pose = np.zeros(3)
+
+    def step(self, true_pose):
+        """Move to ``true_pose`` (3,); return the odometry pose (3,), the first the origin."""
+        true_pose = np.asarray(true_pose, dtype=np.float64)
+        if self._true is not None:
+            pair = np.stack([self._true, true_pose])
+            step = wheel_odometry(pair, self.alphas, self.generator)[1]
+            self.pose = motion.compose(self.pose, step)
+        self._true = true_pose
+        return self.pose.copy()
