@@ -374,7 +374,8 @@ class Localizer:
         return int(keep.sum())
 
     def add_robot_sighting(self, stamp_ns: int, z: NDArray[np.float64],
-                           other: Estimate, R: Optional[NDArray[np.float64]] = None) -> None:
+                           other: Estimate, R: Optional[NDArray[np.float64]] = None,
+                           other_id: Optional[str] = None) -> None:
         """
         Apply a range-bearing sighting of another robot whose estimate is ``other``.
 
@@ -382,7 +383,8 @@ class Localizer:
         ``robot_stddev_floor``) act as a landmark of unknown correlation with this pose:
         the split-CI update, whatever the config's ``correlation``. ``other`` should be
         the other's published estimate at ``stamp_ns`` (counted ``robot_stale`` and
-        skipped if it is more than 0.1 s away).
+        skipped if it is more than 0.1 s away). ``other_id`` names the other robot: its
+        sightings share the time-correlated noise as a landmark's do.
         """
         if abs(other.stamp_ns - stamp_ns) > 100_000_000:
             self.counters.add('robot_stale', detail='other robot pose far from the sighting')
@@ -390,8 +392,9 @@ class Localizer:
         z = np.asarray(z, dtype=np.float64).reshape(1, 2)
         R = self.sensor_noise(z) if R is None else np.asarray(R).reshape(1, 2, 2)
         P_m = other.P[:2, :2] + np.eye(2) * self.config.robot_stddev_floor ** 2
+        shared = None if other_id is None else self._shared(int(stamp_ns), [('robot', other_id)])
         self._apply_at(Batch(int(stamp_ns), other.x[None, :2], P_m[None], z, R,
-                             np.array([RANGE_BEARING]), 'split_ci', 'robot_rows'))
+                             np.array([RANGE_BEARING]), 'split_ci', 'robot_rows', shared))
 
     def _shared(self, stamp_ns, ids):
         """
@@ -411,7 +414,7 @@ class Localizer:
         shared = np.ones(len(ids))
         if tau <= 0:
             return shared
-        for row, landmark in enumerate(ids.tolist()):
+        for row, landmark in enumerate(ids.tolist() if hasattr(ids, 'tolist') else ids):
             seen = self._sightings.setdefault(landmark, deque())
             seen.append(stamp_ns)
             while seen and seen[0] <= stamp_ns - tau:

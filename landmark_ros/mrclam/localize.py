@@ -156,7 +156,8 @@ def run(dataset, extras, config, the_map=None, cooperative=False, delay_s=0.0,
             j = number_to_index.get(int(ex.sighting_robot[k]))
             other = None if j is None else locs[j].pose_at(stamps[e])
             if other is not None:
-                loc.add_robot_sighting(stamps[e], ex.sighting_z[k], other)
+                loc.add_robot_sighting(stamps[e], ex.sighting_z[k], other,
+                                       other_id=robots[j].name)
         if progress is not None and e % step == 0:
             progress(e / len(t))
     return [_track(r, rec, loc) for r, rec, loc in zip(robots, records, locs)]

@@ -329,3 +329,32 @@ def test_monte_carlo_pose_nees_is_near_three():
     from landmark_ros.eval.localization_montecarlo import run_seed
     means = [run_seed(seed, duration_s=20.0)[0] for seed in range(3)]
     assert 2.0 < np.mean(means) < 4.0, means
+
+
+def test_a_sighting_of_a_well_localized_robot_helps_and_stays_consistent():
+    from landmark_ros.localizer.localizer import Estimate
+    rng = np.random.default_rng(9)
+    P = np.diag([0.5, 0.5, 0.01])
+    nees, shrink = [], []
+    for _ in range(200):
+        true = np.array([1.0, 2.0, 0.3])
+        other_true = np.array([4.0, 3.0, 0.0])
+        P_other = np.diag([0.01, 0.01, 0.001])
+        other = Estimate(0, other_true + rng.multivariate_normal(np.zeros(3), P_other),
+                         P_other)
+        loc = Localizer(LocalizerConfig(range_stddev=0.05, range_stddev_per_m=0.0,
+                                        bearing_stddev=0.01))
+        loc.initialize(0, true + rng.multivariate_normal(np.zeros(3), P), P)
+        loc.add_odometry(0, twist=np.zeros(2))
+        z = sensors.observe(true[None], other_true[None, :2])[0] + rng.normal(0, [0.05, 0.01])
+        loc.add_robot_sighting(0, z, other, other_id='robot2')
+        est = loc.estimate()
+        e = est.x - true
+        nees.append(e @ np.linalg.solve(est.P, e))
+        shrink.append(np.trace(est.P[:2, :2]) / np.trace(P[:2, :2]))
+    assert loc.counters['robot_rows_used'] == 1
+    assert np.mean(shrink) < 0.7
+    assert np.mean(nees) < 3.6
+    stale = Estimate(10**9, other_true, P_other)
+    loc.add_robot_sighting(0, z, stale)
+    assert loc.counters['robot_stale'] == 1
