@@ -35,7 +35,7 @@ unknown correlation:
     P1 = P / w,   P2 = R + M / (1 - w),   M = J_z_m P_m J_z_m^T (block diagonal)
 
 followed by the Kalman update of ``(x, P1)`` with the measurement of noise ``P2``;
-``w`` in (0, 1) minimises the determinant of the updated covariance (golden section).
+``w`` in (0, 1) minimises the determinant of the updated covariance (nested grids).
 For any joint covariance of ``x`` and ``m`` with those marginals, ``P1 + P2``-based
 bounds hold (the CI inequality), so the result is an upper bound of the true
 covariance. With a precise map (``M`` small against ``J P J^T``) the weight goes to 1
@@ -65,9 +65,6 @@ RANGE_BEARING, RANGE, BEARING = 0, 1, 2
 
 CORRELATIONS = ('independent', 'split_ci')
 """How the map's errors relate to the pose's (module docstring)."""
-
-_GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
-
 
 @dataclass
 class UpdateResult:
@@ -158,18 +155,24 @@ def _blocks(M_rows, rows, comps):
     return np.where(same, M_rows[rows[:, None], comps[:, None], comps[None, :]], 0.0)
 
 
-def _posterior_logdet(P_inv, H, R_s, M_s, w):
-    info = w * P_inv + H.T @ np.linalg.solve(R_s + M_s / (1.0 - w), H)
+def _posterior_logdets(P_inv, H, R_s, M_s, w):
+    """Return ``-log det`` of the information after the update, for each weight ``w`` (K,)."""
+    W = w[:, None, None]
+    A = R_s[None] + M_s[None] / (1.0 - W)
+    info = W * P_inv[None] + H.T[None] @ np.linalg.solve(A, np.broadcast_to(H, A.shape[:1]
+                                                                             + H.shape))
     return -np.linalg.slogdet(info)[1]
 
 
 def split_ci_weight(P: NDArray[np.float64], H: NDArray[np.float64], R_s: NDArray[np.float64],
-                    M_s: NDArray[np.float64], iterations: int = 28) -> float:
+                    M_s: NDArray[np.float64], points: int = 16, rounds: int = 3) -> float:
     """
     Return the split-CI weight ``w`` of the pose prior (module docstring).
 
-    Golden-section search of ``log det`` of the updated covariance over ``w`` in
-    ``[1e-4, 1 - 1e-6]``; ``M_s`` near zero gives ``w`` near 1.
+    Minimises ``log det`` of the updated covariance over ``w`` in ``(0, 1)``: a grid of
+    ``points`` weights (evenly spaced in ``log(w / (1 - w))`` from -9 to 14), then
+    ``rounds`` finer grids between the neighbours of the best, each evaluated in one
+    batched call. ``M_s`` near zero gives ``w`` near 1.
 
     Parameters
     ----------
@@ -179,25 +182,20 @@ def split_ci_weight(P: NDArray[np.float64], H: NDArray[np.float64], R_s: NDArray
         ``J_z_x`` of the stacked components.
     R_s, M_s : ndarray, shape (k, k)
         Sensor noise and map term of the stacked components.
-    iterations : int
-        Golden-section steps (the bracket shrinks by 0.618 per step).
+    points : int
+        Weights per grid.
+    rounds : int
+        Refinements after the first grid.
 
     """
-    lo, hi = 1e-4, 1.0 - 1e-6
-    P = np.linalg.inv(P)  # the search works on the information form
-    a = hi - _GOLDEN * (hi - lo)
-    b = lo + _GOLDEN * (hi - lo)
-    fa, fb = _posterior_logdet(P, H, R_s, M_s, a), _posterior_logdet(P, H, R_s, M_s, b)
-    for _ in range(iterations):
-        if fa <= fb:
-            hi, b, fb = b, a, fa
-            a = hi - _GOLDEN * (hi - lo)
-            fa = _posterior_logdet(P, H, R_s, M_s, a)
-        else:
-            lo, a, fa = a, b, fb
-            b = lo + _GOLDEN * (hi - lo)
-            fb = _posterior_logdet(P, H, R_s, M_s, b)
-    return 0.5 * (lo + hi)
+    P_inv = np.linalg.inv(P)
+    logits = np.linspace(-9.0, 14.0, points)
+    for _ in range(rounds + 1):
+        w = 1.0 / (1.0 + np.exp(-logits))
+        best = int(np.argmin(_posterior_logdets(P_inv, H, R_s, M_s, w)))
+        low, high = logits[max(best - 1, 0)], logits[min(best + 1, points - 1)]
+        logits = np.linspace(low, high, points)
+    return float(w[best])
 
 
 def update(x: NDArray[np.float64], P: NDArray[np.float64], m: NDArray[np.float64],
