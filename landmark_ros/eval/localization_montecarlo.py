@@ -1,5 +1,5 @@
 """
-Monte Carlo of the localizer on simulated worlds: is the pose NEES inside its interval?
+Monte Carlo of the localizer on simulated worlds: the pose NEES and its interval.
 
 Each seed draws a world (``sim.simulation.generate_world``: 15 landmarks in 20 m), one
 loop path at 0.5 m/s (``make_paths``), wheel odometry at 50 Hz with the odometry model's

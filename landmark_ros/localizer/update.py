@@ -66,6 +66,7 @@ RANGE_BEARING, RANGE, BEARING = 0, 1, 2
 CORRELATIONS = ('independent', 'split_ci')
 """How the map's errors relate to the pose's (module docstring)."""
 
+
 @dataclass
 class UpdateResult:
     """What one update did."""
@@ -159,8 +160,8 @@ def _posterior_logdets(P_inv, H, R_s, M_s, w):
     """Return ``-log det`` of the information after the update, for each weight ``w`` (K,)."""
     W = w[:, None, None]
     A = R_s[None] + M_s[None] / (1.0 - W)
-    info = W * P_inv[None] + H.T[None] @ np.linalg.solve(A, np.broadcast_to(H, A.shape[:1]
-                                                                             + H.shape))
+    H_k = np.broadcast_to(H, (len(w),) + H.shape)
+    info = W * P_inv[None] + H.T[None] @ np.linalg.solve(A, H_k)
     return -np.linalg.slogdet(info)[1]
 
 
