@@ -358,3 +358,10 @@ def test_a_sighting_of_a_well_localized_robot_helps_and_stays_consistent():
     stale = Estimate(10**9, other_true, P_other)
     loc.add_robot_sighting(0, z, stale)
     assert loc.counters['robot_stale'] == 1
+
+
+def test_docs_list_every_parameter_with_its_default():
+    from pathlib import Path
+    from landmark_ros.pipeline.config import markdown_table
+    docs = Path(__file__).resolve().parents[2] / 'docs' / 'localization.md'
+    assert markdown_table(LocalizerConfig) in docs.read_text()
