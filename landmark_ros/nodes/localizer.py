@@ -6,7 +6,9 @@ the twist when the pose is not maintained), ``observations`` (the observer's clo
 ``id``, ``range``, ``bearing`` and optional noise fields; a row with one of range or
 bearing is a partial observation), ``fused_landmarks`` (the fuser's latched map; or the
 ``map_file`` parameter) and ``initialpose`` (PoseWithCovarianceStamped, as RViz's 2D
-Pose Estimate sends). Publishes ``pose`` (PoseWithCovarianceStamped in the map frame, one
+Pose Estimate sends), and with ``other_robots`` each one's ``pose`` and
+``robot_observations`` (the observation schema, ``id`` = index into ``other_robots``):
+cooperative updates from the other's published pose and covariance (split CI). Publishes ``pose`` (PoseWithCovarianceStamped in the map frame, one
 per odometry message: what ``landmark_observer`` takes), ``odom_to_map`` (the map-to-odom
 correction, geometry_msgs/TransformStamped) and ``/diagnostics``. The node only converts
 messages: the work is ``landmark_ros.localizer.localizer.Localizer``.
@@ -17,7 +19,7 @@ import sys
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseWithCovarianceStamped, TransformStamped
 from landmark_ros.localizer.config import LocalizerConfig
-from landmark_ros.localizer.localizer import Localizer
+from landmark_ros.localizer.localizer import Estimate, Localizer
 from landmark_ros.pipeline import map_file
 from landmark_ros.ros import diagnostics, guard, qos, runner
 from landmark_ros.ros.cloud import CloudError, read_columns
@@ -52,6 +54,16 @@ class LandmarkLocalizer(Node):
                                  qos.LATCHED)
         self.create_subscription(PoseWithCovarianceStamped, 'initialpose',
                                  self._guard(self.on_initial_pose), qos.reliable_input(10))
+        self._others = {}
+        for index, name in enumerate(n for n in config.other_robots if n):
+            self.create_subscription(
+                PoseWithCovarianceStamped, f'{name.rstrip("/")}/pose',
+                self._guard(lambda msg, i=index: self._others.__setitem__(i, msg)),
+                qos.sensor_input(depth))
+        if any(config.other_robots):
+            self.create_subscription(PointCloud2, 'robot_observations',
+                                     self._guard(self.on_robot_observations),
+                                     qos.sensor_input(depth))
         self.pose_pub = self.create_publisher(PoseWithCovarianceStamped, 'pose',
                                               qos.reliable_output(depth))
         self.correction_pub = self.create_publisher(TransformStamped, 'odom_to_map',
@@ -116,6 +128,29 @@ class LandmarkLocalizer(Node):
         if good.any():
             self.localizer.add_observations(stamp_ns(msg.header.stamp), ids[good], z[good],
                                             kind[good], None if R is None else R[good])
+
+    def on_robot_observations(self, msg):
+        """Apply sightings of other robots with their latest published pose."""
+        try:
+            ids, z, kind, R = observation_rows(read_columns(msg, OBSERVATION_FIELDS))
+        except CloudError as error:
+            self.localizer.counters.add(error.reason, detail=f'robot sightings dropped: {error}')
+            return
+        stamp = stamp_ns(msg.header.stamp)
+        for row, index in enumerate(ids.tolist()):
+            other = self._others.get(index)
+            if other is None or kind[row] != 0:
+                self.localizer.counters.add('robot_rows_unusable', detail='no pose of that '
+                                            'robot yet, or not a range-bearing row')
+                continue
+            try:
+                x, P = initial_pose(other, self.config.map_frame)
+            except InputError as error:
+                self.localizer.counters.add(error.reason, detail=error.detail)
+                continue
+            self.localizer.add_robot_sighting(
+                stamp, z[row], Estimate(stamp_ns(other.header.stamp), x, P),
+                None if R is None else R[row], other_id=str(index))
 
     def on_map(self, msg):
         """Replace the map with the fuser's latest."""

@@ -154,3 +154,33 @@ def test_initialpose_restarts_the_filter(rig):
     rig.odometry(T0 + 0.2)
     rig.wait(lambda: len(rig.poses.messages) >= 1)
     assert rig.poses.messages[-1].pose.pose.position.x == pytest.approx(3.0)
+
+
+def test_cooperative_sighting_over_topics():
+    rig = Rig(initial_pose=[0.0, 0.0, 0.0], initial_stddev=[0.5, 0.5, 0.05],
+              other_robots=['/robot2'])
+    try:
+        t = rig.env.nodes[1]
+        other_pub = t.create_publisher(PoseWithCovarianceStamped, '/robot2/pose', 10)
+        robot_obs_pub = t.create_publisher(PointCloud2, 'robot_observations', 10)
+        assert wait_for_match(rig.env, [other_pub, robot_obs_pub])
+        rig.odometry(T0)
+        rig.odometry(T0 + 0.1)
+        other = PoseWithCovarianceStamped()
+        other.header = header(T0 + 0.1, 'map')
+        other.pose.pose.position.x, other.pose.pose.position.y = 3.0, 1.0
+        other.pose.pose.orientation.w = 1.0
+        cov = np.zeros(36)
+        cov[0] = cov[7] = 1e-4
+        cov[35] = 1e-4
+        other.pose.covariance = cov.tolist()
+        other_pub.publish(other)
+        rig.wait(lambda: 0 in rig.node._others)
+        z = sensors.observe(np.zeros((1, 3)), np.array([[3.0, 1.0]]))
+        robot_obs_pub.publish(observation_message(header(T0 + 0.1, 'base_link'),
+                                                  np.array([0]), z))
+        rig.wait(lambda: rig.counters['robot_rows_used'] == 1)
+        P = rig.node.localizer.estimate().P
+        assert P[0, 0] + P[1, 1] < 0.5 * 2 * 0.25
+    finally:
+        rig.close()
