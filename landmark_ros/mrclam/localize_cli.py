@@ -5,8 +5,9 @@ The ``--localize`` and ``--calibrate-odometry`` modes of ``landmark_mrclam``.
 params file (``config/mrclam.yaml``: the calibrated sensor and odometry models) and the
 odometry delay of its ``landmark_mrclam`` section; prints the per-robot table and which
 of the issue's targets hold; ``--json`` gains ``localization`` (one entry per map and
-mode; dead reckoning first as the floor), ``--plot FILE`` draws one picture per run
-(``FILE`` stem + ``-MAP[-robots]``).
+mode), ``--plot FILE`` draws one picture per run
+(``FILE`` stem + ``-MAP[-robots]``). Dead reckoning is the JSON's ``dead_reckoning``
+entry (same keys), beside the ``localization`` list.
 
 ``--calibrate-odometry``: the odometry delay and alphas from the ground truth with the
 leave-one-robot-out cross-check (``localize_data.calibrate_odometry``).
@@ -66,7 +67,9 @@ def localize(args, dataset, replay_config, document):
     print('targets:')
     for name, holds in targets(entries):
         print(f'  {"holds" if holds else "FAILS"}: {name}')
-    document['localization'] = entries
+    # The list holds the maps only; dead reckoning (the floor) beside it.
+    document['localization'] = [e for e in entries if e['map'] != 'dead_reckoning']
+    document['dead_reckoning'] = next(e for e in entries if e['map'] == 'dead_reckoning')
     document['localizer_config'] = {k: (list(v) if isinstance(v, tuple) else v)
                                     for k, v in vars(config).items()}
     document['odometry_delay_s'] = delay_s
