@@ -19,9 +19,9 @@ class LocalizerConfig(ConfigBase):
     map_file: str = param('', "landmark map file (the fuser's map_file format) read at start; "
                           "'' takes the map from fused_landmarks only", read_only=True)
     other_robots: Tuple[str, ...] = param(
-        [''], "namespaces of the robots this one may see ('' none): their pose topics "
-        "(NAMESPACE/pose) are read, and a row of robot_observations with id i is a "
-        "sighting of other_robots[i]", read_only=True)
+        [''], 'namespaces of the robots this one may see (empty: none): their pose topics '
+        '(NAMESPACE/pose) are read, and a row of robot_observations with id i is a '
+        'sighting of other_robots[i]', read_only=True)
     input_depth: int = param(50, 'input queue depth', low=1, high=10000, read_only=True)
     diagnostics_period_s: float = param(1.0, 'diagnostics period [s]', low=0.01, high=1e6)
     odometry_alphas: Tuple[float, float, float, float] = param(

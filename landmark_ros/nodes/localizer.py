@@ -8,8 +8,9 @@ bearing is a partial observation), ``fused_landmarks`` (the fuser's latched map;
 ``map_file`` parameter) and ``initialpose`` (PoseWithCovarianceStamped, as RViz's 2D
 Pose Estimate sends), and with ``other_robots`` each one's ``pose`` and
 ``robot_observations`` (the observation schema, ``id`` = index into ``other_robots``):
-cooperative updates from the other's published pose and covariance (split CI). Publishes ``pose`` (PoseWithCovarianceStamped in the map frame, one
-per odometry message: what ``landmark_observer`` takes), ``odom_to_map`` (the map-to-odom
+cooperative updates from the other's published pose and covariance (split CI).
+Publishes ``pose`` (PoseWithCovarianceStamped in the map frame, one per odometry
+message: what ``landmark_observer`` takes), ``odom_to_map`` (the map-to-odom
 correction, geometry_msgs/TransformStamped) and ``/diagnostics``. The node only converts
 messages: the work is ``landmark_ros.localizer.localizer.Localizer``.
 """
