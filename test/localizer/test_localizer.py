@@ -365,3 +365,19 @@ def test_docs_list_every_parameter_with_its_default():
     from landmark_ros.pipeline.config import markdown_table
     docs = Path(__file__).resolve().parents[2] / 'docs' / 'localization.md'
     assert markdown_table(LocalizerConfig) in docs.read_text()
+
+
+def test_odometry_scales_apply_to_pose_and_twist_motion():
+    for kwargs in ({'twist': np.array([1.0, 0.5])}, {'pose': None}):
+        loc = Localizer(LocalizerConfig(odometry_speed_scale=0.9,
+                                        odometry_yaw_rate_scale=0.7))
+        loc.initialize(0, np.zeros(3), np.eye(3) * 0.01)
+        if 'pose' in kwargs:
+            loc.add_odometry(0, pose=np.zeros(3))
+            loc.add_odometry(100 * MS, pose=np.array([0.1, 0.0, 0.05]))
+            expected = [0.09, 0.0, 0.035]
+        else:
+            loc.add_odometry(0, **kwargs)
+            loc.add_odometry(100 * MS, **kwargs)
+            expected = motion.delta_from_twist(1.0, 0.5, 0.1) * [0.9, 0.9, 0.7]
+        np.testing.assert_allclose(loc.estimate().x, expected, atol=1e-12)
