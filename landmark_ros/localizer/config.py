@@ -30,10 +30,10 @@ class LocalizerConfig(ConfigBase):
         '[rad^2/m^2], a3 [m^2/m^2], a4 [m^2/rad^2], per odometry step; used when the '
         'message covariance is zero')
     odometry_speed_scale: float = param(
-        1.0, 'true distance per odometry distance (calibrated: wheel radius, commanded '
-        'against actual speed)', low=0.01, high=100.0)
+        1.0, 'true distance per odometry distance (wheel radius error)', low=0.01,
+        high=100.0)
     odometry_yaw_rate_scale: float = param(
-        1.0, 'true turn per odometry turn (calibrated: wheel base)', low=0.01, high=100.0)
+        1.0, 'true turn per odometry turn (wheel base error)', low=0.01, high=100.0)
     min_step_variance: float = param(
         1e-10, 'variance floor added to each motion component per odometry step', low=0.0,
         high=1e6)

@@ -66,12 +66,12 @@ def load_all_extras(dataset):
             for r in dataset.robots}
 
 
-def _windows(extras, robot, window_s, delay_s=0.0, scales=(1.0, 1.0)):
+def _windows(extras, robot, window_s, delay_s=0.0):
     """Yield (error (3,), per-alpha covariances (4, 3, 3)) per odometry window."""
     t = extras.odom_times + delay_s
     gt_t, gt_p = robot.gt_times, robot.gt_poses
     inside = (t >= gt_t[0]) & (t <= gt_t[-1])
-    t, twist = t[inside], extras.odom_twist[inside] * np.asarray(scales)
+    t, twist = t[inside], extras.odom_twist[inside]
     truth, _ = interpolate_poses(gt_t, gt_p, t)
     poses, deltas = motion.integrate_twists(t, twist)
     terms = motion.odometry_noise_terms(deltas)  # step k -> k + 1
@@ -98,13 +98,13 @@ def _windows(extras, robot, window_s, delay_s=0.0, scales=(1.0, 1.0)):
         start = end
 
 
-def window_samples(dataset, extras, numbers, window_s, delay_s=0.0, scales=(1.0, 1.0)):
+def window_samples(dataset, extras, numbers, window_s, delay_s=0.0):
     """Return the window errors (W, 3) and unit-alpha covariances (W, 4, 3, 3)."""
     errors, covs = [], []
     for robot in dataset.robots:
         if robot.number not in numbers:
             continue
-        for error, Ps in _windows(extras[robot.number], robot, window_s, delay_s, scales):
+        for error, Ps in _windows(extras[robot.number], robot, window_s, delay_s):
             errors.append(error)
             covs.append(Ps)
     return np.array(errors).reshape(-1, 3), np.array(covs).reshape(-1, 4, 3, 3)
@@ -157,39 +157,6 @@ def odometry_delay(dataset, extras, delays=np.arange(0.0, 0.41, 0.025)):
     return float(delays[int(np.argmin(np.sum(best, axis=0)))])
 
 
-def odometry_scales(dataset, extras, numbers, delay_s, span_s=0.5):
-    """
-    Return (speed scale, yaw-rate scale): true motion per odometry motion.
-
-    Over every 20 ms of each robot's overlap, the true speed and yaw rate (differences
-    of the ground truth over ``span_s``) against the odometry's (delayed by
-    ``delay_s``): the least-squares slope through the origin, pooled over the robots
-    ``numbers``, on the samples that move (|v| > 0.05 m/s, |w| > 0.05 rad/s).
-    """
-    sums = np.zeros(4)
-    half = 0.5 * span_s
-    for robot in dataset.robots:
-        if robot.number not in numbers:
-            continue
-        e = extras[robot.number]
-        t = np.arange(max(e.odom_times[0], robot.gt_times[0]) + 1.0,
-                      min(e.odom_times[-1], robot.gt_times[-1]) - 1.0, 0.02)
-        g = robot.gt_times
-        heading = np.unwrap(robot.gt_poses[:, 2])
-        rate = (np.interp(t + half, g, heading) - np.interp(t - half, g, heading)) / span_s
-        dx = np.interp(t + half, g, robot.gt_poses[:, 0]) - np.interp(t - half, g,
-                                                                      robot.gt_poses[:, 0])
-        dy = np.interp(t + half, g, robot.gt_poses[:, 1]) - np.interp(t - half, g,
-                                                                      robot.gt_poses[:, 1])
-        speed = np.hypot(dx, dy) / span_s
-        v = np.interp(t - delay_s, e.odom_times, e.odom_twist[:, 0])
-        w = np.interp(t - delay_s, e.odom_times, e.odom_twist[:, 1])
-        kv, kw = np.abs(v) > 0.05, np.abs(w) > 0.05
-        sums += [np.sum(np.abs(v[kv]) * speed[kv]), np.sum(v[kv] ** 2),
-                 np.sum(w[kw] * rate[kw]), np.sum(w[kw] ** 2)]
-    return float(sums[0] / sums[1]), float(sums[2] / sums[3])
-
-
 def calibrate_odometry(dataset, extras, window_s=2.0, check_windows=(1.0, 2.0, 5.0)):
     """
     Fit the alphas on all robots, and cross-check: fit on all but one, test on it.
@@ -203,23 +170,19 @@ def calibrate_odometry(dataset, extras, window_s=2.0, check_windows=(1.0, 2.0, 5
     """
     numbers = [r.number for r in dataset.robots]
     delay = odometry_delay(dataset, extras)
-    scales = odometry_scales(dataset, extras, numbers, delay)
-    errors, covs = window_samples(dataset, extras, numbers, window_s, delay, scales)
+    errors, covs = window_samples(dataset, extras, numbers, window_s, delay)
     alphas = fit_alphas(errors, covs)
     check = []
     for held in numbers:
-        others = [n for n in numbers if n != held]
-        held_scales = odometry_scales(dataset, extras, others, delay)
-        e, c = window_samples(dataset, extras, others, window_s, delay, held_scales)
+        e, c = window_samples(dataset, extras, [n for n in numbers if n != held], window_s,
+                              delay)
         fitted = fit_alphas(e, c)
         nees = {}
         for w in check_windows:
-            e_h, c_h = window_samples(dataset, extras, [held], w, delay, held_scales)
+            e_h, c_h = window_samples(dataset, extras, [held], w, delay)
             nees[str(w)] = window_nees(fitted, e_h, c_h)
-        check.append({'held_out': held, 'alphas': fitted.tolist(), 'scales': held_scales,
-                      'window_nees': nees})
+        check.append({'held_out': held, 'alphas': fitted.tolist(), 'window_nees': nees})
     return {'alphas': alphas.tolist(), 'window_s': window_s, 'delay_s': delay,
-            'speed_scale': scales[0], 'yaw_rate_scale': scales[1],
             'windows': len(errors),
             'cross_check': check}
 
@@ -228,20 +191,15 @@ def format_odometry_calibration(result):
     """Return the calibration as text with the YAML line to paste."""
     a = result['alphas']
     lines = [f'odometry alphas from {result["windows"]} windows of {result["window_s"]} s '
-             f'(all robots, odometry delay {result["delay_s"]:.3f} s, speed scale '
-             f'{result["speed_scale"]:.3f}, yaw-rate scale {result["yaw_rate_scale"]:.3f}): '
+             f'(all robots, odometry delay {result["delay_s"]:.3f} s): '
              + ', '.join(f'{v:.3g}' for v in a),
              'cross-check (fit without the robot, window NEES on it; 3 is right):']
     for entry in result['cross_check']:
         nees = ', '.join(f'{w} s: {v:.2f}' for w, v in entry['window_nees'].items())
-        lines.append(f'  robot {entry["held_out"]}: scales '
-                     + ', '.join(f'{v:.3f}' for v in entry['scales']) + '; alphas '
+        lines.append(f'  robot {entry["held_out"]}: alphas '
                      + ', '.join(f'{v:.3g}' for v in entry['alphas']) + f'; NEES {nees}')
     lines.append('landmark_localizer:\n  ros__parameters:\n    odometry_alphas: ['
-                 + ', '.join(f'{v:.4g}' for v in a) + ']'
-                 f'\n    odometry_speed_scale: {result["speed_scale"]:.3f}'
-                 f'\n    odometry_yaw_rate_scale: {result["yaw_rate_scale"]:.3f}'
-                 '\nlandmark_mrclam:\n  ros__parameters:'
+                 + ', '.join(f'{v:.4g}' for v in a) + ']\nlandmark_mrclam:\n  ros__parameters:'
                  f'\n    odometry_delay_s: {result["delay_s"]:.3f}')
     return '\n'.join(lines)
 
