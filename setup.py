@@ -43,6 +43,7 @@ setup(
             # test/test_colcon_install.py in sync.
             'landmark_observer = landmark_ros.nodes.observer:main',
             'landmark_fuser = landmark_ros.nodes.fuser:main',
+            'landmark_localizer = landmark_ros.nodes.localizer:main',
             'landmark_sim = landmark_ros.nodes.sim:main',
             'landmark_mrclam = landmark_ros.mrclam.cli:main',
             'landmark_bag = landmark_ros.bag.cli:main',

@@ -15,6 +15,7 @@ import pytest
 EXPECTED_EXECUTABLES = [
     'landmark_bag',
     'landmark_fuser',
+    'landmark_localizer',
     'landmark_mrclam',
     'landmark_observer',
     'landmark_sim',

@@ -342,7 +342,9 @@ ROS_FREE = [f'landmark_ros.{folder}' for folder in
             ('core', 'fusion', 'pipeline', 'observer', 'fuser', 'localizer', 'sim', 'eval')
             if (REPO_ROOT / PACKAGE / folder / '__init__.py').exists()] + [
     'landmark_ros.mrclam.data', 'landmark_ros.mrclam.config', 'landmark_ros.mrclam.offline',
-    'landmark_ros.mrclam.calibrate', 'landmark_ros.mrclam.report']
+    'landmark_ros.mrclam.calibrate', 'landmark_ros.mrclam.report',
+    'landmark_ros.mrclam.localize', 'landmark_ros.mrclam.localize_data',
+    'landmark_ros.mrclam.localize_cli']
 """Packages and modules that must load without ROS (with all their submodules)."""
 
 MAY_IMPORT_ROS = ('landmark_ros/ros/*', 'landmark_ros/nodes/*', 'landmark_ros/mrclam/player.py',

@@ -76,6 +76,14 @@ offline (default)
     nodes do not publish which track each sighting went to, so the nodes' entries take
     the offline accuracies only when their maps agree exactly
     (``report.fill_node_association``), else null.
+``--localize``
+    Every robot localizes from its odometry and sightings (``landmark_localizer``'s
+    pipeline object) against the surveyed and the fused map, with and without
+    robot-to-robot sightings, dead reckoning as the floor
+    (``landmark_ros.mrclam.localize_cli``); ``--json`` gains ``localization``.
+``--calibrate-odometry``
+    The odometry delay and motion-model alphas from the ground truth, with a
+    leave-one-robot-out cross-check (``landmark_ros.mrclam.localize_data``).
 ``--calibrate``
     Estimate the sensor model from ground truth and print suggested YAML values
     (``landmark_ros.mrclam.calibrate.calibrate`` documents the procedure).
@@ -153,6 +161,11 @@ def parse_args(argv=None):
                         'associate the sightings (landmarks without IDs)')
     parser.add_argument('--calibrate', action='store_true',
                         help='estimate the sensor model from ground truth and print it')
+    parser.add_argument('--localize', action='store_true',
+                        help='localize every robot from odometry and sightings (surveyed '
+                        'and fused maps, with and without robot sightings)')
+    parser.add_argument('--calibrate-odometry', action='store_true',
+                        help='estimate the odometry delay and motion noise from ground truth')
     parser.add_argument('--export-bag', type=Path, default=None, metavar='OUT',
                         help='deprecated (removed in the next release): use landmark_bag '
                         '--from-mrclam DATASET -o OUT; writes the dataset as a rosbag2 (MCAP) '
@@ -207,6 +220,12 @@ def main(argv=None):
     print(f'config {config.path}; loaded in {load_s:.2f} s')
     if args.export_bag is not None:
         return export_bag(args.dataset or default_dataset_path(), config, args.export_bag)
+    if args.localize or args.calibrate_odometry:
+        from landmark_ros.mrclam import localize_cli
+        document = {'mode': 'offline', 'dataset': dataset_dict(dataset)}
+        if args.calibrate_odometry:
+            return localize_cli.calibrate(args, dataset, document)
+        return localize_cli.localize(args, dataset, config, document)
     if args.calibrate:
         try:
             calibration = calibrate(dataset)

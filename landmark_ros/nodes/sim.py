@@ -4,7 +4,9 @@ landmark_sim: a simulated team of robots measuring landmarks, for demos and test
 Simulates ``landmark_ros.sim.simulation.Simulation`` in (scaled) real time. Per robot ``i``
 (``robot1``, ``robot2``, ...) it publishes ``robot{i}/pose``
 (geometry_msgs/PoseWithCovarianceStamped: the true pose plus a sample of the
-reported covariance), ``robot{i}/true_pose`` (geometry_msgs/PoseStamped) and
+reported covariance), ``robot{i}/true_pose`` (geometry_msgs/PoseStamped),
+``robot{i}/odometry`` (nav_msgs/Odometry: wheel odometry with the noise model of
+``landmark_ros.sim.odometry``, frame ``odom``, at the pose stamps) and
 ``robot{i}/observations`` (sensor_msgs/PointCloud2, ``id``, ``range``, ``bearing``,
 frame ``robot{i}/sensor``: the input of ``landmark_observer``). It also publishes
 ``ground_truth_landmarks`` (transient local, depth 1: the ``fused_landmarks``
@@ -27,7 +29,9 @@ from landmark_ros.ros import diagnostics, qos, runner
 from landmark_ros.ros.conversions import planar_pose_covariance, set_planar_pose
 from landmark_ros.ros.params import declare_config
 from landmark_ros.ros.schemas import landmark_message, observation_message
+from landmark_ros.sim.odometry import WheelOdometry
 from landmark_ros.sim.simulation import SimConfig, Simulation
+from nav_msgs.msg import Odometry
 import numpy as np
 from rclpy.node import Node
 from rclpy.time import Time
@@ -57,6 +61,10 @@ class LandmarkSim(Node):
                                                 STREAM_QOS) for n in self.names]
         self.true_pose_pubs = [self.create_publisher(PoseStamped, f'{n}/true_pose',
                                                      STREAM_QOS) for n in self.names]
+        self.odometry_pubs = [self.create_publisher(Odometry, f'{n}/odometry', STREAM_QOS)
+                              for n in self.names]
+        generator = np.random.default_rng([config.seed, 7919])
+        self.wheels = [WheelOdometry(config.odometry_alphas, generator) for _ in self.names]
         self.observation_pubs = [self.create_publisher(PointCloud2, f'{n}/observations',
                                                        STREAM_QOS) for n in self.names]
         self.truth_pub = self.create_publisher(PointCloud2, 'ground_truth_landmarks', qos.LATCHED)
@@ -165,6 +173,9 @@ class LandmarkSim(Node):
             true_msg = PoseStamped(header=header)
             set_planar_pose(true_msg.pose, true)
             true_pub.publish(true_msg)
+            odometry = Odometry(header=self._header(stamp, 'odom'), child_frame_id='base_link')
+            set_planar_pose(odometry.pose.pose, self.wheels[robot].step(true))
+            self.odometry_pubs[robot].publish(odometry)
         self.messages['poses_out'] += len(self.pose_pubs)
 
     def publish_observations(self, j):

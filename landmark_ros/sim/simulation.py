@@ -35,6 +35,7 @@ split CI assumes (derivation in ``sim.frame_error``).
 
 from dataclasses import dataclass
 import math
+from typing import Tuple
 
 from landmark_ros.core import pose2
 from landmark_ros.core.sensors import MIN_RANGE
@@ -63,6 +64,9 @@ class SimConfig(ConfigBase):
                            read_only=True, low=1, high=100000)
     seed: int = param(0, 'Seed of the world, the paths, the biases and the noise.',
                       read_only=True, low=0, high=2 ** 31 - 1)
+    odometry_alphas: Tuple[float, float, float, float] = param(
+        (0.05, 0.5, 0.05, 0.01), 'wheel odometry noise on robotN/odometry, the odometry '
+        'model of Probabilistic Robotics 5.4 per pose step (sim.odometry)')
     world_file: str = param(
         '', "YAML file of landmarks (a list of {id, x, y}); '' generates them.",
         read_only=True)

@@ -1,0 +1,93 @@
+"""
+Benchmark the ``Localizer`` pipeline object: cost per odometry message and per sighting row.
+
+Odometry: ``add_odometry`` with a twist, ``--steps`` messages at 50 Hz (the odometry
+model, the saved step, the window pruning). Sightings: batches of ``--rows`` range-bearing
+rows of a 20-landmark map, applied at the newest odometry stamp (no re-filtering) and
+0.5 s late (the re-filter of the 25 steps since), split CI and plain EKF. CPU time
+(``time.thread_time``), best of ``--repeats``; the machine is shared, so the ratios
+between cases taken side by side mean more than the absolute figures.
+
+Run from the repository root in the dev venv: ``python bench/bench_localizer.py``; the
+last line is machine-readable (``RESULT bench_localizer ...``).
+"""
+
+import argparse
+import sys
+import time
+
+from landmark_ros.core import sensors
+from landmark_ros.localizer.config import LocalizerConfig
+from landmark_ros.localizer.localizer import Localizer
+import numpy as np
+
+MS = 1_000_000
+
+
+def _localizer(correlation):
+    rng = np.random.default_rng(0)
+    m = rng.uniform(-10, 10, (20, 2))
+    loc = Localizer(LocalizerConfig(correlation=correlation))
+    loc.set_map(np.arange(20), m, np.tile(np.eye(2) * 1e-3, (20, 1, 1)))
+    loc.initialize(0, np.zeros(3), np.eye(3) * 0.01)
+    return loc, m
+
+
+def odometry_cost(steps):
+    """Return CPU seconds per ``add_odometry``."""
+    loc, _ = _localizer('split_ci')
+    twist = np.array([0.3, 0.1])
+    t0 = time.thread_time()
+    for k in range(steps):
+        loc.add_odometry(k * 20 * MS, twist=twist)
+    return (time.thread_time() - t0) / steps
+
+
+def sighting_cost(rows, batches, correlation, late_s):
+    """Return CPU seconds per sighting row (batches of ``rows``, ``late_s`` behind)."""
+    loc, m = _localizer(correlation)
+    twist = np.array([0.3, 0.1])
+    k, spent, done = 0, 0.0, 0
+    for _ in range(batches):
+        for _ in range(5):
+            loc.add_odometry(k * 20 * MS, twist=twist)
+            k += 1
+        stamp = (k - 1) * 20 * MS - int(late_s * 1e9)
+        est = loc.pose_at(stamp) or loc.estimate()
+        ids = np.arange(rows) % len(m)
+        z = sensors.observe(np.tile(est.x, (rows, 1)), m[ids]) + 0.01
+        t0 = time.thread_time()
+        loc.add_observations(stamp, ids, z)
+        spent += time.thread_time() - t0
+        done += rows
+    return spent / done
+
+
+def main(argv=None):
+    """Run the benchmark; print the figures and a RESULT line."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[1])
+    parser.add_argument('--steps', type=int, default=20000)
+    parser.add_argument('--rows', type=int, default=4)
+    parser.add_argument('--batches', type=int, default=400)
+    parser.add_argument('--repeats', type=int, default=3)
+    args = parser.parse_args(argv)
+    odom = min(odometry_cost(args.steps) for _ in range(args.repeats))
+    cases = {}
+    for correlation in ('independent', 'split_ci'):
+        for late in (0.0, 0.5):
+            cases[(correlation, late)] = min(
+                sighting_cost(args.rows, args.batches, correlation, late)
+                for _ in range(args.repeats))
+    print(f'odometry: {odom * 1e6:.1f} us per message (CPU)')
+    for (correlation, late), cost in cases.items():
+        print(f'sightings {correlation:11s} {late:.1f} s late: {cost * 1e6:.1f} us per row '
+              f'(batches of {args.rows})')
+    print('RESULT bench_localizer'
+          f' odometry_us={odom * 1e6:.4g}'
+          + ''.join(f' {c}_{"late" if late else "now"}_row_us={v * 1e6:.4g}'
+                    for (c, late), v in cases.items()))
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,89 @@
+"""
+Monte Carlo of the localizer on simulated worlds: the pose NEES and its interval.
+
+Each seed draws a world (``sim.simulation.generate_world``: 15 landmarks in 20 m), one
+loop path at 0.5 m/s (``make_paths``), wheel odometry at 50 Hz with the odometry model's
+noise (``sim.odometry``), and range-bearing sightings of the visible landmarks (8 m,
+all around) every 0.2 s with white noise. The map is the true landmarks with a small
+stated covariance (independent of the robot: the plain EKF update); the localizer
+uses the same alphas and noise (the models are exact
+up to the linearisation). Per seed the average NEES of the 3-dof pose over the run
+(after the first 2 s); over the seeds their mean and its 95 % interval (normal
+approximation of the seed means): consistent when the interval holds 3.
+
+Run: ``python -m landmark_ros.eval.localization_montecarlo [--seeds 20]``.
+"""
+
+import argparse
+import math
+import sys
+
+from landmark_ros.localizer import motion
+from landmark_ros.localizer.config import LocalizerConfig
+from landmark_ros.localizer.localizer import Localizer
+from landmark_ros.sim.odometry import wheel_odometry
+from landmark_ros.sim.simulation import generate_world, make_paths, visible
+import numpy as np
+
+ALPHAS = (0.05, 0.5, 0.05, 0.01)
+RANGE_STDDEV, BEARING_STDDEV = 0.05, 0.02
+MS = 1_000_000
+
+
+def run_seed(seed, duration_s=60.0, rate_hz=50.0):
+    """Return the average pose NEES of one seed and the rows used."""
+    generator = np.random.default_rng(seed)
+    world = generate_world(15, 20.0, seed)
+    path = make_paths(1, world.bounds, 0.5, seed)[0]
+    times = np.arange(0.0, duration_s, 1.0 / rate_hz)
+    truth = np.array([path.pose(t) for t in times]).reshape(-1, 3)
+    odom = wheel_odometry(truth, ALPHAS, generator)
+    config = LocalizerConfig(odometry_alphas=ALPHAS, range_stddev=RANGE_STDDEV,
+                             range_stddev_per_m=0.0, bearing_stddev=BEARING_STDDEV,
+                             initial_stddev=(0.05, 0.05, 0.02),
+                             correlation='independent')
+    loc = Localizer(config)
+    loc.set_map(world.ids, world.positions,
+                np.tile(np.eye(2) * 1e-6, (len(world.ids), 1, 1)))
+    start = truth[0] + generator.normal(0.0, config.initial_stddev)
+    loc.initialize(0, start, np.diag(np.square(config.initial_stddev)))
+    every = int(round(0.2 * rate_hz))
+    nees = []
+    for k, t in enumerate(times):
+        stamp = int(round(t * 1e9))
+        est = loc.add_odometry(stamp, pose=odom[k])
+        if k % every == every // 2:
+            mask, z = visible(truth[k], world.positions, 0.5, 8.0, 2.0 * math.pi)
+            z = z[mask] + generator.normal(0.0, [RANGE_STDDEV, BEARING_STDDEV],
+                                           (int(mask.sum()), 2))
+            loc.add_observations(stamp, world.ids[mask], z)
+            est = loc.estimate()
+        if t >= 2.0 and est is not None:
+            e = est.x - truth[k]
+            e[2] = motion.wrap(e[2])
+            nees.append(float(e @ np.linalg.solve(est.P, e)))
+    return float(np.mean(nees)), loc.counters['rows_used']
+
+
+def run(seeds=20):
+    """Return the seed means, their mean and its 95 % interval."""
+    means = np.array([run_seed(seed)[0] for seed in range(seeds)])
+    half = 1.96 * means.std(ddof=1) / math.sqrt(len(means)) if len(means) > 1 else math.inf
+    return means, float(means.mean()), (float(means.mean() - half),
+                                        float(means.mean() + half))
+
+
+def main(argv=None):
+    """Print the Monte Carlo result; exit 1 when 3 is outside the interval."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[1])
+    parser.add_argument('--seeds', type=int, default=20)
+    args = parser.parse_args(argv)
+    means, mean, (low, high) = run(args.seeds)
+    inside = low <= 3.0 <= high
+    print(f'pose ANEES over {args.seeds} seeds: {mean:.2f} (95 % interval {low:.2f} to '
+          f'{high:.2f}; 3 is consistent: {"inside" if inside else "outside"})')
+    return 0 if inside else 1
+
+
+if __name__ == '__main__':
+    sys.exit(main())

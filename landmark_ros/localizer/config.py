@@ -1,0 +1,99 @@
+"""The localizer's parameters: one frozen, self-validating dataclass (ROS-free)."""
+
+from dataclasses import dataclass
+from typing import Tuple
+
+from landmark_ros.localizer.update import CORRELATIONS
+from landmark_ros.pipeline.config import ConfigBase, param
+
+
+@dataclass(frozen=True)
+class LocalizerConfig(ConfigBase):
+    """Parameters of ``landmark_localizer`` and of ``localizer.Localizer``."""
+
+    map_frame: str = param('map', 'frame of the map, the landmarks and the pose output',
+                           read_only=True)
+    odom_frame: str = param('odom', 'frame of the odometry (child of the map frame)',
+                            read_only=True)
+    base_frame: str = param('base_link', 'frame of the robot', read_only=True)
+    map_file: str = param('', "landmark map file (the fuser's map_file format) read at start; "
+                          "'' takes the map from fused_landmarks only", read_only=True)
+    other_robots: Tuple[str, ...] = param(
+        [''], 'namespaces of the robots this one may see (empty: none): their pose topics '
+        '(NAMESPACE/pose) are read, and a row of robot_observations with id i is a '
+        'sighting of other_robots[i]', read_only=True)
+    input_depth: int = param(50, 'input queue depth', low=1, high=10000, read_only=True)
+    diagnostics_period_s: float = param(1.0, 'diagnostics period [s]', low=0.01, high=1e6)
+    odometry_alphas: Tuple[float, float, float, float] = param(
+        (0.01, 0.0005, 0.01, 0.0005),
+        'odometry motion noise (Probabilistic Robotics 5.4) a1 [rad^2/rad^2], a2 '
+        '[rad^2/m^2], a3 [m^2/m^2], a4 [m^2/rad^2], per odometry step; used when the '
+        'message covariance is zero')
+    odometry_speed_scale: float = param(
+        1.0, 'true distance per odometry distance (wheel radius error)', low=0.01,
+        high=100.0)
+    odometry_yaw_rate_scale: float = param(
+        1.0, 'true turn per odometry turn (wheel base error)', low=0.01, high=100.0)
+    min_step_variance: float = param(
+        1e-10, 'variance floor added to each motion component per odometry step', low=0.0,
+        high=1e6)
+    range_stddev: float = param(0.05, 'constant part of the range noise [m]', low=0.0,
+                                high=1e6)
+    range_stddev_per_m: float = param(0.05, 'range noise growing with range [m/m]',
+                                      low=0.0, high=1e6)
+    bearing_stddev: float = param(0.02, 'bearing noise [rad]', low=0.0, high=1e6)
+    range_correlated_fraction: float = param(
+        0.0, 'share of the range noise variance that is time-correlated (repeats between '
+        'sightings; with split_ci it is not trusted as independent)', low=0.0, high=1.0)
+    bearing_correlated_fraction: float = param(
+        0.0, 'share of the bearing noise variance that is time-correlated', low=0.0,
+        high=1.0)
+    noise_correlation_time_s: float = param(
+        0.0, 'correlation time of the time-correlated noise part [s]: the sightings of a '
+        'landmark within it share that part (0: none)', low=0.0, high=1e6)
+    correlation: str = param(
+        'split_ci', 'map-pose correlation: independent (plain EKF) or split_ci (consistent '
+        'for any correlation of the map with the pose)')
+    gate_probability: float = param(0.99, 'chi-square gate per observation row',
+                                    low=0.5, high=0.999999)
+    iterate_threshold: float = param(
+        0.1, 'iterate the update while the linearisation error exceeds this share of the '
+        'innovation standard deviation', low=0.0, high=1e6)
+    max_iterations: int = param(5, 'Gauss-Newton iterations of the iterated update', low=1,
+                                high=50)
+    window_s: float = param(1.0, 'late observations are applied at their stamp up to this '
+                            'age [s]', low=0.0, high=60.0)
+    max_odometry_gap_s: float = param(0.5, 'longer odometry gaps are counted and inflate '
+                                      'the motion noise [s]', low=0.0, high=1e6)
+    gap_position_stddev_per_s: float = param(
+        0.05, 'extra position noise per second of an odometry gap [m/sqrt(s)]', low=0.0, high=1e6)
+    max_speed_mps: float = param(3.0, 'a faster odometry step is a jump [m/s]', low=0.0, high=1e6)
+    max_yaw_rate: float = param(6.0, 'a faster turn is a jump [rad/s]', low=0.0, high=1e6)
+    jump_position_stddev: float = param(0.3, 'position noise added at a jump [m]', low=0.0,
+                                        high=1e6)
+    jump_heading_stddev: float = param(0.3, 'heading noise added at a jump [rad]', low=0.0,
+                                       high=1e6)
+    initial_pose: Tuple[float, float, float] = param(
+        (0.0, 0.0, 0.0), 'pose at start (x [m], y [m], yaw [rad])')
+    initial_stddev: Tuple[float, float, float] = param(
+        (0.1, 0.1, 0.05), 'its standard deviations (x [m], y [m], yaw [rad])')
+    robot_stddev_floor: float = param(
+        0.0, 'added to the position standard deviation of another robot [m] (its marker)',
+        low=0.0, high=1e6)
+    nis_window: int = param(50, 'updates in the NIS average of the diagnostics', low=1, high=1e6)
+    lost_after_s: float = param(30.0, 'no accepted row for this long: warn [s]', low=0.0, high=1e6)
+    lost_position_stddev: float = param(
+        1.0, 'localization lost when the largest position standard deviation exceeds this '
+        '[m]', low=0.0, high=1e6)
+    lost_gated_rows: int = param(
+        30, 'localization lost after this many consecutive gated rows', low=1, high=1e6)
+
+    def check(self) -> None:
+        """Check the choices and the list values."""
+        if self.correlation not in CORRELATIONS:
+            raise ValueError(f'correlation must be one of {CORRELATIONS}, '
+                             f'got {self.correlation!r}')
+        if any(a < 0.0 for a in self.odometry_alphas):
+            raise ValueError(f'odometry_alphas must be >= 0, got {self.odometry_alphas}')
+        if any(s <= 0.0 for s in self.initial_stddev):
+            raise ValueError(f'initial_stddev must be > 0, got {self.initial_stddev}')

@@ -1,0 +1,287 @@
+"""
+The EKF measurement update of a planar pose from landmark sightings (ROS-free).
+
+Symbols
+-------
+x, P
+    Robot pose ``(x, y, theta)`` in the map frame and its covariance, (3,), (3, 3).
+m, P_m
+    Landmark positions and covariances from the map (or another robot's position and
+    the xy block of its published covariance), (N, 2), (N, 2, 2).
+z, R
+    Observations ``(range, bearing)`` and their noise, (N, 2), (N, 2, 2).
+kind
+    Per row which components count: ``RANGE_BEARING`` (both), ``RANGE`` (range-only) or
+    ``BEARING`` (bearing-only): the partial observations.
+h, J_z_x, J_z_m
+    Predicted observation ``h(x, m)`` and its Jacobians with respect to the pose and to
+    the landmark (``landmark_ros.core.sensors.observe`` and ``observe_jacobians``).
+
+Innovation covariance of a row: ``S = J_z_x P J_z_x^T + J_z_m P_m J_z_m^T + R``: the map's
+uncertainty counts. Each row is gated alone (chi-square with 1 or 2 degrees of freedom);
+the rows that pass are stacked and applied in one update.
+
+The map is correlated with the pose
+-----------------------------------
+A fused map holds the robot's own earlier sightings, made from poses whose errors are
+those of the current estimate in part; another robot's pose estimate has taken this
+robot's information when they met. The errors of ``x`` and of ``m`` are then correlated
+in an unknown way, and the plain update (``correlation='independent'``) is over-confident.
+``correlation='split_ci'`` keeps it consistent for any such correlation: split covariance
+intersection (Julier and Uhlmann 2001; in an EKF, Li and Nashashibi 2013) with the sensor
+noise ``R`` as the independent part and the pose prior and the map term as the parts of
+unknown correlation:
+
+    P1 = P / w,   P2 = R + M / (1 - w),   M = J_z_m P_m J_z_m^T (block diagonal)
+
+followed by the Kalman update of ``(x, P1)`` with the measurement of noise ``P2``;
+``w`` in (0, 1) minimises the determinant of the updated covariance (nested grids).
+For any joint covariance of ``x`` and ``m`` with those marginals, ``P1 + P2``-based
+bounds hold (the CI inequality), so the result is an upper bound of the true
+covariance. With a precise map (``M`` small against ``J P J^T``) the weight goes to 1
+and the update to the plain EKF; it costs where the map is as uncertain as the pose.
+Cooperative updates (Carrillo-Arce et al., IROS 2013, used covariance intersection on
+MRCLAM) go through the same update with the other robot as the landmark.
+
+Iterated update
+---------------
+After the first (EKF) step, the linearisation error of ``h`` at the new pose,
+``|h(x1) - h(x0) - J (x1 - x0)|``, is compared with the innovation's standard deviation;
+above ``iterate_threshold`` of it the Gauss-Newton iterations of the iterated EKF
+(Bell and Cathey 1993) run, at most ``max_iterations``, relinearising ``h`` at each
+iterate with the same ``P1``, ``P2``.
+"""
+
+from dataclasses import dataclass
+import math
+from typing import Optional
+
+from landmark_ros.core import sensors
+import numpy as np
+from numpy.typing import NDArray
+
+RANGE_BEARING, RANGE, BEARING = 0, 1, 2
+"""Kinds of rows: which components of ``z`` count."""
+
+CORRELATIONS = ('independent', 'split_ci')
+"""How the map's errors relate to the pose's (module docstring)."""
+
+
+@dataclass
+class UpdateResult:
+    """What one update did."""
+
+    x: NDArray[np.float64]
+    """Updated pose, shape (3,)."""
+    P: NDArray[np.float64]
+    """Updated covariance, shape (3, 3)."""
+    used: NDArray[np.bool_]
+    """Rows applied, shape (N,)."""
+    gated: NDArray[np.bool_]
+    """Rows outside the chi-square gate, shape (N,)."""
+    nis: float
+    """Normalised innovation squared of the applied rows (NaN if none)."""
+    dof: int
+    """Its degrees of freedom (applied components)."""
+    omega: float
+    """Split-CI weight of the pose prior (1: plain EKF)."""
+    iterations: int
+    """Gauss-Newton iterations (1: plain EKF step)."""
+
+
+@dataclass(frozen=True)
+class UpdateSettings:
+    """How the update gates, weighs and iterates (from ``LocalizerConfig``)."""
+
+    gate_1: float
+    """Chi-square threshold of a partial row (1 dof)."""
+    gate_2: float
+    """Chi-square threshold of a range-bearing row (2 dof)."""
+    correlation: str = 'split_ci'
+    iterate_threshold: float = 0.1
+    max_iterations: int = 5
+
+
+def _components(kind):
+    """Return the row index and component (0 range, 1 bearing) of each scalar."""
+    rows, comps = [], []
+    for i, k in enumerate(kind):
+        if k != BEARING:
+            rows.append(i)
+            comps.append(0)
+        if k != RANGE:
+            rows.append(i)
+            comps.append(1)
+    return np.array(rows, np.intp), np.array(comps, np.intp)
+
+
+def _innovation(z, h, comp):
+    nu = z - h
+    bearing = comp == 1
+    nu[bearing] = (nu[bearing] + math.pi) % (2.0 * math.pi) - math.pi
+    return nu
+
+
+def _row_gate(x, P, m, P_m, z, R, kind, settings):
+    """Return the per-row chi-square test: d2 (N,), passed (N,)."""
+    h = sensors.observe(x, m)
+    J_z_x, J_z_m = sensors.observe_jacobians(x, m)
+    S = J_z_x @ P @ J_z_x.transpose(0, 2, 1) + J_z_m @ P_m @ J_z_m.transpose(0, 2, 1) + R
+    nu = z - h
+    nu[:, 1] = (nu[:, 1] + math.pi) % (2.0 * math.pi) - math.pi
+    d2 = np.empty(len(z))
+    full = kind == RANGE_BEARING
+    if full.any():
+        solved = np.linalg.solve(S[full], nu[full][..., None])[..., 0]
+        d2[full] = np.einsum('ni,ni->n', nu[full], solved)
+    for k, c in ((RANGE, 0), (BEARING, 1)):
+        sel = kind == k
+        if sel.any():
+            d2[sel] = nu[sel, c] ** 2 / S[sel, c, c]
+    threshold = np.where(full, settings.gate_2, settings.gate_1)
+    return d2, d2 <= threshold
+
+
+def _stack(x, m, rows, comps):
+    """Return ``h`` (k,) and ``J_z_x`` (k, 3) of the scalar components at pose ``x``."""
+    h = sensors.observe(x, m[rows])
+    J_z_x, _ = sensors.observe_jacobians(x, m[rows])
+    k = np.arange(len(rows))
+    return h[k, comps], J_z_x[k, comps]
+
+
+def _blocks(M_rows, rows, comps):
+    """Return the (k, k) block-diagonal matrix of per-row 2x2 blocks at the components."""
+    same = rows[:, None] == rows[None, :]
+    return np.where(same, M_rows[rows[:, None], comps[:, None], comps[None, :]], 0.0)
+
+
+def _posterior_logdets(P_inv, H, R_s, M_s, w):
+    """Return ``-log det`` of the information after the update, for each weight ``w`` (K,)."""
+    W = w[:, None, None]
+    A = R_s[None] + M_s[None] / (1.0 - W)
+    H_k = np.broadcast_to(H, (len(w),) + H.shape)
+    info = W * P_inv[None] + H.T[None] @ np.linalg.solve(A, H_k)
+    return -np.linalg.slogdet(info)[1]
+
+
+def split_ci_weight(P: NDArray[np.float64], H: NDArray[np.float64], R_s: NDArray[np.float64],
+                    M_s: NDArray[np.float64], points: int = 16, rounds: int = 3) -> float:
+    """
+    Return the split-CI weight ``w`` of the pose prior (module docstring).
+
+    Minimises ``log det`` of the updated covariance over ``w`` in ``(0, 1)``: a grid of
+    ``points`` weights (evenly spaced in ``log(w / (1 - w))`` from -9 to 14), then
+    ``rounds`` finer grids between the neighbours of the best, each evaluated in one
+    batched call. ``M_s`` near zero gives ``w`` near 1.
+
+    Parameters
+    ----------
+    P : ndarray, shape (3, 3)
+        Pose covariance.
+    H : ndarray, shape (k, 3)
+        ``J_z_x`` of the stacked components.
+    R_s, M_s : ndarray, shape (k, k)
+        Sensor noise and map term of the stacked components.
+    points : int
+        Weights per grid.
+    rounds : int
+        Refinements after the first grid.
+
+    """
+    P_inv = np.linalg.inv(P)
+    logits = np.linspace(-9.0, 14.0, points)
+    for _ in range(rounds + 1):
+        w = 1.0 / (1.0 + np.exp(-logits))
+        best = int(np.argmin(_posterior_logdets(P_inv, H, R_s, M_s, w)))
+        low, high = logits[max(best - 1, 0)], logits[min(best + 1, points - 1)]
+        logits = np.linspace(low, high, points)
+    return float(w[best])
+
+
+def update(x: NDArray[np.float64], P: NDArray[np.float64], m: NDArray[np.float64],
+           P_m: NDArray[np.float64], z: NDArray[np.float64], R: NDArray[np.float64],
+           kind: NDArray[np.int64], settings: UpdateSettings,
+           correlation: Optional[str] = None) -> UpdateResult:
+    """
+    Update the pose from N landmark sightings: gate each row, then one (iterated) update.
+
+    Parameters
+    ----------
+    x : ndarray, shape (3,)
+        Prior pose.
+    P : ndarray, shape (3, 3)
+        Its covariance.
+    m : ndarray, shape (N, 2)
+        Landmark positions [m].
+    P_m : ndarray, shape (N, 2, 2)
+        Their covariances [m^2].
+    z : ndarray, shape (N, 2)
+        Observations (range [m], bearing [rad]); the unused component of a partial row
+        is ignored (may be NaN).
+    R : ndarray, shape (N, 2, 2)
+        Sensor noise.
+    kind : ndarray of int, shape (N,)
+        ``RANGE_BEARING``, ``RANGE`` or ``BEARING`` per row.
+    settings : UpdateSettings
+        Gates, correlation and iteration (``LocalizerConfig``).
+    correlation : str, optional
+        Overrides ``settings.correlation``.
+
+    Returns
+    -------
+    UpdateResult
+
+    Raises
+    ------
+    ValueError
+        If a landmark is closer than ``sensors.MIN_RANGE`` to the pose.
+
+    """
+    correlation = correlation or settings.correlation
+    z = np.where(np.isfinite(z), z, 0.0)
+    d2, passed = _row_gate(x, P, m, P_m, z, R, kind, settings)
+    used = passed.copy()
+    if not used.any():
+        return UpdateResult(x, P, used, ~passed, math.nan, 0, 1.0, 0)
+    idx = np.flatnonzero(used)
+    rows, comps = _components(kind[idx])
+    rows_g = idx[rows]
+    _, J_z_m = sensors.observe_jacobians(x, m[idx])
+    M_rows = J_z_m @ P_m[idx] @ J_z_m.transpose(0, 2, 1)
+    R_s, M_s = _blocks(R[idx], rows, comps), _blocks(M_rows, rows, comps)
+    z_s = z[rows_g, comps]
+    h0, H0 = _stack(x, m, rows_g, comps)
+    w = 1.0
+    if correlation == 'split_ci' and np.any(M_s):
+        w = split_ci_weight(P, H0, R_s, M_s)
+    P1, P2 = P / w, R_s + (M_s / (1.0 - w) if w < 1.0 else M_s)
+    x_i, h_i, H_i, iterations = x, h0, H0, 0
+    while True:
+        S = H_i @ P1 @ H_i.T + P2
+        K = np.linalg.solve(S, H_i @ P1).T
+        nu = _innovation(z_s, h_i, comps) - H_i @ _pose_diff(x, x_i)
+        x_next = x + K @ nu
+        x_next[2] = (x_next[2] + math.pi) % (2.0 * math.pi) - math.pi
+        iterations += 1
+        h_next, H_next = _stack(x_next, m, rows_g, comps)
+        linear = h_i + H_i @ _pose_diff(x_next, x_i)
+        error = np.abs(_innovation(h_next, linear, comps))
+        x_i, h_i, H_i_prev, H_i = x_next, h_next, H_i, H_next
+        if (iterations >= settings.max_iterations
+                or np.all(error <= settings.iterate_threshold * np.sqrt(np.diag(S)))):
+            break
+    K_f = np.linalg.solve(S, H_i_prev @ P1).T
+    A = np.eye(3) - K_f @ H_i_prev
+    P_new = A @ P1 @ A.T + K_f @ P2 @ K_f.T
+    S0 = H0 @ P @ H0.T + R_s + M_s
+    nu0 = _innovation(z_s, h0, comps)
+    nis = float(nu0 @ np.linalg.solve(S0, nu0))
+    return UpdateResult(x_i, 0.5 * (P_new + P_new.T), used, ~passed, nis, len(rows), w,
+                        iterations)
+
+
+def _pose_diff(a, b):
+    d = np.asarray(a, dtype=np.float64) - b
+    d[2] = (d[2] + math.pi) % (2.0 * math.pi) - math.pi
+    return d
