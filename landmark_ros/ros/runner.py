@@ -13,12 +13,13 @@ import os
 import signal
 import sys
 import tempfile
+import textwrap
 import time
 
+from landmark_ros.ros.fast_io import SWITCH_HELP
 import rclpy
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException
-from rclpy.impl.implementation_singleton import rclpy_implementation
 
 USAGE_ERROR = 2
 """Exit code of a command line or parameter the node cannot start with."""
@@ -92,7 +93,8 @@ def usage(node_class, name):
             'a node renamed with -r __node:=OTHER reads the section of OTHER instead.',
             'Integers are accepted for doubles (range_stddev:=1, sensor_pose:=[0, 0, 1]);',
             'a list must not mix them: [0.0, 0, 1] is refused, write [0.0, 0.0, 1.0].',
-            '', 'Parameters:', parameter_help(config_class)]
+            '', 'Parameters:', parameter_help(config_class),
+            textwrap.fill(SWITCH_HELP, 79, initial_indent='  ', subsequent_indent='      ')]
     return '\n'.join(text) + '\n'
 
 
@@ -125,7 +127,7 @@ def _init(args, name):
         try:
             rclpy.init(args=args)
             failure = None
-        except rclpy_implementation.RCLError as error:
+        except RuntimeError as error:   # rclpy's RCLError (in rclpy's private module)
             failure = _rcl_message(error)
         finally:
             os.dup2(saved, 2)
