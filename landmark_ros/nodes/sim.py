@@ -22,10 +22,10 @@ import sys
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
+from landmark_ros.nodes.start import lazy
 from landmark_ros.pipeline.rows import UNKNOWN_ID
 from landmark_ros.ros import diagnostics, qos, runner
 from landmark_ros.ros.conversions import planar_pose_covariance, set_planar_pose
-from landmark_ros.nodes.start import lazy
 from landmark_ros.ros.params import declare_config
 from landmark_ros.sim.simulation import SimConfig, Simulation
 import numpy as np

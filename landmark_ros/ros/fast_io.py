@@ -91,6 +91,7 @@ def declare_switch(node):
     Parameters
     ----------
     node : rclpy.node.Node
+        The node, before it creates its subscriptions and timers.
 
     Returns
     -------

@@ -142,9 +142,20 @@ _STOPS = []
 """The SIGINTs received (``_stop_requested``): one before rclpy's handler is there
 must still stop the node."""
 
+_BUILDING = []
+"""Not empty while the node is being built (imports, compiles: seconds at times)."""
+
 
 def _stop_requested(signum, frame):
-    """Python's part of SIGINT: note it (rclpy's handler shuts the context down)."""
+    """
+    Python's part of SIGINT: note it (rclpy's handler shuts the context down).
+
+    While the node is being built, end the process at once with exit code 0: the
+    node has received and written nothing yet, and what it is doing (an import, a
+    compile) would otherwise run to its end first.
+    """
+    if _BUILDING:
+        os._exit(0)
     _STOPS.append(signum)
 
 
@@ -217,7 +228,13 @@ def run(node_class, name, args=None, startup_errors=(), what='invalid parameters
         return 0
     node = None
     try:
-        node = node_class()
+        _BUILDING.append(name)
+        try:
+            node = node_class()
+        finally:
+            _BUILDING.clear()
+        if _STOPS:
+            return 0
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
