@@ -59,6 +59,9 @@ def script(name):
 MODULES = os.environ.get('START_AS_MODULES') == '1'
 """Start ``python -m landmark_ros.nodes.NAME`` instead of the console scripts."""
 
+PREFIX = os.environ.get('START_PREFIX', '').split()
+"""A command to start ``NAME`` (``observer``, ...) with instead (e.g. another tree's)."""
+
 
 def spawn(name, domain_id, namespace, log_dir, extra_env=None, args=()):
     """
@@ -67,8 +70,13 @@ def spawn(name, domain_id, namespace, log_dir, extra_env=None, args=()):
     SIGINT goes back to its default first (pytest started in the background of a
     script hands its children an ignored SIGINT).
     """
-    command = ([sys.executable, '-m', 'landmark_ros.nodes.' + name.split('_')[1]]
-               if MODULES else [str(script(name))])
+    short = name.split('_')[1]
+    if PREFIX:
+        command = PREFIX + [short]
+    elif MODULES:
+        command = [sys.executable, '-m', 'landmark_ros.nodes.' + short]
+    else:
+        command = [str(script(name))]
     command += ['--ros-args', '-r', f'__ns:={namespace}', *args]
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain_id), PYTHONUNBUFFERED='1',
                ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST', ROS_LOG_DIR=str(log_dir),
