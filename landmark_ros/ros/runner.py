@@ -19,7 +19,7 @@ import time
 from landmark_ros.ros.fast_io import SWITCH_HELP
 import rclpy
 from rclpy.exceptions import ParameterException
-from rclpy.executors import ExternalShutdownException
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 
 USAGE_ERROR = 2
 """Exit code of a command line or parameter the node cannot start with."""
@@ -223,19 +223,21 @@ def run(node_class, name, args=None, startup_errors=(), what='invalid parameters
     failure = _init(argv, name)
     if failure is not None:
         return _error(name, f'bad command line: {failure}')
+    _BUILDING.append(name)
     if _STOPS:      # before rclpy's handler was installed: nobody shut the context down
+        _BUILDING.clear()
         rclpy.try_shutdown()
         return 0
     node = None
     try:
-        _BUILDING.append(name)
         try:
+            # The executor first: one built on a context a stop signal just shut down
+            # would print an "Exception ignored" traceback when collected.
+            executor = SingleThreadedExecutor()
             node = node_class()
         finally:
             _BUILDING.clear()
-        if _STOPS:
-            return 0
-        rclpy.spin(node)
+        rclpy.spin(node, executor)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except (ValueError, ParameterException, *startup_errors) as error:
