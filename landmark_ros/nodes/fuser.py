@@ -41,8 +41,8 @@ class LandmarkFuser(Node):
         config = declare_config(self, FuserConfig)
         fast = fast_io.declare_switch(self)
         # Every endpoint first, then the fusion code: subscribers and publishers see
-        # the node while it imports and loads. Inputs that arrive meanwhile wait in
-        # their queues (input_depth) until the node spins.
+        # the node while it imports and loads. The inputs are reliable: what arrives
+        # meanwhile waits in their queues (input_depth) until the node spins.
         overrides = QoSOverridingOptions.with_default_policies()
         self.landmark_inputs = fast_io.Inputs(self, fast_io.InputSpec(
             PointCloud2, config.input_topics, qos.reliable_input(config.input_depth),

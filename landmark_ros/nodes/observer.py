@@ -31,7 +31,7 @@ from rclpy.qos_overriding_options import QoSOverridingOptions
 from sensor_msgs.msg import PointCloud2
 from visualization_msgs.msg import MarkerArray
 
-# Imported when first used, after the endpoints exist (scipy: seconds on a cold start).
+# Imported when the node is built, not at module import (scipy: a second or more).
 pipeline = lazy('landmark_ros.pipeline.observer')
 markers = lazy('landmark_ros.ros.markers')
 schemas = lazy('landmark_ros.ros.schemas')
@@ -44,7 +44,10 @@ class LandmarkObserver(Node):
         super().__init__('landmark_observer', **kwargs)
         config = declare_config(self, ObserverConfig)
         self._fast = fast_io.declare_switch(self)
-        # Every endpoint first, then the pipeline (see the fuser).
+        # The pipeline first (a second of imports), then the endpoints: its inputs are
+        # best-effort sensor data with a short queue, whose publishers start sending as
+        # soon as they see a subscriber; the node takes them from its first message.
+        self.observer = pipeline.Observer(config, self.get_logger().warning)
         overrides = QoSOverridingOptions.with_default_policies()
         pose_type, pose_topic, on_pose = (
             (Odometry, 'odometry', self.on_odometry) if config.pose_type == 'odometry'
@@ -70,7 +73,6 @@ class LandmarkObserver(Node):
             event_callbacks=quiet)
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics',
                                                      qos.DIAGNOSTICS, event_callbacks=quiet)
-        self.observer = pipeline.Observer(config, self.get_logger().warning)
         keep_in_sync(self, lambda: self.observer.config, self._apply_config)
         self._landmark_msg = PointCloud2()  # refilled for every publish
         self._latest_markers = {}

@@ -1,9 +1,9 @@
 """
 The console scripts' entry points: a node that Ctrl-C ends cleanly from its first line.
 
-A node spends its first second or two importing (rclpy, numpy, scipy). Python's own
-SIGINT handler would raise ``KeyboardInterrupt`` wherever the import is: a traceback,
-and exit code 254 under ``ros2 run``. Each entry point here installs, before any heavy
+A node spends its first second or two importing (rclpy, numpy). Python's own SIGINT
+handler would raise ``KeyboardInterrupt`` wherever the import is: a traceback, and
+exit code 254 under ``ros2 run``. Each entry point here installs, before any heavy
 import, a handler that ends the process at once with exit code 0 (nothing is open
 yet to close); ``ros.runner.run`` replaces it with its own before ``rclpy.init``.
 ``python -m landmark_ros.nodes.NAME`` gets the same handler from the package's
@@ -21,13 +21,20 @@ import sys
 
 
 def _exit_now(signum, frame):
-    """SIGINT while the node is importing: end the process, exit code 0."""
+    """SIGINT or SIGTERM while the node imports: end the process, exit code 0."""
     os._exit(0)
 
 
 def install():
-    """Make SIGINT end the process with exit code 0 until the runner takes over."""
+    """
+    Make SIGINT and SIGTERM end the process with exit code 0 until the runner takes over.
+
+    Only before ``rclpy.init``: later a DDS participant exists, whose shared memory
+    an ``os._exit`` would leave behind (``ros.runner.run`` installs its own handlers
+    first).
+    """
     signal.signal(signal.SIGINT, _exit_now)
+    signal.signal(signal.SIGTERM, _exit_now)
 
 
 def _run(name):

@@ -25,6 +25,7 @@ callback per message, rclpy's messages and default event handlers, one timer per
 task; one log line says so and why. What the nodes compute is the same either way.
 """
 
+import copy
 from dataclasses import dataclass
 import importlib
 import time
@@ -190,7 +191,8 @@ class Inputs:
         for topic in spec.topics:
             self.subscriptions[topic] = node.create_subscription(
                 spec.msg_type, topic, wrap(lambda msg, topic=topic: self.receive(msg, topic)),
-                spec.qos_profile, qos_overriding_options=spec.qos_overriding_options,
+                copy.copy(spec.qos_profile),    # qos_overrides.<topic>.* apply to each alone
+                qos_overriding_options=spec.qos_overriding_options,
                 raw=self._raw, event_callbacks=events, callback_group=self._group)
 
     def receive(self, msg, topic):

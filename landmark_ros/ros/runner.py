@@ -142,20 +142,9 @@ _STOPS = []
 """The SIGINTs received (``_stop_requested``): one before rclpy's handler is there
 must still stop the node."""
 
-_BUILDING = []
-"""Not empty while the node is being built (imports, compiles: seconds at times)."""
-
 
 def _stop_requested(signum, frame):
-    """
-    Python's part of SIGINT: note it (rclpy's handler shuts the context down).
-
-    While the node is being built, end the process at once with exit code 0: the
-    node has received and written nothing yet, and what it is doing (an import, a
-    compile) would otherwise run to its end first.
-    """
-    if _BUILDING:
-        os._exit(0)
+    """Python's part of SIGINT and SIGTERM: note it (rclpy's handler shuts the context down)."""
     _STOPS.append(signum)
 
 
@@ -218,25 +207,26 @@ def run(node_class, name, args=None, startup_errors=(), what='invalid parameters
     # or a garbage-collected llvmlite object's __del__ ("Exception ignored" and a
     # traceback on stderr); this one does not raise. (It also replaces SIG_IGN, which
     # a node started in the background of a script would otherwise keep.)
+    # The same for SIGTERM: the console scripts' entry (nodes.start) makes both end
+    # the process at once while it imports, which must not outlive the imports
+    # (rclpy's handlers call the previous one).
     _STOPS.clear()
     signal.signal(signal.SIGINT, _stop_requested)
+    signal.signal(signal.SIGTERM, _stop_requested)
     failure = _init(argv, name)
     if failure is not None:
         return _error(name, f'bad command line: {failure}')
-    _BUILDING.append(name)
     if _STOPS:      # before rclpy's handler was installed: nobody shut the context down
-        _BUILDING.clear()
         rclpy.try_shutdown()
         return 0
     node = None
     try:
-        try:
-            # The executor first: one built on a context a stop signal just shut down
-            # would print an "Exception ignored" traceback when collected.
-            executor = SingleThreadedExecutor()
-            node = node_class()
-        finally:
-            _BUILDING.clear()
+        # The executor first: one built on a context a stop signal just shut down
+        # would print an "Exception ignored" traceback when collected.
+        executor = SingleThreadedExecutor()
+        node = node_class()
+        if _STOPS:      # a stop while the node was built: no spin (DDS is closed below)
+            return 0
         rclpy.spin(node, executor)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
