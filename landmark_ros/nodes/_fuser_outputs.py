@@ -8,7 +8,7 @@ from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header
 from visualization_msgs.msg import MarkerArray
 
-# Imported when first used, after the endpoints exist (scipy: seconds on a cold start).
+# Imported when first used, not at module import (scipy: a second or more).
 markers = lazy('landmark_ros.ros.markers')
 schemas = lazy('landmark_ros.ros.schemas')
 

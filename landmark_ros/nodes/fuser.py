@@ -28,7 +28,7 @@ from rclpy.qos_overriding_options import QoSOverridingOptions
 from sensor_msgs.msg import PointCloud2
 from std_srvs.srv import Trigger
 
-# Imported when first used, after the endpoints exist (scipy: seconds on a cold start).
+# Imported when the node is built, not at module import (scipy: a second or more).
 pipeline = lazy('landmark_ros.pipeline.fuser')
 schemas = lazy('landmark_ros.ros.schemas')
 
@@ -40,33 +40,35 @@ class LandmarkFuser(Node):
         super().__init__('landmark_fuser', **kwargs)
         config = declare_config(self, FuserConfig)
         fast = fast_io.declare_switch(self)
-        # Every endpoint first, then the fusion code: subscribers and publishers see
-        # the node while it imports and loads. The inputs are reliable: what arrives
-        # meanwhile waits in their queues (input_depth) until the node spins.
+        landmark_topics = list(config.input_topics)
+        partial_topics = [topic for topic in config.constraint_topics if topic]
+        self._source_of = {topic: self.resolve_topic_name(topic)
+                           for topic in landmark_topics + partial_topics}
+        # The fusion code first (imports, map file), then the endpoints: a fuser that
+        # subscribes takes its inputs from the first message, so publishers that start
+        # on seeing a subscriber (the simulator) neither lose messages nor queue a
+        # backlog behind a node still loading.
+        self.fuser = pipeline.Fuser(
+            config, [self._source_of[topic] for topic in landmark_topics], self.get_logger(),
+            [self._source_of[topic] for topic in partial_topics])
+        self.fuser.load()
         overrides = QoSOverridingOptions.with_default_policies()
         self.landmark_inputs = fast_io.Inputs(self, fast_io.InputSpec(
-            PointCloud2, config.input_topics, qos.reliable_input(config.input_depth),
+            PointCloud2, landmark_topics, qos.reliable_input(config.input_depth),
             lambda: self.config.max_batch_messages,
             lambda: 0.25 * self.config.update_period_s, across=True, raw_clouds=True,
             qos_overriding_options=overrides), self.on_landmarks, self._guard, fast)
         self.partial_inputs = fast_io.Inputs(self, fast_io.InputSpec(
-            PointCloud2, [topic for topic in config.constraint_topics if topic],
-            qos.reliable_input(config.input_depth), lambda: self.config.max_batch_messages,
-            qos_overriding_options=overrides), self.on_partial, self._guard, fast)
+            PointCloud2, partial_topics, qos.reliable_input(config.input_depth),
+            lambda: self.config.max_batch_messages, qos_overriding_options=overrides),
+            self.on_partial, self._guard, fast)
         self.outputs = MapOutputs(self, config)
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics',
                                                      qos.DIAGNOSTICS)
         self.create_service(Trigger, '~/reset', self._guard(self.on_reset))
         self.create_service(Trigger, '~/save', self._guard(self.on_save))
-        self._source_of = {topic: sub.topic_name for inputs in (
-            self.landmark_inputs, self.partial_inputs) for topic, sub in
-            inputs.subscriptions.items()}
-        self.fuser = pipeline.Fuser(
-            config, [self._source_of[t] for t in self.landmark_inputs.subscriptions],
-            self.get_logger(), [self._source_of[t] for t in self.partial_inputs.subscriptions])
         self._incompatible = IncompatiblePublishers(self)
         keep_in_sync(self, lambda: self.fuser.config, self._apply_config)
-        self.fuser.load()
         self.create_timer(config.update_period_s, self._guard(self.fuse_queued))
         self.create_timer(self.outputs.period_s, self._guard(self.publish_outputs))
         self.create_timer(config.diagnostics_period_s, self._guard(self.publish_diagnostics))
