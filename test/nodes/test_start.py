@@ -94,8 +94,9 @@ def test_every_endpoint_exists_within_the_deadline(start, watcher, name):
 
 
 # Moments of a start, each found by a condition: a library the process has mapped
-# (numpy and rclpy while the node module imports; scipy once the node builds its
-# pipeline, after its endpoints), its endpoints in the graph, its first diagnostics.
+# (numpy and rclpy while the node module imports; scipy while the node is built:
+# before the observer's and fuser's endpoints, after the simulator's), its endpoints
+# in the graph, its first diagnostics.
 MOMENTS = {
     'importing numpy': lambda w, p, name: _until(
         w, lambda: _mapped(p, '_multiarray_umath'), 30.0),
