@@ -41,10 +41,10 @@ setup(
         'console_scripts': [
             # One 'name = module:function' per node; keep EXPECTED_EXECUTABLES in
             # test/test_colcon_install.py in sync.
-            'landmark_observer = landmark_ros.nodes.observer:main',
-            'landmark_fuser = landmark_ros.nodes.fuser:main',
-            'landmark_localizer = landmark_ros.nodes.localizer:main',
-            'landmark_sim = landmark_ros.nodes.sim:main',
+            'landmark_observer = landmark_ros.nodes.start:observer',
+            'landmark_fuser = landmark_ros.nodes.start:fuser',
+            'landmark_sim = landmark_ros.nodes.start:sim',
+            'landmark_localizer = landmark_ros.nodes.start:localizer',
             'landmark_mrclam = landmark_ros.mrclam.cli:main',
             'landmark_bag = landmark_ros.bag.cli:main',
         ],

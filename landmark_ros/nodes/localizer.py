@@ -19,9 +19,9 @@ import sys
 
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseWithCovarianceStamped, TransformStamped
+from landmark_ros.fuser import map_file
 from landmark_ros.localizer.config import LocalizerConfig
 from landmark_ros.localizer.localizer import Estimate, Localizer
-from landmark_ros.pipeline import map_file
 from landmark_ros.ros import diagnostics, guard, qos, runner
 from landmark_ros.ros.cloud import CloudError, read_columns
 from landmark_ros.ros.conversions import InputError, stamp_ns

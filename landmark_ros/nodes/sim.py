@@ -24,11 +24,11 @@ import sys
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
+from landmark_ros.nodes.start import lazy
 from landmark_ros.pipeline.rows import UNKNOWN_ID
 from landmark_ros.ros import diagnostics, qos, runner
 from landmark_ros.ros.conversions import planar_pose_covariance, set_planar_pose
 from landmark_ros.ros.params import declare_config
-from landmark_ros.ros.schemas import landmark_message, observation_message
 from landmark_ros.sim.odometry import WheelOdometry
 from landmark_ros.sim.simulation import SimConfig, Simulation
 from nav_msgs.msg import Odometry
@@ -38,6 +38,9 @@ from rclpy.time import Time
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header
 
+
+# Imported when first used, after the endpoints exist (scipy: seconds on a cold start).
+schemas = lazy('landmark_ros.ros.schemas')
 
 STREAM_QOS = qos.reliable_output(100)
 """Poses and observations: reliable, which best-effort (sensor-data) readers accept too."""
@@ -53,9 +56,7 @@ class LandmarkSim(Node):
 
     def __init__(self, **kwargs):
         super().__init__('landmark_sim', **kwargs)
-        self.config = declare_config(self, SimConfig)
-        self.sim = Simulation(self.config)
-        config = self.config
+        self.config = config = declare_config(self, SimConfig)
         self.names = [robot_name(i) for i in range(config.robots)]
         self.pose_pubs = [self.create_publisher(PoseWithCovarianceStamped, f'{n}/pose',
                                                 STREAM_QOS) for n in self.names]
@@ -69,6 +70,7 @@ class LandmarkSim(Node):
                                                        STREAM_QOS) for n in self.names]
         self.truth_pub = self.create_publisher(PointCloud2, 'ground_truth_landmarks', qos.LATCHED)
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        self.sim = Simulation(config)
 
         self._pose_covariance = planar_pose_covariance(self.sim.P_pose)
         self._duration_ns = int(round(config.duration_s * 1e9))
@@ -184,7 +186,7 @@ class LandmarkSim(Node):
             measurement = self.sim.measure(robot, j)
             header = self._header(measurement.stamp_ns, f'{self.names[robot]}/sensor')
             ids = measurement.ids
-            pub.publish(observation_message(
+            pub.publish(schemas.observation_message(
                 header, np.full(len(ids), UNKNOWN_ID) if self.sim.config.no_ids else ids,
                 measurement.z))
             ids = ids[ids != UNKNOWN_ID]  # clutter is no landmark
@@ -202,7 +204,7 @@ class LandmarkSim(Node):
         count = len(world.ids)
         stamp_ns = (self._start_ns + self._sim_ns) if self.started else self._created_ns
         header = Header(stamp=Time(nanoseconds=stamp_ns).to_msg(), frame_id=self.config.frame)
-        self.truth_pub.publish(landmark_message(
+        self.truth_pub.publish(schemas.landmark_message(
             header, world.ids, world.positions, np.zeros((count, 2, 2)),
             observations=self.counts))
         self._truth_dirty = False

@@ -13,12 +13,13 @@ import os
 import signal
 import sys
 import tempfile
+import textwrap
 import time
 
+from landmark_ros.ros.fast_io import SWITCH_HELP
 import rclpy
 from rclpy.exceptions import ParameterException
-from rclpy.executors import ExternalShutdownException
-from rclpy.impl.implementation_singleton import rclpy_implementation
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 
 USAGE_ERROR = 2
 """Exit code of a command line or parameter the node cannot start with."""
@@ -92,7 +93,8 @@ def usage(node_class, name):
             'a node renamed with -r __node:=OTHER reads the section of OTHER instead.',
             'Integers are accepted for doubles (range_stddev:=1, sensor_pose:=[0, 0, 1]);',
             'a list must not mix them: [0.0, 0, 1] is refused, write [0.0, 0.0, 1.0].',
-            '', 'Parameters:', parameter_help(config_class)]
+            '', 'Parameters:', parameter_help(config_class),
+            textwrap.fill(SWITCH_HELP, 79, initial_indent='  ', subsequent_indent='      ')]
     return '\n'.join(text) + '\n'
 
 
@@ -125,7 +127,7 @@ def _init(args, name):
         try:
             rclpy.init(args=args)
             failure = None
-        except rclpy_implementation.RCLError as error:
+        except RuntimeError as error:   # rclpy's RCLError (in rclpy's private module)
             failure = _rcl_message(error)
         finally:
             os.dup2(saved, 2)
@@ -142,7 +144,7 @@ must still stop the node."""
 
 
 def _stop_requested(signum, frame):
-    """Python's part of SIGINT: note it (rclpy's handler shuts the context down)."""
+    """Python's part of SIGINT and SIGTERM: note it (rclpy's handler shuts the context down)."""
     _STOPS.append(signum)
 
 
@@ -205,8 +207,12 @@ def run(node_class, name, args=None, startup_errors=(), what='invalid parameters
     # or a garbage-collected llvmlite object's __del__ ("Exception ignored" and a
     # traceback on stderr); this one does not raise. (It also replaces SIG_IGN, which
     # a node started in the background of a script would otherwise keep.)
+    # The same for SIGTERM: the console scripts' entry (nodes.start) makes both end
+    # the process at once while it imports, which must not outlive the imports
+    # (rclpy's handlers call the previous one).
     _STOPS.clear()
     signal.signal(signal.SIGINT, _stop_requested)
+    signal.signal(signal.SIGTERM, _stop_requested)
     failure = _init(argv, name)
     if failure is not None:
         return _error(name, f'bad command line: {failure}')
@@ -215,8 +221,13 @@ def run(node_class, name, args=None, startup_errors=(), what='invalid parameters
         return 0
     node = None
     try:
+        # The executor first: one built on a context a stop signal just shut down
+        # would print an "Exception ignored" traceback when collected.
+        executor = SingleThreadedExecutor()
         node = node_class()
-        rclpy.spin(node)
+        if _STOPS:      # a stop while the node was built: no spin (DDS is closed below)
+            return 0
+        rclpy.spin(node, executor)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except (ValueError, ParameterException, *startup_errors) as error:

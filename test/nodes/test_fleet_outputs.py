@@ -22,7 +22,7 @@ def test_updates_carry_only_the_changed_landmarks_and_markers_follow(env):
     updates = Collector(rig.tester, PointCloud2, f'{rig.ns}/fused_landmark_updates', RELIABLE)
     markers = Collector(rig.tester, MarkerArray, f'{rig.ns}/fused_markers', LATCHED)
     assert env.spin_until(lambda: updates.subscription.get_publisher_count()
-                          and rig.node.marker_pub.get_subscription_count(), DEADLINE_S)
+                          and rig.node.outputs.marker_pub.get_subscription_count(), DEADLINE_S)
     ids = list(range(10))
     rig.send('a/landmarks', ids, np.column_stack([ids, ids]), [C] * 10)
     assert env.spin_until(lambda: updates.messages and markers.messages, DEADLINE_S)
@@ -63,7 +63,7 @@ def test_a_merged_track_is_announced_on_the_updates_and_its_markers_deleted(env)
     updates = Collector(rig.tester, PointCloud2, f'{rig.ns}/fused_landmark_updates', RELIABLE)
     markers = Collector(rig.tester, MarkerArray, f'{rig.ns}/fused_markers', LATCHED)
     assert env.spin_until(lambda: updates.subscription.get_publisher_count()
-                          and rig.node.marker_pub.get_subscription_count(), DEADLINE_S)
+                          and rig.node.outputs.marker_pub.get_subscription_count(), DEADLINE_S)
     # Two tracks found without IDs, 5 cm apart, never in one message (set up in the
     # node's own pipeline objects, as association over several messages leaves them).
     fuser = rig.node.fuser

@@ -832,11 +832,10 @@ def test_input_topics_that_resolve_to_one_topic_are_refused_or_fused_once(env):
 
 @pytest.mark.parametrize('burst', [1, 16])
 def test_one_callback_takes_the_clouds_waiting_on_every_input_topic(env, monkeypatch, burst):
-    import landmark_ros.nodes.fuser as fuser_module
-    import landmark_ros.ros.subscriptions as subscriptions_module
+    from landmark_ros.ros import fast_io
     a, b, c = 'a/landmarks', 'b/landmarks', 'c/landmarks'
     rig = FuserRig(env, topics=(a, b, c), min_observations=1, max_batch_messages=burst)
-    subscription = rig.node._subscriptions_by_topic
+    subscription = rig.node.landmark_inputs.subscriptions
 
     def cloud(stamp, landmark):
         return landmark_message(header(stamp, 'map'), [landmark], [[1.0 * landmark, 0.0]], [C])
@@ -853,9 +852,9 @@ def test_one_callback_takes_the_clouds_waiting_on_every_input_topic(env, monkeyp
         out, waiting[sub] = queue[:limit], queue[limit:]
         return out
 
-    monkeypatch.setattr(fuser_module, 'take_waiting', take_waiting)     # its own topic
-    monkeypatch.setattr(subscriptions_module, 'take_waiting', take_waiting)     # the others
-    rig.node.on_landmarks(cloud(1.0, 1), a)
+    monkeypatch.setattr(fast_io, 'take_waiting', take_waiting)
+    monkeypatch.setattr(fast_io, '_read_cloud', lambda cloud: cloud)    # messages, not bytes
+    rig.node.landmark_inputs.receive(cloud(1.0, 1), a)
     sources = rig.node.sources
     expected = {a: [1] + [2, 3][:burst - 1], b: [12, 13][:burst], c: []}
     assert {topic: [int(item.ids[0]) for item in sources[topic].queue]
@@ -884,10 +883,9 @@ class _Arrivals:
         return out
 
     def patch(self, monkeypatch, node):
-        import landmark_ros.nodes.fuser as fuser_module
-        import landmark_ros.ros.subscriptions as subscriptions_module
-        monkeypatch.setattr(fuser_module, 'take_waiting', self.take_waiting)
-        monkeypatch.setattr(subscriptions_module, 'take_waiting', self.take_waiting)
+        from landmark_ros.ros import fast_io
+        monkeypatch.setattr(fast_io, 'take_waiting', self.take_waiting)
+        monkeypatch.setattr(fast_io, '_read_cloud', lambda cloud: cloud)  # messages, not bytes
         add = node.fuser.add_landmark_bursts
 
         def add_then_arrive(bursts, now):
@@ -910,7 +908,7 @@ def test_clouds_arriving_during_a_burst_are_taken_in_further_rounds_up_to_the_ca
         env, monkeypatch):
     a, b, c = 'a/landmarks', 'b/landmarks', 'c/landmarks'
     rig = FuserRig(env, topics=(a, b, c), min_observations=1, max_batch_messages=4)
-    sub = rig.node._subscriptions_by_topic
+    sub = rig.node.landmark_inputs.subscriptions
     # Round 1 takes a: 1 + 2, b: 1. Meanwhile 3 arrive on a, 1 on b, 2 on c; round 2
     # takes a: 1 (its cap of 4), b: 1, c: 2; meanwhile 2 more on b and 1 on c; round 3
     # takes b: 2 (cap), c: 1; then one arrives on c: round 4 takes it alone, and the
@@ -923,7 +921,7 @@ def test_clouds_arriving_during_a_burst_are_taken_in_further_rounds_up_to_the_ca
          {sub[c]: [_cloud(4.0, 24)]},
          {sub[c]: [_cloud(5.0, 25)]}])
     arrivals.patch(monkeypatch, rig.node)
-    rig.node.on_landmarks(_cloud(1.0, 1), a)
+    rig.node.landmark_inputs.receive(_cloud(1.0, 1), a)
     assert _queued_ids(rig.node, (a, b, c)) == {a: [1, 2, 3, 4], b: [11, 12, 13, 14],
                                                 c: [21, 22, 23, 24]}
     assert [len(arrivals.queues[sub[t]]) for t in (a, b, c)] == [2, 0, 1]   # left to a wait
@@ -938,20 +936,20 @@ def test_clouds_arriving_during_a_burst_are_taken_in_further_rounds_up_to_the_ca
 def test_a_lone_cloud_takes_no_second_round(env, monkeypatch):
     a, b = 'a/landmarks', 'b/landmarks'
     rig = FuserRig(env, topics=(a, b), min_observations=1, max_batch_messages=16)
-    sub = rig.node._subscriptions_by_topic
+    sub = rig.node.landmark_inputs.subscriptions
     arrivals = _Arrivals({}, [{sub[b]: [_cloud(2.0, 12)]}])
     arrivals.patch(monkeypatch, rig.node)
-    rig.node.on_landmarks(_cloud(1.0, 1), a)
+    rig.node.landmark_inputs.receive(_cloud(1.0, 1), a)
     assert _queued_ids(rig.node, (a, b)) == {a: [1], b: []}
     assert arrivals.taken == [(sub[a], 15), (sub[b], 16)]
 
 
 def test_further_rounds_stop_at_a_quarter_of_the_update_period(env, monkeypatch):
-    import landmark_ros.nodes.fuser as fuser_module
+    from landmark_ros.ros import fast_io
     a, b = 'a/landmarks', 'b/landmarks'
     rig = FuserRig(env, topics=(a, b), min_observations=1, max_batch_messages=16,
                    update_period_s=0.04)
-    sub = rig.node._subscriptions_by_topic
+    sub = rig.node.landmark_inputs.subscriptions
     arrivals = _Arrivals({sub[b]: [_cloud(1.5, 11)]},
                          [{sub[b]: [_cloud(2.5, 12), _cloud(3.5, 13)]}] * 3)
     arrivals.patch(monkeypatch, rig.node)
@@ -961,7 +959,7 @@ def test_further_rounds_stop_at_a_quarter_of_the_update_period(env, monkeypatch)
 
     class FakeTime:
         monotonic = staticmethod(lambda: next(clock))
-    monkeypatch.setattr(fuser_module, 'time', FakeTime)
-    rig.node.on_landmarks(_cloud(1.0, 1), a)
+    monkeypatch.setattr(fast_io, 'time', FakeTime)
+    rig.node.landmark_inputs.receive(_cloud(1.0, 1), a)
     assert _queued_ids(rig.node, (a, b)) == {a: [1], b: [11, 12, 13]}
     assert len(arrivals.taken) == 4     # round 1 (2 takes), round 2 (2), none after

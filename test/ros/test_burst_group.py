@@ -1,5 +1,5 @@
 """
-Tests of ros.subscriptions.BurstGroup with rclpy's own executors.
+Tests of ros.fast_io.BurstGroup with rclpy's own executors.
 
 A callback that also takes what waits on the other subscriptions leaves them empty;
 the group must keep the executor from dispatching them for nothing, lose and repeat
@@ -10,7 +10,7 @@ with the node's others.
 import threading
 import time
 
-from landmark_ros.ros.subscriptions import BurstGroup, take_waiting
+from landmark_ros.ros.fast_io import BurstGroup, take_waiting
 import pytest
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.executors import SingleThreadedExecutor

@@ -1,0 +1,90 @@
+"""
+The console scripts' entry points: a node that Ctrl-C ends cleanly from its first line.
+
+A node spends its first second or two importing (rclpy, numpy). Python's own SIGINT
+handler would raise ``KeyboardInterrupt`` wherever the import is: a traceback, and
+exit code 254 under ``ros2 run``. Each entry point here installs, before any heavy
+import, a handler that ends the process at once with exit code 0 (nothing is open
+yet to close); ``ros.runner.run`` replaces it with its own before ``rclpy.init``.
+``python -m landmark_ros.nodes.NAME`` gets the same handler from the package's
+``__init__``. Only the standard library is imported here.
+
+``lazy`` defers a heavy module to its first use, so that a node creates its
+endpoints before it imports the fusion or geometry code.
+"""
+
+import importlib
+import importlib.util
+import os
+import signal
+import sys
+
+
+def _exit_now(signum, frame):
+    """SIGINT or SIGTERM while the node imports: end the process, exit code 0."""
+    os._exit(0)
+
+
+def install():
+    """
+    Make SIGINT and SIGTERM end the process with exit code 0 until the runner takes over.
+
+    Only before ``rclpy.init``: later a DDS participant exists, whose shared memory
+    an ``os._exit`` would leave behind (``ros.runner.run`` installs its own handlers
+    first).
+    """
+    signal.signal(signal.SIGINT, _exit_now)
+    signal.signal(signal.SIGTERM, _exit_now)
+
+
+def _run(name):
+    install()
+    return importlib.import_module(f'landmark_ros.nodes.{name}').main()
+
+
+def observer():
+    """Entry point of ``landmark_observer``."""
+    return _run('observer')
+
+
+def fuser():
+    """Entry point of ``landmark_fuser``."""
+    return _run('fuser')
+
+
+def sim():
+    """Entry point of ``landmark_sim``."""
+    return _run('sim')
+
+
+def localizer():
+    """Entry point of ``landmark_localizer``."""
+    return _run('localizer')
+
+
+def lazy(name):
+    """
+    Return module ``name``, to be imported when one of its attributes is first used.
+
+    The standard library's ``importlib.util.LazyLoader``; a module already imported
+    is returned as it is.
+
+    Parameters
+    ----------
+    name : str
+        Absolute module name.
+
+    Returns
+    -------
+    module
+
+    """
+    if name in sys.modules:
+        return sys.modules[name]
+    spec = importlib.util.find_spec(name)
+    loader = importlib.util.LazyLoader(spec.loader)
+    spec.loader = loader
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    loader.exec_module(module)
+    return module
