@@ -5,8 +5,8 @@ The layers: which packages of landmark_ros may import ROS, checked two ways.
    parts of ``mrclam``) is imported with all its modules in a fresh interpreter, and no
    ROS module may get loaded.
 2. Every ``import`` statement in the package, lazy ones inside functions included, is
-   read from the source: only ``ros/``, ``nodes/``, ``bag/``, ``mrclam/player.py`` and
-   ``demo/`` may name rclpy or a message package.
+   read from the source: only ``ros/``, ``nodes/``, ``bag/``, ``mrclam/player.py``,
+   ``mrclam/through_nodes.py`` and ``demo/`` may name rclpy or a message package.
 """
 
 import ast
@@ -70,7 +70,8 @@ ROS_FREE = ['landmark_ros.core', 'landmark_ros.pipeline', 'landmark_ros.sim',
 """Packages and modules that must load without ROS (with all their submodules)."""
 
 MAY_IMPORT_ROS = ('landmark_ros/ros/*', 'landmark_ros/nodes/*', 'landmark_ros/mrclam/player.py',
-                  'landmark_ros/mrclam/cli.py', 'landmark_ros/demo/*', 'landmark_ros/bag/*')
+                  'landmark_ros/mrclam/through_nodes.py', 'landmark_ros/mrclam/cli.py',
+                  'landmark_ros/demo/*', 'landmark_ros/bag/*')
 """Source files allowed to import ROS (``mrclam/cli.py`` only lazily, for the player; ``bag/``
 converts messages)."""
 
