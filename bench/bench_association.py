@@ -42,7 +42,7 @@ import _common
 for _variable in ('OPENBLAS_NUM_THREADS', 'OMP_NUM_THREADS', 'MKL_NUM_THREADS'):
     os.environ.setdefault(_variable, '1')
 
-from landmark_ros.core import association, landmarks  # noqa: E402
+from landmark_ros.core import association, joint_compatibility, landmarks  # noqa: E402
 from landmark_ros.core.gating import chi2_threshold  # noqa: E402
 import numpy as np  # noqa: E402
 
@@ -210,7 +210,7 @@ def run_scene(index, messages, P_pose, passes, brute_messages):
     def jcbb(msg):
         C_z = association.scan_covariance(msg['z'], msg['R'], msg['robot_xy'], P_pose)
         cands = association.candidates(index, msg['z'], msg['R'], msg['classes'])
-        return association.jcbb(cands, index, msg['z'], C_z)
+        return joint_compatibility.jcbb(cands, index, msg['z'], C_z)
 
     figures = {}
     for name, method in (('nn', nn), ('gnn', gnn), ('jcbb', jcbb)):

@@ -93,6 +93,7 @@ from landmark_ros.eval.montecarlo import frame_averaged_nees, fuse_simulation, S
 from landmark_ros.pipeline.config import FuserConfig
 from landmark_ros.pipeline.rows import UNKNOWN_ID
 from landmark_ros.sim import simulation
+from landmark_ros.sim.world import generate_world, rng, World
 import numpy as np
 from numpy.typing import NDArray
 
@@ -122,10 +123,10 @@ TARGETS = {'precision': 0.99, 'recall': 0.98, 'duplicates': 0}
 """The issue's targets for the headline case and the default association."""
 
 _PAIRS_STREAM = 100
-"""Stream number of the pair directions (``simulation.rng``), apart from the simulator's."""
+"""Stream number of the pair directions (``sim.world.rng``), apart from the simulator's."""
 
 
-def paired_world(pairs: int, spacing: float, size: float, seed: int) -> simulation.World:
+def paired_world(pairs: int, spacing: float, size: float, seed: int) -> World:
     """
     Return ``pairs`` pairs of landmarks ``spacing`` apart, the pairs spread out.
 
@@ -142,15 +143,15 @@ def paired_world(pairs: int, spacing: float, size: float, seed: int) -> simulati
 
     Returns
     -------
-    simulation.World
+    World
 
     """
-    centres = simulation.generate_world(pairs, size, seed)
-    angle = simulation.rng(seed, _PAIRS_STREAM).uniform(-np.pi, np.pi, pairs)
+    centres = generate_world(pairs, size, seed)
+    angle = rng(seed, _PAIRS_STREAM).uniform(-np.pi, np.pi, pairs)
     half = 0.5 * spacing * np.column_stack([np.cos(angle), np.sin(angle)])
     positions = np.stack([centres.positions - half, centres.positions + half], axis=1)
-    return simulation.World(np.arange(1, 2 * pairs + 1, dtype=np.int64),
-                            positions.reshape(-1, 2), centres.bounds)
+    return World(np.arange(1, 2 * pairs + 1, dtype=np.int64),
+                 positions.reshape(-1, 2), centres.bounds)
 
 
 @dataclass
@@ -214,7 +215,7 @@ class Score:
             'seeds': seeds, 'unscored_messages': self.unscored_messages, **frame}
 
 
-def score_fuser(fuser, measurements: Dict[tuple, NDArray[np.int64]], world: simulation.World,
+def score_fuser(fuser, measurements: Dict[tuple, NDArray[np.int64]], world: World,
                 spacing: float, min_observations: int) -> Score:
     """
     Score one fuser of one seed against the truth.
@@ -226,7 +227,7 @@ def score_fuser(fuser, measurements: Dict[tuple, NDArray[np.int64]], world: simu
     measurements : dict
         ``(robot, stamp_ns) -> true IDs`` of every observation message
         (``fuse_simulation``).
-    world : simulation.World
+    world : World
         The true landmarks.
     spacing : float
         Closest distance between true landmarks [m]; the match radius is

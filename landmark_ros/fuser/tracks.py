@@ -31,10 +31,10 @@ from dataclasses import dataclass, field
 from typing import Any, Dict, List, Optional, Set, Tuple
 
 from landmark_ros.core.association import (Association, Candidates, candidates,
-                                           global_nearest_neighbour, jcbb,
-                                           LandmarkIndex, nearest_neighbour,
-                                           scan_covariance)
+                                           global_nearest_neighbour, LandmarkIndex,
+                                           nearest_neighbour, scan_covariance)
 from landmark_ros.core.gating import chi2_threshold
+from landmark_ros.core.joint_compatibility import jcbb
 from landmark_ros.core.landmark_map import LandmarkMap, MapSnapshot, UpdateResult
 from landmark_ros.pipeline.config import FuserConfig
 from landmark_ros.pipeline.rows import landmark_row_problems, MAX_LABEL_ID, UNKNOWN_ID

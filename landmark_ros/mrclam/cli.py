@@ -30,8 +30,8 @@ offline (default)
     (the same map as row by row). One map per fusion method, all three unless
     ``--fusion`` names one.
 ``--through-nodes``
-    ``landmark_ros.mrclam.player`` (the only module of the replay that imports ROS,
-    loaded for this mode only): the same data over DDS (loopback only, private
+    ``landmark_ros.mrclam.through_nodes`` and ``player`` (the only modules of the replay
+    that import ROS, loaded for this mode only): the same data over DDS (loopback only, private
     ROS_DOMAIN_ID 100-149 from the process ID unless ``--domain-id``) through the real
     nodes, in processes started by
     ``landmark_ros.ros.launcher``: one ``landmark_observer`` per robot (namespace
@@ -71,7 +71,7 @@ offline (default)
     ``tracks_confirmed``, ``true_landmarks`` and ``gospa_m`` (c = 1 m, p = 2,
     alpha = 2); RMSE and ANEES are those of the matched tracks. With
     ``--through-nodes`` the player sends the clouds in one global order (a barrier at
-    every change of robot, ``player.sequential``) and the agreement gains
+    every change of robot, ``replay_plan.sequential``) and the agreement gains
     ``same_track_ids`` (the fusers' own track IDs, matched to the same landmarks); the
     nodes do not publish which track each sighting went to, so the nodes' entries take
     the offline accuracies only when their maps agree exactly
@@ -132,6 +132,7 @@ from landmark_ros.mrclam.calibrate import calibrate, format_calibration
 from landmark_ros.mrclam.config import config_values, default_dataset_path, load_config
 from landmark_ros.mrclam.data import load_dataset
 from landmark_ros.mrclam.offline import run_offline, SENSORS
+from landmark_ros.mrclam.replay_plan import PlayOptions
 from landmark_ros.mrclam.report import (agreement, dataset_dict, dataset_report,
                                         fill_node_association, format_agreement,
                                         format_association, format_node_info, plot, report,
@@ -205,6 +206,51 @@ def export_bag(dataset_path, config, path):
     return done.returncode
 
 
+def calibrate_command(args, dataset):
+    """Run ``--calibrate``: print (and with ``--json`` write) the calibration; exit code."""
+    try:
+        calibration = calibrate(dataset)
+    except ValueError as error:
+        print(f'landmark_mrclam: {error}', file=sys.stderr)
+        return 2
+    print(format_calibration(calibration))
+    if args.json:
+        write_json(args.json, {'calibration': calibration.to_dict(),
+                               'dataset': dataset_dict(dataset)})
+    return 0
+
+
+def record_nodes(document, timing, offline, results, info):
+    """Add the replay through the nodes to the JSON document and the timing."""
+    document['mode'] = 'through_nodes'
+    document['agreement'] = agreement(offline, results)
+    fill_node_association(offline, results, document['agreement'])
+    timing.update({k: info[k] for k in ('wall_s', 'startup_s', 'play_wall_s', 'speedup')})
+    document['nodes'] = {k: info[k] for k in ('clouds', 'rows', 'rows_out',
+                                              'partial_rows_out', 'barriers',
+                                              'barrier_rounds', 'probes', 'fusers',
+                                              'observers', 'cloud_mismatch', 'cpu_s')}
+    # Deprecated alias of partial_rows_out, removed in the next release.
+    document['nodes']['constraint_rows_out'] = document['nodes']['partial_rows_out']
+
+
+def write_outputs(args, dataset, results, document):
+    """Write ``--json`` and ``--plot``; return False when the plot cannot be drawn."""
+    if args.json:
+        write_json(args.json, document)
+        print(f'wrote {args.json}')
+    if args.plot:
+        from landmark_ros.eval.plotting import PlotUnavailableError
+        try:
+            plot(args.plot, dataset, results,
+                 f'MRCLAM {dataset.path.name}: fused landmarks (2 sigma)')
+            print(f'wrote {args.plot}')
+        except PlotUnavailableError as error:
+            print(f'landmark_mrclam: {error}', file=sys.stderr)
+            return False
+    return True
+
+
 def main(argv=None):
     """Run the replay from the command line; return the exit code."""
     args = parse_args(argv)
@@ -227,16 +273,7 @@ def main(argv=None):
             return localize_cli.calibrate(args, dataset, document)
         return localize_cli.localize(args, dataset, config, document)
     if args.calibrate:
-        try:
-            calibration = calibrate(dataset)
-        except ValueError as error:
-            print(f'landmark_mrclam: {error}', file=sys.stderr)
-            return 2
-        print(format_calibration(calibration))
-        if args.json:
-            write_json(args.json, {'calibration': calibration.to_dict(),
-                                   'dataset': dataset_dict(dataset)})
-        return 0
+        return calibrate_command(args, dataset)
     methods = [args.fusion] if args.fusion else list(FUSION_METHODS)
     if args.through_nodes and args.sensor != 'rb' and args.hide_ids:
         print('landmark_mrclam: --hide-ids needs --sensor rb through the nodes',
@@ -257,28 +294,20 @@ def main(argv=None):
     results = offline
     if args.through_nodes:
         # The only ROS import of the replay, and only for this mode.
-        from landmark_ros.mrclam.player import run_through_nodes
+        from landmark_ros.mrclam.through_nodes import run_through_nodes
+        options = PlayOptions(progress=False if args.no_progress else None,
+                              hide_ids=args.hide_ids, sensor=args.sensor)
         try:
-            results, info = run_through_nodes(
-                dataset, config, methods,
-                progress=False if args.no_progress else None, keep_logs=args.keep_logs,
-                domain_id=args.domain_id, hide_ids=args.hide_ids, sensor=args.sensor)
+            results, info = run_through_nodes(dataset, config, methods, options,
+                                              keep_logs=args.keep_logs,
+                                              domain_id=args.domain_id)
         except RuntimeError as error:  # ReplayError too
             print(f'landmark_mrclam: {error}', file=sys.stderr)
             return 1
         except KeyboardInterrupt:
             print('landmark_mrclam: interrupted', file=sys.stderr)
             return 130
-        document['mode'] = 'through_nodes'
-        document['agreement'] = agreement(offline, results)
-        fill_node_association(offline, results, document['agreement'])
-        timing.update({k: info[k] for k in ('wall_s', 'startup_s', 'play_wall_s', 'speedup')})
-        document['nodes'] = {k: info[k] for k in ('clouds', 'rows', 'rows_out',
-                                                  'partial_rows_out', 'barriers',
-                                                  'barrier_rounds', 'probes', 'fusers',
-                                                  'observers', 'cloud_mismatch', 'cpu_s')}
-        # Deprecated alias of partial_rows_out, removed in the next release.
-        document['nodes']['constraint_rows_out'] = document['nodes']['partial_rows_out']
+        record_nodes(document, timing, offline, results, info)
     print()
     print(report(results))
     if args.hide_ids:
@@ -292,18 +321,8 @@ def main(argv=None):
         print(format_agreement(document['agreement']))
     document['summary'] = [result.to_dict() for result in results.values()]
     document['timing'] = timing
-    if args.json:
-        write_json(args.json, document)
-        print(f'wrote {args.json}')
-    if args.plot:
-        from landmark_ros.eval.plotting import PlotUnavailableError
-        try:
-            plot(args.plot, dataset, results,
-                 f'MRCLAM {dataset.path.name}: fused landmarks (2 sigma)')
-            print(f'wrote {args.plot}')
-        except PlotUnavailableError as error:
-            print(f'landmark_mrclam: {error}', file=sys.stderr)
-            return 2
+    if not write_outputs(args, dataset, results, document):
+        return 2
     if args.through_nodes and not all(
             e['same_ids'] and e['same_counts'] for e in document['agreement'].values()):
         return 1

@@ -1,47 +1,29 @@
 """
-The replay through the real nodes, over DDS (the only ROS module of ``mrclam``).
+The player of the replay through the real nodes: the dataset into DDS, in order.
 
-``run_through_nodes`` starts one ``landmark_observer`` per robot and one
-``landmark_fuser`` per fusion method as processes (``landmark_ros.ros.launcher``) in
-a private ROS domain on the loopback interface, with ``--params-file`` the replay's
-config plus the transport overrides ``OBSERVER_TRANSPORT`` and ``FUSER_TRANSPORT``.
-``Player`` publishes the dataset into them in global time order with flow control
-(``dependencies``: the order of each landmark's rows at every fuser is the offline
-one), then reads each fuser's saved map and diagnostics. ``landmark_ros.mrclam.cli``
-imports this module only for ``--through-nodes``.
+``Player`` publishes the dataset into the observers in global time order with flow
+control (``replay_plan.dependencies``: the order of each landmark's rows at every
+fuser is the offline one), and follows the outputs, diagnostics and saved maps of the
+fusers. ``through_nodes.run_through_nodes`` starts the nodes and runs it.
 """
 
-from collections import Counter
-from dataclasses import fields, replace
-import os
-from pathlib import Path
-import shutil
 import sys
-import tempfile
 import time
 
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseWithCovarianceStamped
-from landmark_ros.eval.metrics import evaluate_association
-from landmark_ros.fuser import map_file
-from landmark_ros.mrclam.offline import observe
-from landmark_ros.mrclam.report import method_result
-from landmark_ros.observer.observer import Observer
-from landmark_ros.pipeline.config import FuserConfig
+from landmark_ros.mrclam.replay_plan import (FUSER_BATCH, FUSER_WINDOW, OBSERVER_WINDOW,
+                                             partial_topic, plan_clouds, PlayOptions,
+                                             ReplayError)
 from landmark_ros.pipeline.counters import without_deprecated
 from landmark_ros.pipeline.rows import UNKNOWN_ID
 from landmark_ros.ros.cloud import CloudWriter
 from landmark_ros.ros.conversions import stamp_ns
-from landmark_ros.ros.launcher import Launcher, ProcessExitedError
 from landmark_ros.ros.schemas import observation_message, pose_message
-from landmark_ros.ros.schemas import read_landmarks
 import numpy as np
 from rcl_interfaces.srv import GetParameters
-import rclpy
-from rclpy.context import Context
 from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header
@@ -49,80 +31,6 @@ from std_srvs.srv import Trigger
 from tqdm import tqdm
 
 NS_PER_S = 1_000_000_000
-
-
-def cpu_seconds(pids):
-    """Return the CPU time (user + system) of running processes, from /proc (Linux)."""
-    ticks = os.sysconf('SC_CLK_TCK') if hasattr(os, 'sysconf') else 100
-    result = {}
-    for name, pid in pids.items():
-        try:
-            with open(f'/proc/{pid}/stat') as stream:
-                parts = stream.read().rsplit(')', 1)[1].split()
-            result[name] = (int(parts[11]) + int(parts[12])) / ticks
-        except (OSError, IndexError, ValueError):
-            pass
-    return result
-
-
-OBSERVER_TRANSPORT = {
-    'input_depth': 1000, 'output_depth': 1000, 'max_pending': 1000,
-    'pose_buffer_s': 3600.0, 'max_wait_s': 30.0, 'marker_rate_hz': 0.0,
-    'diagnostics_period_s': 1.0,
-}
-"""Observer parameters the replay sets on top of the config file (transport only)."""
-
-OBSERVER_WINDOW = 8
-"""Observation clouds in flight per observer (sent, no ``landmarks`` output yet)."""
-
-FUSER_WINDOW = 64
-"""Clouds per robot sent but not yet known to be taken by every fuser."""
-
-FUSER_BATCH = FUSER_WINDOW if 'max_batch_messages' in {
-    spec.name for spec in fields(FuserConfig)} else 1
-"""Clouds of one source a fuser callback takes at most (its ``max_batch_messages``)."""
-
-FUSER_TRANSPORT = {
-    'update_period_s': 0.05, 'publish_rate_hz': 5.0, 'max_queue_messages': 100000,
-    'input_depth': 1000, 'diagnostics_period_s': 0.25, 'source_timeout_s': 86400.0,
-    'autosave_period_s': 0.0,
-}
-"""Fuser parameters the replay sets on top of the config file (besides topics, method)."""
-if FUSER_BATCH > 1:
-    FUSER_TRANSPORT['max_batch_messages'] = FUSER_BATCH
-
-
-def _param(name, value):
-    if isinstance(value, bool):
-        text = 'true' if value else 'false'
-    elif isinstance(value, (list, tuple)):
-        text = '[' + ', '.join(f"'{v}'" for v in value) + ']'
-    else:
-        text = str(value)
-    return ['-p', f'{name}:={text}']
-
-
-def observer_arguments(robot, config_path):
-    """Return the ROS arguments of a robot's observer process."""
-    ns = f'/{robot.name}'
-    arguments = ['-r', f'__ns:={ns}', '--params-file', str(config_path)]
-    for name, value in OBSERVER_TRANSPORT.items():
-        arguments += _param(name, value)
-    for topic in ('pose', 'observations'):
-        arguments += _param(f'qos_overrides.{ns}/{topic}.subscription.reliability',
-                            'reliable')
-    return arguments
-
-
-def fuser_arguments(method, topics, config_path, map_path, partial_observation_topics=None):
-    """Return the ROS arguments of one fuser process (``partial_observation_topics``: if given)."""
-    arguments = ['-r', f'__ns:=/mrclam/{method}', '--params-file', str(config_path)]
-    extra = {} if partial_observation_topics is None else {
-        'partial_observation_topics': list(partial_observation_topics)}
-    for name, value in dict(FUSER_TRANSPORT, input_topics=list(topics), fusion=method,
-                            map_file=str(map_path), **extra).items():
-        arguments += _param(name, value)
-    return arguments
 
 
 def stamp_msg(stamp_ns):
@@ -134,11 +42,6 @@ def stamp_msg(stamp_ns):
 _PARTIAL_WRITERS = {'range': CloudWriter((('id', np.uint32), ('range', np.float64))),
                     'bearing': CloudWriter((('id', np.uint32), ('bearing', np.float64)))}
 """Observation clouds of one column, by the column kept (``--sensor range|bearing``)."""
-
-
-def partial_topic(landmarks_topic):
-    """Return a robot's ``partial_observations`` topic beside its ``landmarks`` one."""
-    return landmarks_topic.rsplit('/', 1)[0] + '/partial_observations'
 
 
 def stamped_messages(stamp_ns, frame_id, pose, P_pose, ids, z, sensor='rb'):
@@ -181,131 +84,6 @@ def stamped_messages(stamp_ns, frame_id, pose, P_pose, ids, z, sensor='rb'):
     rows['id'] = np.asarray(ids).reshape(-1)
     rows[sensor] = z[:, 0 if sensor == 'range' else 1]
     return pose_msg, writer.message(header, rows)
-
-
-def expected_partial(rows, config, sensor):
-    """
-    Return, per cloud, whether its observer publishes a ``partial_observations`` cloud.
-
-    The observers' own pipeline (``offline.observe``, fresh ``Observer`` objects of
-    the config) on the very clouds the player sends: a cloud gives partial observations when
-    some of its partial rows pass the observer's checks.
-
-    Returns
-    -------
-    ndarray of bool, shape (K,)
-        In the order of ``rows.messages()``.
-
-    """
-    count = len(rows.messages()[0])
-    if sensor == 'rb':
-        return np.zeros(count, bool)
-    robots = int(rows.robot.max()) + 1 if len(rows) else 0
-    observers = [Observer(config.observer) for _ in range(robots)]
-    flags = [bool(len(batch.partial_observations))
-             for _, batch in observe(rows, observers, config.P_pose, sensor)]
-    if len(flags) != count:
-        raise ReplayError(f'the observers placed {len(flags)} of {count} clouds offline')
-    return np.array(flags, bool)
-
-
-def dependencies(rows, starts, ends):
-    """
-    Return, per cloud, the clouds of other robots it must follow at the fuser.
-
-    For each landmark of cloud ``j``, the last earlier cloud with that landmark: when
-    it is another robot's, ``j`` must reach the fuser after it. Earlier clouds with
-    the landmark need no entry: that cloud itself followed them (the clouds of one
-    robot stay in order by themselves).
-
-    Returns
-    -------
-    requirements : list of tuple of (int, int)
-        Per cloud, ``(robot, local)`` pairs: the cloud ``local`` (index among the
-        clouds of robot index ``robot``) must be taken by the fusers first; one pair
-        per robot, the latest.
-    local : ndarray of int, shape (K,)
-        Index of each cloud among its robot's clouds.
-
-    """
-    count = len(starts)
-    msg_robot = rows.robot[starts].tolist()
-    local = np.zeros(count, np.int64)
-    seen = Counter()
-    last = {}
-    requirements = []
-    ids = rows.ids.tolist()
-    for j in range(count):
-        r = msg_robot[j]
-        local[j] = seen[r]
-        seen[r] += 1
-        need = {}
-        for landmark in set(ids[starts[j]:ends[j]]):
-            i = last.get(landmark, -1)
-            if i >= 0 and msg_robot[i] != r:
-                need[msg_robot[i]] = max(need.get(msg_robot[i], -1), int(local[i]))
-            last[landmark] = j
-        requirements.append(tuple(sorted(need.items())))
-    return requirements, local
-
-
-def sequential(msg_robot, local):
-    """
-    Return, per cloud, the cloud before it when another robot's: one global order.
-
-    Without IDs (``--hide-ids``) a row may go to any landmark and new tracks take IDs
-    in the order they start, so every fuser must take the clouds of all robots in
-    global time order, not only the clouds of each landmark: each cloud follows the
-    one before it (the clouds of one robot stay in order by themselves).
-
-    Parameters
-    ----------
-    msg_robot : ndarray of int, shape (K,)
-        Robot index of each cloud.
-    local : ndarray of int, shape (K,)
-        Index of each cloud among its robot's clouds (``dependencies``).
-
-    Returns
-    -------
-    list of tuple of (int, int)
-        As the requirements of ``dependencies``.
-
-    """
-    robots = np.asarray(msg_robot).tolist()
-    return [((robots[j - 1], int(local[j - 1])),) if j and robots[j - 1] != robots[j]
-            else () for j in range(len(robots))]
-
-
-def hidden_association(records, truth):
-    """
-    Match a map built without IDs to the true landmarks; rename its records.
-
-    Each record keeps its own ID as ``track_id`` and takes the ID of the true landmark
-    its track is matched to (``eval.metrics.evaluate_association``: optimal assignment
-    on positions within 1 m), as the offline replay does.
-
-    Returns
-    -------
-    AssociationSummary
-        The map's figures (tracks, GOSPA, matching); no sighting is scored (the
-        nodes do not publish which track each sighting went to): the accuracies are
-        NaN until the caller fills them in.
-
-    """
-    ids = np.array([r['id'] for r in records], np.int64)
-    m = np.array([r['mean'] for r in records], np.float64).reshape(-1, 2)
-    summary = evaluate_association(np.zeros(0, np.int64), np.zeros(0, np.int64),
-                                   np.zeros((0, 2)), np.zeros((0, 2, 2)), ids, m, truth)
-    summary = replace(summary, association_accuracy=float('nan'),
-                      oracle_accuracy=float('nan'))
-    for record in records:
-        record['track_id'] = record['id']
-        record['id'] = summary.track_to_true.get(record['id'], record['id'])
-    return summary
-
-
-class ReplayError(RuntimeError):
-    """The replay through the nodes failed (process exit, stall, lost message)."""
 
 
 class Player:
@@ -353,33 +131,27 @@ class Player:
     """
 
     def __init__(self, node, executor, dataset, rows, config, methods, launcher,
-                 progress=None, stall_timeout_s=60.0, hide_ids=False, sensor='rb'):
+                 options=PlayOptions()):
         self.node, self.executor = node, executor
         self.dataset, self.rows, self.config = dataset, rows, config
         self.methods, self.launcher = list(methods), launcher
-        self.progress, self.stall_timeout_s = progress, stall_timeout_s
+        self.progress, self.stall_timeout_s = options.progress, options.stall_timeout_s
         self.robots = dataset.robots
-        self.starts, self.ends = rows.messages()
-        self.msg_robot = rows.robot[self.starts]
-        self.msg_stamps_ns = rows.stamps_ns[self.starts]
-        self.requirements, self.local = dependencies(rows, self.starts, self.ends)
-        self.hide_ids = bool(hide_ids)
-        if self.hide_ids:
-            self.requirements = sequential(self.msg_robot, self.local)
-        self.totals = np.bincount(self.msg_robot, minlength=len(self.robots)).tolist()
-        self.robot_clouds = [np.flatnonzero(self.msg_robot == r).tolist()
-                             for r in range(len(self.robots))]
-        self.expected_ns = [[] for _ in self.robots]
-        for j in range(len(self.starts)):
-            self.expected_ns[self.msg_robot[j]].append(int(self.msg_stamps_ns[j]))
-        self.sensor = sensor
-        flags = expected_partial(rows, config, sensor)
-        # Per robot: partial observation stamps expected, and how many among its first k clouds.
-        self.partial_ns = [self.msg_stamps_ns[self.msg_robot == r][
-            flags[self.msg_robot == r]].tolist() for r in range(len(self.robots))]
-        self.partial_before = [np.concatenate(([0], np.cumsum(
-            flags[self.msg_robot == r]))).tolist() for r in range(len(self.robots))]
+        self.hide_ids = bool(options.hide_ids)
+        self.sensor = options.sensor
+        plan = plan_clouds(rows, config, len(self.robots), options)
+        self.starts, self.ends = plan.starts, plan.ends
+        self.msg_robot, self.msg_stamps_ns = plan.msg_robot, plan.msg_stamps_ns
+        self.requirements, self.local = plan.requirements, plan.local
+        self.totals, self.robot_clouds = plan.totals, plan.robot_clouds
+        self.expected_ns = plan.expected_ns
+        self.partial_ns, self.partial_before = plan.partial_ns, plan.partial_before
         self.partial_observation_topics = [partial_topic(r.landmarks_topic) for r in self.robots]
+        self._create_endpoints(node)
+        self._reset_counters()
+
+    def _create_endpoints(self, node):
+        """Create the publishers, subscriptions and clients of the player's node."""
         reliable = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000,
                               reliability=ReliabilityPolicy.RELIABLE)
         latched = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
@@ -398,7 +170,7 @@ class Player:
             self.out_subs.append(node.create_subscription(
                 PointCloud2, robot.landmarks_topic,
                 lambda msg, index=index: self._on_output(msg, index), reliable, **quiet_sub))
-            if sensor != 'rb':
+            if self.sensor != 'rb':
                 self.partial_subs.append(node.create_subscription(
                     PointCloud2, self.partial_observation_topics[index],
                     lambda msg, index=index: self._on_partial_observations(msg, index), reliable,
@@ -418,6 +190,9 @@ class Player:
         node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diagnostics,
                                  QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE),
                                  **quiet_sub)
+
+    def _reset_counters(self):
+        """Set the counts of clouds sent, out of the observers and taken to zero."""
         count = len(self.robots)
         self.sent = [0] * count
         self.out = [0] * count
@@ -458,15 +233,15 @@ class Player:
         expected = self.partial_ns[index]
         expected = expected[k] if k < len(expected) else None
         if stamp != expected:
-            raise ReplayError(f'{self.robots[index].name}: partial observations stamped {stamp} '
-                              f'ns, expected {expected} ns (partial observation cloud {k}): '
-                              'lost, or the observer node and its pipeline disagree')
+            raise ReplayError(f'{self.robots[index].name}: partial observations stamped '
+                              f'{stamp} ns, expected {expected} ns (partial observation cloud '
+                              f'{k}): lost, or the observer node and its pipeline disagree')
         self.partial_out[index] += 1
         self.partial_rows_out += msg.width * msg.height
         self._advance(index)
 
     def _advance(self, index):
-        """Count the clouds whose outputs (landmarks, partial observations if any) all came."""
+        """Count the clouds whose outputs (landmarks, partial observations if any) all arrived."""
         before = self.partial_before[index]
         out = self.out[index]
         while (out < self.landmarks_out[index]
@@ -782,146 +557,3 @@ def progress_bar(total, progress=None):
     return tqdm(total=total, desc='replay', unit='cloud', file=sys.stderr,
                 disable=None if progress is None else not progress, dynamic_ncols=True,
                 mininterval=0.2, miniters=0)
-
-
-def domain_id_for(pid=None):
-    """Return the private ROS_DOMAIN_ID of a replay: 100 to 149, from the process ID."""
-    return 100 + (os.getpid() if pid is None else pid) % 50
-
-
-def run_through_nodes(dataset, config, methods, progress=None, keep_logs=False, out=print,
-                      domain_id=None, hide_ids=False, sensor='rb'):
-    """
-    Replay the dataset through the real nodes; return the results per method.
-
-    The nodes run as processes of ``landmark_ros.ros.launcher.Launcher`` (stopped with
-    SIGINT, then SIGTERM and SIGKILL, whatever happens) in a private ROS domain on the
-    loopback interface; this process joins it with its own context. ``progress``
-    chooses the progress bar as in ``progress_bar`` (None: only on a terminal).
-    ``hide_ids`` sends every row as ``UNKNOWN_ID`` (``Player``); each result then has
-    its ``association`` (``hidden_association``) and its records take the IDs of the
-    true landmarks matched (``track_id`` keeps the fuser's). ``sensor`` ``range`` or
-    ``bearing`` drops a column of every cloud (``Player``) and gives each fuser the
-    ``partial_observation_topics`` ``/robotN/partial_observations``; the fusers' ``partial_in``
-    must then equal the partial observation rows the player received (else ``cloud_mismatch``).
-
-    Returns
-    -------
-    results : dict
-        Method -> MethodResult: each fuser's saved map (``~/save``), with the
-        per-landmark rejections; its ``fused_landmarks`` must equal it.
-    info : dict
-        Timing, message counts, CPU time per process and the node diagnostics.
-
-    """
-    t_start = time.monotonic()
-    domain = domain_id_for() if domain_id is None else int(domain_id)
-    os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
-    work = Path(tempfile.mkdtemp(prefix='landmark_mrclam_'))
-    rows = dataset.rows()
-    topics = [robot.landmarks_topic for robot in dataset.robots]
-    partial_observation_topics = None if sensor == 'rb' else [partial_topic(t) for t in topics]
-    config_path = Path(config.path).resolve()
-    context = Context()
-    node = executor = None
-    ok = False
-    out(f'through the nodes: ROS_DOMAIN_ID={domain}, loopback only; logs in {work}')
-    out(f'  observers {", ".join(r.name for r in dataset.robots)}: --params-file {config_path}'
-        f' + {OBSERVER_TRANSPORT} + reliable pose/observations')
-    out(f'  fusers /mrclam/<method>: --params-file {config_path} + {FUSER_TRANSPORT}')
-    launcher = Launcher(work, domain_id=domain)
-    try:
-        for robot in dataset.robots:
-            launcher.start_module(f'observer_{robot.name}', 'landmark_ros.nodes.observer',
-                                  observer_arguments(robot, config_path))
-        map_paths = {}
-        for method in methods:
-            map_paths[method] = work / f'{method}.json'
-            launcher.start_module(f'fuser_{method}', 'landmark_ros.nodes.fuser',
-                                  fuser_arguments(method, topics, config_path,
-                                                  map_paths[method], partial_observation_topics))
-        rclpy.init(args=['landmark_mrclam'], context=context, domain_id=domain)
-        node = rclpy.create_node('landmark_mrclam_player', context=context,
-                                 start_parameter_services=False)
-        executor = SingleThreadedExecutor(context=context)
-        executor.add_node(node)
-        player = Player(node, executor, dataset, rows, config, methods, launcher, progress,
-                        hide_ids=hide_ids, sensor=sensor)
-        t_connect = time.monotonic()
-        cpu_player = time.process_time()
-        try:
-            final = player.run()
-        except ProcessExitedError as error:
-            raise ReplayError(str(error)) from error
-        cpu = cpu_seconds({name: p.pid for name, p in launcher.processes.items()})
-        cpu['player'] = time.process_time() - cpu_player
-        results = {}
-        mismatch = {}
-        for method in methods:
-            document = map_file.load(map_paths[method], config.fuser.world_frame)
-            records = sorted(document['landmarks'], key=lambda r: r['id'])
-
-            def cloud_matches(method=method, records=records):
-                msg = player.fused.get(method)
-                if msg is None:
-                    return False
-                cloud = read_landmarks(msg)
-                return (cloud.ids.tolist() == [r['id'] for r in records]
-                        and np.array_equal(cloud.m, np.array(
-                            [r['mean'] for r in records]).reshape(-1, 2))
-                        and np.array_equal(cloud.P, np.array(
-                            [r['covariance'] for r in records]).reshape(-1, 2, 2))
-                        and cloud.observations.tolist() == [r['observations'] for r in records])
-            try:
-                player.spin_until(cloud_matches, 10.0, f'{method} fused_landmarks')
-            except ReplayError:
-                mismatch[method] = 'fused_landmarks never matched the saved map'
-            sources = final[method]['sources']
-            used = sum(int(v.get('fused', 0)) + int(v.get('partial_fused', 0))
-                       for v in sources.values())
-            rejected = sum(int(v.get('gated_out', 0)) + int(v.get('partial_gated', 0))
-                           for v in sources.values())
-            association = hidden_association(records, dataset.landmarks) if hide_ids else None
-            results[method] = method_result(method, records, dataset.landmarks, used, rejected)
-            results[method].association = association
-            results[method].sensor = sensor
-            results[method].landmarks_initialised = sum(
-                int(v.get('landmarks_initialised', 0)) for v in sources.values())
-            if partial_observation_topics:
-                taken = sum(int(sources[t].get('partial_in', 0))
-                            for t in partial_observation_topics)
-                if taken != player.partial_rows_out:
-                    mismatch[method] = (f'partial_in {taken}, partial observation rows published '
-                                        f'{player.partial_rows_out}')
-        observers = {r.name: player.diagnostics[f'/{r.name}/landmark_observer'][1]
-                     for r in dataset.robots}
-        info = {
-            'wall_s': time.monotonic() - t_start,
-            'startup_s': t_connect - t_start,
-            'play_wall_s': player.play_wall_s,
-            'speedup': dataset.duration / player.play_wall_s if player.play_wall_s else None,
-            'clouds': int(len(player.starts)), 'rows': int(len(rows)),
-            'rows_out': int(player.rows_out),
-            'partial_rows_out': int(player.partial_rows_out),
-            'barriers': player.barriers, 'barrier_rounds': player.barrier_rounds,
-            'probes': list(player.probes_sent),
-            'fusers': {m: final[m]['sources'] for m in methods},
-            'observers': observers, 'cloud_mismatch': mismatch,
-            'cpu_s': {name: round(value, 2) for name, value in cpu.items()},
-        }
-        ok = True
-        return results, info
-    finally:
-        if executor is not None:
-            executor.shutdown()
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown(context=context)
-        codes = launcher.stop()
-        bad = {name: code for name, code in codes.items() if code != 0}
-        if bad:
-            out(f'processes exited with {bad}')
-        if ok and not keep_logs and not bad:
-            shutil.rmtree(work, ignore_errors=True)
-        else:
-            out(f'logs kept in {work}')

@@ -1,7 +1,7 @@
 """The fuser node's map outputs: the full map, its updates and the RViz markers."""
 
-from landmark_ros.nodes.start import lazy
 from landmark_ros.fuser.publishing import PublicationSchedule
+from landmark_ros.nodes.start import lazy
 from landmark_ros.ros import qos
 import numpy as np
 from sensor_msgs.msg import PointCloud2

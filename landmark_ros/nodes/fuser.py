@@ -4,7 +4,8 @@ landmark_fuser: the landmark observations of several robots in, one fused map ou
 Subscribes every topic of ``input_topics`` (landmark clouds, one source each),
 queues their rows and fuses them by landmark ID in batches with
 ``landmark_ros.fuser.fuser.Fuser``; every topic of ``partial_observation_topics``
-(partial observations: range-only and bearing-only, one source each) too. Publishes the confirmed map on
+(partial observations: range-only and bearing-only, one source each) too. Publishes the
+confirmed map on
 ``fused_landmarks`` (transient local: late subscribers get it), the landmarks changed
 since the last update on ``fused_landmark_updates``, RViz markers on
 ``fused_markers`` and ``/diagnostics``; services ``~/reset`` and ``~/save``. With

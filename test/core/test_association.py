@@ -3,11 +3,12 @@
 import itertools
 
 from conftest import numerical_jacobian
-from landmark_ros.core import association
+from landmark_ros.core import joint_compatibility
 from landmark_ros.core.association import (
-    ambiguous_rows, candidates, global_nearest_neighbour, jcbb, joint_mahalanobis_sq,
-    joint_thresholds, LandmarkIndex, nearest_neighbour, scan_covariance)
+    ambiguous_rows, candidates, global_nearest_neighbour, joint_thresholds, LandmarkIndex,
+    nearest_neighbour, scan_covariance)
 from landmark_ros.core.gating import chi2_threshold, mahalanobis_sq
+from landmark_ros.core.joint_compatibility import jcbb, joint_mahalanobis_sq
 from landmark_ros.core.landmarks import (landmark_to_world, landmark_to_world_dependent,
                                          lever_arm_covariance)
 from landmark_ros.core.pose2 import compose
@@ -347,7 +348,7 @@ def test_block_descent_equals_one_row_at_a_time(seed, monkeypatch):
     index, cands = scene(m_map, P_map, z, R)
     C_z = scan_covariance(z, R, [0.0, 0.0], P_pose)
     block = jcbb(cands, index, z, C_z)
-    monkeypatch.setattr(association._Search, '_run', lambda self, p, k, d2: False)
+    monkeypatch.setattr(joint_compatibility._Search, '_run', lambda self, p, k, d2: False)
     single = jcbb(cands, index, z, C_z)
     np.testing.assert_array_equal(block.assignment, single.assignment)
     assert block.joint_d2 == pytest.approx(single.joint_d2, rel=1e-9, abs=1e-12)

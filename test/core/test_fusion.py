@@ -7,7 +7,7 @@ true error covariance from the gains) and by Monte Carlo with known correlations
 """
 
 from conftest import assert_psd, random_spd
-from landmark_ros.core import _fold_kernel, gaussian
+from landmark_ros.core import _fold_kernel, _split_ci, gaussian
 from landmark_ros.core.gaussian import (covariance_intersection, covariance_intersection_omega,
                                         fuse, split_covariance_intersection,
                                         split_covariance_intersection_omega)
@@ -334,7 +334,7 @@ def test_sci_omega_quadratic_stop_agrees_with_the_full_search(monkeypatch):
     for parts in quadratic_stop_cases(3, 20_000):
         quick = gaussian.sci_omega_2x2(*parts)
         with monkeypatch.context() as patch:
-            patch.setattr(gaussian, '_OMEGA_QUADRATIC', 0.0)
+            patch.setattr(_split_ci, '_OMEGA_QUADRATIC', 0.0)
             full = gaussian.sci_omega_2x2(*parts)
         difference = np.abs(quick - full)
         assert difference.max() <= 1e-6
@@ -343,12 +343,12 @@ def test_sci_omega_quadratic_stop_agrees_with_the_full_search(monkeypatch):
 
 def test_sci_omega_quadratic_stop_saves_a_newton_step(monkeypatch):
     calls = []
-    slope = gaussian._sci_slope
-    monkeypatch.setattr(gaussian, '_sci_slope', lambda *a: calls.append(1) or slope(*a))
+    slope = _split_ci._sci_slope
+    monkeypatch.setattr(_split_ci, '_sci_slope', lambda *a: calls.append(1) or slope(*a))
     parts = quadratic_stop_cases(5, 400)[0]
     counts = []
-    for quadratic in (gaussian._OMEGA_QUADRATIC, 0.0):
-        monkeypatch.setattr(gaussian, '_OMEGA_QUADRATIC', quadratic)
+    for quadratic in (_split_ci._OMEGA_QUADRATIC, 0.0):
+        monkeypatch.setattr(_split_ci, '_OMEGA_QUADRATIC', quadratic)
         calls.clear()
         for i in range(100, 400):   # one element at a time: a call per Newton step
             gaussian.sci_omega_2x2(*(tuple(x[i:i + 1] for x in part) for part in parts))
@@ -664,8 +664,8 @@ def test_split_ci_2x2_matches_the_generic_path(rng):
             assert_close_scaled(out[k], r, 1e-9)
     # The private closed form is what the public function returns.
     e = gaussian.entries_2x2
-    direct = gaussian._split_ci_2x2(m1, e(parts[0]), e(parts[1]), m2, e(parts[2]),
-                                    e(parts[3]), omegas)
+    direct = _split_ci._split_ci_2x2(m1, e(parts[0]), e(parts[1]), m2, e(parts[2]),
+                                     e(parts[3]), omegas)
     for a, b in zip(direct, out2):
         np.testing.assert_array_equal(a, b)
 

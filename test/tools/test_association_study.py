@@ -4,7 +4,7 @@ from landmark_ros.eval import association_study as study
 from landmark_ros.fuser.fuser import Fuser
 from landmark_ros.pipeline.config import FuserConfig
 from landmark_ros.pipeline.rows import UNKNOWN_ID
-from landmark_ros.sim import simulation
+from landmark_ros.sim.world import World
 import numpy as np
 import pytest
 
@@ -23,9 +23,9 @@ def test_paired_world_puts_each_pair_spacing_apart(spacing):
 
 
 def test_score_counts_matches_duplicates_false_tracks_and_sightings():
-    world = simulation.World(np.array([1, 2, 3], np.int64),
-                             np.array([[0.0, 0.0], [1.0, 0.0], [10.0, 10.0]]),
-                             (-20.0, -20.0, 20.0, 20.0))
+    world = World(np.array([1, 2, 3], np.int64),
+                  np.array([[0.0, 0.0], [1.0, 0.0], [10.0, 10.0]]),
+                  (-20.0, -20.0, 20.0, 20.0))
     sources = ['/robot1/landmarks', '/robot2/landmarks']
     fuser = Fuser(FuserConfig(min_observations=1), sources)
     P = np.broadcast_to(0.01 * np.eye(2), (4, 2, 2)).copy()

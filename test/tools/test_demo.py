@@ -336,7 +336,7 @@ def test_short_demo_run_without_ids_matches_tracks_by_position(tmp_path):
 
 def test_tracks_are_matched_to_the_truth_by_position():
     from collections import namedtuple
-    from landmark_ros.demo.run import match_tracks_to_truth
+    from landmark_ros.demo.report import match_tracks_to_truth
     Cloud = namedtuple('Cloud', 'ids m observations')
     truth = Cloud(np.array([1, 2, 3]), np.array([[0.0, 0.0], [2.0, 0.0], [9.0, 9.0]]),
                   np.array([10, 6, 0]))

@@ -48,7 +48,7 @@ def test_hide_ids_through_nodes_agrees_with_offline(noisy_dataset, tmp_path):  #
 
 
 def test_without_ids_every_cloud_follows_the_one_before_it():
-    from landmark_ros.mrclam.player import sequential
+    from landmark_ros.mrclam.replay_plan import sequential
     msg_robot = np.array([0, 0, 1, 0, 2, 2, 1])
     local = np.array([0, 1, 0, 2, 0, 1, 1])
     assert sequential(msg_robot, local) == [

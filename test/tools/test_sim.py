@@ -20,9 +20,8 @@ from landmark_ros.ros.cloud import read_columns
 from landmark_ros.ros.conversions import pose_from_msg, stamp_ns, yaw_from_quaternion
 from landmark_ros.ros.qos import LATCHED
 from landmark_ros.ros.schemas import OBSERVATION_FIELDS, read_landmarks
-from landmark_ros.sim.simulation import (generate_world, load_world, make_paths, SimConfig,
-                                         Simulation)
-from landmark_ros.sim.simulation import visible
+from landmark_ros.sim.simulation import SimConfig, Simulation
+from landmark_ros.sim.world import generate_world, load_world, make_paths, visible
 import numpy as np
 import pytest
 from rclpy.parameter import Parameter
