@@ -40,11 +40,9 @@ $(STAMP): setup.py setup.cfg package.xml requirements-ros.txt requirements-dev.t
 	@touch $@
 
 test: venv
-	@# compile the split-CI kernel and the fuser's row check into numba's disk cache once,
-	@# before the nodes start
-	$(VPY) -c 'from landmark_ros.core import _fold_kernel; _fold_kernel.load()'
-	$(VPY) -c 'from landmark_ros.pipeline import rows; rows.load_row_kernel()'
 	$(PYTEST) test $(PYTEST_ARGS)
+	@# again without numba: the numpy fold is the default path for anyone without it
+	LANDMARK_ROS_NUMBA=0 $(PYTEST) test/core test/fusion test/pipeline $(PYTEST_ARGS)
 
 lint: venv
 	$(PYTEST) test -m linter $(PYTEST_ARGS)

@@ -76,7 +76,7 @@ import traceback
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 
 import _common  # noqa: E402
-from landmark_ros.core.landmark_map import FUSION_METHODS  # noqa: E402
+from landmark_ros.fusion.landmark_map import FUSION_METHODS  # noqa: E402
 from landmark_ros.core.landmarks import landmark_to_world_dependent  # noqa: E402
 from landmark_ros.nodes.fuser import LandmarkFuser  # noqa: E402
 from landmark_ros.pipeline.config import FuserConfig  # noqa: E402

@@ -43,7 +43,7 @@ import sys
 import time
 
 import _common
-from landmark_ros.core.landmark_map import FUSION_METHODS, LandmarkMap
+from landmark_ros.fusion.landmark_map import FUSION_METHODS, LandmarkMap
 import numpy as np
 
 SIZES = ((1000, 5), (10_000, 50))
@@ -156,7 +156,7 @@ def throughput(landmarks, sources, batches, seed):
 
 def memory_child(landmarks):
     """Build a split-CI map of ``landmarks`` landmarks (5 sources); print its memory as JSON."""
-    import landmark_ros.core.landmark_map  # noqa: F401 - counted in the baseline
+    import landmark_ros.fusion.landmark_map  # noqa: F401 - counted in the baseline
     baseline_kb = _common.vm_hwm_kb()
     rng = np.random.default_rng(1)
     truth = rng.uniform(-5000.0, 5000.0, (landmarks, 2))

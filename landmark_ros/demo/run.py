@@ -42,7 +42,7 @@ import signal
 import sys
 import time
 
-from landmark_ros.core.landmark_map import FUSION_METHODS
+from landmark_ros.fusion.landmark_map import FUSION_METHODS
 from landmark_ros.demo.launcher import (Launcher, ProcessExitedError, remove_unused_shm,
                                         shm_files_of, write_params_file)
 from landmark_ros.eval.metrics import evaluate, format_table

@@ -15,11 +15,11 @@ from collections import Counter
 import itertools
 from typing import Any, Dict, List, Optional, Sequence, Tuple
 
-from landmark_ros.core.landmark_map import LandmarkMap, MapSnapshot, UpdateResult
+from landmark_ros.fusion.landmark_map import LandmarkMap, MapSnapshot, UpdateResult
 from landmark_ros.pipeline import map_file
 from landmark_ros.pipeline.config import FuserConfig
 from landmark_ros.pipeline.counters import Counters, Logger, Status
-from landmark_ros.pipeline.rows import (landmark_row_problems, load_row_kernel, MAX_LABEL_ID,
+from landmark_ros.pipeline.rows import (landmark_row_problems, MAX_LABEL_ID,
                                         UNKNOWN_ID)
 from landmark_ros.pipeline.sources import LandmarkMessage, Queued, Source
 from landmark_ros.pipeline.tracks import Scan, shard_of_position, Tracker
@@ -85,7 +85,6 @@ class Fuser:
         self.config = config
         self.logger = logger or _Quiet()
         self.counters = Counters(self.logger.warning, config.log_throttle_s)
-        load_row_kernel()   # compile now rather than on the first message
         self.map = LandmarkMap(config.fusion, config.gate_probability,
                                config.min_observations, config.max_consecutive_rejections)
         self.sources: Dict[str, Source] = {

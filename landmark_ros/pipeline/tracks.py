@@ -35,7 +35,7 @@ from landmark_ros.core.association import (Association, Candidates, candidates,
                                            LandmarkIndex, nearest_neighbour,
                                            scan_covariance)
 from landmark_ros.core.gating import chi2_threshold
-from landmark_ros.core.landmark_map import LandmarkMap, MapSnapshot, UpdateResult
+from landmark_ros.fusion.landmark_map import LandmarkMap, MapSnapshot, UpdateResult
 from landmark_ros.pipeline.config import FuserConfig
 from landmark_ros.pipeline.rows import MAX_LABEL_ID, UNKNOWN_ID
 import numpy as np

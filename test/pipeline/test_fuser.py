@@ -3,7 +3,7 @@
 import json
 import logging
 
-from landmark_ros.core.landmark_map import LandmarkMap
+from landmark_ros.fusion.landmark_map import LandmarkMap
 from landmark_ros.pipeline import map_file
 from landmark_ros.pipeline.config import FuserConfig
 from landmark_ros.pipeline.fuser import Fuser, LandmarkMessage

@@ -4,7 +4,7 @@ import datetime
 import json
 import os
 
-from landmark_ros.core.landmark_map import LandmarkMap
+from landmark_ros.fusion.landmark_map import LandmarkMap
 from landmark_ros.pipeline import map_file
 from landmark_ros.pipeline.map_file import MapFileError
 import numpy as np

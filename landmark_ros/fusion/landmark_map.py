@@ -32,27 +32,22 @@ split_covariance_intersection
     the exact optimum), folded from the tightest source up so that the result does
     not depend on the order the sources arrived in.
 
-Each method is a small strategy object (``core._fusion_methods``: ``fuse``, ``update``,
-``initialise``, ``records``, ``load``) chosen once by ``LandmarkMap(fusion)``.
+Each method sits behind one interface (``fusion.methods``), chosen once by
+``LandmarkMap(fusion)``.
 
 An observation of a known landmark is gated by its squared Mahalanobis distance
 to the landmark's gate reference ``gate`` (innovation covariance ``P_ref + R``): the
 estimate as it was after the landmark's last refresh, which comes after each of its
-first 7 observations, then 4 times per doubling of its count
-(``_fold_kernel.gate_due``; it holds at least 4/5 of the current information), and
-after a rebuild, a merge, ``set_estimate`` or ``load_records``. A new ID becomes a
-landmark once ``min_observations`` of its observations agree with each other; a
-landmark rejected ``max_consecutive_rejections`` times in a row is rebuilt from
-those recent observations when they agree (it moved). Rows of one batch are
-applied in order, so a batch gives the same map as its rows one by one (bit for
-bit): rows of confirmed landmarks go in rounds in which each landmark appears
-once, and every computation is element-wise. With split CI and numba the rows of
-confirmed landmarks are gated and folded in one compiled loop instead
-(``prepare`` of the split-CI strategy, ``_fold_kernel.run``): each landmark is folded
-once after its last row of the batch and at its refreshes (its estimate is a pure
-function of its per-source sums, so the bits are those of a fold per row), and keeps
-its fold between batches; the map takes the outcome at once unless a landmark is
-rebuilt in the batch, when the rounds take the batch instead.
+first 7 observations, then 4 times per doubling of its count (``gate_due``; it holds
+at least 4/5 of the current information), and after a rebuild, a merge,
+``set_estimate`` or ``load_records``. A new ID becomes a landmark once
+``min_observations`` of its observations agree with each other; a landmark rejected
+``max_consecutive_rejections`` times in a row is rebuilt from those recent
+observations when they agree (it moved). Rows of one batch are applied in order, so a
+batch gives the same map as its rows one by one: since a landmark's gate reference
+changes only at refreshes and rebuilds, the rows of confirmed landmarks are gated
+together in passes, each pass taking every landmark's rows up to its next refresh or
+rebuild (``_pass``).
 """
 
 from collections import Counter, deque
@@ -60,11 +55,10 @@ import copy
 from dataclasses import dataclass, field
 from typing import Any, Deque, Dict, List, Mapping, NamedTuple, Optional, Sequence, Tuple, Union
 
-from landmark_ros.core import _fold_kernel
-from landmark_ros.core._arrays import mahalanobis_sq_2x2, symmetric_2x2, unique_ints
-from landmark_ros.core._fusion_methods import _SplitCovarianceIntersection, _stack, _STRATEGIES
-from landmark_ros.core._source_sums import _entries, _levels, _SOURCE_BITS
+from landmark_ros.core._arrays import mahalanobis_sq_2x2, unique_ints
 from landmark_ros.core.gating import chi2_threshold
+from landmark_ros.fusion.methods import METHODS, Rows
+from landmark_ros.fusion.source_sums import entries as _entries, Estimates, SOURCE_BITS
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -75,6 +69,25 @@ _NO_STAMP = np.iinfo(np.int64).min
 """``first_stamp_ns`` of a landmark that has not had an observation yet."""
 
 FUSION_METHODS = ('independent', 'covariance_intersection', 'split_covariance_intersection')
+
+GATE_BITS = 2
+"""A landmark's gate reference is refreshed 2 ** GATE_BITS times per doubling of its
+observations (every observation up to 2 ** (GATE_BITS + 1) - 1)."""
+
+
+def gate_due(observations: NDArray[np.int64]) -> NDArray[np.bool_]:
+    """
+    Return whether a landmark's gate reference is refreshed once it has ``observations``.
+
+    Every observation up to ``2 ** (GATE_BITS + 1) - 1``, then ``2 ** GATE_BITS`` times
+    per doubling: the reference holds at least 4/5 of the current information, and
+    refreshing it (a fold) costs next to nothing per observation for a landmark seen
+    thousands of times.
+    """
+    n = np.asarray(observations, dtype=np.int64)
+    length = np.frexp(np.maximum(n, 1).astype(np.float64))[1].astype(np.int64)  # bit length
+    step = np.left_shift(1, np.maximum(length - (GATE_BITS + 1), 0))
+    return n % step == 0
 
 
 class MapSnapshot(NamedTuple):
@@ -142,6 +155,24 @@ class _Batch:
         return _Observation(self.z[i], self.R_ind[i], self.R_dep[i], self.names[self.codes[i]],
                             int(self.stamps_ns[i]))
 
+    def rows(self, rows, positions):
+        """Return the rows at ``positions`` as ``Rows`` of the landmark rows ``rows``."""
+        return Rows(rows, self.codes[positions], self.z[positions], self.R_ind[positions],
+                    self.R_dep[positions])
+
+
+@dataclass(frozen=True)
+class _Checkpoint:
+    """What an update of some rows can change (``LandmarkMap._checkpoint``)."""
+
+    count: int
+    rows: NDArray[np.int64]
+    arrays: Dict[str, np.ndarray]
+    seen: Dict[str, NDArray[np.bool_]]
+    buffers: Dict[int, Deque[_Observation]]
+    sources: List[str]
+    method: Any
+
 
 # --- The map ---------------------------------------------------------------------------------
 
@@ -175,9 +206,7 @@ class LandmarkMap:
         if min_observations < 1 or max_consecutive_rejections < 1:
             raise ValueError('min_observations and max_consecutive_rejections must be >= 1')
         self.fusion = fusion
-        self._method = _STRATEGIES[fusion]()
-        if fusion == 'split_covariance_intersection':
-            _fold_kernel.load()     # compile now rather than in the first update
+        self._method = METHODS[fusion]()
         self.threshold = chi2_threshold(2, gate_probability)
         self.min_observations = int(min_observations)
         self.max_consecutive_rejections = int(max_consecutive_rejections)
@@ -223,8 +252,8 @@ class LandmarkMap:
         code = self._source_codes.get(name)
         if code is None:
             code = self._source_codes[name] = len(self._source_names)
-            if code >= 1 << _SOURCE_BITS:
-                raise ValueError(f'more than {1 << _SOURCE_BITS} sources')
+            if code >= 1 << SOURCE_BITS:
+                raise ValueError(f'more than {1 << SOURCE_BITS} sources')
             self._source_names.append(name)
         return code
 
@@ -331,7 +360,7 @@ class LandmarkMap:
         ids = np.asarray(ids, dtype=np.int64).reshape(-1)
         checkpoint = self._checkpoint(ids)
         try:
-            result = self._update(ids, z, R, R_dep, source, stamp_ns, not settle, source_index)
+            result = self._update(ids, z, R, R_dep, source, stamp_ns, source_index)
             if settle:
                 self.settle()
             return result
@@ -339,8 +368,6 @@ class LandmarkMap:
             # All or nothing: whatever failed half way, the map is as it was.
             self._restore(checkpoint)
             raise
-        finally:
-            self._method.finish()
 
     _ROW_ARRAYS = ('ids', 'mean', 'cov_ind', 'cov_dep', 'gate', 'confirmed', 'observations',
                    'rejections', 'consecutive', 'first_stamp_ns', 'last_stamp_ns')
@@ -355,28 +382,25 @@ class LandmarkMap:
             taken = np.zeros(self._count, bool)
             taken[rows[rows >= 0]] = True
             rows = np.flatnonzero(taken)
-        return {
-            'count': self._count, 'rows': rows,
-            'arrays': {name: getattr(self, name)[rows].copy() for name in self._ROW_ARRAYS},
-            'seen': {source: seen[rows].copy() for source, seen in self._seen_by.items()},
-            'buffers': {row: copy.copy(self._buffers[row]) for row in rows.tolist()
-                        if row in self._buffers},
-            'sources': list(self._source_names),
-            'method': self._method.checkpoint(rows),
-        }
+        return _Checkpoint(
+            self._count, rows,
+            {name: getattr(self, name)[rows].copy() for name in self._ROW_ARRAYS},
+            {source: seen[rows].copy() for source, seen in self._seen_by.items()},
+            {row: copy.copy(self._buffers[row]) for row in rows.tolist() if row in self._buffers},
+            list(self._source_names), self._method.checkpoint(rows))
 
     def _restore(self, checkpoint):
         """Put the map back to a ``_checkpoint``."""
-        count, rows = checkpoint['count'], checkpoint['rows']
-        for name, values in checkpoint['arrays'].items():
+        count, rows = checkpoint.count, checkpoint.rows
+        for name, values in checkpoint.arrays.items():
             getattr(self, name)[rows] = values
         added = np.arange(count, self._count)
         added_ids = self.ids[added].tolist()
         for name in self._ROW_ARRAYS:      # rows added by the failed update, as new
             getattr(self, name)[added] = _NO_STAMP if name == 'first_stamp_ns' else 0
         for source in list(self._seen_by):
-            if source in checkpoint['seen']:
-                self._seen_by[source][rows] = checkpoint['seen'][source]
+            if source in checkpoint.seen:
+                self._seen_by[source][rows] = checkpoint.seen[source]
                 self._seen_by[source][added] = False
             else:
                 del self._seen_by[source]
@@ -384,11 +408,11 @@ class LandmarkMap:
             self._buffers.pop(row, None)
         for row in [row for row in self._buffers if row >= count]:
             del self._buffers[row]
-        self._buffers.update(checkpoint['buffers'])
-        for name in self._source_names[len(checkpoint['sources']):]:
+        self._buffers.update(checkpoint.buffers)
+        for name in self._source_names[len(checkpoint.sources):]:
             del self._source_codes[name]
-        self._source_names[:] = checkpoint['sources']
-        self._method.restore(checkpoint['method'])
+        self._source_names[:] = checkpoint.sources
+        self._method.restore(checkpoint.method)
         if self._count != count:
             self._count = count
             for landmark_id in added_ids:
@@ -397,7 +421,7 @@ class LandmarkMap:
             self._sorted_ids, self._sorted_rows = self.ids[:count][order], order
             self._table[self._table >= count] = -1
 
-    def _update(self, ids, z, R, R_dep, source, stamp_ns, lazy, source_index):
+    def _update(self, ids, z, R, R_dep, source, stamp_ns, source_index):
         ids = np.asarray(ids, dtype=np.int64).reshape(-1)
         z = np.asarray(z, dtype=np.float64).reshape(-1, 2)
         R = np.asarray(R, dtype=np.float64).reshape(-1, 2, 2)
@@ -431,15 +455,8 @@ class LandmarkMap:
         batch = _Batch(z, R - R_dep, R_dep, self._source_names, codes, stamps_ns)
         changed: List[NDArray[np.int64]] = []
         known = self.confirmed[rows]
-        # Rows of already confirmed landmarks: in rounds of distinct landmarks, which
-        # keeps each landmark's own order while fusing the rows of a round together.
-        if known.any():
-            index = np.flatnonzero(known)
-            index = index[self._method.prepare(self, rows[index], batch, index, result, changed,
-                                               lazy)]
-            for positions in _levels(rows[index]):
-                self._update_confirmed(rows[index[positions]], batch, index[positions], result,
-                                       changed)
+        # Rows of already confirmed landmarks first, in passes; then the others in order.
+        self._update_confirmed(rows[known], batch, np.flatnonzero(known), result, changed)
         for i in np.flatnonzero(~known).tolist():
             if self.confirmed[rows[i]]:  # confirmed earlier in this batch
                 self._update_confirmed(rows[i:i + 1], batch, np.array([i]), result, changed)
@@ -457,123 +474,94 @@ class LandmarkMap:
             by_name[k] = self.source_code(str(names[k]))
         return by_name[inverse]
 
-    def _streaks(self, run):
-        """Return the rejections in a row up to each row of a run, rows in ``run['order']``."""
-        group, taken = run['landmark'][run['order']], run['accepted'][run['order']]
-        start = np.searchsorted(group, group)
-        index = np.arange(len(group))
-        last = np.maximum.accumulate(np.where(taken, index, -1))
-        leading = last < start
-        return index - np.where(leading, start - 1, last) + np.where(
-            leading, self.consecutive[run['landmarks'][group]], 0)
-
-    def _rebuilt_in(self, run):
-        """
-        Return which landmarks of a run reach ``max_consecutive_rejections`` (bool, K).
-
-        And the run's ``_streaks``, for ``_apply_run`` if no landmark is rebuilt.
-        """
-        rebuilt = np.zeros(len(run['landmarks']), bool)
-        streak = self._streaks(run)
-        over = streak >= self.max_consecutive_rejections
-        rebuilt[run['landmark'][run['order'][over]]] = True
-        return rebuilt, streak
-
-    def _apply_run(self, rows, batch, positions, run, result, changed, streak=None):
-        """
-        Take the outcome of rows gated and folded one by one (``_SourceParts.run``).
-
-        Does what the rounds of ``_update_confirmed`` would do with the same decisions:
-        estimates, counts, stamps, sources seen, buffers of recent rejections. No
-        landmark of ``run`` may reach ``max_consecutive_rejections`` (``_rebuilt_in``:
-        the rounds rebuild those). ``streak``: the run's ``_streaks``, if known.
-        """
-        accepted, landmark, landmarks = run['accepted'], run['landmark'], run['landmarks']
-        group = landmark[run['order']]
-        streak = self._streaks(run) if streak is None else streak
-        # Per landmark: accepted rows, the last one, the streak of rejections at the end.
-        ends = np.searchsorted(group, np.arange(len(landmarks)), side='right') - 1
-        hits = np.bincount(landmark[accepted], minlength=len(landmarks))
-        good = landmarks[hits > 0]
-        state = run['state'][hits > 0]
-        self.mean[good] = state[:, :2]
-        self.cov_ind[good] = symmetric_2x2(state[:, 2], state[:, 3], state[:, 4])
-        self.cov_dep[good] = symmetric_2x2(state[:, 5], state[:, 6], state[:, 7])
-        self.gate[landmarks] = run['gate']
-        self.observations[landmarks] += hits
-        self.consecutive[landmarks] = streak[ends]
-        last_row = np.full(len(landmarks), -1)
-        np.maximum.at(last_row, landmark[accepted], np.flatnonzero(accepted))
-        self.last_stamp_ns[good] = batch.stamps_ns[positions[last_row[hits > 0]]]
-        codes = batch.codes[positions]
-        # The accepted rows by source: one sort, a slice per source.
-        taken_rows = rows[accepted]
-        small = np.int16 if len(batch.names) < 1 << 15 else np.int64   # radix sort
-        by_code = np.argsort(codes[accepted].astype(small), kind='stable')
-        bounds = np.searchsorted(codes[accepted][by_code], np.arange(len(batch.names) + 1))
-        for code in np.flatnonzero(np.diff(bounds)).tolist():
-            name = batch.names[code]
-            self._seen(name)[taken_rows[by_code[bounds[code]:bounds[code + 1]]]] = True
-            result.accepted[name] += int(bounds[code + 1] - bounds[code])
-        if len(good):
-            changed.append(good)
-        rejected = np.flatnonzero(~accepted)
-        if len(rejected):
-            np.add.at(self.rejections, rows[rejected], 1)
-            for code, count in enumerate(np.bincount(codes[rejected]).tolist()):
-                if count:
-                    result.rejected[batch.names[code]] += count
-        if self._buffers:
-            buffered = np.fromiter(self._buffers, np.int64, len(self._buffers))
-            hit = np.zeros(len(self.ids), bool)
-            hit[good] = True
-            for row in buffered[hit[buffered]].tolist():
-                del self._buffers[row]
-        # Recent rejections: those after a landmark's last accepted row.
-        after = np.full(len(landmarks), -1)
-        after[hits > 0] = last_row[hits > 0]
-        for i in rejected[rejected > after[landmark[rejected]]].tolist():
-            recent = self._buffers.setdefault(
-                int(rows[i]), deque(maxlen=self.max_consecutive_rejections))
-            recent.append(batch.observation(positions[i]))
-
     def _update_confirmed(self, rows, batch, positions, result, changed):
-        """Gate and fuse rows of confirmed landmarks, each landmark at most once."""
-        z, R_ind, R_dep = batch.z[positions], batch.R_ind[positions], batch.R_dep[positions]
+        """Gate and fuse rows of confirmed landmarks, each landmark's in order."""
+        while len(rows):
+            rows, positions = self._pass(rows, batch, positions, result, changed)
+
+    def _pass(self, rows, batch, positions, result, changed):
+        """
+        Take every landmark's rows up to its next gate refresh or rebuild; return the rest.
+
+        Until then a landmark's gate reference does not change, so its rows are gated
+        together (``rows`` in arrival order, grouped here by landmark, stable).
+        """
+        order = np.argsort(rows, kind='stable')
+        rows, positions = rows[order], positions[order]
+        index = np.arange(len(rows))
+        first = np.ones(len(rows), bool)
+        first[1:] = rows[1:] != rows[:-1]
+        starts = np.flatnonzero(first)
+        group = np.cumsum(first) - 1
+        start = starts[group]
         gate = self.gate[rows]
-        S = symmetric_2x2(gate[:, 2], gate[:, 3], gate[:, 4]) + R_ind + R_dep
-        d = z - gate[:, :2]
-        d2 = mahalanobis_sq_2x2(d[:, 0], d[:, 1], *_entries(S))
+        R_ind, R_dep = batch.R_ind[positions], batch.R_dep[positions]
+        d = batch.z[positions] - gate[:, :2]
+        d2 = mahalanobis_sq_2x2(d[:, 0], d[:, 1], *(
+            gate[:, 2 + k] + _entries(R_ind)[k] + _entries(R_dep)[k] for k in range(3)))
         ok = d2 <= self.threshold   # NaN (degenerate input) is rejected
+        taken = np.cumsum(ok)
+        count = self.observations[rows] + taken - (taken[start] - ok[start])
+        last_ok = np.maximum.accumulate(np.where(ok, index, -1))
+        leading = last_ok < start
+        streak = np.where(ok, 0, np.where(leading, self.consecutive[rows] + index - start + 1,
+                                          index - last_ok))
+        refresh = ok & gate_due(count)
+        rebuild = ~ok & (streak >= self.max_consecutive_rejections)
+        stop = np.minimum.reduceat(np.where(refresh | rebuild, index, len(rows)), starts)
+        stop = np.minimum(stop, np.append(starts[1:], len(rows)) - 1)
+        now = index <= stop[group]
+        self._take(rows[now], batch, positions[now], ok[now], result, changed)
+        ends = rows[stop]
+        self.consecutive[ends] = streak[stop]
+        self._settle_rows(ends[refresh[stop]])
+        self._refresh_gate(ends[refresh[stop]])
+        for row in ends[rebuild[stop]].tolist():
+            self._reinitialise(row, result, changed)
+        return rows[~now], positions[~now]
+
+    def _take(self, rows, batch, positions, ok, result, changed):
+        """Book rows of confirmed landmarks (grouped by landmark, in order) gated ``ok``."""
+        codes = batch.codes[positions]
         if ok.any():
-            good = rows[ok]
-            codes = batch.codes[positions[ok]]
-            self.mean[good], self.cov_ind[good], self.cov_dep[good] = self._method.update(
-                self, good, codes, z[ok], R_ind[ok], R_dep[ok], positions[ok])
-            self.observations[good] += 1
-            self._refresh_gate(good[_fold_kernel.gate_due(self.observations[good])])
-            self.consecutive[good] = 0
-            self.last_stamp_ns[good] = batch.stamps_ns[positions[ok]]
-            changed.append(good)
-            for code, count in enumerate(np.bincount(codes).tolist()):
-                if count:
-                    name = batch.names[code]
-                    self._seen(name)[good[codes == code]] = True
-                    result.accepted[name] += count
+            good, at = rows[ok], positions[ok]
+            first = np.ones(len(good), bool)
+            first[1:] = good[1:] != good[:-1]
+            landmarks, index = good[first], np.cumsum(first) - 1
+            current = Estimates(self.mean[landmarks], self.cov_ind[landmarks],
+                                self.cov_dep[landmarks])
+            fused = self._method.absorb(landmarks, current, index, batch.rows(good, at))
+            if fused is not None:
+                self.mean[landmarks], self.cov_ind[landmarks], self.cov_dep[landmarks] = fused
+            self.observations[landmarks] += np.bincount(index)
+            self.last_stamp_ns[landmarks] = batch.stamps_ns[at[np.append(first[1:], True)]]
+            changed.append(landmarks)
+            self._count_by_source(codes[ok], good, result.accepted, True)
             if self._buffers:
-                for row in self._buffers.keys() & set(good.tolist()):
+                for row in self._buffers.keys() & set(landmarks.tolist()):
                     del self._buffers[row]
-        for i in np.flatnonzero(~ok).tolist():
-            row = rows[i]
-            observation = batch.observation(positions[i])
-            self.rejections[row] += 1
-            self.consecutive[row] += 1
-            result.rejected[observation.source] += 1
-            recent = self._buffers.setdefault(
-                row, deque(maxlen=self.max_consecutive_rejections))
-            recent.append(observation)
-            if self.consecutive[row] >= self.max_consecutive_rejections:
-                self._reinitialise(row, result, changed)
+        if not ok.all():
+            np.add.at(self.rejections, rows[~ok], 1)
+            self._count_by_source(codes[~ok], rows[~ok], result.rejected, False)
+            # Recent rejections: those after a landmark's last accepted row.
+            index = np.arange(len(rows))
+            last_ok = np.maximum.accumulate(np.where(ok, index, -1))
+            later = np.append(rows[1:] != rows[:-1], True)
+            recent = ~ok & (index > np.minimum.accumulate(
+                np.where(later, last_ok, len(rows))[::-1])[::-1])
+            for i in np.flatnonzero(recent).tolist():
+                self._buffers.setdefault(int(rows[i]), deque(
+                    maxlen=self.max_consecutive_rejections)).append(
+                        batch.observation(positions[i]))
+
+    def _count_by_source(self, codes, rows, counter, seen):
+        """Add rows to ``counter`` by source name; with ``seen``, mark the sources seen."""
+        for code, count in enumerate(np.bincount(codes).tolist()):
+            if count:
+                name = self._source_names[code]
+                counter[name] += count
+                if seen:
+                    self._seen(name)[rows[codes == code]] = True
 
     def _refresh_gate(self, rows):
         """Make the estimates of ``rows`` (an index or indices) their gate references."""
@@ -613,8 +601,11 @@ class LandmarkMap:
         cluster = _agreeing(observations, self.threshold, self._method.fuse)
         if len(cluster) < self.min_observations:
             return []
-        self.mean[row], self.cov_ind[row], self.cov_dep[row] = self._method.initialise(
-            self, row, cluster)
+        z, R_ind, R_dep = _stack(cluster)
+        codes = np.array([self.source_code(obs.source) for obs in cluster], np.int64)
+        fused = self._method.start(row, Rows(np.full(len(cluster), row, np.int64), codes, z,
+                                             R_ind, R_dep))
+        self.mean[row], self.cov_ind[row], self.cov_dep[row] = (x[0] for x in fused)
         self.confirmed[row] = True
         self.observations[row] = len(cluster)
         self._refresh_gate(row)
@@ -637,11 +628,9 @@ class LandmarkMap:
         self._settle_rows(rows[rows >= 0])
 
     def _settle_rows(self, rows):
-        rows, state = self._method.settle(rows)
-        if len(rows):
-            self.mean[rows] = state[:, :2]
-            self.cov_ind[rows] = symmetric_2x2(state[:, 2], state[:, 3], state[:, 4])
-            self.cov_dep[rows] = symmetric_2x2(state[:, 5], state[:, 6], state[:, 7])
+        rows, fused = self._method.settle(rows)
+        if fused is not None:
+            self.mean[rows], self.cov_ind[rows], self.cov_dep[rows] = fused
 
     def known(self, ids: ArrayLike) -> NDArray[np.bool_]:
         """
@@ -741,17 +730,12 @@ class LandmarkMap:
         if keep_id == drop_id or (rows < 0).any() or not self.confirmed[rows].all():
             return False
         keep, drop = (int(r) for r in rows)
-        if isinstance(self._method, _SplitCovarianceIntersection):
-            self._method.parts.merge_into(keep, drop)
-            m, P_ind, P_dep = (v[0] for v in self._method.parts.combine(
-                np.array([keep], np.int64)))
-        else:
-            one, other = slice(keep, keep + 1), slice(drop, drop + 1)
-            m, P_ind, P_dep = self._method.fuse(
-                self.mean[one], self.cov_ind[one], self.cov_dep[one],
-                self.mean[other], self.cov_ind[other], self.cov_dep[other])
-            m, P_ind, P_dep = self._method.held(m[0], P_ind[0], P_dep[0])
-        self.mean[keep], self.cov_ind[keep], self.cov_dep[keep] = m, P_ind, P_dep
+        self._settle_rows(rows)
+        one, other = slice(keep, keep + 1), slice(drop, drop + 1)
+        fused = self._method.merge(
+            keep, drop, Estimates(self.mean[one], self.cov_ind[one], self.cov_dep[one]),
+            Estimates(self.mean[other], self.cov_ind[other], self.cov_dep[other]))
+        self.mean[keep], self.cov_ind[keep], self.cov_dep[keep] = (x[0] for x in fused)
         self.observations[keep] += self.observations[drop]
         self._refresh_gate(keep)
         self.first_stamp_ns[keep] = min(self.first_stamp_ns[keep], self.first_stamp_ns[drop])
@@ -820,12 +804,9 @@ class LandmarkMap:
         P_dep = np.asarray(P_dep, dtype=np.float64).reshape(2, 2)
         code = self.source_code(source)
         row = int(self._rows_of(np.array([landmark_id], np.int64))[0])
-        mean, P_ind, P_dep = self._method.held(m, P - P_dep, P_dep)
-        if isinstance(self._method, _SplitCovarianceIntersection):
-            self._method.parts.clear(row)
-            self._method.parts.add(np.array([row], np.int64), np.array([code], np.int64),
-                                   mean[None], P_ind[None], P_dep[None])
-        self.mean[row], self.cov_ind[row], self.cov_dep[row] = mean, P_ind, P_dep
+        held = self._method.held(Estimates(m[None], (P - P_dep)[None], P_dep[None]))
+        self._method.replace(row, code, held)
+        self.mean[row], self.cov_ind[row], self.cov_dep[row] = (x[0] for x in held)
         self._refresh_gate(row)
         self.confirmed[row] = True
         self.observations[row] += int(observations)
@@ -887,7 +868,7 @@ class LandmarkMap:
                 'sources': self.sources_of(landmark_id),
                 'first_stamp_ns': int(self.first_stamp_ns[row]),
                 'last_stamp_ns': int(self.last_stamp_ns[row]),
-                **self._method.records(self, row),
+                **self._method.records(row, self._source_names),
             })
         return records
 
@@ -928,7 +909,8 @@ class LandmarkMap:
                 self.last_stamp_ns[row] = _integer(record['last_stamp_ns'])
                 for source in record['sources']:
                     self._seen(str(source))[row] = True
-                self._method.load(self, row, record, mean, P - P_dep, P_dep)
+                self._method.load(row, record, Estimates(mean, P - P_dep, P_dep),
+                                  self.source_code)
         except (KeyError, TypeError, ValueError) as error:
             self.reset()
             raise ValueError(f'malformed landmark record: {error}') from error
@@ -939,6 +921,13 @@ def _integer(value):
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
         raise ValueError(f'expected an integer, got {value!r}')
     return int(value)
+
+
+def _stack(observations):
+    """Return ``z, R_ind, R_dep`` of a list of observations as arrays."""
+    return (np.array([obs.z for obs in observations]),
+            np.array([obs.R_ind for obs in observations]),
+            np.array([obs.R_dep for obs in observations]))
 
 
 def _agreeing(observations, threshold, fuse_rows):

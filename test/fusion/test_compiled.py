@@ -4,7 +4,7 @@ from conftest import random_spd
 from landmark_ros.core import _fold_kernel
 from landmark_ros.core import _pair_index
 from landmark_ros.core import _source_sums
-from landmark_ros.core import landmark_map as landmark_map_module
+from landmark_ros.fusion import landmark_map as landmark_map_module
 from landmark_ros.core._arrays import mahalanobis_sq_2x2, power_of_4_scale
 import numpy as np
 import pytest

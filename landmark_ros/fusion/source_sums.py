@@ -1,0 +1,281 @@
+"""
+Per (landmark, source) information sums for split covariance intersection, and their fold.
+
+A source's estimate of a landmark is ``m_s = Y^-1 y`` with ``Y = sum R_ind_i^-1`` and
+``y = sum R_ind_i^-1 z_i`` (independent parts as information), covariance ``Y^-1 + D``
+where ``D`` is ``sym(Y^-1 Q)`` projected onto the positive semi-definite matrices,
+``Q = sum R_ind_i^-1 R_dep_i``: the information-weighted mean of the dependent parts, a
+shared error that averaging does not reduce. A landmark's estimate is the split-CI fold
+of its sources' estimates from the tightest source up (``fold``), a pure function of
+its sums: folding once per batch or once per row gives the same bits.
+
+Sources: split covariance intersection, Julier and Uhlmann, "General decentralized
+data fusion with covariance intersection", Handbook of Multisensor Data Fusion, 2001.
+"""
+
+from typing import Any, Callable, Dict, List, NamedTuple, Sequence, Tuple
+
+from landmark_ros.core._arrays import (inverse_2x2, power_of_4_scale, psd_projection_2x2,
+                                       symmetric_2x2, unique_ints)
+from landmark_ros.core.gaussian import information, sci_omega_2x2, split_ci_2x2_entries
+from landmark_ros.fusion import compiled
+import numpy as np
+from numpy.typing import NDArray
+
+SOURCE_BITS = 24
+"""A (landmark row, source code) pair is the key ``row << 24 | code``."""
+
+
+class Estimates(NamedTuple):
+    """Landmark estimates held as independent and dependent parts."""
+
+    m: NDArray[np.float64]
+    """Means, shape (K, 2) [m]."""
+    P_ind: NDArray[np.float64]
+    """Independent parts, shape (K, 2, 2) [m^2]."""
+    P_dep: NDArray[np.float64]
+    """Dependent parts, shape (K, 2, 2) [m^2]."""
+
+
+class SumsCheckpoint(NamedTuple):
+    """What ``SourceSums.restore`` needs to undo the changes since ``checkpoint``."""
+
+    keys: NDArray[np.int64]
+    sums: NDArray[np.float64]
+    positions: NDArray[np.int64]
+    saved: NDArray[np.float64]
+
+
+def entries(P: NDArray[np.float64]) -> Tuple[Any, Any, Any]:
+    """Return ``(xx, xy, yy)`` of symmetric 2x2 matrices (views, no averaging)."""
+    return P[..., 0, 0], P[..., 0, 1], P[..., 1, 1]
+
+
+class SourceSums:
+    """
+    The sums of every (landmark row, source code) pair, in sorted keys.
+
+    ``keys`` (sorted, so a landmark's pairs lie together in source-code order) and
+    ``sums`` (per key: ``(xx, xy, yy)`` of ``Y``, ``y``, ``(00, 01, 10, 11)`` of ``Q``)
+    are replaced when pairs come or go, and only ``sums`` changes in place (adding to
+    existing pairs): a checkpoint keeps the old arrays and the sums it may see change.
+    """
+
+    def __init__(self) -> None:
+        self.keys = np.empty(0, np.int64)
+        self.sums = np.empty((0, 9))
+
+    def _bounds(self, rows):
+        rows = np.asarray(rows, np.int64)
+        return (np.searchsorted(self.keys, rows << SOURCE_BITS),
+                np.searchsorted(self.keys, (rows + 1) << SOURCE_BITS))
+
+    def _positions(self, rows, codes):
+        """Return the positions of (row, code) pairs in ``keys``, adding the new ones."""
+        keys = (np.asarray(rows, np.int64) << SOURCE_BITS) | np.asarray(codes, np.int64)
+        at = np.searchsorted(self.keys, keys)
+        found = at < len(self.keys)
+        found[found] = self.keys[at[found]] == keys[found]
+        if not found.all():
+            new = unique_ints(keys[~found])
+            where = np.searchsorted(self.keys, new)
+            self.keys = np.insert(self.keys, where, new)
+            self.sums = np.insert(self.sums, where, np.zeros((len(new), 9)), axis=0)
+            at = np.searchsorted(self.keys, keys)
+        return at
+
+    def add(self, rows: NDArray[np.int64], codes: NDArray[np.int64], z: NDArray[np.float64],
+            R_ind: NDArray[np.float64], R_dep: NDArray[np.float64]) -> None:
+        """Add observations (in order) to the sums of their (row, code) pairs."""
+        at = self._positions(rows, codes)     # may replace ``sums``: first
+        np.add.at(self.sums, at, terms(z, R_ind, R_dep))
+
+    def fold(self, rows: NDArray[np.int64]) -> Estimates:
+        """Return the split-CI fold of the sources of each of ``rows`` (each has one)."""
+        lo, hi = self._bounds(rows)
+        columns = np.arange(int((hi - lo).max()))
+        valid = columns < (hi - lo)[:, None]
+        sums = self.sums[np.minimum(lo[:, None] + columns, len(self.keys) - 1)]
+        return fold(sums[..., 0:3], sums[..., 3:5], sums[..., 5:9], valid)
+
+    def held(self, rows: NDArray[np.int64]) -> NDArray[np.bool_]:
+        """Return which of ``rows`` have sources."""
+        lo, hi = self._bounds(rows)
+        return hi > lo
+
+    def clear(self, rows: NDArray[np.int64]) -> None:
+        """Forget the sources of landmarks."""
+        lo, hi = self._bounds(unique_ints(np.asarray(rows, np.int64)))
+        gone = spans(lo, hi)
+        if len(gone):
+            self.keys = np.delete(self.keys, gone)
+            self.sums = np.delete(self.sums, gone, axis=0)
+
+    def merge_into(self, keep: int, drop: int) -> None:
+        """Add the sums of row ``drop`` to those of row ``keep``, source by source."""
+        lo, hi = self._bounds([drop])
+        codes = self.keys[lo[0]:hi[0]] & ((1 << SOURCE_BITS) - 1)
+        sums = self.sums[lo[0]:hi[0]].copy()
+        at = self._positions(np.full(len(codes), keep, np.int64), codes)
+        self.sums[at] += sums
+
+    def checkpoint(self, rows: NDArray[np.int64]) -> SumsCheckpoint:
+        """Return what ``restore`` needs to undo changes to the sums of ``rows`` (sorted)."""
+        positions = spans(*self._bounds(rows))
+        return SumsCheckpoint(self.keys, self.sums, positions, self.sums[positions])
+
+    def restore(self, state: SumsCheckpoint) -> None:
+        """Put the pairs and sums of a ``checkpoint`` back."""
+        self.keys, self.sums = state.keys, state.sums
+        self.sums[state.positions] = state.saved
+
+    def records(self, row: int, names: Sequence[str]) -> List[Dict[str, Any]]:
+        """Return the sums of one landmark as plain data, sorted by source name."""
+        lo, hi = self._bounds([row])
+        out = []
+        for key, s in zip(self.keys[lo[0]:hi[0]].tolist(), self.sums[lo[0]:hi[0]].tolist()):
+            out.append({'source': names[key & ((1 << SOURCE_BITS) - 1)],
+                        'information': [[s[0], s[1]], [s[1], s[2]]],
+                        'information_mean': s[3:5],
+                        'dependent_sum': [s[5:7], s[7:9]]})
+        return sorted(out, key=lambda record: record['source'])
+
+    def load(self, row: int, records: Sequence[Dict[str, Any]],
+             source_code: Callable[[str], int]) -> None:
+        """Set the sums of one landmark from ``records`` (``source_code``: name to code)."""
+        codes = np.array([source_code(str(r['source'])) for r in records], np.int64)
+        at = self._positions(np.full(len(records), row, np.int64), codes)
+        for position, record in zip(at.tolist(), records):
+            Y = np.array(record['information'], dtype=np.float64).reshape(2, 2)
+            Q = np.array(record['dependent_sum'], dtype=np.float64).reshape(4)
+            y = np.array(record['information_mean'], dtype=np.float64).reshape(2)
+            self.sums[position] = [Y[0, 0], 0.5 * (Y[0, 1] + Y[1, 0]), Y[1, 1], *y, *Q]
+
+
+def spans(lo: NDArray[np.int64], hi: NDArray[np.int64]) -> NDArray[np.int64]:
+    """Return the indices ``lo[k]:hi[k]`` for every ``k``, concatenated."""
+    counts = hi - lo
+    starts = np.repeat(lo - np.cumsum(counts) + counts, counts)
+    return starts + np.arange(int(counts.sum()))
+
+
+def terms(z: NDArray[np.float64], R_ind: NDArray[np.float64],
+          R_dep: NDArray[np.float64]) -> NDArray[np.float64]:
+    """
+    Return what observations add to their pair's sums.
+
+    Returns
+    -------
+    ndarray, shape (N, 9)
+        ``(xx, xy, yy)`` of ``R_ind^-1``, ``R_ind^-1 z``, ``(00, 01, 10, 11)`` of
+        ``R_ind^-1 R_dep``.
+
+    """
+    a, b, c = entries(R_ind)
+    # A positive definite independent part is needed for weights; a tiny floor
+    # keeps an all-dependent observation from dividing by zero.
+    trace = a + c
+    floor = 1e-12 * np.where(trace > 0.0, trace, R_dep[:, 0, 0] + R_dep[:, 1, 1])
+    ya, yb, yc = inverse_2x2(a + floor, b, c + floor)
+    return np.stack([ya, yb, yc, ya * z[:, 0] + yb * z[:, 1], yb * z[:, 0] + yc * z[:, 1],
+                     ya * R_dep[:, 0, 0] + yb * R_dep[:, 1, 0],
+                     ya * R_dep[:, 0, 1] + yb * R_dep[:, 1, 1],
+                     yb * R_dep[:, 0, 0] + yc * R_dep[:, 1, 0],
+                     yb * R_dep[:, 0, 1] + yc * R_dep[:, 1, 1]], axis=1)
+
+
+def one_source(mean: NDArray[np.float64], P_ind: NDArray[np.float64],
+               P_dep: NDArray[np.float64]) -> List[Dict[str, Any]]:
+    """Return the per-source record of an estimate held as a single source."""
+    Y = information(P_ind)
+    return [{'source': 'loaded', 'information': Y.tolist(),
+             'information_mean': (Y @ mean).tolist(),
+             'dependent_sum': (Y @ P_dep).tolist()}]
+
+
+def fold(Y: NDArray[np.float64], y: NDArray[np.float64], Q: NDArray[np.float64],
+         valid: NDArray[np.bool_]) -> Estimates:
+    """
+    Fuse the source estimates of each landmark by split CI, the tightest first.
+
+    Split CI is not associative: folding the sources from the smallest covariance
+    (determinant) up makes the result independent of the order they arrived in.
+    Vectorised over the landmarks: step ``j`` folds the ``j``-th tightest source of
+    every landmark that has one. Every operation is element-wise and the weight search
+    starts from 0.5 every time, so a landmark's result depends on its own sums only.
+    ``compiled.fold`` gives the same bits, about ten times faster, once it is loaded.
+
+    Parameters
+    ----------
+    Y, y, Q : ndarray, shape (K, W, 3), (K, W, 2), (K, W, 4)
+        Sums of up to ``W`` sources of ``K`` landmarks.
+    valid : ndarray of bool, shape (K, W)
+        Which of them hold a source (at least one per landmark).
+
+    Returns
+    -------
+    Estimates
+
+    """
+    packed = compiled.fold(Y, y, Q, valid)
+    if packed is None:
+        packed = fold_numpy(Y, y, Q, valid)
+    return Estimates(packed[:, :2].copy(), symmetric_2x2(packed[:, 2], packed[:, 3], packed[:, 4]),
+                     symmetric_2x2(packed[:, 5], packed[:, 6], packed[:, 7]))
+
+
+def _estimate(Y, y, Q):
+    """Return the source estimates ``m, P_ind, P_dep`` of sums, as entries."""
+    P_ind = inverse_2x2(Y[..., 0], Y[..., 1], Y[..., 2])
+    a, b, c = P_ind
+    m = (a * y[..., 0] + b * y[..., 1], b * y[..., 0] + c * y[..., 1])
+    P_dep = (a * Q[..., 0] + b * Q[..., 2],
+             0.5 * (a * Q[..., 1] + b * Q[..., 3] + b * Q[..., 0] + c * Q[..., 2]),
+             b * Q[..., 1] + c * Q[..., 3])
+    # sym(Y^-1 Q) is indefinite when a source's rows have differently shaped
+    # dependent fractions; split CI needs a covariance there (its weight objective is
+    # concave only for positive semi-definite parts), so it is projected onto them.
+    return m, P_ind, psd_projection_2x2(*P_dep)
+
+
+def fold_numpy(Y: NDArray[np.float64], y: NDArray[np.float64], Q: NDArray[np.float64],
+               valid: NDArray[np.bool_]) -> NDArray[np.float64]:
+    """Return ``fold`` packed, shape (K, 8): mean, ``P_ind`` and ``P_dep`` entries (numpy)."""
+    m, P_ind, P_dep = _estimate(Y, y, Q)
+    size = np.where(valid, _log2_det(*(i + d for i, d in zip(P_ind, P_dep))), np.inf)
+    counts = valid.sum(axis=1)
+    # Landmarks with the most sources first: those still folding form a prefix.
+    by_count = np.argsort(-counts, kind='stable')
+    counts = counts[by_count]
+    order = np.argsort(size[by_count], axis=1, kind='stable')
+    parts = np.take_along_axis(np.stack([*m, *P_ind, *P_dep], axis=-1)[by_count],
+                               order[:, :, None], axis=1)         # (K, W, 8), tightest first
+    fused = parts[:, 0].copy()
+    steps = (counts[:, None] > np.arange(1, int(counts[0]))).sum(axis=0)
+    for j, k in enumerate(steps.tolist(), start=1):
+        first, second = _split_entries(fused[:k]), _split_entries(parts[:k, j])
+        omega = sci_omega_2x2(first[1], first[2], second[1], second[2])
+        new_m, new_i, new_d = split_ci_2x2_entries(first[0], first[1], first[2], second[0],
+                                                   second[1], second[2], omega)
+        fused[:k] = np.stack([*new_m, *new_i, *new_d], axis=1)
+    fused[by_count] = fused.copy()
+    return fused
+
+
+def _split_entries(parts):
+    """Return ``(m, P_ind, P_dep)`` entry tuples of packed ``(K, 8)`` estimates."""
+    return ((parts[:, 0], parts[:, 1]), (parts[:, 2], parts[:, 3], parts[:, 4]),
+            (parts[:, 5], parts[:, 6], parts[:, 7]))
+
+
+def _log2_det(a, b, c):
+    """
+    Return a key increasing with ``a c - b^2`` (about its base-2 logarithm), never inf.
+
+    From the scaled determinant's exact exponent and mantissa: it orders covariances
+    by size however large or small they are; -inf for a singular one.
+    """
+    s = power_of_4_scale(a, c)
+    mantissa, exponent = np.frexp((a / s) * (c / s) - (b / s) * (b / s))
+    key = exponent + 2 * (np.frexp(s)[1] - 1) + 2.0 * (mantissa - 0.5)
+    return np.where(mantissa > 0.0, key, -np.inf)
