@@ -43,6 +43,7 @@ import sys
 import time
 
 import _common
+from landmark_ros.fusion import compiled
 from landmark_ros.fusion.landmark_map import FUSION_METHODS, LandmarkMap
 import numpy as np
 
@@ -193,12 +194,14 @@ def main(argv=None):
         memory_child(args.memory_child)
         return None
     started = time.perf_counter()
+    numba = compiled.load()    # wait for the compiled fold (LANDMARK_ROS_NUMBA=0: numpy)
     mem = {n: memory(n) for n in MEMORY_LANDMARKS}
     host = _common.machine()
     lines = ['bench_map: LandmarkMap.update, batches of 10,000 rows into maps whose '
              'landmarks are all confirmed',
              f'machine: {host["cpu"]}; {host["cpu_count"]} CPUs; Python {host["python"]}; '
-             f'numpy {host["numpy"]}; load average {os.getloadavg()[0]:.1f}', '']
+             f'numpy {host["numpy"]}; load average {os.getloadavg()[0]:.1f}; split-CI fold '
+             f'{"compiled (numba)" if numba else "numpy"}', '']
     result = {}
     targets = {}
     for landmarks, sources in SIZES:

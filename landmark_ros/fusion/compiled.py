@@ -1,7 +1,7 @@
 """
 The split-CI fold compiled with numba: optional, stateless, loaded in the background.
 
-``fold(Y, y, Q, valid)`` returns what ``source_sums.fold_numpy`` returns, one landmark
+``fold(table, slots, lo, hi)`` returns what ``source_sums.fold_numpy`` returns, one landmark
 at a time in a compiled loop instead of one numpy operation per step over all
 landmarks: the same IEEE operations in the same order (no fast-math, no fused
 multiply-add), so the bits are the same (``test/fusion/test_compiled.py`` checks it,
@@ -80,7 +80,7 @@ def _psd(a, b, c):
     if a >= 0.0 and c >= 0.0 and a * c >= b * b:
         return a, b, c
     half_sum = 0.5 * (a + c)
-    radius = math.hypot(0.5 * (a - c), b)
+    radius = np.hypot(0.5 * (a - c), b)     # libm, as numpy (not math.hypot)
     top = half_sum + radius
     low = half_sum - radius
     scale = top / (top - low) if top > 0.0 else 0.0
@@ -203,7 +203,7 @@ def _split_ci(first, second, omega, out):
     out[5], out[6], out[7] = (c1[0] + c2[0]) * s, (c1[1] + c2[1]) * s, (c1[2] + c2[2]) * s
 
 
-def _source_part(Y, y, Q, valid, part):
+def _source_part(Y, y, Q, part):
     # One source's estimate (``source_sums._estimate``) packed into ``part``; its size.
     a, b, c = _inverse(Y[0], Y[1], Y[2])
     part[0] = a * y[0] + b * y[1]
@@ -212,20 +212,16 @@ def _source_part(Y, y, Q, valid, part):
                       b * Q[1] + c * Q[3])
     part[2], part[3], part[4] = a, b, c
     part[5], part[6], part[7] = da, db, dc
-    return _log2_det(a + da, b + db, c + dc) if valid else math.inf
+    return _log2_det(a + da, b + db, c + dc)
 
 
-def _fold_one(sums, valid, parts, order, out, limits):
-    # One landmark: sums (W, 9), valid (W,) -> out (8,) packed; parts (W, 9), order (W,).
-    width = len(valid)
-    n = 0
-    for j in range(width):
-        parts[j, 8] = _source_part(sums[j, 0:3], sums[j, 3:5], sums[j, 5:9], valid[j],
-                                   parts[j])
-        if valid[j]:
-            n += 1
+def _fold_one(sums, parts, order, out, limits):
+    # One landmark: its sources' sums (n, 9) -> out (8,) packed; parts (W, 9), order (W,).
+    n = len(sums)
+    for j in range(n):
+        parts[j, 8] = _source_part(sums[j, 0:3], sums[j, 3:5], sums[j, 5:9], parts[j])
     # Stable insertion sort of the sources by size (few sources per landmark).
-    for j in range(width):
+    for j in range(n):
         key = parts[j, 8]
         i = j
         while i > 0 and parts[order[i - 1], 8] > key:
@@ -240,13 +236,19 @@ def _fold_one(sums, valid, parts, order, out, limits):
         _split_ci(out, second, _omega_of(out, second, limits), out)
 
 
-def _fold_all(sums, valid, out, limits):
-    # Every landmark: sums (K, W, 9), valid (K, W) -> out (K, 8).
-    count, width = valid.shape
+def _fold_all(table, slots, lo, hi, out, limits):
+    # Landmark k's sources are table[slots[lo[k]:hi[k]]] (at least one) -> out[k] (8,).
+    width = 1
+    for k in range(len(lo)):
+        width = max(width, hi[k] - lo[k])
     parts = np.empty((width, 9))
     order = np.empty(width, np.int64)
-    for k in range(count):
-        _fold_one(sums[k], valid[k], parts, order, out[k], limits)
+    sums = np.empty((width, 9))
+    for k in range(len(lo)):
+        n = hi[k] - lo[k]
+        for j in range(n):
+            sums[j] = table[slots[lo[k] + j]]
+        _fold_one(sums[:n], parts, order, out[k], limits)
 
 
 _COMPILED = ('_scale4', '_inverse', '_psd', '_log2_det', '_omega_of', '_congruence',
@@ -257,38 +259,35 @@ _state: Dict[str, Any] = {'thread': None, 'kernel': None}
 _lock = threading.Lock()
 
 
-def fold_python(Y: NDArray[np.float64], y: NDArray[np.float64], Q: NDArray[np.float64],
-                valid: NDArray[np.bool_]) -> NDArray[np.float64]:
-    """
-    Return the fold packed, shape (K, 8), by the plain Python functions (slow; for tests).
-
-    ``Y, y, Q, valid`` as ``source_sums.fold``.
-    """
-    return _call(_fold_all, Y, y, Q, valid)
+def fold_python(table: NDArray[np.float64], slots: NDArray[np.int64], lo: NDArray[np.int64],
+                hi: NDArray[np.int64]) -> NDArray[np.float64]:
+    """Return ``fold`` by the plain Python functions (slow; for tests)."""
+    return _call(_fold_all, table, slots, lo, hi)
 
 
-def _call(kernel, Y, y, Q, valid):
-    sums = np.ascontiguousarray(np.concatenate([Y, y, Q], axis=-1), dtype=np.float64)
-    valid = np.ascontiguousarray(valid, dtype=np.bool_)
-    out = np.empty((len(valid), 8))
+def _call(kernel, table, slots, lo, hi):
+    out = np.empty((len(lo), 8))
     with np.errstate(all='ignore'):
-        kernel(sums, valid, out, _limits())
+        kernel(np.ascontiguousarray(table, dtype=np.float64), *(
+            np.ascontiguousarray(x, dtype=np.int64) for x in (slots, lo, hi)), out, _limits())
     return out
 
 
-def fold(Y: NDArray[np.float64], y: NDArray[np.float64], Q: NDArray[np.float64],
-         valid: NDArray[np.bool_]) -> Optional[NDArray[np.float64]]:
+def fold(table: NDArray[np.float64], slots: NDArray[np.int64], lo: NDArray[np.int64],
+         hi: NDArray[np.int64]) -> Optional[NDArray[np.float64]]:
     """
-    Return the fold packed, shape (K, 8), compiled; None while that is not ready.
+    Return the fold of landmarks, compiled; None while that is not ready.
 
-    Starts loading the compiled fold on first call (``start``) without waiting.
-    ``Y, y, Q, valid`` as ``source_sums.fold``.
+    Landmark ``k``'s sources are ``table[slots[lo[k]:hi[k]]]`` (``source_sums.fold``:
+    at least one); returns shape (K, 8): mean, ``(xx, xy, yy)`` of ``P_ind`` and of
+    ``P_dep``. Starts loading the compiled fold on first call (``start``), without
+    waiting.
     """
     kernel = _state['kernel']
     if kernel is None:
         start()
         return None
-    return _call(kernel, Y, y, Q, valid)
+    return _call(kernel, table, slots, lo, hi)
 
 
 def enabled() -> bool:
@@ -335,9 +334,7 @@ def _load() -> None:
             function = globals()[name]
             scope = dict(function.__globals__, **kernels)
             kernels[name] = jit(type(function)(function.__code__, scope, name))
-        eye = np.array([[[1.0, 0.0, 1.0]]])
-        _call(kernels['_fold_all'], eye, np.zeros((1, 1, 2)), np.zeros((1, 1, 4)),
-              np.ones((1, 1), bool))
+        _call(kernels['_fold_all'], np.array([[1.0, 0.0, 1.0] + [0.0] * 6]), [0], [0], [1])
     except Exception:   # noqa: BLE001 - any failure: the numpy fold serves
         return
     _state['kernel'] = kernels['_fold_all']

@@ -556,12 +556,13 @@ class LandmarkMap:
 
     def _count_by_source(self, codes, rows, counter, seen):
         """Add rows to ``counter`` by source name; with ``seen``, mark the sources seen."""
-        for code, count in enumerate(np.bincount(codes).tolist()):
-            if count:
-                name = self._source_names[code]
-                counter[name] += count
-                if seen:
-                    self._seen(name)[rows[codes == code]] = True
+        order = np.argsort(codes, kind='stable')
+        bounds = np.searchsorted(codes[order], np.arange(len(self._source_names) + 1))
+        for code in np.flatnonzero(np.diff(bounds)).tolist():
+            name = self._source_names[code]
+            counter[name] += int(bounds[code + 1] - bounds[code])
+            if seen:
+                self._seen(name)[rows[order[bounds[code]:bounds[code + 1]]]] = True
 
     def _refresh_gate(self, rows):
         """Make the estimates of ``rows`` (an index or indices) their gate references."""

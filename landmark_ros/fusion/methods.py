@@ -251,7 +251,7 @@ class SplitCovarianceIntersection(Independent):
 
     def checkpoint(self, rows: Ints) -> Any:
         """Return the sums of the pairs of ``rows`` (sorted) and the pairs."""
-        return self.sums.checkpoint(rows), np.asarray(rows, np.int64)
+        return self.sums.checkpoint(), np.asarray(rows, np.int64)
 
     def restore(self, state: Any) -> None:
         """Put the sums back; the landmarks of the checkpoint are stale (fold again)."""

@@ -41,9 +41,9 @@ class SumsCheckpoint(NamedTuple):
     """What ``SourceSums.restore`` needs to undo the changes since ``checkpoint``."""
 
     keys: NDArray[np.int64]
-    sums: NDArray[np.float64]
-    positions: NDArray[np.int64]
-    saved: NDArray[np.float64]
+    slots: NDArray[np.int64]
+    count: int
+    journal: List[Tuple[NDArray[np.int64], NDArray[np.float64]]]
 
 
 def entries(P: NDArray[np.float64]) -> Tuple[Any, Any, Any]:
@@ -53,50 +53,61 @@ def entries(P: NDArray[np.float64]) -> Tuple[Any, Any, Any]:
 
 class SourceSums:
     """
-    The sums of every (landmark row, source code) pair, in sorted keys.
+    The sums of every (landmark row, source code) pair.
 
-    ``keys`` (sorted, so a landmark's pairs lie together in source-code order) and
-    ``sums`` (per key: ``(xx, xy, yy)`` of ``Y``, ``y``, ``(00, 01, 10, 11)`` of ``Q``)
-    are replaced when pairs come or go, and only ``sums`` changes in place (adding to
-    existing pairs): a checkpoint keeps the old arrays and the sums it may see change.
+    ``keys`` are sorted (a landmark's pairs lie together, in source-code order), each
+    with its ``slots`` row in ``table`` (per pair: ``(xx, xy, yy)`` of ``Y``, ``y``,
+    ``(00, 01, 10, 11)`` of ``Q``). ``keys`` and ``slots`` are replaced when pairs come
+    or go, never changed in place; ``table`` only grows, and ``add`` journals the sums
+    it changes, so a checkpoint is cheap.
     """
 
     def __init__(self) -> None:
         self.keys = np.empty(0, np.int64)
-        self.sums = np.empty((0, 9))
+        self.slots = np.empty(0, np.int64)
+        self.table = np.zeros((64, 9))
+        self.count = 0
+        self.journal: List[Tuple[NDArray[np.int64], NDArray[np.float64]]] = []
+        self.journal_count = 0
 
     def _bounds(self, rows):
         rows = np.asarray(rows, np.int64)
         return (np.searchsorted(self.keys, rows << SOURCE_BITS),
                 np.searchsorted(self.keys, (rows + 1) << SOURCE_BITS))
 
-    def _positions(self, rows, codes):
-        """Return the positions of (row, code) pairs in ``keys``, adding the new ones."""
+    def _slots(self, rows, codes):
+        """Return the slots of (row, code) pairs, adding the new pairs (zero sums)."""
         keys = (np.asarray(rows, np.int64) << SOURCE_BITS) | np.asarray(codes, np.int64)
         at = np.searchsorted(self.keys, keys)
         found = at < len(self.keys)
         found[found] = self.keys[at[found]] == keys[found]
         if not found.all():
             new = unique_ints(keys[~found])
+            slots = np.arange(self.count, self.count + len(new))
+            self.count += len(new)
+            if self.count > len(self.table):
+                grown = np.zeros((2 * self.count, 9))
+                grown[:len(self.table)] = self.table
+                self.table = grown
+            self.table[slots] = 0.0
             where = np.searchsorted(self.keys, new)
             self.keys = np.insert(self.keys, where, new)
-            self.sums = np.insert(self.sums, where, np.zeros((len(new), 9)), axis=0)
+            self.slots = np.insert(self.slots, where, slots)
             at = np.searchsorted(self.keys, keys)
-        return at
+        return self.slots[at]
 
     def add(self, rows: NDArray[np.int64], codes: NDArray[np.int64], z: NDArray[np.float64],
             R_ind: NDArray[np.float64], R_dep: NDArray[np.float64]) -> None:
         """Add observations (in order) to the sums of their (row, code) pairs."""
-        at = self._positions(rows, codes)     # may replace ``sums``: first
-        np.add.at(self.sums, at, terms(z, R_ind, R_dep))
+        slots = self._slots(rows, codes)
+        old = slots[slots < self.journal_count]
+        self.journal.append((old, self.table[old]))
+        np.add.at(self.table, slots, terms(z, R_ind, R_dep))
 
     def fold(self, rows: NDArray[np.int64]) -> Estimates:
         """Return the split-CI fold of the sources of each of ``rows`` (each has one)."""
         lo, hi = self._bounds(rows)
-        columns = np.arange(int((hi - lo).max()))
-        valid = columns < (hi - lo)[:, None]
-        sums = self.sums[np.minimum(lo[:, None] + columns, len(self.keys) - 1)]
-        return fold(sums[..., 0:3], sums[..., 3:5], sums[..., 5:9], valid)
+        return fold(self.table, self.slots, lo, hi)
 
     def held(self, rows: NDArray[np.int64]) -> NDArray[np.bool_]:
         """Return which of ``rows`` have sources."""
@@ -104,36 +115,42 @@ class SourceSums:
         return hi > lo
 
     def clear(self, rows: NDArray[np.int64]) -> None:
-        """Forget the sources of landmarks."""
-        lo, hi = self._bounds(unique_ints(np.asarray(rows, np.int64)))
-        gone = spans(lo, hi)
+        """Forget the sources of landmarks (their slots stay unused until ``checkpoint``)."""
+        gone = spans(*self._bounds(unique_ints(np.asarray(rows, np.int64))))
         if len(gone):
             self.keys = np.delete(self.keys, gone)
-            self.sums = np.delete(self.sums, gone, axis=0)
+            self.slots = np.delete(self.slots, gone)
 
     def merge_into(self, keep: int, drop: int) -> None:
         """Add the sums of row ``drop`` to those of row ``keep``, source by source."""
         lo, hi = self._bounds([drop])
         codes = self.keys[lo[0]:hi[0]] & ((1 << SOURCE_BITS) - 1)
-        sums = self.sums[lo[0]:hi[0]].copy()
-        at = self._positions(np.full(len(codes), keep, np.int64), codes)
-        self.sums[at] += sums
+        sums = self.table[self.slots[lo[0]:hi[0]]]
+        self.table[self._slots(np.full(len(codes), keep, np.int64), codes)] += sums
 
-    def checkpoint(self, rows: NDArray[np.int64]) -> SumsCheckpoint:
-        """Return what ``restore`` needs to undo changes to the sums of ``rows`` (sorted)."""
-        positions = spans(*self._bounds(rows))
-        return SumsCheckpoint(self.keys, self.sums, positions, self.sums[positions])
+    def checkpoint(self) -> SumsCheckpoint:
+        """Start a journal of the changes to the sums; return what ``restore`` needs."""
+        if self.count > 2 * len(self.slots) + 4096:     # give back the unused slots
+            live = self.table[self.slots]
+            self.table = np.zeros((max(64, 2 * len(live)), 9))
+            self.table[:len(live)] = live
+            self.slots = np.arange(len(self.slots))
+            self.count = len(self.slots)
+        self.journal, self.journal_count = [], self.count
+        return SumsCheckpoint(self.keys, self.slots, self.count, self.journal)
 
     def restore(self, state: SumsCheckpoint) -> None:
-        """Put the pairs and sums of a ``checkpoint`` back."""
-        self.keys, self.sums = state.keys, state.sums
-        self.sums[state.positions] = state.saved
+        """Undo every change since ``checkpoint``."""
+        for slots, sums in reversed(state.journal):
+            self.table[slots] = sums
+        self.keys, self.slots, self.count = state.keys, state.slots, state.count
 
     def records(self, row: int, names: Sequence[str]) -> List[Dict[str, Any]]:
         """Return the sums of one landmark as plain data, sorted by source name."""
         lo, hi = self._bounds([row])
         out = []
-        for key, s in zip(self.keys[lo[0]:hi[0]].tolist(), self.sums[lo[0]:hi[0]].tolist()):
+        sums = self.table[self.slots[lo[0]:hi[0]]].tolist()
+        for key, s in zip(self.keys[lo[0]:hi[0]].tolist(), sums):
             out.append({'source': names[key & ((1 << SOURCE_BITS) - 1)],
                         'information': [[s[0], s[1]], [s[1], s[2]]],
                         'information_mean': s[3:5],
@@ -144,12 +161,12 @@ class SourceSums:
              source_code: Callable[[str], int]) -> None:
         """Set the sums of one landmark from ``records`` (``source_code``: name to code)."""
         codes = np.array([source_code(str(r['source'])) for r in records], np.int64)
-        at = self._positions(np.full(len(records), row, np.int64), codes)
-        for position, record in zip(at.tolist(), records):
+        slots = self._slots(np.full(len(records), row, np.int64), codes)
+        for slot, record in zip(slots.tolist(), records):
             Y = np.array(record['information'], dtype=np.float64).reshape(2, 2)
             Q = np.array(record['dependent_sum'], dtype=np.float64).reshape(4)
             y = np.array(record['information_mean'], dtype=np.float64).reshape(2)
-            self.sums[position] = [Y[0, 0], 0.5 * (Y[0, 1] + Y[1, 0]), Y[1, 1], *y, *Q]
+            self.table[slot] = [Y[0, 0], 0.5 * (Y[0, 1] + Y[1, 0]), Y[1, 1], *y, *Q]
 
 
 def spans(lo: NDArray[np.int64], hi: NDArray[np.int64]) -> NDArray[np.int64]:
@@ -193,33 +210,34 @@ def one_source(mean: NDArray[np.float64], P_ind: NDArray[np.float64],
              'dependent_sum': (Y @ P_dep).tolist()}]
 
 
-def fold(Y: NDArray[np.float64], y: NDArray[np.float64], Q: NDArray[np.float64],
-         valid: NDArray[np.bool_]) -> Estimates:
+def fold(table: NDArray[np.float64], slots: NDArray[np.int64], lo: NDArray[np.int64],
+         hi: NDArray[np.int64]) -> Estimates:
     """
     Fuse the source estimates of each landmark by split CI, the tightest first.
 
     Split CI is not associative: folding the sources from the smallest covariance
-    (determinant) up makes the result independent of the order they arrived in.
-    Vectorised over the landmarks: step ``j`` folds the ``j``-th tightest source of
-    every landmark that has one. Every operation is element-wise and the weight search
-    starts from 0.5 every time, so a landmark's result depends on its own sums only.
-    ``compiled.fold`` gives the same bits, about ten times faster, once it is loaded.
+    (determinant) up makes the result independent of the order they arrived in. The
+    weight search starts from 0.5 every time, so a landmark's result depends on its
+    own sums only. ``compiled.fold`` gives the same bits, about ten times faster, once
+    it is loaded; ``fold_numpy`` serves until then.
 
     Parameters
     ----------
-    Y, y, Q : ndarray, shape (K, W, 3), (K, W, 2), (K, W, 4)
-        Sums of up to ``W`` sources of ``K`` landmarks.
-    valid : ndarray of bool, shape (K, W)
-        Which of them hold a source (at least one per landmark).
+    table : ndarray, shape (S, 9)
+        Sums of sources (``SourceSums``).
+    slots : ndarray of int, shape (P,)
+        Rows of ``table``.
+    lo, hi : ndarray of int, shape (K,)
+        Landmark ``k``'s sources are ``table[slots[lo[k]:hi[k]]]``, at least one.
 
     Returns
     -------
     Estimates
 
     """
-    packed = compiled.fold(Y, y, Q, valid)
+    packed = compiled.fold(table, slots, lo, hi)
     if packed is None:
-        packed = fold_numpy(Y, y, Q, valid)
+        packed = fold_numpy(table, slots, lo, hi)
     return Estimates(packed[:, :2].copy(), symmetric_2x2(packed[:, 2], packed[:, 3], packed[:, 4]),
                      symmetric_2x2(packed[:, 5], packed[:, 6], packed[:, 7]))
 
@@ -238,10 +256,18 @@ def _estimate(Y, y, Q):
     return m, P_ind, psd_projection_2x2(*P_dep)
 
 
-def fold_numpy(Y: NDArray[np.float64], y: NDArray[np.float64], Q: NDArray[np.float64],
-               valid: NDArray[np.bool_]) -> NDArray[np.float64]:
-    """Return ``fold`` packed, shape (K, 8): mean, ``P_ind`` and ``P_dep`` entries (numpy)."""
-    m, P_ind, P_dep = _estimate(Y, y, Q)
+def fold_numpy(table: NDArray[np.float64], slots: NDArray[np.int64], lo: NDArray[np.int64],
+               hi: NDArray[np.int64]) -> NDArray[np.float64]:
+    """
+    Return ``fold`` packed, shape (K, 8): mean, ``P_ind`` and ``P_dep`` entries (numpy).
+
+    Vectorised over the landmarks: step ``j`` folds the ``j``-th tightest source of
+    every landmark that has one; every operation is element-wise.
+    """
+    columns = np.arange(int((hi - lo).max()))
+    valid = columns < (hi - lo)[:, None]
+    sums = table[slots[np.minimum(lo[:, None] + columns, len(slots) - 1)]]
+    m, P_ind, P_dep = _estimate(sums[..., 0:3], sums[..., 3:5], sums[..., 5:9])
     size = np.where(valid, _log2_det(*(i + d for i, d in zip(P_ind, P_dep))), np.inf)
     counts = valid.sum(axis=1)
     # Landmarks with the most sources first: those still folding form a prefix.
