@@ -1,165 +1,43 @@
 """
 A map of landmark estimates fused by ID, with gating and confirmation.
 
-Symbols
--------
-ids : landmark IDs, shape (N,), integers.
-z : observed landmark positions in the world, shape (N, 2) [m].
-R : their covariances, shape (N, 2, 2) [m^2]; ``R_dep`` the dependent part (pose
-    uncertainty, sensor bias: correlated across observations), ``R_ind = R - R_dep``
-    the independent part (sensor noise). ``update`` takes ``R`` and ``R_dep`` (the
-    wire format) and works with ``R_ind`` and ``R_dep`` from then on.
-m, P : a landmark estimate and its covariance; inside the map ``P`` is held as its
-    independent and dependent parts, ``P = P_ind + P_dep`` only at output.
-stamp_ns : observation times, integer nanoseconds.
+Symbols: ``ids`` landmark IDs (N,); ``z`` observed positions in the world (N, 2) [m];
+``R`` their covariances (N, 2, 2) [m^2], ``R_dep`` the dependent part (pose error,
+sensor bias: correlated across observations), ``R_ind = R - R_dep`` the independent
+part (noise); ``update`` takes ``R`` and ``R_dep`` and works with ``R_ind`` and
+``R_dep``. An estimate ``m, P`` is held as ``P_ind`` and ``P_dep``; ``stamp_ns``
+integer nanoseconds. The fusion method (``fusion.methods``) is chosen once.
 
-Fusion methods
---------------
-independent
-    Product of Gaussians: exact when every error is independent. Everything counts
-    as independent (``P_dep = 0``).
-covariance_intersection
-    Consistent whatever the correlations; the whole covariance counts as dependent
-    (``P_ind = 0``).
-split_covariance_intersection
-    Within a source (one robot), the dependent parts (its pose error, its sensor
-    bias) are one shared error: the source's estimate is the information-weighted
-    mean of its observations, whose independent parts (noise) average down while
-    the dependent part, their weighted mean, does not. The map keeps per (landmark,
-    source) sums, updated incrementally. Across sources the correlation is unknown:
-    the source estimates are fused by split covariance intersection (independent
-    parts as information, dependent parts bounded as CI does, the weight omega
-    the exact optimum), folded from the tightest source up so that the result does
-    not depend on the order the sources arrived in.
-
-Each method sits behind one interface (``fusion.methods``), chosen once by
-``LandmarkMap(fusion)``.
-
-An observation of a known landmark is gated by its squared Mahalanobis distance
+An observation of a confirmed landmark is gated by its squared Mahalanobis distance
 to the landmark's gate reference ``gate`` (innovation covariance ``P_ref + R``): the
-estimate as it was after the landmark's last refresh, which comes after each of its
-first 7 observations, then 4 times per doubling of its count (``gate_due``; it holds
-at least 4/5 of the current information), and after a rebuild, a merge,
+estimate after the landmark's last refresh (``records.gate_due``), rebuild, merge,
 ``set_estimate`` or ``load_records``. A new ID becomes a landmark once
 ``min_observations`` of its observations agree with each other; a landmark rejected
 ``max_consecutive_rejections`` times in a row is rebuilt from those recent
 observations when they agree (it moved). Rows of one batch are applied in order, so a
 batch gives the same map as its rows one by one: since a landmark's gate reference
-changes only at refreshes and rebuilds, the rows of confirmed landmarks are gated
-together in passes, each pass taking every landmark's rows up to its next refresh or
-rebuild (``_pass``).
+changes only at refreshes and rebuilds, the rows of confirmed landmarks go in passes,
+each taking every landmark's rows up to its next refresh or rebuild (``_pass``).
 """
 
-from collections import Counter, deque
+from collections import deque
 import copy
-from dataclasses import dataclass, field
-from typing import Any, Deque, Dict, List, Mapping, NamedTuple, Optional, Sequence, Tuple, Union
+from dataclasses import dataclass
+from typing import Any, Deque, Dict, List, Mapping, Optional, Sequence, Tuple, Union
 
 from landmark_ros.core._arrays import mahalanobis_sq_2x2, unique_ints
 from landmark_ros.core.gating import chi2_threshold
 from landmark_ros.fusion.methods import METHODS, Rows
+from landmark_ros.fusion.records import (agreeing, Batch, gate_due, MapSnapshot, Observation,
+                                         stack, UpdateResult)
 from landmark_ros.fusion.source_sums import entries as _entries, Estimates, SOURCE_BITS
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-_TABLE_LIMIT = 1 << 20
-"""IDs below this are looked up in a dense table, others by binary search."""
-
 _NO_STAMP = np.iinfo(np.int64).min
 """``first_stamp_ns`` of a landmark that has not had an observation yet."""
 
-FUSION_METHODS = ('independent', 'covariance_intersection', 'split_covariance_intersection')
-
-GATE_BITS = 2
-"""A landmark's gate reference is refreshed 2 ** GATE_BITS times per doubling of its
-observations (every observation up to 2 ** (GATE_BITS + 1) - 1)."""
-
-
-def gate_due(observations: NDArray[np.int64]) -> NDArray[np.bool_]:
-    """
-    Return whether a landmark's gate reference is refreshed once it has ``observations``.
-
-    Every observation up to ``2 ** (GATE_BITS + 1) - 1``, then ``2 ** GATE_BITS`` times
-    per doubling: the reference holds at least 4/5 of the current information, and
-    refreshing it (a fold) costs next to nothing per observation for a landmark seen
-    thousands of times.
-    """
-    n = np.asarray(observations, dtype=np.int64)
-    length = np.frexp(np.maximum(n, 1).astype(np.float64))[1].astype(np.int64)  # bit length
-    step = np.left_shift(1, np.maximum(length - (GATE_BITS + 1), 0))
-    return n % step == 0
-
-
-class MapSnapshot(NamedTuple):
-    """The confirmed landmarks, sorted by ID (``LandmarkMap.snapshot``)."""
-
-    ids: NDArray[np.int64]
-    """Landmark IDs, int64, shape (K,)."""
-    m: NDArray[np.float64]
-    """Means, shape (K, 2) [m]."""
-    P: NDArray[np.float64]
-    """Total covariances, shape (K, 2, 2) [m^2]."""
-    P_dep: NDArray[np.float64]
-    """Their dependent parts, shape (K, 2, 2) [m^2]."""
-    observations: NDArray[np.int64]
-    """Observations fused into each, int64, shape (K,)."""
-
-
-def _no_ids():
-    return np.empty(0, np.int64)
-
-
-@dataclass
-class UpdateResult:
-    """What one ``LandmarkMap.update`` did, for counters and logs."""
-
-    accepted: Counter[str] = field(default_factory=Counter)
-    """Observations fused into confirmed landmarks, by source."""
-    rejected: Counter[str] = field(default_factory=Counter)
-    """Observations gated out or left out of a confirmation, by source."""
-    confirmed: List[int] = field(default_factory=list)
-    """IDs that became landmarks."""
-    reinitialised: List[int] = field(default_factory=list)
-    """IDs rebuilt from their recent observations."""
-    changed_ids: NDArray[np.int64] = field(default_factory=_no_ids, compare=False)
-    """IDs (int64, sorted, unique) whose published estimate changed in this update;
-    not part of ``==`` (an array)."""
-
-    @property
-    def changed(self) -> bool:
-        """Whether the confirmed map changed."""
-        return bool(self.accepted or self.confirmed or self.reinitialised)
-
-
-@dataclass(frozen=True)
-class _Observation:
-    z: np.ndarray
-    R_ind: np.ndarray
-    R_dep: np.ndarray
-    source: str
-    stamp_ns: int
-
-
-@dataclass(frozen=True)
-class _Batch:
-    """One ``update`` call's rows: independent and dependent parts, global source codes."""
-
-    z: np.ndarray
-    R_ind: np.ndarray
-    R_dep: np.ndarray
-    names: list
-    codes: np.ndarray
-    stamps_ns: np.ndarray
-
-    def observation(self, i):
-        return _Observation(self.z[i], self.R_ind[i], self.R_dep[i], self.names[self.codes[i]],
-                            int(self.stamps_ns[i]))
-
-    def rows(self, rows, positions):
-        """Return the rows at ``positions`` as ``Rows`` of the landmark rows ``rows``."""
-        return Rows(rows, self.codes[positions], self.z[positions], self.R_ind[positions],
-                    self.R_dep[positions])
-
+FUSION_METHODS = tuple(METHODS)
 
 @dataclass(frozen=True)
 class _Checkpoint:
@@ -169,9 +47,11 @@ class _Checkpoint:
     rows: NDArray[np.int64]
     arrays: Dict[str, np.ndarray]
     seen: Dict[str, NDArray[np.bool_]]
-    buffers: Dict[int, Deque[_Observation]]
+    buffers: Dict[int, Deque[Observation]]
     sources: List[str]
     method: Any
+
+
 
 
 # --- The map ---------------------------------------------------------------------------------
@@ -220,7 +100,6 @@ class LandmarkMap:
         self._row: Dict[int, int] = {}
         self._sorted_ids = np.empty(0, np.int64)
         self._sorted_rows = np.empty(0, np.int64)
-        self._table = np.empty(0, np.int64)
         self.ids = np.empty(0, np.int64)
         self.mean = np.empty((0, 2))
         self.cov_ind = np.empty((0, 2, 2))
@@ -233,7 +112,7 @@ class LandmarkMap:
         self.first_stamp_ns = np.empty(0, np.int64)
         self.last_stamp_ns = np.empty(0, np.int64)
         self._seen_by: Dict[str, NDArray[np.bool_]] = {}
-        self._buffers: Dict[int, Deque[_Observation]] = {}
+        self._buffers: Dict[int, Deque[Observation]] = {}
         self._source_names: List[str] = []
         self._source_codes: Dict[str, int] = {}
         self._method.reset()
@@ -287,19 +166,10 @@ class LandmarkMap:
             order = np.argsort(self.ids[:self._count], kind='stable')
             self._sorted_ids = self.ids[:self._count][order]
             self._sorted_rows = order
-            small = (new >= 0) & (new < _TABLE_LIMIT)
-            if small.any():
-                size = max(len(self._table), int(new[small].max()) + 1)
-                table = np.full(size, -1, np.int64)
-                table[:len(self._table)] = self._table
-                table[new[small]] = rows[small]
-                self._table = table
         return self._lookup(ids)
 
     def _lookup(self, ids):
         """Return the rows of ``ids``, -1 for unknown IDs."""
-        if len(ids) and 0 <= ids.min() and ids.max() < len(self._table):
-            return self._table[ids]
         position = np.minimum(np.searchsorted(self._sorted_ids, ids), len(self._sorted_ids) - 1)
         if not len(self._sorted_ids):
             return np.full(len(ids), -1, np.int64)
@@ -419,7 +289,6 @@ class LandmarkMap:
                 self._row.pop(landmark_id, None)
             order = np.argsort(self.ids[:count], kind='stable')
             self._sorted_ids, self._sorted_rows = self.ids[:count][order], order
-            self._table[self._table >= count] = -1
 
     def _update(self, ids, z, R, R_dep, source, stamp_ns, source_index):
         ids = np.asarray(ids, dtype=np.int64).reshape(-1)
@@ -452,7 +321,7 @@ class LandmarkMap:
             return result
         rows = self._rows_of(ids)
         # The one conversion to the independent part.
-        batch = _Batch(z, R - R_dep, R_dep, self._source_names, codes, stamps_ns)
+        batch = Batch(z, R - R_dep, R_dep, self._source_names, codes, stamps_ns)
         changed: List[NDArray[np.int64]] = []
         known = self.confirmed[rows]
         # Rows of already confirmed landmarks first, in passes; then the others in order.
@@ -599,10 +468,10 @@ class LandmarkMap:
 
     def _rebuild(self, row, observations):
         """Set ``row`` from the largest agreeing subset; return it (empty if too small)."""
-        cluster = _agreeing(observations, self.threshold, self._method.fuse)
+        cluster = agreeing(observations, self.threshold, self._method.fuse)
         if len(cluster) < self.min_observations:
             return []
-        z, R_ind, R_dep = _stack(cluster)
+        z, R_ind, R_dep = stack(cluster)
         codes = np.array([self.source_code(obs.source) for obs in cluster], np.int64)
         fused = self._method.start(row, Rows(np.full(len(cluster), row, np.int64), codes, z,
                                              R_ind, R_dep))
@@ -922,46 +791,3 @@ def _integer(value):
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
         raise ValueError(f'expected an integer, got {value!r}')
     return int(value)
-
-
-def _stack(observations):
-    """Return ``z, R_ind, R_dep`` of a list of observations as arrays."""
-    return (np.array([obs.z for obs in observations]),
-            np.array([obs.R_ind for obs in observations]),
-            np.array([obs.R_dep for obs in observations]))
-
-
-def _agreeing(observations, threshold, fuse_rows):
-    """
-    Return the largest subset of observations that agree with one another.
-
-    The seed is the observation that passes the pairwise gate with the most others
-    (latest on ties); its partners join in arrival order while each passes the gate
-    against the estimate fused so far. The seed always belongs to its own subset
-    (it is never gated out), so the subset is never empty, even when distances are
-    NaN (degenerate covariances).
-    """
-    if not observations:
-        return []
-    z, R_ind, R_dep = _stack(observations)
-    R = R_ind + R_dep
-    d = z[:, None, :] - z[None, :, :]
-    S = R[:, None] + R[None, :]
-    d2 = mahalanobis_sq_2x2(d[..., 0], d[..., 1], *_entries(S))
-    agree = d2 <= threshold
-    np.fill_diagonal(agree, True)
-    votes = agree.sum(axis=1)
-    seed = len(observations) - 1 - int(np.argmax(votes[::-1]))
-    members = np.flatnonzero(agree[seed]).tolist()
-    first = members[0]
-    cluster = [observations[first]]
-    m, P_ind, P_dep = z[first:first + 1], R_ind[first:first + 1], R_dep[first:first + 1]
-    for i in members[1:]:
-        diff = z[i] - m[0]
-        S = P_ind[0] + P_dep[0] + R[i]
-        if i != seed and not mahalanobis_sq_2x2(diff[0], diff[1], *_entries(S)) <= threshold:
-            continue
-        m, P_ind, P_dep = fuse_rows(m, P_ind, P_dep, z[i:i + 1], R_ind[i:i + 1],
-                                    R_dep[i:i + 1])
-        cluster.append(observations[i])
-    return cluster

@@ -1,6 +1,8 @@
 """The split-CI fold of ``fusion.compiled`` against numpy's (``source_sums.fold_numpy``)."""
 
 import os
+from pathlib import Path
+import re
 import subprocess
 import sys
 
@@ -82,3 +84,10 @@ def test_the_scalar_weight_search_stays_inside_a_collapsed_bracket():
     packed = [np.array([0.0, 0.0, *P_ind[[0, 0, 1], [0, 1, 1]], *P_dep[[0, 0, 1], [0, 1, 1]]])
               for P_ind, P_dep in ((P1i, P1d), (P2i, P2d))]
     assert compiled._omega_of(*packed, compiled._limits()) == omega
+
+
+def test_only_the_compiled_module_imports_numba():
+    package = Path(compiled.__file__).resolve().parents[1]
+    importers = sorted(str(path.relative_to(package)) for path in package.rglob('*.py')
+                       if re.search(r'^\s*(import numba|from numba)', path.read_text(), re.M))
+    assert importers == ['fusion/compiled.py']

@@ -669,7 +669,7 @@ def test_large_ids_use_binary_search(rng):
     np.testing.assert_array_equal(ids, big)
     np.testing.assert_allclose(m, points + 0.0005, rtol=0, atol=1e-12)
     np.testing.assert_allclose(P, R / 2, rtol=0, atol=1e-15)
-    assert count.tolist() == [2] * len(big) and len(lm._table) == 0
+    assert count.tolist() == [2] * len(big)
     # One at a time, in another order.
     for k in (3, 0, 4):
         lm.update(big[k:k + 1], points[k:k + 1], R[:1])
@@ -900,11 +900,11 @@ def test_three_rows_of_1e300_give_a_finite_map(fusion):
 
 
 def test_agreeing_never_empties_the_cluster():
-    from landmark_ros.fusion import landmark_map
+    from landmark_ros.fusion import records
     nan = np.full((2, 2), np.nan)
-    observations = [landmark_map._Observation(np.array([k, 0.0]), nan, np.zeros((2, 2)),
-                                              's', k) for k in range(3)]
-    cluster = landmark_map._agreeing(observations, 13.8, lambda *a: a[:3])
+    observations = [records.Observation(np.array([k, 0.0]), nan, np.zeros((2, 2)), 's', k)
+                    for k in range(3)]
+    cluster = records.agreeing(observations, 13.8, lambda *a: a[:3])
     assert cluster == [observations[-1]]   # the seed, alone
     lm = LandmarkMap('split_covariance_intersection')
     result = lm.update([1, 1], [[0.0, 0.0], [0.0, 0.0]], [nan, nan])

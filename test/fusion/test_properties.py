@@ -12,7 +12,8 @@ from hypothesis import given, settings, strategies as st
 from landmark_ros.core import gaussian
 from landmark_ros.core.gating import chi2_threshold, mahalanobis_sq
 from landmark_ros.fusion import compiled
-from landmark_ros.fusion.landmark_map import FUSION_METHODS, gate_due, LandmarkMap
+from landmark_ros.fusion.landmark_map import FUSION_METHODS, LandmarkMap
+from landmark_ros.fusion.records import gate_due
 import numpy as np
 import pytest
 
