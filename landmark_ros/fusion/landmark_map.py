@@ -189,33 +189,25 @@ class LandmarkMap:
                stamp_ns: ArrayLike = 0, settle: bool = True,
                source_index: Optional[ArrayLike] = None) -> UpdateResult:
         """
-        Fuse a batch of observations, row by row in order.
+        Fuse a batch of observations, row by row in order; all or nothing.
 
         Parameters
         ----------
         ids : array_like of int, shape (N,)
             Landmark IDs.
-        z : array_like, shape (N, 2)
-            Observed positions in the world [m].
-        R : array_like, shape (N, 2, 2)
-            Their total covariances, positive definite [m^2].
-        R_dep : array_like, shape (N, 2, 2), optional
-            Dependent part of ``R`` (zero when absent) [m^2].
+        z, R, R_dep : array_like, shape (N, 2), (N, 2, 2), (N, 2, 2)
+            Observed positions [m], their covariances (positive definite) and the
+            dependent parts of those (zero when absent) [m^2].
         source : str or sequence of str, length N
-            Who made each observation (for counters and the saved map). With
-            ``source_index``: the names that it indexes.
+            Who made each observation; with ``source_index``, the names it indexes.
         stamp_ns : int or array_like of int, shape (N,)
             Time of each observation [ns].
         settle : bool
-            Leave ``mean``, ``cov_ind`` and ``cov_dep`` current (the default). False
-            (split CI): the folds of the landmarks changed by the batch may wait for
-            the next ``settle()``, which ``snapshot``, ``estimate`` and ``to_records``
-            call: a caller that updates many times between two reads (a fuser that
-            fuses every 20 ms and publishes every 100 ms) folds each landmark once
-            per read instead of once per update. Results are the same either way.
+            False: the split-CI folds may wait for the next ``settle()`` (which
+            ``snapshot``, ``estimate`` and ``to_records`` call), so a caller that
+            updates many times between two reads folds once per read. Same results.
         source_index : array_like of int, shape (N,), optional
-            Each row's source as an index into ``source``: the same as the names row
-            by row, without sorting N strings.
+            Each row's source as an index into ``source``.
 
         Returns
         -------
@@ -433,6 +425,13 @@ class LandmarkMap:
             if seen:
                 self._seen(name)[rows[order[bounds[code]:bounds[code + 1]]]] = True
 
+    def _set(self, row, estimate):
+        """Make ``row`` a confirmed landmark of ``estimate`` (one row), its gate reference."""
+        self.mean[row], self.cov_ind[row], self.cov_dep[row] = (x[0] for x in estimate)
+        self._refresh_gate(row)
+        self.confirmed[row] = True
+        self.consecutive[row] = 0
+
     def _refresh_gate(self, rows):
         """Make the estimates of ``rows`` (an index or indices) their gate references."""
         xx, xy, yy = _entries(self.cov_ind[rows] + self.cov_dep[rows])
@@ -473,13 +472,9 @@ class LandmarkMap:
             return []
         z, R_ind, R_dep = stack(cluster)
         codes = np.array([self.source_code(obs.source) for obs in cluster], np.int64)
-        fused = self._method.start(row, Rows(np.full(len(cluster), row, np.int64), codes, z,
-                                             R_ind, R_dep))
-        self.mean[row], self.cov_ind[row], self.cov_dep[row] = (x[0] for x in fused)
-        self.confirmed[row] = True
+        self._set(row, self._method.start(row, Rows(np.full(len(cluster), row, np.int64),
+                                                    codes, z, R_ind, R_dep)))
         self.observations[row] = len(cluster)
-        self._refresh_gate(row)
-        self.consecutive[row] = 0
         self.last_stamp_ns[row] = max(obs.stamp_ns for obs in cluster)
         for obs in cluster:
             self._seen(obs.source)[row] = True
@@ -487,12 +482,7 @@ class LandmarkMap:
         return cluster
 
     def settle(self, ids: Optional[ArrayLike] = None) -> None:
-        """
-        Fold the landmarks whose fold an ``update(..., settle=False)`` left to later.
-
-        ``ids``: only these (unknown IDs are ignored); all by default. Afterwards their
-        ``mean``, ``cov_ind`` and ``cov_dep`` are current.
-        """
+        """Fold what ``update(..., settle=False)`` left (of ``ids``, unknown ignored; all)."""
         rows = np.arange(self._count) if ids is None else self._lookup(
             np.asarray(ids, dtype=np.int64).reshape(-1))
         self._settle_rows(rows[rows >= 0])
@@ -503,38 +493,15 @@ class LandmarkMap:
             self.mean[rows], self.cov_ind[rows], self.cov_dep[rows] = fused
 
     def known(self, ids: ArrayLike) -> NDArray[np.bool_]:
-        """
-        Return whether the map has had rows of each ID (confirmed, tentative or forgotten).
-
-        Parameters
-        ----------
-        ids : array_like of int, shape (N,)
-            Landmark IDs.
-
-        Returns
-        -------
-        ndarray of bool, shape (N,)
-
-        """
+        """Return whether the map has had rows of each ID (bool, shape (N,))."""
         return self._lookup(np.asarray(ids, dtype=np.int64).reshape(-1)) >= 0
 
     def forget(self, ids: ArrayLike) -> int:
         """
-        Drop the buffered observations of unconfirmed IDs (confirmed ones are kept).
+        Drop the buffered observations of unconfirmed IDs; return how many IDs that was.
 
-        The IDs stay known (``known``), with no observation: a later row of one of them
-        starts it again from scratch.
-
-        Parameters
-        ----------
-        ids : array_like of int, shape (N,)
-            Landmark IDs; unknown ones are ignored.
-
-        Returns
-        -------
-        int
-            The unconfirmed IDs whose observations were dropped.
-
+        The IDs stay ``known``, with no observation; unknown and confirmed ones are
+        ignored.
         """
         rows = self._lookup(unique_ints(np.asarray(ids, dtype=np.int64)))
         rows = rows[rows >= 0]
@@ -546,21 +513,9 @@ class LandmarkMap:
 
     def retire(self, ids: ArrayLike) -> int:
         """
-        Take confirmed landmarks out of the map (a duplicate merged into another one).
+        Take confirmed landmarks out of the map (a merged duplicate); return how many.
 
-        They leave the snapshot and the records; their IDs stay known (``known``). An
-        observation of one of them later starts it again as a new ID would.
-
-        Parameters
-        ----------
-        ids : array_like of int, shape (N,)
-            Landmark IDs; unknown and unconfirmed ones are ignored.
-
-        Returns
-        -------
-        int
-            The landmarks taken out.
-
+        Their IDs stay ``known``: a later observation starts one again as a new ID.
         """
         rows = self._lookup(unique_ints(np.asarray(ids, dtype=np.int64)))
         rows = rows[rows >= 0]
@@ -576,25 +531,10 @@ class LandmarkMap:
 
     def merge(self, keep_id: int, drop_id: int) -> bool:
         """
-        Fuse a confirmed landmark into another one and take it out (a duplicate).
+        Fuse confirmed landmark ``drop_id`` into ``keep_id`` and retire it; False if not both.
 
-        ``drop_id``'s information goes into ``keep_id``: with split CI its per-source
-        sums are added to ``keep_id``'s (``keep_id`` then holds what it would hold had
-        ``drop_id``'s observations gone to it); with the other methods the two
-        estimates are fused by the method's own rule (the product of Gaussians;
-        covariance intersection). The observation counts add up, the stamps span
-        both; ``drop_id`` is then retired (``retire``).
-
-        Parameters
-        ----------
-        keep_id, drop_id : int
-            Two different confirmed landmarks.
-
-        Returns
-        -------
-        bool
-            Whether they were merged (False when one is not a confirmed landmark).
-
+        By the method's rule (``methods``: split CI adds the per-source sums, as if the
+        observations had gone to ``keep_id``); counts add up, stamps span both.
         """
         rows = self._lookup(np.array([keep_id, drop_id], np.int64))
         if keep_id == drop_id or (rows < 0).any() or not self.confirmed[rows].all():
@@ -602,15 +542,12 @@ class LandmarkMap:
         keep, drop = (int(r) for r in rows)
         self._settle_rows(rows)
         one, other = slice(keep, keep + 1), slice(drop, drop + 1)
-        fused = self._method.merge(
+        self._set(keep, self._method.merge(
             keep, drop, Estimates(self.mean[one], self.cov_ind[one], self.cov_dep[one]),
-            Estimates(self.mean[other], self.cov_ind[other], self.cov_dep[other]))
-        self.mean[keep], self.cov_ind[keep], self.cov_dep[keep] = (x[0] for x in fused)
+            Estimates(self.mean[other], self.cov_ind[other], self.cov_dep[other])))
         self.observations[keep] += self.observations[drop]
-        self._refresh_gate(keep)
         self.first_stamp_ns[keep] = min(self.first_stamp_ns[keep], self.first_stamp_ns[drop])
         self.last_stamp_ns[keep] = max(self.last_stamp_ns[keep], self.last_stamp_ns[drop])
-        self.consecutive[keep] = 0
         self.retire(np.array([drop_id], np.int64))
         return True
 
@@ -619,18 +556,7 @@ class LandmarkMap:
     def estimate(
             self, landmark_id: int
     ) -> Optional[Tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]]:
-        """
-        Return the estimate of a confirmed landmark, or None.
-
-        Returns
-        -------
-        m : ndarray, shape (2,) [m]
-        P : ndarray, shape (2, 2) [m^2]
-            Total covariance.
-        P_dep : ndarray, shape (2, 2) [m^2]
-            Its dependent part.
-
-        """
+        """Return ``m`` (2,), ``P`` and ``P_dep`` (2, 2) of a confirmed landmark, or None."""
         row = self._row.get(int(landmark_id))
         if row is None or not self.confirmed[row]:
             return None
@@ -643,31 +569,11 @@ class LandmarkMap:
         """
         Insert or replace a confirmed landmark's estimate computed outside the map.
 
-        For partial views (``core.partial``): the estimate is held the way the fusion
-        method holds one (``independent``: all independent; covariance intersection:
-        all dependent). With split CI the landmark's per-source sums are collapsed
-        into one synthetic source ``source`` holding the estimate: later range-bearing
-        rows of other sources fold with it by split CI, but what each earlier source
-        contributed is no longer told apart. Any waiting observations of the landmark
-        are dropped.
-
-        Parameters
-        ----------
-        landmark_id : int
-            The landmark's ID.
-        m : array_like, shape (2,) [m]
-            Its position.
-        P : array_like, shape (2, 2) [m^2]
-            Total covariance, positive definite.
-        P_dep : array_like, shape (2, 2) [m^2]
-            Its dependent part.
-        source : str
-            Source name the estimate is booked under.
-        stamp_ns : int
-            Stamp of the newest view in it [ns].
-        observations : int
-            Views the estimate adds to the landmark's count.
-
+        For partial observations (``core.partial``): ``m`` (2,) [m], total covariance
+        ``P`` and its dependent part ``P_dep`` (2, 2) [m^2], booked under ``source``
+        with ``stamp_ns`` [ns], adding ``observations`` to the landmark's count; held
+        as the method holds an estimate (split CI: the per-source sums collapse into
+        one source). Waiting observations of the landmark are dropped.
         """
         m = np.asarray(m, dtype=np.float64).reshape(2)
         P = np.asarray(P, dtype=np.float64).reshape(2, 2)
@@ -676,11 +582,8 @@ class LandmarkMap:
         row = int(self._rows_of(np.array([landmark_id], np.int64))[0])
         held = self._method.held(Estimates(m[None], (P - P_dep)[None], P_dep[None]))
         self._method.replace(row, code, held)
-        self.mean[row], self.cov_ind[row], self.cov_dep[row] = (x[0] for x in held)
-        self._refresh_gate(row)
-        self.confirmed[row] = True
+        self._set(row, held)
         self.observations[row] += int(observations)
-        self.consecutive[row] = 0
         if self.first_stamp_ns[row] == _NO_STAMP:
             self.first_stamp_ns[row] = int(stamp_ns)
         self.last_stamp_ns[row] = max(int(self.last_stamp_ns[row]), int(stamp_ns))
@@ -691,19 +594,13 @@ class LandmarkMap:
 
     def snapshot(self, ids: Optional[ArrayLike] = None) -> MapSnapshot:
         """
-        Return the confirmed landmarks, sorted by ID.
-
-        Parameters
-        ----------
-        ids : array_like of int, optional
-            Only these landmarks (those of them that are confirmed); all by default.
+        Return the confirmed landmarks (only those of ``ids`` if given), sorted by ID.
 
         Returns
         -------
         MapSnapshot
-            ``(ids, m, P, P_dep, observations)``: IDs int64 (K,), means (K, 2) [m],
-            total covariances and their dependent parts (K, 2, 2) [m^2], observations
-            fused into each int64 (K,). Unpacks like a tuple.
+            IDs (K,), means (K, 2) [m], total covariances and their dependent parts
+            (K, 2, 2) [m^2], observations fused into each (K,); unpacks like a tuple.
 
         """
         if ids is None:
@@ -746,11 +643,6 @@ class LandmarkMap:
         """
         Replace the map with confirmed landmarks from ``to_records`` output.
 
-        Parameters
-        ----------
-        records : list of dict
-            As ``to_records`` returns them.
-
         Raises
         ------
         ValueError
@@ -770,17 +662,14 @@ class LandmarkMap:
                 if not (np.all(np.isfinite(P)) and np.all(np.isfinite(P_dep))
                         and np.all(np.isfinite(mean))):
                     raise ValueError(f"landmark {record['id']}: non-finite values")
-                self.mean[row], self.cov_ind[row], self.cov_dep[row] = mean, P - P_dep, P_dep
-                self._refresh_gate(row)
-                self.confirmed[row] = True
+                self._set(row, Estimates(mean[None], (P - P_dep)[None], P_dep[None]))
                 self.observations[row] = int(record['observations'])
                 self.rejections[row] = int(record.get('rejections', 0))
                 self.first_stamp_ns[row] = _integer(record['first_stamp_ns'])
                 self.last_stamp_ns[row] = _integer(record['last_stamp_ns'])
                 for source in record['sources']:
                     self._seen(str(source))[row] = True
-                self._method.load(row, record, Estimates(mean, P - P_dep, P_dep),
-                                  self.source_code)
+                self._method.load(row, record, Estimates(mean, P - P_dep, P_dep), self.source_code)
         except (KeyError, TypeError, ValueError) as error:
             self.reset()
             raise ValueError(f'malformed landmark record: {error}') from error
