@@ -63,10 +63,10 @@ print(json.dumps({
 FORBIDDEN = ('rclpy', 'rcl', 'rcl_interfaces', 'rosidl*', '*_msgs', '*_srvs',
              '*_interfaces', 'rpyutils', 'ament_index_python', 'builtin_interfaces')
 
-ROS_FREE = ['landmark_ros.core', 'landmark_ros.fusion', 'landmark_ros.pipeline', 'landmark_ros.sim',
-            'landmark_ros.eval', 'landmark_ros.mrclam.data', 'landmark_ros.mrclam.config',
-            'landmark_ros.mrclam.offline', 'landmark_ros.mrclam.calibrate',
-            'landmark_ros.mrclam.report']
+ROS_FREE = ['landmark_ros.core', 'landmark_ros.fusion', 'landmark_ros.pipeline',
+            'landmark_ros.sim', 'landmark_ros.eval', 'landmark_ros.mrclam.data',
+            'landmark_ros.mrclam.config', 'landmark_ros.mrclam.offline',
+            'landmark_ros.mrclam.calibrate', 'landmark_ros.mrclam.report']
 """Packages and modules that must load without ROS (with all their submodules)."""
 
 MAY_IMPORT_ROS = ('landmark_ros/ros/*', 'landmark_ros/nodes/*', 'landmark_ros/mrclam/player.py',

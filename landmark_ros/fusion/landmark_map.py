@@ -22,14 +22,13 @@ each taking every landmark's rows up to its next refresh or rebuild (``_pass``).
 
 from collections import deque
 import copy
-from dataclasses import dataclass
 from typing import Any, Deque, Dict, List, Mapping, Optional, Sequence, Tuple, Union
 
 from landmark_ros.core._arrays import mahalanobis_sq_2x2, unique_ints
 from landmark_ros.core.gating import chi2_threshold
 from landmark_ros.fusion.methods import METHODS, Rows
-from landmark_ros.fusion.records import (agreeing, Batch, gate_due, MapSnapshot, Observation,
-                                         stack, UpdateResult)
+from landmark_ros.fusion.records import (agreeing, Batch, Checkpoint, gate_due, MapSnapshot,
+                                         Observation, parse_record, stack, UpdateResult)
 from landmark_ros.fusion.source_sums import entries as _entries, Estimates, SOURCE_BITS
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -39,22 +38,6 @@ _NO_STAMP = np.iinfo(np.int64).min
 
 FUSION_METHODS = tuple(METHODS)
 
-@dataclass(frozen=True)
-class _Checkpoint:
-    """What an update of some rows can change (``LandmarkMap._checkpoint``)."""
-
-    count: int
-    rows: NDArray[np.int64]
-    arrays: Dict[str, np.ndarray]
-    seen: Dict[str, NDArray[np.bool_]]
-    buffers: Dict[int, Deque[Observation]]
-    sources: List[str]
-    method: Any
-
-
-
-
-# --- The map ---------------------------------------------------------------------------------
 
 class LandmarkMap:
     """
@@ -92,12 +75,9 @@ class LandmarkMap:
         self.max_consecutive_rejections = int(max_consecutive_rejections)
         self.reset()
 
-    # State ---------------------------------------------------------------------
-
     def reset(self) -> None:
         """Forget every landmark."""
         self._count = 0
-        self._row: Dict[int, int] = {}
         self._sorted_ids = np.empty(0, np.int64)
         self._sorted_rows = np.empty(0, np.int64)
         self.ids = np.empty(0, np.int64)
@@ -161,7 +141,6 @@ class LandmarkMap:
             self._grow(len(new))
             rows = np.arange(self._count, self._count + len(new))
             self.ids[rows] = new
-            self._row.update(zip(new.tolist(), rows.tolist()))
             self._count += len(new)
             order = np.argsort(self.ids[:self._count], kind='stable')
             self._sorted_ids = self.ids[:self._count][order]
@@ -176,13 +155,17 @@ class LandmarkMap:
         found = self._sorted_ids[position] == ids
         return np.where(found, self._sorted_rows[position], -1)
 
+    def _known_rows(self, ids, confirmed=True):
+        """Return the rows of the distinct ``ids`` that are known and (not) confirmed."""
+        rows = self._lookup(unique_ints(np.asarray(ids, dtype=np.int64)))
+        rows = rows[rows >= 0]
+        return rows[self.confirmed[rows] == confirmed]
+
     def _seen(self, source):
         seen = self._seen_by.get(source)
         if seen is None:
             seen = self._seen_by[source] = np.zeros(len(self.ids), bool)
         return seen
-
-    # Update --------------------------------------------------------------------
 
     def update(self, ids: ArrayLike, z: ArrayLike, R: ArrayLike, R_dep: Optional[ArrayLike] = None,
                source: Union[str, Sequence[str], NDArray[np.str_]] = '',
@@ -191,33 +174,15 @@ class LandmarkMap:
         """
         Fuse a batch of observations, row by row in order; all or nothing.
 
-        Parameters
-        ----------
-        ids : array_like of int, shape (N,)
-            Landmark IDs.
-        z, R, R_dep : array_like, shape (N, 2), (N, 2, 2), (N, 2, 2)
-            Observed positions [m], their covariances (positive definite) and the
-            dependent parts of those (zero when absent) [m^2].
-        source : str or sequence of str, length N
-            Who made each observation; with ``source_index``, the names it indexes.
-        stamp_ns : int or array_like of int, shape (N,)
-            Time of each observation [ns].
-        settle : bool
-            False: the split-CI folds may wait for the next ``settle()`` (which
-            ``snapshot``, ``estimate`` and ``to_records`` call), so a caller that
-            updates many times between two reads folds once per read. Same results.
-        source_index : array_like of int, shape (N,), optional
-            Each row's source as an index into ``source``.
-
-        Returns
-        -------
-        UpdateResult
-
-        Raises
-        ------
-        ValueError
-            If ``stamp_ns`` is not integer, or ``source_index`` out of range.
-
+        ``ids`` (N,) landmark IDs; ``z`` (N, 2) observed positions [m]; ``R`` (N, 2, 2)
+        their covariances, positive definite, and ``R_dep`` their dependent parts (zero
+        when absent) [m^2]; ``source`` who made each (str or N names; with
+        ``source_index`` (N,), the names it indexes); ``stamp_ns`` times [ns], int or
+        (N,). ``settle=False``: the split-CI folds may wait for the next ``settle()``
+        (which ``snapshot``, ``estimate`` and ``to_records`` call): a caller that
+        updates many times between two reads folds once per read; same results.
+        Returns an ``UpdateResult``; raises ValueError if ``stamp_ns`` is not integer
+        or ``source_index`` out of range.
         """
         ids = np.asarray(ids, dtype=np.int64).reshape(-1)
         checkpoint = self._checkpoint(ids)
@@ -244,7 +209,7 @@ class LandmarkMap:
             taken = np.zeros(self._count, bool)
             taken[rows[rows >= 0]] = True
             rows = np.flatnonzero(taken)
-        return _Checkpoint(
+        return Checkpoint(
             self._count, rows,
             {name: getattr(self, name)[rows].copy() for name in self._ROW_ARRAYS},
             {source: seen[rows].copy() for source, seen in self._seen_by.items()},
@@ -257,7 +222,6 @@ class LandmarkMap:
         for name, values in checkpoint.arrays.items():
             getattr(self, name)[rows] = values
         added = np.arange(count, self._count)
-        added_ids = self.ids[added].tolist()
         for name in self._ROW_ARRAYS:      # rows added by the failed update, as new
             getattr(self, name)[added] = _NO_STAMP if name == 'first_stamp_ns' else 0
         for source in list(self._seen_by):
@@ -277,43 +241,16 @@ class LandmarkMap:
         self._method.restore(checkpoint.method)
         if self._count != count:
             self._count = count
-            for landmark_id in added_ids:
-                self._row.pop(landmark_id, None)
             order = np.argsort(self.ids[:count], kind='stable')
             self._sorted_ids, self._sorted_rows = self.ids[:count][order], order
 
     def _update(self, ids, z, R, R_dep, source, stamp_ns, source_index):
-        ids = np.asarray(ids, dtype=np.int64).reshape(-1)
-        z = np.asarray(z, dtype=np.float64).reshape(-1, 2)
-        R = np.asarray(R, dtype=np.float64).reshape(-1, 2, 2)
-        R_dep = np.zeros_like(R) if R_dep is None else np.asarray(
-            R_dep, dtype=np.float64).reshape(-1, 2, 2)
-        stamps_ns = np.asarray(stamp_ns)
-        if not (np.issubdtype(stamps_ns.dtype, np.integer) or stamps_ns.size == 0):
-            raise ValueError(f'stamp_ns must be integer nanoseconds, got {stamps_ns.dtype}')
-        count = len(ids)
-        stamps_ns = np.broadcast_to(stamps_ns.astype(np.int64), (count,))
-        if source_index is not None:
-            names = [str(name) for name in source]
-            inverse = np.asarray(source_index, dtype=np.int64).reshape(-1)
-            if len(inverse) != count or (count and not (
-                    0 <= inverse.min() and inverse.max() < len(names))):
-                raise ValueError(f'source_index must hold {count} indices into {len(names)} '
-                                 'sources')
-            used, first = np.unique(inverse, return_index=True)
-            codes = self._codes(names, used, first, inverse)
-        elif isinstance(source, str):
-            codes = np.full(count, self.source_code(source), np.int64)
-        else:
-            names, first, inverse = np.unique(np.asarray(source, dtype=str),
-                                              return_index=True, return_inverse=True)
-            codes = self._codes(names, np.arange(len(names)), first, inverse.reshape(-1))
+        batch = Batch.of(len(ids), (z, R, R_dep, stamp_ns), (source, source_index),
+                         self._source_names, self.source_code)
         result = UpdateResult()
-        if not count:
+        if not len(ids):
             return result
         rows = self._rows_of(ids)
-        # The one conversion to the independent part.
-        batch = Batch(z, R - R_dep, R_dep, self._source_names, codes, stamps_ns)
         changed: List[NDArray[np.int64]] = []
         known = self.confirmed[rows]
         # Rows of already confirmed landmarks first, in passes; then the others in order.
@@ -326,14 +263,6 @@ class LandmarkMap:
         if changed:
             result.changed_ids = unique_ints(self.ids[np.concatenate(changed)])
         return result
-
-    def _codes(self, names, used, first, inverse):
-        """Return each row's source code: ``names[inverse]``, ``used`` first seen at ``first``."""
-        # Register new names in the order they first appear (as row by row would).
-        by_name = np.zeros(len(names), np.int64)
-        for k in used[np.argsort(first, kind='stable')].tolist():
-            by_name[k] = self.source_code(str(names[k]))
-        return by_name[inverse]
 
     def _update_confirmed(self, rows, batch, positions, result, changed):
         """Gate and fuse rows of confirmed landmarks, each landmark's in order."""
@@ -503,9 +432,7 @@ class LandmarkMap:
         The IDs stay ``known``, with no observation; unknown and confirmed ones are
         ignored.
         """
-        rows = self._lookup(unique_ints(np.asarray(ids, dtype=np.int64)))
-        rows = rows[rows >= 0]
-        rows = rows[~self.confirmed[rows]]
+        rows = self._known_rows(ids, confirmed=False)
         for row in rows.tolist():
             self._buffers.pop(row, None)
         self.first_stamp_ns[rows] = _NO_STAMP
@@ -517,9 +444,7 @@ class LandmarkMap:
 
         Their IDs stay ``known``: a later observation starts one again as a new ID.
         """
-        rows = self._lookup(unique_ints(np.asarray(ids, dtype=np.int64)))
-        rows = rows[rows >= 0]
-        rows = rows[self.confirmed[rows]]
+        rows = self._known_rows(ids)
         self.confirmed[rows] = False
         self.observations[rows] = 0
         self.consecutive[rows] = 0
@@ -551,14 +476,12 @@ class LandmarkMap:
         self.retire(np.array([drop_id], np.int64))
         return True
 
-    # Estimates from elsewhere -------------------------------------------------------
-
     def estimate(
             self, landmark_id: int
     ) -> Optional[Tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]]:
         """Return ``m`` (2,), ``P`` and ``P_dep`` (2, 2) of a confirmed landmark, or None."""
-        row = self._row.get(int(landmark_id))
-        if row is None or not self.confirmed[row]:
+        row = int(self._lookup(np.array([landmark_id], np.int64))[0])
+        if row < 0 or not self.confirmed[row]:
             return None
         self._settle_rows(np.array([row], np.int64))
         return (self.mean[row].copy(), self.cov_ind[row] + self.cov_dep[row],
@@ -590,8 +513,6 @@ class LandmarkMap:
         self._seen(source)[row] = True
         self._buffers.pop(row, None)
 
-    # Output --------------------------------------------------------------------
-
     def snapshot(self, ids: Optional[ArrayLike] = None) -> MapSnapshot:
         """
         Return the confirmed landmarks (only those of ``ids`` if given), sorted by ID.
@@ -606,9 +527,7 @@ class LandmarkMap:
         if ids is None:
             rows = np.flatnonzero(self.confirmed[:self._count])
         else:
-            rows = self._lookup(unique_ints(np.asarray(ids, dtype=np.int64)))
-            rows = rows[rows >= 0]
-            rows = rows[self.confirmed[rows]]
+            rows = self._known_rows(ids)
         rows = rows[np.argsort(self.ids[rows], kind='stable')]
         self._settle_rows(rows)
         return MapSnapshot(self.ids[rows].copy(), self.mean[rows].copy(),
@@ -617,14 +536,16 @@ class LandmarkMap:
 
     def sources_of(self, landmark_id: int) -> List[str]:
         """Return the sorted sources whose observations a landmark fused."""
-        row = self._row[landmark_id]
+        row = int(self._lookup(np.array([landmark_id], np.int64))[0])
+        if row < 0:
+            raise KeyError(landmark_id)
         return sorted(source for source, seen in self._seen_by.items() if seen[row])
 
     def to_records(self) -> List[Dict[str, Any]]:
         """Return the confirmed landmarks as plain dicts (for saving); stamps in ns."""
         records = []
-        for landmark_id in self.snapshot().ids.tolist():
-            row = self._row[landmark_id]
+        snapshot = self.snapshot()
+        for landmark_id, row in zip(snapshot.ids.tolist(), self._lookup(snapshot.ids).tolist()):
             records.append({
                 'id': landmark_id,
                 'mean': self.mean[row].tolist(),
@@ -656,27 +577,13 @@ class LandmarkMap:
                 raise ValueError('duplicate landmark IDs')
             rows = self._rows_of(ids)
             for row, record in zip(rows.tolist(), records):
-                P = np.array(record['covariance'], dtype=np.float64).reshape(2, 2)
-                P_dep = np.array(record['covariance_dependent'], dtype=np.float64).reshape(2, 2)
-                mean = np.array(record['mean'], dtype=np.float64).reshape(2)
-                if not (np.all(np.isfinite(P)) and np.all(np.isfinite(P_dep))
-                        and np.all(np.isfinite(mean))):
-                    raise ValueError(f"landmark {record['id']}: non-finite values")
-                self._set(row, Estimates(mean[None], (P - P_dep)[None], P_dep[None]))
-                self.observations[row] = int(record['observations'])
-                self.rejections[row] = int(record.get('rejections', 0))
-                self.first_stamp_ns[row] = _integer(record['first_stamp_ns'])
-                self.last_stamp_ns[row] = _integer(record['last_stamp_ns'])
+                estimate, counts, stamps = parse_record(record)
+                self._set(row, Estimates(*(x[None] for x in estimate)))
+                self.observations[row], self.rejections[row] = counts
+                self.first_stamp_ns[row], self.last_stamp_ns[row] = stamps
                 for source in record['sources']:
                     self._seen(str(source))[row] = True
-                self._method.load(row, record, Estimates(mean, P - P_dep, P_dep), self.source_code)
+                self._method.load(row, record, estimate, self.source_code)
         except (KeyError, TypeError, ValueError) as error:
             self.reset()
             raise ValueError(f'malformed landmark record: {error}') from error
-
-
-def _integer(value):
-    """Return ``value`` as an int; raise ValueError unless it is an integer (not bool)."""
-    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
-        raise ValueError(f'expected an integer, got {value!r}')
-    return int(value)

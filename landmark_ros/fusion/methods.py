@@ -46,11 +46,6 @@ class Rows:
     R_dep: NDArray[np.float64]
     """Dependent parts, shape (N, 2, 2) [m^2]."""
 
-    def take(self, index: Any) -> 'Rows':
-        """Return the rows at ``index``."""
-        return Rows(self.rows[index], self.codes[index], self.z[index], self.R_ind[index],
-                    self.R_dep[index])
-
 
 def _ranks(groups):
     """Return how many earlier entries share each entry's group (its rank in it)."""
@@ -260,6 +255,6 @@ class SplitCovarianceIntersection(Independent):
         self._mark(rows, True)
 
 
-METHODS = {cls.name: cls for cls in (Independent, CovarianceIntersection,
-                                      SplitCovarianceIntersection)}
+METHODS = {cls.name: cls for cls in (
+    Independent, CovarianceIntersection, SplitCovarianceIntersection)}
 """The fusion methods by name."""

@@ -7,11 +7,11 @@ the observations that confirm (or rebuild) a landmark.
 
 from collections import Counter
 from dataclasses import dataclass, field
-from typing import Any, Callable, List, NamedTuple, Sequence, Tuple
+from typing import Any, Callable, Deque, Dict, List, Mapping, NamedTuple, Sequence, Tuple
 
 from landmark_ros.core._arrays import mahalanobis_sq_2x2
 from landmark_ros.fusion.methods import Rows
-from landmark_ros.fusion.source_sums import entries
+from landmark_ros.fusion.source_sums import entries, Estimates
 import numpy as np
 from numpy.typing import NDArray
 
@@ -98,10 +98,50 @@ class Batch:
     codes: np.ndarray
     stamps_ns: np.ndarray
 
+    @staticmethod
+    def of(count: int, rows: Tuple[Any, Any, Any, Any], sources: Tuple[Any, Any],
+           names: List[str], source_code: Callable[[str], int]) -> 'Batch':
+        """
+        Return ``LandmarkMap.update``'s input as a batch of ``count`` rows.
+
+        ``rows``: ``z, R, R_dep, stamp_ns``, ``sources``: ``source, source_index``, as
+        ``update`` takes them. New source names are registered by ``source_code`` in
+        the order they first appear (as row by row would); ``names`` by code.
+        """
+        source, source_index = sources
+        z = np.asarray(rows[0], dtype=np.float64).reshape(-1, 2)
+        R = np.asarray(rows[1], dtype=np.float64).reshape(-1, 2, 2)
+        R_dep = np.zeros_like(R) if rows[2] is None else np.asarray(
+            rows[2], dtype=np.float64).reshape(-1, 2, 2)
+        stamps_ns = np.asarray(rows[3])
+        if not (np.issubdtype(stamps_ns.dtype, np.integer) or stamps_ns.size == 0):
+            raise ValueError(f'stamp_ns must be integer nanoseconds, got {stamps_ns.dtype}')
+        stamps_ns = np.broadcast_to(stamps_ns.astype(np.int64), (count,))
+        if isinstance(source, str) and source_index is None:
+            codes = np.full(count, source_code(source), np.int64)
+        else:
+            if source_index is None:
+                given, inverse = np.unique(np.asarray(source, dtype=str), return_inverse=True)
+            else:
+                given = np.array([str(name) for name in source], dtype=object)
+                inverse = np.asarray(source_index, dtype=np.int64)
+            inverse = inverse.reshape(-1)
+            if len(inverse) != count or (count and not (
+                    0 <= inverse.min() and inverse.max() < len(given))):
+                raise ValueError(f'source_index must hold {count} indices into {len(given)} '
+                                 'sources')
+            used, first = np.unique(inverse, return_index=True)
+            by_name = np.zeros(len(given), np.int64)
+            for k in used[np.argsort(first, kind='stable')].tolist():
+                by_name[k] = source_code(str(given[k]))
+            codes = by_name[inverse]
+        # The one conversion to the independent part.
+        return Batch(z, R - R_dep, R_dep, names, codes, stamps_ns)
+
     def observation(self, i: int) -> Observation:
         """Return row ``i`` as an ``Observation``."""
-        return Observation(self.z[i], self.R_ind[i], self.R_dep[i], self.names[self.codes[i]],
-                            int(self.stamps_ns[i]))
+        return Observation(self.z[i], self.R_ind[i], self.R_dep[i],
+                           self.names[self.codes[i]], int(self.stamps_ns[i]))
 
     def rows(self, rows: NDArray[np.int64], positions: NDArray[np.int64]) -> Rows:
         """Return the rows at ``positions`` as ``Rows`` of the landmark rows ``rows``."""
@@ -151,3 +191,36 @@ def agreeing(observations: List[Observation], threshold: float,
                                     R_dep[i:i + 1])
         cluster.append(observations[i])
     return cluster
+
+
+@dataclass(frozen=True)
+class Checkpoint:
+    """What an update of some rows can change (for an undo)."""
+
+    count: int
+    rows: NDArray[np.int64]
+    arrays: Dict[str, np.ndarray]
+    seen: Dict[str, NDArray[np.bool_]]
+    buffers: Dict[int, Deque[Observation]]
+    sources: List[str]
+    method: Any
+
+
+def parse_record(record: Mapping[str, Any]) -> Tuple[Estimates, Tuple[int, int], Tuple[int, int]]:
+    """
+    Return the estimate (one landmark), counts and stamps of a ``to_records`` record.
+
+    Raises KeyError, TypeError or ValueError when it is malformed or not finite.
+    """
+    P = np.array(record['covariance'], dtype=np.float64).reshape(2, 2)
+    P_dep = np.array(record['covariance_dependent'], dtype=np.float64).reshape(2, 2)
+    mean = np.array(record['mean'], dtype=np.float64).reshape(2)
+    if not (np.all(np.isfinite(P)) and np.all(np.isfinite(P_dep)) and np.all(np.isfinite(mean))):
+        raise ValueError(f"landmark {record['id']}: non-finite values")
+    stamps = []
+    for value in (record['first_stamp_ns'], record['last_stamp_ns']):
+        if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
+            raise ValueError(f'expected an integer, got {value!r}')
+        stamps.append(int(value))
+    counts = int(record['observations']), int(record.get('rejections', 0))
+    return Estimates(mean, P - P_dep, P_dep), counts, (stamps[0], stamps[1])

@@ -194,11 +194,14 @@ def terms(z: NDArray[np.float64], R_ind: NDArray[np.float64],
     trace = a + c
     floor = 1e-12 * np.where(trace > 0.0, trace, R_dep[:, 0, 0] + R_dep[:, 1, 1])
     ya, yb, yc = inverse_2x2(a + floor, b, c + floor)
-    return np.stack([ya, yb, yc, ya * z[:, 0] + yb * z[:, 1], yb * z[:, 0] + yc * z[:, 1],
-                     ya * R_dep[:, 0, 0] + yb * R_dep[:, 1, 0],
-                     ya * R_dep[:, 0, 1] + yb * R_dep[:, 1, 1],
-                     yb * R_dep[:, 0, 0] + yc * R_dep[:, 1, 0],
-                     yb * R_dep[:, 0, 1] + yc * R_dep[:, 1, 1]], axis=1)
+    out = np.empty((len(z), 9))
+    out[:, 0], out[:, 1], out[:, 2] = ya, yb, yc
+    out[:, 3], out[:, 4] = ya * z[:, 0] + yb * z[:, 1], yb * z[:, 0] + yc * z[:, 1]
+    out[:, 5] = ya * R_dep[:, 0, 0] + yb * R_dep[:, 1, 0]
+    out[:, 6] = ya * R_dep[:, 0, 1] + yb * R_dep[:, 1, 1]
+    out[:, 7] = yb * R_dep[:, 0, 0] + yc * R_dep[:, 1, 0]
+    out[:, 8] = yb * R_dep[:, 0, 1] + yc * R_dep[:, 1, 1]
+    return out
 
 
 def one_source(mean: NDArray[np.float64], P_ind: NDArray[np.float64],

@@ -3,10 +3,8 @@
 from collections import Counter
 
 from conftest import random_observations, random_poses, random_spd
-from landmark_ros.core.covariance import MAX_CONDITION
 from landmark_ros.core.landmarks import landmark_to_world_dependent
 from landmark_ros.core.sensors import MIN_RANGE
-from landmark_ros.pipeline import rows as rows_module
 from landmark_ros.pipeline.rows import (landmark_row_problems, landmarks_from_rows, MAX_ID,
                                         observation_noise, row_problems)
 import numpy as np
