@@ -23,7 +23,6 @@ from typing import Any, Callable, Dict, Mapping, Optional, Sequence, Tuple
 
 from landmark_ros.core.gaussian import (ci_2x2, covariance_intersection, fuse_2x2,
                                         split_covariance_intersection)
-from landmark_ros.fusion import compiled
 from landmark_ros.fusion.source_sums import entries, Estimates, one_source, SourceSums
 import numpy as np
 from numpy.typing import NDArray
@@ -168,8 +167,7 @@ class SplitCovarianceIntersection(Independent):
     name = 'split_covariance_intersection'
 
     def reset(self) -> None:
-        """Forget every landmark; start loading the compiled fold (in the background)."""
-        compiled.start()
+        """Forget every landmark (the compiled fold starts loading at the first fold)."""
         self.sums = SourceSums()
         self.stale = np.zeros(64, bool)
 
