@@ -13,7 +13,6 @@ from landmark_ros.core import gaussian
 from landmark_ros.core.gating import chi2_threshold, mahalanobis_sq
 from landmark_ros.fusion import compiled
 from landmark_ros.fusion.landmark_map import FUSION_METHODS, LandmarkMap
-from landmark_ros.fusion.records import gate_due
 import numpy as np
 import pytest
 
@@ -36,6 +35,12 @@ def stream(seed, landmarks, sources, count):
     return ids, z, R, R_dep, names
 
 
+def refreshed(count):
+    """Whether the gate reference follows the estimate after observation ``count``."""
+    # Every one of the first 7, then 4 times per doubling of the count.
+    return count < 8 or count % (1 << (count.bit_length() - 3)) == 0
+
+
 class Reference:
     """One landmark map, row by row, with the plain ``core.gaussian`` functions."""
 
@@ -55,7 +60,7 @@ class Reference:
         if mahalanobis_sq(z, m_ref, P_ref + R) > self.threshold:
             return
         self._fuse(entry, z, R, R_dep, name)
-        if gate_due(entry['count']):
+        if refreshed(entry['count']):
             entry['gate'] = entry['m'], entry['P_ind'] + entry['P_dep']
 
     def _fuse(self, entry, z, R, R_dep, name):
@@ -114,11 +119,16 @@ def test_a_batch_equals_its_rows_one_by_one_through_core_gaussian(seed, landmark
     for row in zip(*rows):
         reference.add(int(row[0]), *row[1:4], str(row[4]))
     # The landmarks confirmed by their first rows, then the rest in one batch.
-    ids, m, P, P_dep, observations = feed(fusion, rows, [landmarks]).snapshot()
+    landmark_map = feed(fusion, rows, [landmarks])
+    ids, m, P, P_dep, observations = landmark_map.snapshot()
     assert ids.tolist() == sorted(reference.landmarks)
     for k, landmark_id in enumerate(ids.tolist()):
         entry = reference.landmarks[landmark_id]
         assert observations[k] == entry['count']
+        gate = landmark_map.gate[np.flatnonzero(landmark_map.ids == landmark_id)[0]]
+        m_ref, P_ref = entry['gate']
+        np.testing.assert_allclose(gate, [*m_ref, *P_ref[[0, 0, 1], [0, 1, 1]]], rtol=0.0,
+                                   atol=1e-12 * max(20.0, np.abs(P_ref).max()))
         np.testing.assert_allclose(m[k], entry['m'], rtol=0.0, atol=1e-12 * 20.0)
         scale = np.abs(entry['P_ind'] + entry['P_dep']).max()
         np.testing.assert_allclose(P[k], entry['P_ind'] + entry['P_dep'], rtol=0.0,
