@@ -1,29 +1,20 @@
 """
 The split-CI fold compiled with numba: optional, stateless, loaded in the background.
 
-``fold(table, slots, lo, hi)`` returns what ``source_sums.fold_numpy`` returns, one landmark
-at a time in a compiled loop instead of one numpy operation per step over all
-landmarks: the same IEEE operations in the same order (no fast-math, no fused
-multiply-add), so the bits are the same (``test/fusion/test_compiled.py`` checks it,
-with the plain Python functions below and, when numba is there, compiled). A
-(landmark, source) step costs about a tenth of the numpy fold's.
-
-Nothing waits for numba. The first ``fold`` (or ``start``) starts a daemon thread that
-imports numba and compiles these functions (or reads them from numba's disk cache:
-about 1 s warm, 10 s cold); until it is done, and for good when numba is missing,
-broken, or turned off by the environment variable ``LANDMARK_ROS_NUMBA=0``, ``fold``
-returns None and callers use numpy. ``ready()`` says whether the compiled fold
-serves; ``load()`` waits for it (tests, benchmarks). This is the only module of the
-package that imports numba.
+``fold(table, slots, lo, hi)`` returns what ``source_sums.fold_numpy`` returns, one
+landmark at a time in a compiled loop (a (landmark, source) step costs about a tenth
+of numpy's): the same IEEE operations in the same order (no fast-math, no fused
+multiply-add), so the same bits. The first ``fold`` starts a daemon thread that imports
+numba and compiles the functions below (or reads numba's disk cache); until it is done,
+and for good when numba is missing, broken or off (``LANDMARK_ROS_NUMBA=0``), ``fold``
+returns None and callers use numpy. ``ready()`` tells, ``load()`` waits. The only
+module of the package that imports numba.
 
 The scalar closed forms below are those of ``core.gaussian`` (``sci_omega_2x2``,
 ``split_ci_2x2_entries``), ``core._arrays`` (``power_of_4_scale``, ``inverse_2x2``,
-``psd_projection_2x2``) and ``source_sums`` (the source estimate and its size), written
-once more for one landmark at a time: numba compiles loops over scalars, not numpy's
-whole-array expressions.
-
-Sources: split covariance intersection, Julier and Uhlmann, "General decentralized
-data fusion with covariance intersection", Handbook of Multisensor Data Fusion, 2001.
+``psd_projection_2x2``) and ``source_sums`` (a source's estimate, its size), for one
+landmark at a time: numba compiles loops over scalars, not numpy's whole-array
+expressions. ``test/fusion/test_compiled.py`` runs them plain and compiled against numpy.
 """
 
 import math
@@ -38,12 +29,7 @@ from numpy.typing import NDArray
 
 
 def _limits():
-    """
-    Return the weight search's bracket, edge value, tolerance and quadratic regime as one array.
-
-    Passed at each call rather than read as globals: numba freezes globals into its
-    on-disk cache, which would not see a change of ``core.gaussian``'s constants.
-    """
+    """Return the weight search's constants (an argument: numba would freeze globals)."""
     return np.array([_OMEGA_BRACKET, 1.0 - _OMEGA_BRACKET, OMEGA_EDGE, OMEGA_TOLERANCE,
                      _OMEGA_QUADRATIC])
 
@@ -215,40 +201,59 @@ def _source_part(Y, y, Q, part):
     return _log2_det(a + da, b + db, c + dc)
 
 
-def _fold_one(sums, parts, order, out, limits):
-    # One landmark: its sources' sums (n, 9) -> out (8,) packed; parts (W, 9), order (W,).
-    n = len(sums)
+# Columns of the sums table (``source_sums.SourceSums``): a pair's sums, then the fold
+# kept for it: 1.0 while its sums changed since (DIRTY), its source's estimate (PART),
+# that estimate's size, its place in its landmark's fold order and the fold up to
+# that place (PREFIX), for the compiled fold to start from the first place that
+# changed. The fold is a pure function of the sums: the kept prefixes give its bits.
+DIRTY, PART, SIZE, RANK, PREFIX, COLUMNS = 9, 10, 18, 19, 20, 28
+
+
+def _fold_one(table, slots, order, out, limits):
+    # One landmark, pairs table[slots] (n >= 1) -> out (8,); updates the kept fold.
+    n = len(slots)
     for j in range(n):
-        parts[j, 8] = _source_part(sums[j, 0:3], sums[j, 3:5], sums[j, 5:9], parts[j])
-    # Stable insertion sort of the sources by size (few sources per landmark).
+        t = table[slots[j]]
+        if t[DIRTY] != 0.0:
+            t[SIZE] = _source_part(t[0:3], t[3:5], t[5:9], t[PART:PART + 8])
+            t[RANK] = -1.0
+            t[DIRTY] = 0.0
+    # Stable insertion sort of the sources by size (key order breaks ties).
     for j in range(n):
-        key = parts[j, 8]
+        key = table[slots[j], SIZE]
         i = j
-        while i > 0 and parts[order[i - 1], 8] > key:
+        while i > 0 and table[slots[order[i - 1]], SIZE] > key:
             order[i] = order[i - 1]
             i -= 1
         order[i] = j
+    # The first places hold the sources of the last fold, unchanged: their prefixes hold.
+    start = 0
+    while start < n and table[slots[order[start]], RANK] == start:
+        start += 1
+    if start == 0:
+        t = table[slots[order[0]]]
+        for i in range(8):
+            t[PREFIX + i] = t[PART + i]
+        t[RANK] = 0.0
+        start = 1
+    for j in range(start, n):
+        first = table[slots[order[j - 1]], PREFIX:PREFIX + 8]
+        t = table[slots[order[j]]]
+        _split_ci(first, t[PART:PART + 8], _omega_of(first, t[PART:PART + 8], limits),
+                  t[PREFIX:PREFIX + 8])
+        t[RANK] = j
     for i in range(8):
-        out[i] = parts[order[0], i]
-    for j in range(1, n):
-        second = parts[order[j]]
-        # _split_ci reads both estimates before it writes: ``out`` may be ``first``.
-        _split_ci(out, second, _omega_of(out, second, limits), out)
+        out[i] = table[slots[order[n - 1]], PREFIX + i]
 
 
 def _fold_all(table, slots, lo, hi, out, limits):
-    # Landmark k's sources are table[slots[lo[k]:hi[k]]] (at least one) -> out[k] (8,).
+    # Landmark k's pairs are table[slots[lo[k]:hi[k]]] (at least one) -> out[k] (8,).
     width = 1
     for k in range(len(lo)):
         width = max(width, hi[k] - lo[k])
-    parts = np.empty((width, 9))
     order = np.empty(width, np.int64)
-    sums = np.empty((width, 9))
     for k in range(len(lo)):
-        n = hi[k] - lo[k]
-        for j in range(n):
-            sums[j] = table[slots[lo[k] + j]]
-        _fold_one(sums[:n], parts, order, out[k], limits)
+        _fold_one(table, slots[lo[k]:hi[k]], order, out[k], limits)
 
 
 _COMPILED = ('_scale4', '_inverse', '_psd', '_log2_det', '_omega_of', '_congruence',
@@ -261,7 +266,7 @@ _lock = threading.Lock()
 
 def fold_python(table: NDArray[np.float64], slots: NDArray[np.int64], lo: NDArray[np.int64],
                 hi: NDArray[np.int64]) -> NDArray[np.float64]:
-    """Return ``fold`` by the plain Python functions (slow; for tests)."""
+    """Return ``fold`` by the plain Python functions (slow; for tests); keeps the fold too."""
     return _call(_fold_all, table, slots, lo, hi)
 
 
@@ -280,8 +285,8 @@ def fold(table: NDArray[np.float64], slots: NDArray[np.int64], lo: NDArray[np.in
 
     Landmark ``k``'s sources are ``table[slots[lo[k]:hi[k]]]`` (``source_sums.fold``:
     at least one); returns shape (K, 8): mean, ``(xx, xy, yy)`` of ``P_ind`` and of
-    ``P_dep``. Starts loading the compiled fold on first call (``start``), without
-    waiting.
+    ``P_dep``. Updates the kept folds in ``table`` (columns ``DIRTY`` on). Starts
+    loading the compiled fold on first call (``start``), without waiting.
     """
     kernel = _state['kernel']
     if kernel is None:
@@ -334,7 +339,9 @@ def _load() -> None:
             function = globals()[name]
             scope = dict(function.__globals__, **kernels)
             kernels[name] = jit(type(function)(function.__code__, scope, name))
-        _call(kernels['_fold_all'], np.array([[1.0, 0.0, 1.0] + [0.0] * 6]), [0], [0], [1])
+        table = np.zeros((1, COLUMNS))
+        table[0, 0], table[0, 2], table[0, DIRTY] = 1.0, 1.0, 1.0
+        _call(kernels['_fold_all'], table, [0], [0], [1])
     except Exception:   # noqa: BLE001 - any failure: the numpy fold serves
         return
     _state['kernel'] = kernels['_fold_all']

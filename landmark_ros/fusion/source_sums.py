@@ -65,7 +65,7 @@ class SourceSums:
     def __init__(self) -> None:
         self.keys = np.empty(0, np.int64)
         self.slots = np.empty(0, np.int64)
-        self.table = np.zeros((64, 9))
+        self.table = np.zeros((64, compiled.COLUMNS))   # sums, then the kept fold
         self.count = 0
         self.journal: List[Tuple[NDArray[np.int64], NDArray[np.float64]]] = []
         self.journal_count = 0
@@ -86,10 +86,11 @@ class SourceSums:
             slots = np.arange(self.count, self.count + len(new))
             self.count += len(new)
             if self.count > len(self.table):
-                grown = np.zeros((2 * self.count, 9))
+                grown = np.zeros((2 * self.count, compiled.COLUMNS))
                 grown[:len(self.table)] = self.table
                 self.table = grown
             self.table[slots] = 0.0
+            self.table[slots, compiled.DIRTY] = 1.0
             where = np.searchsorted(self.keys, new)
             self.keys = np.insert(self.keys, where, new)
             self.slots = np.insert(self.slots, where, slots)
@@ -101,8 +102,9 @@ class SourceSums:
         """Add observations (in order) to the sums of their (row, code) pairs."""
         slots = self._slots(rows, codes)
         old = slots[slots < self.journal_count]
-        self.journal.append((old, self.table[old]))
-        np.add.at(self.table, slots, terms(z, R_ind, R_dep))
+        self.journal.append((old, self.table[old, :9]))
+        np.add.at(self.table[:, :9], slots, terms(z, R_ind, R_dep))
+        self.table[slots, compiled.DIRTY] = 1.0
 
     def fold(self, rows: NDArray[np.int64]) -> Estimates:
         """Return the split-CI fold of the sources of each of ``rows`` (each has one)."""
@@ -125,14 +127,16 @@ class SourceSums:
         """Add the sums of row ``drop`` to those of row ``keep``, source by source."""
         lo, hi = self._bounds([drop])
         codes = self.keys[lo[0]:hi[0]] & ((1 << SOURCE_BITS) - 1)
-        sums = self.table[self.slots[lo[0]:hi[0]]]
-        self.table[self._slots(np.full(len(codes), keep, np.int64), codes)] += sums
+        sums = self.table[self.slots[lo[0]:hi[0]], :9]
+        slots = self._slots(np.full(len(codes), keep, np.int64), codes)
+        self.table[slots, :9] += sums
+        self.table[slots, compiled.DIRTY] = 1.0
 
     def checkpoint(self) -> SumsCheckpoint:
         """Start a journal of the changes to the sums; return what ``restore`` needs."""
         if self.count > 2 * len(self.slots) + 4096:     # give back the unused slots
             live = self.table[self.slots]
-            self.table = np.zeros((max(64, 2 * len(live)), 9))
+            self.table = np.zeros((max(64, 2 * len(live)), compiled.COLUMNS))
             self.table[:len(live)] = live
             self.slots = np.arange(len(self.slots))
             self.count = len(self.slots)
@@ -142,14 +146,15 @@ class SourceSums:
     def restore(self, state: SumsCheckpoint) -> None:
         """Undo every change since ``checkpoint``."""
         for slots, sums in reversed(state.journal):
-            self.table[slots] = sums
+            self.table[slots, :9] = sums
+            self.table[slots, compiled.DIRTY] = 1.0
         self.keys, self.slots, self.count = state.keys, state.slots, state.count
 
     def records(self, row: int, names: Sequence[str]) -> List[Dict[str, Any]]:
         """Return the sums of one landmark as plain data, sorted by source name."""
         lo, hi = self._bounds([row])
         out = []
-        sums = self.table[self.slots[lo[0]:hi[0]]].tolist()
+        sums = self.table[self.slots[lo[0]:hi[0]], :9].tolist()
         for key, s in zip(self.keys[lo[0]:hi[0]].tolist(), sums):
             out.append({'source': names[key & ((1 << SOURCE_BITS) - 1)],
                         'information': [[s[0], s[1]], [s[1], s[2]]],
@@ -166,7 +171,8 @@ class SourceSums:
             Y = np.array(record['information'], dtype=np.float64).reshape(2, 2)
             Q = np.array(record['dependent_sum'], dtype=np.float64).reshape(4)
             y = np.array(record['information_mean'], dtype=np.float64).reshape(2)
-            self.table[slot] = [Y[0, 0], 0.5 * (Y[0, 1] + Y[1, 0]), Y[1, 1], *y, *Q]
+            self.table[slot, :9] = [Y[0, 0], 0.5 * (Y[0, 1] + Y[1, 0]), Y[1, 1], *y, *Q]
+            self.table[slot, compiled.DIRTY] = 1.0
 
 
 def spans(lo: NDArray[np.int64], hi: NDArray[np.int64]) -> NDArray[np.int64]:
@@ -269,7 +275,7 @@ def fold_numpy(table: NDArray[np.float64], slots: NDArray[np.int64], lo: NDArray
     """
     columns = np.arange(int((hi - lo).max()))
     valid = columns < (hi - lo)[:, None]
-    sums = table[slots[np.minimum(lo[:, None] + columns, len(slots) - 1)]]
+    sums = table[slots[np.minimum(lo[:, None] + columns, len(slots) - 1)], :9]
     m, P_ind, P_dep = _estimate(sums[..., 0:3], sums[..., 3:5], sums[..., 5:9])
     size = np.where(valid, _log2_det(*(i + d for i, d in zip(P_ind, P_dep))), np.inf)
     counts = valid.sum(axis=1)

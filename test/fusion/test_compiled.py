@@ -26,8 +26,9 @@ def sums_of(seed, landmarks, width):
         sums[j] = source_sums.terms(rng.normal(0.0, 5.0, (n, 2)), R, R_dep).sum(axis=0)
     hi = np.cumsum(counts)
     slots = np.random.default_rng(seed).permutation(len(sums))    # table rows in any order
-    table = np.full((len(sums) + 3, 9), np.nan)
-    table[slots] = sums
+    table = np.full((len(sums) + 3, compiled.COLUMNS), np.nan)
+    table[slots, :9] = sums
+    table[:, compiled.DIRTY] = 1.0      # no kept fold yet
     return table, slots, hi - counts, hi
 
 
@@ -37,6 +38,23 @@ def test_the_plain_python_fold_is_numpys_bit_for_bit(seed, landmarks, width):
     # The functions numba compiles, run as plain Python: the same IEEE operations.
     pairs = sums_of(seed, landmarks, width)
     np.testing.assert_array_equal(compiled.fold_python(*pairs), source_sums.fold_numpy(*pairs))
+
+
+@settings(max_examples=20, deadline=None)
+@given(seed=st.integers(0, 2 ** 32 - 1), width=st.integers(1, 8), rounds=st.integers(1, 4))
+def test_a_kept_fold_redone_from_the_first_change_is_the_whole_fold(seed, width, rounds):
+    # Change some sources' sums (marked dirty) between folds: the plain Python fold,
+    # which starts from the first place that changed, gives numpy's whole fold.
+    table, slots, lo, hi = sums_of(seed, 5, width)
+    rng = np.random.default_rng(seed)
+    for _ in range(rounds):
+        np.testing.assert_array_equal(compiled.fold_python(table, slots, lo, hi),
+                                      source_sums.fold_numpy(table, slots, lo, hi))
+        assert not table[slots, compiled.DIRTY].any()     # each fold kept
+        changed = slots[rng.uniform(size=len(slots)) < 0.3]
+        R = np.eye(2) * 10.0 ** rng.uniform(-2, 2, (len(changed), 1, 1))
+        table[changed, :9] += source_sums.terms(rng.normal(size=(len(changed), 2)), R, 0.3 * R)
+        table[changed, compiled.DIRTY] = 1.0
 
 
 def test_the_compiled_fold_is_numpys_bit_for_bit_or_absent():
