@@ -39,6 +39,7 @@ REQUIRED = [
     'landmark_ros.fusion.compiled',
     'landmark_ros.fusion.landmark_map',
     'landmark_ros.fusion.methods',
+    'landmark_ros.fusion.records',
     'landmark_ros.fusion.source_sums',
     'landmark_ros.pipeline',
     'landmark_ros.pipeline.config',
@@ -175,7 +176,7 @@ def test_public_functions_are_seen():
     assert {'compose', 'compose_jacobians', 'wrap_angle'} <= seen['landmark_ros.core.pose2']
     assert {'LandmarkMap.__init__', 'LandmarkMap.update', 'LandmarkMap.__len__',
             'LandmarkMap.source_names', 'UpdateResult.changed'} <= seen[
-        'landmark_ros.fusion.landmark_map']
+        'landmark_ros.fusion.landmark_map'] | seen['landmark_ros.fusion.records']
     assert {'Views.__getitem__', 'Views.concatenate', 'update'} <= seen[
         'landmark_ros.core._partial_model'] | seen['landmark_ros.core._partial_update']
     assert {'Fuser.fuse_queued', 'Fuser.snapshot'} <= seen['landmark_ros.pipeline.fuser']

@@ -42,11 +42,11 @@ import signal
 import sys
 import time
 
-from landmark_ros.fusion.landmark_map import FUSION_METHODS
 from landmark_ros.demo.launcher import (Launcher, ProcessExitedError, remove_unused_shm,
                                         shm_files_of, write_params_file)
 from landmark_ros.eval.metrics import evaluate, format_table
 from landmark_ros.eval.plotting import PlotUnavailableError
+from landmark_ros.fusion.landmark_map import FUSION_METHODS
 from landmark_ros.pipeline import map_file
 from landmark_ros.ros.cloud import CloudError
 from landmark_ros.ros.conversions import InputError, pose_from_msg, stamp_ns

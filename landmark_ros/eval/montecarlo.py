@@ -60,8 +60,8 @@ from dataclasses import replace
 import sys
 import time
 
-from landmark_ros.fusion.landmark_map import FUSION_METHODS
 from landmark_ros.eval.metrics import anees_interval, evaluate
+from landmark_ros.fusion.landmark_map import FUSION_METHODS
 from landmark_ros.pipeline.config import FuserConfig, ObserverConfig
 from landmark_ros.pipeline.fuser import Fuser
 from landmark_ros.pipeline.observer import ObservationMessage, Observer

@@ -304,9 +304,9 @@ def start() -> None:
     """Start loading the compiled fold in a daemon thread, once; return at once."""
     with _lock:
         if _state['thread'] is None:
-            _state['thread'] = threading.Thread(target=_load, name='landmark_ros.compiled',
-                                                daemon=True)
-            _state['thread'].start()
+            thread = threading.Thread(target=_load, name='landmark_ros.compiled', daemon=True)
+            _state['thread'] = thread
+            thread.start()
 
 
 def load(timeout: Optional[float] = None) -> bool:

@@ -42,7 +42,7 @@ class SumsCheckpoint(NamedTuple):
 
     keys: NDArray[np.int64]
     slots: NDArray[np.int64]
-    count: int
+    slot_count: int
     journal: List[Tuple[NDArray[np.int64], NDArray[np.float64]]]
 
 
@@ -148,7 +148,7 @@ class SourceSums:
         for slots, sums in reversed(state.journal):
             self.table[slots, :9] = sums
             self.table[slots, compiled.DIRTY] = 1.0
-        self.keys, self.slots, self.count = state.keys, state.slots, state.count
+        self.keys, self.slots, self.count = state.keys, state.slots, state.slot_count
 
     def records(self, row: int, names: Sequence[str]) -> List[Dict[str, Any]]:
         """Return the sums of one landmark as plain data, sorted by source name."""

@@ -21,11 +21,11 @@ from collections import Counter, deque
 from dataclasses import dataclass
 from typing import Any, Deque, Dict, Iterable, List, Optional, Tuple
 
-from landmark_ros.fusion.landmark_map import LandmarkMap
 from landmark_ros.core.partial import (BEARING, GATED, Initialisation, initialise,
                                        InitialiseParams, RANGE, TOO_CLOSE, update, UPDATED,
                                        Views, views_from_robot)
 from landmark_ros.core.sensors import MIN_RANGE
+from landmark_ros.fusion.landmark_map import LandmarkMap
 from landmark_ros.pipeline.rows import first_problems, MAX_ID, UNKNOWN_ID
 import numpy as np
 from numpy.typing import NDArray

@@ -4,9 +4,9 @@ import json
 import math
 
 from landmark_ros.core.gating import chi2_threshold
-from landmark_ros.fusion.landmark_map import LandmarkMap
 from landmark_ros.core.landmarks import sensor_in_world
 from landmark_ros.core.partial import BEARING, RANGE, Views
+from landmark_ros.fusion.landmark_map import LandmarkMap
 from landmark_ros.pipeline.config import FuserConfig, ObserverConfig
 from landmark_ros.pipeline.fuser import Fuser
 from landmark_ros.pipeline.observer import ObservationMessage, Observer
