@@ -216,8 +216,6 @@ def _fold_one(table, slots, order, out, limits):
         t = table[slots[j]]
         if t[DIRTY] != 0.0:
             t[SIZE] = _source_part(t[0:3], t[3:5], t[5:9], t[PART:PART + 8])
-            t[RANK] = -1.0
-            t[DIRTY] = 0.0
     # Stable insertion sort of the sources by size (key order breaks ties).
     for j in range(n):
         key = table[slots[j], SIZE]
@@ -228,8 +226,11 @@ def _fold_one(table, slots, order, out, limits):
         order[i] = j
     # The first places hold the sources of the last fold, unchanged: their prefixes hold.
     start = 0
-    while start < n and table[slots[order[start]], RANK] == start:
+    while start < n and table[slots[order[start]], DIRTY] == 0.0 and (
+            table[slots[order[start]], RANK] == start):
         start += 1
+    for j in range(n):
+        table[slots[j], DIRTY] = 0.0
     if start == 0:
         t = table[slots[order[0]]]
         for i in range(8):
