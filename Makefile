@@ -56,11 +56,10 @@ $(ROS_TOOLS_STAMP): $(STAMP) $(ROS_TOOLS) $(wildcard ../shared/ros-tools/wheels/
 endif
 
 test: venv ros-tools
-	@# compile the split-CI kernel and the fuser's row check into numba's disk cache once,
-	@# before the nodes start
-	$(VPY) -c 'from landmark_ros.core import _fold_kernel; _fold_kernel.load()'
-	$(VPY) -c 'from landmark_ros.pipeline import rows; rows.load_row_kernel()'
 	$(PYTEST) test $(PYTEST_ARGS)
+	@# again without numba: the numpy fold is the default path for anyone without it
+	LANDMARK_ROS_NUMBA=0 $(PYTEST) test/core test/fusion test/pipeline test/fuser test/observer \
+		test/localizer $(PYTEST_ARGS)
 
 # The property-based fuzz tests of the cloud readers and the bag reader (test/*/test_fuzz_*.py),
 # each with FUZZ_EXAMPLES examples from a random seed (make test runs few, derandomized).

@@ -22,7 +22,7 @@ setup(
     # would pull a second rclpy into an apt-installed Jazzy. landmark_bag reads and
     # writes bags with rosbags and shows progress with tqdm (pinned as in
     # requirements-dev.txt: a new rosbags may change the bag format it writes). numba
-    # compiles the split-CI fold (core/_fold_kernel.py; the numpy fold serves without it).
+    # compiles the split-CI fold (fusion/compiled.py; the numpy fold serves without it).
     install_requires=['numpy', 'scipy', 'pyyaml', 'rosbags==0.11.9', 'tqdm==4.70.1',
                       'numba>=0.59'],
     extras_require={

@@ -43,7 +43,8 @@ import sys
 import time
 
 import _common
-from landmark_ros.core.landmark_map import FUSION_METHODS, LandmarkMap
+from landmark_ros.fusion import compiled
+from landmark_ros.fusion.landmark_map import FUSION_METHODS, LandmarkMap
 import numpy as np
 
 SIZES = ((1000, 5), (10_000, 50))
@@ -156,7 +157,7 @@ def throughput(landmarks, sources, batches, seed):
 
 def memory_child(landmarks):
     """Build a split-CI map of ``landmarks`` landmarks (5 sources); print its memory as JSON."""
-    import landmark_ros.core.landmark_map  # noqa: F401 - counted in the baseline
+    import landmark_ros.fusion.landmark_map  # noqa: F401 - counted in the baseline
     baseline_kb = _common.vm_hwm_kb()
     rng = np.random.default_rng(1)
     truth = rng.uniform(-5000.0, 5000.0, (landmarks, 2))
@@ -193,12 +194,14 @@ def main(argv=None):
         memory_child(args.memory_child)
         return None
     started = time.perf_counter()
+    numba = compiled.load()    # wait for the compiled fold (LANDMARK_ROS_NUMBA=0: numpy)
     mem = {n: memory(n) for n in MEMORY_LANDMARKS}
     host = _common.machine()
     lines = ['bench_map: LandmarkMap.update, batches of 10,000 rows into maps whose '
              'landmarks are all confirmed',
              f'machine: {host["cpu"]}; {host["cpu_count"]} CPUs; Python {host["python"]}; '
-             f'numpy {host["numpy"]}; load average {os.getloadavg()[0]:.1f}', '']
+             f'numpy {host["numpy"]}; load average {os.getloadavg()[0]:.1f}; split-CI fold '
+             f'{"compiled (numba)" if numba else "numpy"}', '']
     result = {}
     targets = {}
     for landmarks, sources in SIZES:

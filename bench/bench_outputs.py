@@ -28,7 +28,7 @@ import time
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 import _common  # noqa: E402
-from landmark_ros.core.landmark_map import LandmarkMap  # noqa: E402
+from landmark_ros.fusion.landmark_map import LandmarkMap  # noqa: E402
 from landmark_ros.ros.markers import landmark_markers  # noqa: E402
 from landmark_ros.ros.schemas import landmark_message  # noqa: E402
 import numpy as np  # noqa: E402

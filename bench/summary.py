@@ -178,6 +178,7 @@ def rows_for(results):
             if GENERIC_KEY.search(key) and not SPEED_UP_KEY.search(key) \
                     and not MEMORY_KEY.search(key):
                 rows.append(('other', f'{name}: {key}', _num(value), '', name))
+    rows += floor_rows(results)
     for name, values in results.items():
         if 'pass' in values:
             rows.append(('targets', name, 'all met' if values['pass'] == 1.0 else
@@ -204,6 +205,29 @@ the fuser publishes at 10,000 landmarks. Each benchmark prints PASS or FAIL per 
 in its log. On a shared machine message rates vary from run to run; ratios measured
 side by side hold better than absolute rates.
 """
+
+
+FLOORS = (('bench_map', 'split_ci_1000_ratio', 0.5,
+           'split CI / independent, 1,000 landmarks, 5 sources'),
+          ('bench_map', 'split_ci_10000_ratio', 0.5,
+           'split CI / independent, 10,000 landmarks, 50 sources'),
+          ('bench_fuser', 'ratio_split_ci_100', 0.8,
+           'split-CI fuser node / relay, 100 rows/msg'),
+          ('bench_fuser', 'ratio_split_ci_50_sources_100', 0.7,
+           'split-CI fuser node / relay, 50 topics, every robot every landmark'))
+"""The floors of the split-CI stack: (benchmark, RESULT key, least ratio, what)."""
+
+
+def floor_rows(results):
+    """Return one row per floor: the ratio of this run, the floor, PASS or FAIL."""
+    rows = []
+    for name, key, floor, what in FLOORS:
+        value = results.get(name, {}).get(key)
+        verdict = ('not run' if not isinstance(value, float) else
+                   'PASS' if value >= floor else 'FAIL')
+        rows.append(('floors', what, _num(value) if isinstance(value, float) else '-',
+                     f'floor {floor:g}x: {verdict}', name))
+    return rows
 
 
 def render(results, host, missing, markdown):

@@ -44,12 +44,7 @@ LAYERS = (('core',), ('fusion',), ('pipeline',), ('observer', 'fuser', 'localize
 
 RANK = {folder: rank for rank, folders in enumerate(LAYERS) for folder in folders}
 
-TEMPORARY_EXCEPTIONS = {
-    # The fuser's numba row check compiles through core._fold_kernel until helper
-    # "splitci" moves the kernel to fusion/compiled.py (issue 25 item 2); then this
-    # entry goes, and the check holds with no exception.
-    ('landmark_ros/pipeline/rows.py', 'landmark_ros.core._fold_kernel'),
-}
+TEMPORARY_EXCEPTIONS: set = set()
 """``(file, imported module)`` pairs the checks let through for now, each with its reason."""
 
 

@@ -42,12 +42,12 @@ import signal
 import sys
 import time
 
-from landmark_ros.core.landmark_map import FUSION_METHODS
 from landmark_ros.demo.monitor import Monitor
 from landmark_ros.demo.report import (evaluate_run, MIN_OBSERVATIONS_NO_IDS, NEES_2SIGMA,
                                       plot_run, rejections_by_id)
 from landmark_ros.eval.metrics import format_table
 from landmark_ros.eval.plotting import PlotUnavailableError
+from landmark_ros.fusion.landmark_map import FUSION_METHODS
 from landmark_ros.ros.launcher import Launcher, ProcessExitedError, write_params_file
 from landmark_ros.sim.simulation import SENSOR_KINDS, SimConfig, Simulation
 from tqdm import tqdm

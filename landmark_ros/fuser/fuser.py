@@ -15,15 +15,15 @@ from collections import Counter
 import itertools
 from typing import Any, Dict, List, Optional, Sequence, Tuple
 
-from landmark_ros.core.landmark_map import LandmarkMap, MapSnapshot, UpdateResult
 from landmark_ros.fuser import map_file
 from landmark_ros.fuser.partial import (NOT_PROBLEMS as PARTIAL_COUNTS,
                                         partial_row_problems, PartialFusion, views_from_columns)
 from landmark_ros.fuser.sources import LandmarkMessage, Queued, Source
 from landmark_ros.fuser.tracks import shard_of_position, Tracker
+from landmark_ros.fusion.landmark_map import LandmarkMap, MapSnapshot, UpdateResult
 from landmark_ros.pipeline.config import FuserConfig
 from landmark_ros.pipeline.counters import Counters, Logger, Status
-from landmark_ros.pipeline.rows import landmark_row_problems, load_row_kernel, UNKNOWN_ID
+from landmark_ros.pipeline.rows import landmark_row_problems, UNKNOWN_ID
 from landmark_ros.pipeline.scan import Scan
 import numpy as np
 from numpy.typing import NDArray
@@ -86,7 +86,6 @@ class Fuser:
         for warning in config.deprecations():
             self.logger.warning(warning)
         self.counters = Counters(self.logger.warning, config.log_throttle_s)
-        load_row_kernel()   # compile now rather than on the first message
         self.map = LandmarkMap(config.fusion, config.gate_probability,
                                config.min_observations, config.max_consecutive_rejections)
         self.sources: Dict[str, Source] = {

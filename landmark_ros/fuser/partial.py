@@ -17,7 +17,7 @@ from collections import Counter, deque
 from dataclasses import dataclass
 from typing import Any, Deque, Dict, Iterable, List, Tuple
 
-from landmark_ros.core.landmark_map import LandmarkMap
+from landmark_ros.fusion.landmark_map import LandmarkMap
 from landmark_ros.core.partial import (BEARING, GATED, Initialisation, initialise,
                                        InitialiseParams, RANGE, TOO_CLOSE, update, UPDATED,
                                        Views)
@@ -173,7 +173,7 @@ class PartialFusion:
 
     Parameters
     ----------
-    landmark_map : core.landmark_map.LandmarkMap
+    landmark_map : fusion.landmark_map.LandmarkMap
         The fused map the landmarks go into (and whose fusion method the updates use).
     min_triangulation_angle_deg : float
         ``core.partial.InitialiseParams.min_triangulation_angle_deg`` [deg].

@@ -35,7 +35,7 @@ from landmark_ros.core.association import (Association, Candidates, candidates,
                                            nearest_neighbour, scan_covariance)
 from landmark_ros.core.gating import chi2_threshold
 from landmark_ros.core.joint_compatibility import jcbb
-from landmark_ros.core.landmark_map import LandmarkMap, MapSnapshot, UpdateResult
+from landmark_ros.fusion.landmark_map import LandmarkMap, MapSnapshot, UpdateResult
 from landmark_ros.pipeline.config import FuserConfig
 from landmark_ros.pipeline.rows import landmark_row_problems, MAX_LABEL_ID, UNKNOWN_ID
 from landmark_ros.pipeline.scan import Scan

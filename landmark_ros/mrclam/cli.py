@@ -127,7 +127,7 @@ import subprocess
 import sys
 import time
 
-from landmark_ros.core.landmark_map import FUSION_METHODS
+from landmark_ros.fusion.landmark_map import FUSION_METHODS
 from landmark_ros.mrclam.calibrate import calibrate, format_calibration
 from landmark_ros.mrclam.config import config_values, default_dataset_path, load_config
 from landmark_ros.mrclam.data import load_dataset

@@ -138,7 +138,7 @@ def run_offline(dataset, config, methods, chunk=FUSE_CHUNK, sensor='rb',
         Observer and fuser parameters (the fuser's ``fusion`` is replaced by each
         method) and the pose covariance.
     methods : sequence of str
-        Fusion methods (``core.landmark_map.FUSION_METHODS``).
+        Fusion methods (``fusion.landmark_map.FUSION_METHODS``).
     chunk : int
         Messages the fusers queue between two ``fuse_queued`` calls, capped at the
         fuser's ``max_queue_messages`` so no queue overflows; the maps do not depend

@@ -341,7 +341,7 @@ class FuserConfig(ConfigBase):
 
     def check(self) -> None:
         """Check relations between fields."""
-        from landmark_ros.core.landmark_map import FUSION_METHODS
+        from landmark_ros.fusion.landmark_map import FUSION_METHODS
         methods = ('nearest_neighbour', 'global_nearest_neighbour', 'jcbb')
         if self.association not in methods:
             raise ValueError(f'association must be one of {methods}, got {self.association!r}')

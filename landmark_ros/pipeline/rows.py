@@ -8,7 +8,7 @@ what a fuser or a localizer may take from another node or a map file).
 """
 
 from collections import Counter
-from typing import Any, Callable, List, Optional, Sequence, Tuple
+from typing import Any, Mapping, Optional, Sequence, Tuple
 
 from landmark_ros.core.covariance import (COVARIANCE_ASYMMETRIC, COVARIANCE_NOT_PSD,
                                           COVARIANCE_RANGE_PROBLEMS,
@@ -62,27 +62,6 @@ def landmark_row_problems(
         ids: NDArray[np.integer[Any]], m: NDArray[np.float64], P: NDArray[np.float64],
         P_dep: NDArray[np.float64]) -> Tuple[NDArray[np.bool_], Counter[str]]:
     """
-    Find the landmark rows (fuser input) that cannot be fused, and why.
-
-    With numba, a compiled sufficient test passes the plainly good rows in one loop
-    (the same operations, so the same decisions); the rest, and every row without
-    numba, go through the vectorised checks. Parameters and results as there.
-    """
-    sure = _surely_valid(ids, m, P, P_dep)
-    if sure is None:
-        return _landmark_row_problems(ids, m, P, P_dep)
-    if sure.all():
-        return sure, Counter()
-    rest = np.flatnonzero(~sure)
-    valid, reasons = _landmark_row_problems(ids[rest], m[rest], P[rest], P_dep[rest])
-    sure[rest] = valid
-    return sure, reasons
-
-
-def _landmark_row_problems(
-        ids: NDArray[np.integer[Any]], m: NDArray[np.float64], P: NDArray[np.float64],
-        P_dep: NDArray[np.float64]) -> Tuple[NDArray[np.bool_], Counter[str]]:
-    """
     Find the landmark rows (fuser input) that cannot be fused, and why (vectorised).
 
     Parameters
@@ -129,78 +108,6 @@ def _landmark_row_problems(
     checks += [(name, span == code) for code, name in COVARIANCE_RANGE_PROBLEMS.items()]
     checks.append(('dependent_part_invalid', ~dependent))
     return first_problems(len(ids), checks + landmark_problems(m))
-
-
-def _clean_rows(ids, m, P, P_dep, limits, out):
-    # out[i]: row i passes every check of _landmark_row_problems, by a sufficient test
-    # with the same operations (entries finite and below 1e150, so no sum overflows;
-    # the fast range test only). False: the vectorised checks decide.
-    min_variance, max_variance, max_condition, max_id, max_coordinate = limits
-    for i in range(len(ids)):
-        ok = 0 <= ids[i] <= max_id and abs(m[i, 0]) <= max_coordinate and abs(
-            m[i, 1]) <= max_coordinate
-        for v in (m[i, 0], m[i, 1], P[i, 0, 0], P[i, 0, 1], P[i, 1, 0], P[i, 1, 1],
-                  P_dep[i, 0, 0], P_dep[i, 0, 1], P_dep[i, 1, 0], P_dep[i, 1, 1]):
-            if not abs(v) < 1e150:
-                ok = False
-        if not ok:
-            out[i] = False
-            continue
-        scale = max(max(abs(P[i, 0, 0]), abs(P[i, 0, 1])), max(abs(P[i, 1, 0]), abs(P[i, 1, 1])))
-        u00, u01, u10, u11 = (P[i, 0, 0] / scale, P[i, 0, 1] / scale, P[i, 1, 0] / scale,
-                              P[i, 1, 1] / scale)
-        d00, d01, d10, d11 = (P_dep[i, 0, 0] / scale, P_dep[i, 0, 1] / scale,
-                              P_dep[i, 1, 0] / scale, P_dep[i, 1, 1] / scale)
-        ok = u00 > 0.0 and u00 * u11 - u01 * u01 > 1e-12 and abs(u01 - u10) <= 1e-9
-        for x00, x01, x10, x11 in ((d00, d01, d10, d11),
-                                   (u00 - d00, u01 - d01, u10 - d10, u11 - d11)):
-            b = 0.5 * (x01 + x10)
-            ok = ok and x00 >= -1e-9 and x11 >= -1e-9 and x00 * x11 - b * b >= -1e-9 and abs(
-                x01 - x10) <= 1e-9
-        a, b, c = P[i, 0, 0], P[i, 0, 1], P[i, 1, 1]
-        trace = a + c
-        out[i] = ok and min(a, c) >= min_variance and max(a, c) <= max_variance and (
-            trace * trace <= max_condition * (a * c - b * b))
-
-
-_ROW_KERNEL: List[Optional[Callable[..., Any]]] = []
-"""The compiled ``_clean_rows`` once tried: [function or None]."""
-
-
-def load_row_kernel() -> bool:
-    """
-    Compile the fuser's row check (or load it from numba's disk cache) now; True if numba.
-
-    ``Fuser`` calls it when it starts, so that its first message does not wait for it.
-    """
-    if not _ROW_KERNEL:
-        # Temporary: the kernel moves to fusion/compiled.py (helper "splitci");
-        # test_layers allows this one private import until then.
-        from landmark_ros.core import _fold_kernel
-        kernel = _fold_kernel.compiled(_clean_rows)
-        if kernel is not None:     # compile for the types the fuser passes
-            one = np.zeros((1, 2, 2))
-            kernel(np.zeros(1, np.int64), np.zeros((1, 2)), one, one,
-                   (1.0, 1.0, 1.0, np.int64(MAX_ID), 1.0), np.empty(1, np.bool_))
-        _ROW_KERNEL.append(kernel)
-    return _ROW_KERNEL[0] is not None
-
-
-def _surely_valid(ids, m, P, P_dep):
-    """Return ``_clean_rows``' verdict per row, or None without numba (or odd dtypes)."""
-    load_row_kernel()
-    kernel = _ROW_KERNEL[0]
-    ids = np.asarray(ids)
-    if kernel is None or ids.dtype != np.int64:
-        return None
-    m, P, P_dep = (np.ascontiguousarray(x, dtype=np.float64) for x in (m, P, P_dep))
-    if m.shape != (len(ids), 2) or P.shape != P_dep.shape or P.shape != (len(ids), 2, 2):
-        return None
-    out = np.empty(len(ids), np.bool_)
-    limits = (float(MIN_VARIANCE), float(MAX_VARIANCE), float(MAX_CONDITION), np.int64(MAX_ID),
-              float(MAX_COORDINATE))
-    kernel(ids, m, P, P_dep, limits, out)
-    return out
 
 
 def range_status(P: NDArray[np.float64], usable: NDArray[np.bool_]) -> NDArray[np.int64]:

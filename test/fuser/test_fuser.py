@@ -3,10 +3,10 @@
 import json
 import logging
 
-from landmark_ros.core.landmark_map import LandmarkMap
 from landmark_ros.fuser import map_file
 from landmark_ros.fuser.fuser import Fuser, LandmarkMessage
 from landmark_ros.fuser.map_file import check_records
+from landmark_ros.fusion.landmark_map import LandmarkMap
 from landmark_ros.pipeline.config import FuserConfig
 from landmark_ros.pipeline.rows import UNKNOWN_ID
 import numpy as np

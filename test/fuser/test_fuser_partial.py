@@ -4,10 +4,10 @@ import json
 import math
 
 from landmark_ros.core.gating import chi2_threshold
-from landmark_ros.core.landmark_map import LandmarkMap
 from landmark_ros.core.landmarks import sensor_in_world
 from landmark_ros.core.partial import BEARING, RANGE, Views
 from landmark_ros.fuser.fuser import Fuser
+from landmark_ros.fusion.landmark_map import LandmarkMap
 from landmark_ros.observer.observer import ObservationMessage, Observer
 from landmark_ros.observer.partial import CorrelatedNoise
 from landmark_ros.pipeline.config import FuserConfig, ObserverConfig

@@ -4,9 +4,9 @@ import datetime
 import json
 import os
 
-from landmark_ros.core.landmark_map import LandmarkMap
 from landmark_ros.fuser import map_file
 from landmark_ros.fuser.map_file import MapFileError
+from landmark_ros.fusion.landmark_map import LandmarkMap
 import numpy as np
 import pytest
 

@@ -300,7 +300,7 @@ def test_a_merge_fuses_the_retired_track_into_the_kept_one(fusion, rng):
     merged = tracker.merge(fuser.map, Counter())
     assert merged == [(b, a)]
     # The same rows all under one ID, in one map: what the kept landmark must hold.
-    from landmark_ros.core.landmark_map import LandmarkMap
+    from landmark_ros.fusion.landmark_map import LandmarkMap
     reference = LandmarkMap(fusion, 0.999, 2, 5)
     reference.update([a, a, a], z[:3], R[:3], R_dep[:3], sources[:3], S)
     reference.update([a, a], z[3:], R[3:], R_dep[3:], sources[3:], S)

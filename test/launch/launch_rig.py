@@ -63,8 +63,7 @@ def build_workspace(workspace):
             shutil.rmtree(REPO_ROOT / name, ignore_errors=True)
     assert proc.returncode == 0, f'colcon build failed:\n{proc.stdout}\n{proc.stderr}'
     install = workspace / 'install'
-    warm = ('from landmark_ros.core import _fold_kernel; _fold_kernel.load(); '
-            'from landmark_ros.pipeline import rows; rows.load_row_kernel(); '
+    warm = ('from landmark_ros.fusion import compiled; compiled.load(); '
             'import landmark_ros; print(landmark_ros.__file__)')
     proc = subprocess.run(sourced(install, [sys.executable, '-c', warm]), cwd=workspace,
                           capture_output=True, text=True, timeout=600)

@@ -4,7 +4,6 @@ from collections import Counter
 
 from conftest import random_spd
 from landmark_ros.core.covariance import MAX_CONDITION
-from landmark_ros.pipeline import rows as rows_module
 from landmark_ros.pipeline.rows import landmark_row_problems, MAX_ID
 import numpy as np
 import pytest
@@ -59,50 +58,6 @@ def test_landmark_rows_each_reason(change, reason, rng, no_warnings):
     valid, reasons = landmark_row_problems(ids, m, P, P_dep)
     assert valid.tolist() == [True, True, False, True, True, True]
     assert reasons == Counter({reason: 1})
-
-
-@pytest.mark.parametrize('seed', range(4))
-def test_the_compiled_row_check_decides_as_the_vectorised_one(seed):
-    # Rows near every edge (each problem above, scales from 1e-160 to 1e160,
-    # dependent parts at and past their bounds, IDs at the limits): the compiled
-    # sufficient test plus the vectorised checks for the rest give the vectorised
-    # checks' rows and reasons; without numba there is nothing to compare.
-    rng = np.random.default_rng(seed)
-    if rows_module._surely_valid(*_landmark_rows(rng, 1)) is None:
-        pytest.skip('numba is not installed: no compiled row check')
-    count = 4000
-    ids = rng.integers(-2, MAX_ID + 3, count)
-    ids[rng.uniform(size=count) < 0.7] = rng.integers(0, 100, count)[:1]
-    m = rng.normal(0.0, 10.0, (count, 2))
-    A = rng.normal(0.0, 1.0, (count, 2, 2))
-    P = A @ np.swapaxes(A, 1, 2) * 10.0 ** rng.uniform(-14, 14, (count, 1, 1))
-    P[rng.uniform(size=count) < 0.05] *= 10.0 ** rng.choice([-150, 150, 250], (1, 1))
-    # Conditioned near the accepted bound, on both sides of it.
-    bound = np.flatnonzero(rng.uniform(size=count) < 0.05)
-    P[bound] = np.eye(2) * np.stack([np.ones(len(bound)), 10.0 ** -rng.uniform(
-        np.log10(MAX_CONDITION) - 1, np.log10(MAX_CONDITION) + 1, len(bound))], 1)[:, None, :]
-    P_dep = P * rng.choice([0.0, 0.3, 1.0, 1.0 + 1e-10, 1.0 + 3e-9, 1.5, -0.1], (count, 1, 1))
-    for array, share, values in ((m, 0.01, [np.nan, np.inf, 1e200]),
-                                 (P, 0.02, [np.nan, -np.inf, 1e155, 0.0, -1.0]),
-                                 (P_dep, 0.02, [np.nan, 1e-12, 1e155])):
-        flat = array.reshape(-1)
-        hit = rng.uniform(size=flat.size) < share
-        flat[hit] = rng.choice(values, hit.sum())
-    # Nearly singular: unit determinant about 2 e, on both sides of the 1e-12 bound.
-    near = np.flatnonzero(rng.uniform(size=count) < 0.05)
-    e = 10.0 ** rng.uniform(-13.5, -11.0, len(near))
-    P[near] = np.array([[1.0, 1.0], [1.0, 1.0]]) - e[:, None, None] * np.array(
-        [[0.0, 1.0], [1.0, 0.0]])
-    P[near] *= 10.0 ** rng.uniform(-3, 3, (len(near), 1, 1))
-    P_dep[near] = 0.0
-    asym = rng.uniform(size=count) < 0.05
-    P[asym, 0, 1] *= 1.0 + rng.choice([1e-12, 1e-6, 1e-2], asym.sum())
-    with np.errstate(all='ignore'):     # the sums of the vectorised check overflow
-        expected = rows_module._landmark_row_problems(ids, m, P, P_dep)
-        got = landmark_row_problems(ids, m, P, P_dep)
-    np.testing.assert_array_equal(got[0], expected[0])
-    assert got[1] == expected[1]
-    assert 0.3 < expected[0].mean() < 0.9 and len(expected[1]) >= 6
 
 
 def test_landmark_rows_small_but_regular_covariances_are_valid(no_warnings):

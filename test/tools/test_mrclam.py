@@ -13,8 +13,8 @@ import math
 import os
 from pathlib import Path
 
-from landmark_ros.core.landmark_map import FUSION_METHODS
 from landmark_ros.core.pose2 import wrap_angle
+from landmark_ros.fusion.landmark_map import FUSION_METHODS
 from landmark_ros.mrclam import offline
 from landmark_ros.mrclam.calibrate import calibrate
 from landmark_ros.mrclam.cli import main

@@ -1,0 +1,316 @@
+"""
+Per (landmark, source) information sums for split covariance intersection, and their fold.
+
+A source's estimate of a landmark is ``m_s = Y^-1 y`` with ``Y = sum R_ind_i^-1`` and
+``y = sum R_ind_i^-1 z_i`` (independent parts as information), covariance ``Y^-1 + D``
+where ``D`` is ``sym(Y^-1 Q)`` projected onto the positive semi-definite matrices,
+``Q = sum R_ind_i^-1 R_dep_i``: the information-weighted mean of the dependent parts, a
+shared error that averaging does not reduce. A landmark's estimate is the split-CI fold
+of its sources' estimates from the tightest source up (``fold``), a pure function of
+its sums: folding once per batch or once per row gives the same bits.
+
+Sources: split covariance intersection, Julier and Uhlmann, "General decentralized
+data fusion with covariance intersection", Handbook of Multisensor Data Fusion, 2001.
+"""
+
+from typing import Any, Callable, Dict, List, NamedTuple, Sequence, Tuple
+
+from landmark_ros.core._arrays import (inverse_2x2, power_of_4_scale, psd_projection_2x2,
+                                       symmetric_2x2, unique_ints)
+from landmark_ros.core.gaussian import information, sci_omega_2x2, split_ci_2x2_entries
+from landmark_ros.fusion import compiled
+import numpy as np
+from numpy.typing import NDArray
+
+SOURCE_BITS = 24
+"""A (landmark row, source code) pair is the key ``row << 24 | code``."""
+
+
+class Estimates(NamedTuple):
+    """Landmark estimates held as independent and dependent parts."""
+
+    m: NDArray[np.float64]
+    """Means, shape (K, 2) [m]."""
+    P_ind: NDArray[np.float64]
+    """Independent parts, shape (K, 2, 2) [m^2]."""
+    P_dep: NDArray[np.float64]
+    """Dependent parts, shape (K, 2, 2) [m^2]."""
+
+
+class SumsCheckpoint(NamedTuple):
+    """What ``SourceSums.restore`` needs to undo the changes since ``checkpoint``."""
+
+    keys: NDArray[np.int64]
+    slots: NDArray[np.int64]
+    slot_count: int
+    journal: List[Tuple[NDArray[np.int64], NDArray[np.float64]]]
+
+
+def entries(P: NDArray[np.float64]) -> Tuple[Any, Any, Any]:
+    """Return ``(xx, xy, yy)`` of symmetric 2x2 matrices (views, no averaging)."""
+    return P[..., 0, 0], P[..., 0, 1], P[..., 1, 1]
+
+
+class SourceSums:
+    """
+    The sums of every (landmark row, source code) pair.
+
+    ``keys`` are sorted (a landmark's pairs lie together, in source-code order), each
+    with its ``slots`` row in ``table`` (per pair: ``(xx, xy, yy)`` of ``Y``, ``y``,
+    ``(00, 01, 10, 11)`` of ``Q``). ``keys`` and ``slots`` are replaced when pairs come
+    or go, never changed in place; ``table`` only grows, and ``add`` journals the sums
+    it changes, so a checkpoint is cheap.
+    """
+
+    def __init__(self) -> None:
+        self.keys = np.empty(0, np.int64)
+        self.slots = np.empty(0, np.int64)
+        self.table = np.zeros((64, compiled.COLUMNS))   # sums, then the kept fold
+        self.count = 0
+        self.journal: List[Tuple[NDArray[np.int64], NDArray[np.float64]]] = []
+        self.journal_count = 0
+
+    def _bounds(self, rows):
+        rows = np.asarray(rows, np.int64)
+        return (np.searchsorted(self.keys, rows << SOURCE_BITS),
+                np.searchsorted(self.keys, (rows + 1) << SOURCE_BITS))
+
+    def _slots(self, rows, codes):
+        """Return the slots of (row, code) pairs, adding the new pairs (zero sums)."""
+        keys = (np.asarray(rows, np.int64) << SOURCE_BITS) | np.asarray(codes, np.int64)
+        at = np.searchsorted(self.keys, keys)
+        found = at < len(self.keys)
+        found[found] = self.keys[at[found]] == keys[found]
+        if not found.all():
+            new = unique_ints(keys[~found])
+            slots = np.arange(self.count, self.count + len(new))
+            self.count += len(new)
+            if self.count > len(self.table):
+                grown = np.zeros((2 * self.count, compiled.COLUMNS))
+                grown[:len(self.table)] = self.table
+                self.table = grown
+            self.table[slots] = 0.0
+            self.table[slots, compiled.DIRTY] = 1.0
+            where = np.searchsorted(self.keys, new)
+            self.keys = np.insert(self.keys, where, new)
+            self.slots = np.insert(self.slots, where, slots)
+            at = np.searchsorted(self.keys, keys)
+        return self.slots[at]
+
+    def add(self, rows: NDArray[np.int64], codes: NDArray[np.int64], z: NDArray[np.float64],
+            R_ind: NDArray[np.float64], R_dep: NDArray[np.float64]) -> None:
+        """Add observations (in order) to the sums of their (row, code) pairs."""
+        slots = self._slots(rows, codes)
+        old = slots[slots < self.journal_count]
+        self.journal.append((old, self.table[old, :9]))
+        np.add.at(self.table[:, :9], slots, terms(z, R_ind, R_dep))
+        self.table[slots, compiled.DIRTY] = 1.0
+
+    def fold(self, rows: NDArray[np.int64]) -> Estimates:
+        """Return the split-CI fold of the sources of each of ``rows`` (each has one)."""
+        lo, hi = self._bounds(rows)
+        return fold(self.table, self.slots, lo, hi)
+
+    def held(self, rows: NDArray[np.int64]) -> NDArray[np.bool_]:
+        """Return which of ``rows`` have sources."""
+        lo, hi = self._bounds(rows)
+        return hi > lo
+
+    def clear(self, rows: NDArray[np.int64]) -> None:
+        """Forget the sources of landmarks (their slots stay unused until ``checkpoint``)."""
+        gone = spans(*self._bounds(unique_ints(np.asarray(rows, np.int64))))
+        if len(gone):
+            self.keys = np.delete(self.keys, gone)
+            self.slots = np.delete(self.slots, gone)
+
+    def merge_into(self, keep: int, drop: int) -> None:
+        """Add the sums of row ``drop`` to those of row ``keep``, source by source."""
+        lo, hi = self._bounds([drop])
+        codes = self.keys[lo[0]:hi[0]] & ((1 << SOURCE_BITS) - 1)
+        sums = self.table[self.slots[lo[0]:hi[0]], :9]
+        slots = self._slots(np.full(len(codes), keep, np.int64), codes)
+        self.table[slots, :9] += sums
+        self.table[slots, compiled.DIRTY] = 1.0
+
+    def checkpoint(self) -> SumsCheckpoint:
+        """Start a journal of the changes to the sums; return what ``restore`` needs."""
+        if self.count > 2 * len(self.slots) + 4096:     # give back the unused slots
+            live = self.table[self.slots]
+            self.table = np.zeros((max(64, 2 * len(live)), compiled.COLUMNS))
+            self.table[:len(live)] = live
+            self.slots = np.arange(len(self.slots))
+            self.count = len(self.slots)
+        self.journal, self.journal_count = [], self.count
+        return SumsCheckpoint(self.keys, self.slots, self.count, self.journal)
+
+    def restore(self, state: SumsCheckpoint) -> None:
+        """Undo every change since ``checkpoint``."""
+        for slots, sums in reversed(state.journal):
+            self.table[slots, :9] = sums
+            self.table[slots, compiled.DIRTY] = 1.0
+        self.keys, self.slots, self.count = state.keys, state.slots, state.slot_count
+
+    def records(self, row: int, names: Sequence[str]) -> List[Dict[str, Any]]:
+        """Return the sums of one landmark as plain data, sorted by source name."""
+        lo, hi = self._bounds([row])
+        out = []
+        sums = self.table[self.slots[lo[0]:hi[0]], :9].tolist()
+        for key, s in zip(self.keys[lo[0]:hi[0]].tolist(), sums):
+            out.append({'source': names[key & ((1 << SOURCE_BITS) - 1)],
+                        'information': [[s[0], s[1]], [s[1], s[2]]],
+                        'information_mean': s[3:5],
+                        'dependent_sum': [s[5:7], s[7:9]]})
+        return sorted(out, key=lambda record: record['source'])
+
+    def load(self, row: int, records: Sequence[Dict[str, Any]],
+             source_code: Callable[[str], int]) -> None:
+        """Set the sums of one landmark from ``records`` (``source_code``: name to code)."""
+        codes = np.array([source_code(str(r['source'])) for r in records], np.int64)
+        slots = self._slots(np.full(len(records), row, np.int64), codes)
+        for slot, record in zip(slots.tolist(), records):
+            Y = np.array(record['information'], dtype=np.float64).reshape(2, 2)
+            Q = np.array(record['dependent_sum'], dtype=np.float64).reshape(4)
+            y = np.array(record['information_mean'], dtype=np.float64).reshape(2)
+            self.table[slot, :9] = [Y[0, 0], 0.5 * (Y[0, 1] + Y[1, 0]), Y[1, 1], *y, *Q]
+            self.table[slot, compiled.DIRTY] = 1.0
+
+
+def spans(lo: NDArray[np.int64], hi: NDArray[np.int64]) -> NDArray[np.int64]:
+    """Return the indices ``lo[k]:hi[k]`` for every ``k``, concatenated."""
+    counts = hi - lo
+    starts = np.repeat(lo - np.cumsum(counts) + counts, counts)
+    return starts + np.arange(int(counts.sum()))
+
+
+def terms(z: NDArray[np.float64], R_ind: NDArray[np.float64],
+          R_dep: NDArray[np.float64]) -> NDArray[np.float64]:
+    """
+    Return what observations add to their pair's sums.
+
+    Returns
+    -------
+    ndarray, shape (N, 9)
+        ``(xx, xy, yy)`` of ``R_ind^-1``, ``R_ind^-1 z``, ``(00, 01, 10, 11)`` of
+        ``R_ind^-1 R_dep``.
+
+    """
+    a, b, c = entries(R_ind)
+    # A positive definite independent part is needed for weights; a tiny floor
+    # keeps an all-dependent observation from dividing by zero.
+    trace = a + c
+    floor = 1e-12 * np.where(trace > 0.0, trace, R_dep[:, 0, 0] + R_dep[:, 1, 1])
+    ya, yb, yc = inverse_2x2(a + floor, b, c + floor)
+    out = np.empty((len(z), 9))
+    out[:, 0], out[:, 1], out[:, 2] = ya, yb, yc
+    out[:, 3], out[:, 4] = ya * z[:, 0] + yb * z[:, 1], yb * z[:, 0] + yc * z[:, 1]
+    out[:, 5] = ya * R_dep[:, 0, 0] + yb * R_dep[:, 1, 0]
+    out[:, 6] = ya * R_dep[:, 0, 1] + yb * R_dep[:, 1, 1]
+    out[:, 7] = yb * R_dep[:, 0, 0] + yc * R_dep[:, 1, 0]
+    out[:, 8] = yb * R_dep[:, 0, 1] + yc * R_dep[:, 1, 1]
+    return out
+
+
+def one_source(mean: NDArray[np.float64], P_ind: NDArray[np.float64],
+               P_dep: NDArray[np.float64]) -> List[Dict[str, Any]]:
+    """Return the per-source record of an estimate held as a single source."""
+    Y = information(P_ind)
+    return [{'source': 'loaded', 'information': Y.tolist(),
+             'information_mean': (Y @ mean).tolist(),
+             'dependent_sum': (Y @ P_dep).tolist()}]
+
+
+def fold(table: NDArray[np.float64], slots: NDArray[np.int64], lo: NDArray[np.int64],
+         hi: NDArray[np.int64]) -> Estimates:
+    """
+    Fuse the source estimates of each landmark by split CI, the tightest first.
+
+    Split CI is not associative: folding the sources from the smallest covariance
+    (determinant) up makes the result independent of the order they arrived in. The
+    weight search starts from 0.5 every time, so a landmark's result depends on its
+    own sums only. ``compiled.fold`` gives the same bits, about ten times faster, once
+    it is loaded; ``fold_numpy`` serves until then.
+
+    Parameters
+    ----------
+    table : ndarray, shape (S, 9)
+        Sums of sources (``SourceSums``).
+    slots : ndarray of int, shape (P,)
+        Rows of ``table``.
+    lo, hi : ndarray of int, shape (K,)
+        Landmark ``k``'s sources are ``table[slots[lo[k]:hi[k]]]``, at least one.
+
+    Returns
+    -------
+    Estimates
+
+    """
+    packed = compiled.fold(table, slots, lo, hi)
+    if packed is None:
+        packed = fold_numpy(table, slots, lo, hi)
+    return Estimates(packed[:, :2].copy(), symmetric_2x2(packed[:, 2], packed[:, 3], packed[:, 4]),
+                     symmetric_2x2(packed[:, 5], packed[:, 6], packed[:, 7]))
+
+
+def _estimate(Y, y, Q):
+    """Return the source estimates ``m, P_ind, P_dep`` of sums, as entries."""
+    P_ind = inverse_2x2(Y[..., 0], Y[..., 1], Y[..., 2])
+    a, b, c = P_ind
+    m = (a * y[..., 0] + b * y[..., 1], b * y[..., 0] + c * y[..., 1])
+    P_dep = (a * Q[..., 0] + b * Q[..., 2],
+             0.5 * (a * Q[..., 1] + b * Q[..., 3] + b * Q[..., 0] + c * Q[..., 2]),
+             b * Q[..., 1] + c * Q[..., 3])
+    # sym(Y^-1 Q) is indefinite when a source's rows have differently shaped
+    # dependent fractions; split CI needs a covariance there (its weight objective is
+    # concave only for positive semi-definite parts), so it is projected onto them.
+    return m, P_ind, psd_projection_2x2(*P_dep)
+
+
+def fold_numpy(table: NDArray[np.float64], slots: NDArray[np.int64], lo: NDArray[np.int64],
+               hi: NDArray[np.int64]) -> NDArray[np.float64]:
+    """
+    Return ``fold`` packed, shape (K, 8): mean, ``P_ind`` and ``P_dep`` entries (numpy).
+
+    Vectorised over the landmarks: step ``j`` folds the ``j``-th tightest source of
+    every landmark that has one; every operation is element-wise.
+    """
+    columns = np.arange(int((hi - lo).max()))
+    valid = columns < (hi - lo)[:, None]
+    sums = table[slots[np.minimum(lo[:, None] + columns, len(slots) - 1)], :9]
+    m, P_ind, P_dep = _estimate(sums[..., 0:3], sums[..., 3:5], sums[..., 5:9])
+    size = np.where(valid, _log2_det(*(i + d for i, d in zip(P_ind, P_dep))), np.inf)
+    counts = valid.sum(axis=1)
+    # Landmarks with the most sources first: those still folding form a prefix.
+    by_count = np.argsort(-counts, kind='stable')
+    counts = counts[by_count]
+    order = np.argsort(size[by_count], axis=1, kind='stable')
+    parts = np.take_along_axis(np.stack([*m, *P_ind, *P_dep], axis=-1)[by_count],
+                               order[:, :, None], axis=1)         # (K, W, 8), tightest first
+    fused = parts[:, 0].copy()
+    steps = (counts[:, None] > np.arange(1, int(counts[0]))).sum(axis=0)
+    for j, k in enumerate(steps.tolist(), start=1):
+        first, second = _split_entries(fused[:k]), _split_entries(parts[:k, j])
+        omega = sci_omega_2x2(first[1], first[2], second[1], second[2])
+        new_m, new_i, new_d = split_ci_2x2_entries(first[0], first[1], first[2], second[0],
+                                                   second[1], second[2], omega)
+        fused[:k] = np.stack([*new_m, *new_i, *new_d], axis=1)
+    fused[by_count] = fused.copy()
+    return fused
+
+
+def _split_entries(parts):
+    """Return ``(m, P_ind, P_dep)`` entry tuples of packed ``(K, 8)`` estimates."""
+    return ((parts[:, 0], parts[:, 1]), (parts[:, 2], parts[:, 3], parts[:, 4]),
+            (parts[:, 5], parts[:, 6], parts[:, 7]))
+
+
+def _log2_det(a, b, c):
+    """
+    Return a key increasing with ``a c - b^2`` (about its base-2 logarithm), never inf.
+
+    From the scaled determinant's exact exponent and mantissa: it orders covariances
+    by size however large or small they are; -inf for a singular one.
+    """
+    s = power_of_4_scale(a, c)
+    mantissa, exponent = np.frexp((a / s) * (c / s) - (b / s) * (b / s))
+    key = exponent + 2 * (np.frexp(s)[1] - 1) + 2.0 * (mantissa - 0.5)
+    return np.where(mantissa > 0.0, key, -np.inf)
