@@ -264,9 +264,9 @@ def test_a_back_import_makes_the_direction_check_fail(package_copy, relative, li
 
 
 def test_a_private_import_makes_the_privacy_check_fail(package_copy):
-    _append(package_copy, 'eval/metrics.py', 'from landmark_ros.core import _arrays')
+    _append(package_copy, 'eval/metrics.py', 'from landmark_ros.core import _split_ci')
     assert privacy_problems(package_copy) == [
-        'landmark_ros/eval/metrics.py (eval) imports landmark_ros.core._arrays, private to '
+        'landmark_ros/eval/metrics.py (eval) imports landmark_ros.core._split_ci, private to '
         'core/']
 
 

@@ -21,7 +21,7 @@ PACKAGES = ('landmark_ros/core', 'landmark_ros/fusion', 'landmark_ros/pipeline',
 
 REQUIRED = [
     'landmark_ros.core',
-    'landmark_ros.core._arrays',
+    'landmark_ros.core.arrays',
     'landmark_ros.core._partial_geometry',
     'landmark_ros.core._partial_init',
     'landmark_ros.core._partial_model',

@@ -16,9 +16,9 @@ application to vehicle localization", IEEE T-ITS 14(4), 2013.
 import math
 from typing import Optional, Tuple, Union
 
-from landmark_ros.core._arrays import (as_matrices, as_vectors, common_batch_shape,
-                                       Entries2x2, entries_2x2, inverse_2x2, power_of_4_scale,
-                                       solve, symmetric_2x2, symmetrise, to_batch, transpose)
+from landmark_ros.core.arrays import (as_matrices, as_vectors, common_batch_shape,
+                                      Entries2x2, entries_2x2, inverse_2x2, power_of_4_scale,
+                                      solve, symmetric_2x2, symmetrise, to_batch, transpose)
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -29,13 +29,13 @@ OMEGA_EDGE = 1e-9
 OMEGA_TOLERANCE = 1e-12
 """Newton steps on the split-CI weight stop below this change in omega."""
 
-_OMEGA_BRACKET = 1e-6
+OMEGA_BRACKET = 1e-6
 """The split-CI Newton search brackets ``[1e-6, 1 - 1e-6]``: closer to an end, the
 slope of a singular dependent part's determinant (zero at the end, rounded to about
 1e-16 in the inputs) is noise. An optimum outside returns ``OMEGA_EDGE`` (or its
 mirror), within 1e-6 of the true one."""
 
-_OMEGA_QUADRATIC = 1e-6
+OMEGA_QUADRATIC = 1e-6
 """A split-CI Newton step at most this large, and at most the square of the Newton step
 before it, is taken as quadratic convergence: the next step would be about
 ``step^3 / previous^2``; when that is below ``OMEGA_TOLERANCE`` (and the Newton point is
@@ -158,7 +158,7 @@ def sci_omega_2x2(P1i: Entries2x2, P1d: Entries2x2, P2i: Entries2x2, P2d: Entrie
     at the end (``OMEGA_EDGE`` or ``1 - OMEGA_EDGE`` is returned); a step out of an
     evaluated bracket bisects. Each element stops on its own once a Newton step is
     below ``OMEGA_TOLERANCE``, once quadratic convergence puts the next one below it
-    (``_OMEGA_QUADRATIC``) or once the bracket is narrower than ``OMEGA_TOLERANCE`` (at
+    (``OMEGA_QUADRATIC``) or once the bracket is narrower than ``OMEGA_TOLERANCE`` (at
     its middle if the Newton point is outside: where the slope is rounding noise), so
     its result depends on its inputs and ``start`` only.
 
@@ -188,7 +188,7 @@ def sci_omega_2x2(P1i: Entries2x2, P1d: Entries2x2, P2i: Entries2x2, P2d: Entrie
     table[15:18] = table[9:12] - table[3:6]
     table[18] = 2.0 * (table[0] * table[2] - table[1] * table[1])
     table[19] = 2.0 * (table[6] * table[8] - table[7] * table[7])
-    edge_lo, edge_hi = _OMEGA_BRACKET, 1.0 - _OMEGA_BRACKET
+    edge_lo, edge_hi = OMEGA_BRACKET, 1.0 - OMEGA_BRACKET
     omega = np.full(size, 0.5)
     u = np.full(size, 0.5) if start is None else np.clip(
         np.broadcast_to(start, shape).reshape(-1), edge_lo, edge_hi)
@@ -215,7 +215,7 @@ def sci_omega_2x2(P1i: Entries2x2, P1d: Entries2x2, P2i: Entries2x2, P2d: Entrie
             done = (np.abs(step) <= OMEGA_TOLERANCE) | collapsed
             # Or when quadratic convergence puts the next step below it.
             size_ = np.abs(step)
-            done |= ((size_ <= _OMEGA_QUADRATIC) & (size_ <= last * last)
+            done |= ((size_ <= OMEGA_QUADRATIC) & (size_ <= last * last)
                      & (size_ * size_ * size_ <= OMEGA_TOLERANCE * last * last)
                      & (new > lo) & (new < hi))
             # A collapsed bracket ends at the Newton point only if that lies in it: where

@@ -46,7 +46,7 @@ import itertools
 import math
 from typing import List, Optional, Tuple
 
-from landmark_ros.core._arrays import as_matrices, as_vectors
+from landmark_ros.core.arrays import as_matrices, as_vectors
 from landmark_ros.core.gating import chi2_threshold, mahalanobis_sq
 import numpy as np
 from numpy.typing import ArrayLike, NDArray

@@ -10,7 +10,7 @@ codes have the names counters and logs use (``COVARIANCE_PROBLEMS``,
 
 from typing import Union
 
-from landmark_ros.core._arrays import matrix_scale, symmetrise, transpose
+from landmark_ros.core.arrays import matrix_scale, symmetrise, transpose
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 

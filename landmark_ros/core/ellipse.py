@@ -11,7 +11,7 @@ k : number of standard deviations (Mahalanobis radius) of the contour.
 
 from typing import Tuple, Union
 
-from landmark_ros.core._arrays import as_matrices, as_vectors
+from landmark_ros.core.arrays import as_matrices, as_vectors
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 

@@ -9,8 +9,8 @@ the scaled closed form (see ``core.gaussian``, Scale); larger ones a solve.
 
 from typing import Union
 
-from landmark_ros.core._arrays import (as_matrices, entries_2x2, mahalanobis_sq_2x2,
-                                       matrix_scale, solve_vectors)
+from landmark_ros.core.arrays import (as_matrices, entries_2x2, mahalanobis_sq_2x2,
+                                      matrix_scale, solve_vectors)
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy import special

@@ -28,14 +28,14 @@ implemented in ``core._split_ci`` and imported here: use it from this module.
 import math
 from typing import Optional, Tuple, Union
 
-from landmark_ros.core._arrays import (as_matrices, as_vectors, common_batch_shape,
-                                       Entries2x2, entries_2x2, inverse_2x2, power_of_4_scale,
-                                       solve, solve_vectors, symmetric_2x2, symmetrise, to_batch)
-# _OMEGA_BRACKET and _OMEGA_QUADRATIC are imported by _fold_kernel from here.
-from landmark_ros.core._split_ci import (_divide, _OMEGA_BRACKET, _OMEGA_QUADRATIC,  # noqa: F401
-                                         OMEGA_EDGE, OMEGA_TOLERANCE, sci_omega_2x2,
+# OMEGA_BRACKET and OMEGA_QUADRATIC are imported by fusion.compiled from here.
+from landmark_ros.core._split_ci import (_divide, OMEGA_BRACKET, OMEGA_EDGE,  # noqa: F401
+                                         OMEGA_QUADRATIC, OMEGA_TOLERANCE, sci_omega_2x2,
                                          split_ci_2x2_entries, split_covariance_intersection,
                                          split_covariance_intersection_omega)
+from landmark_ros.core.arrays import (as_matrices, as_vectors, common_batch_shape,
+                                      Entries2x2, entries_2x2, inverse_2x2, power_of_4_scale,
+                                      solve, solve_vectors, symmetric_2x2, symmetrise, to_batch)
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 

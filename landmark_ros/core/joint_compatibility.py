@@ -15,7 +15,7 @@ Sources
 
 """
 
-from landmark_ros.core._arrays import as_vectors
+from landmark_ros.core.arrays import as_vectors
 from landmark_ros.core.association import (_gnn_pairs, _joint_thresholds, _result,
                                            Association, Candidates, DEFAULT_MAX_NODES,
                                            LandmarkIndex)

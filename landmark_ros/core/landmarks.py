@@ -17,8 +17,8 @@ m : landmark in the world, shape (2,) or (N, 2); P_m its covariance.
 from typing import Optional, Tuple, Union
 
 from landmark_ros.core import pose2, sensors
-from landmark_ros.core._arrays import (as_matrices, as_vectors, common_batch_shape, sandwich,
-                                       symmetric_2x2, to_batch)
+from landmark_ros.core.arrays import (as_matrices, as_vectors, common_batch_shape, sandwich,
+                                      symmetric_2x2, to_batch)
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 

@@ -14,7 +14,7 @@ m : ``pose (+) p``, the same point in the frame ``pose`` is given in.
 import math
 from typing import overload, Tuple, Union
 
-from landmark_ros.core._arrays import as_vectors, batch_shape, matrix
+from landmark_ros.core.arrays import as_vectors, batch_shape, matrix
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 

@@ -16,7 +16,7 @@ observations have shape (1,) or (N, 1) so that every model is a vector model.
 
 from typing import Tuple
 
-from landmark_ros.core._arrays import as_vectors, batch_shape, matrix
+from landmark_ros.core.arrays import as_vectors, batch_shape, matrix
 from landmark_ros.core.pose2 import wrap_angle
 import numpy as np
 from numpy.typing import ArrayLike, NDArray

@@ -17,11 +17,11 @@ from collections import Counter, deque
 from dataclasses import dataclass
 from typing import Any, Deque, Dict, Iterable, List, Tuple
 
-from landmark_ros.fusion.landmark_map import LandmarkMap
 from landmark_ros.core.partial import (BEARING, GATED, Initialisation, initialise,
                                        InitialiseParams, RANGE, TOO_CLOSE, update, UPDATED,
                                        Views)
 from landmark_ros.core.sensors import MIN_RANGE
+from landmark_ros.fusion.landmark_map import LandmarkMap
 from landmark_ros.pipeline.limits import partial_problems
 from landmark_ros.pipeline.partial_rows import (PARTIAL_COLUMNS, PartialObservations,
                                                 sensor_covariance)

@@ -11,7 +11,7 @@ returns None and callers use numpy. ``ready()`` tells, ``load()`` waits. The onl
 module of the package that imports numba.
 
 The scalar closed forms below are those of ``core.gaussian`` (``sci_omega_2x2``,
-``split_ci_2x2_entries``), ``core._arrays`` (``power_of_4_scale``, ``inverse_2x2``,
+``split_ci_2x2_entries``), ``core.arrays`` (``power_of_4_scale``, ``inverse_2x2``,
 ``psd_projection_2x2``) and ``source_sums`` (a source's estimate, its size), for one
 landmark at a time: numba compiles loops over scalars, not numpy's whole-array
 expressions. ``test/fusion/test_compiled.py`` runs them plain and compiled against numpy.
@@ -22,7 +22,7 @@ import os
 import threading
 from typing import Any, Callable, Dict, Optional
 
-from landmark_ros.core.gaussian import (_OMEGA_BRACKET, _OMEGA_QUADRATIC, OMEGA_EDGE,
+from landmark_ros.core.gaussian import (OMEGA_BRACKET, OMEGA_EDGE, OMEGA_QUADRATIC,
                                         OMEGA_TOLERANCE)
 import numpy as np
 from numpy.typing import NDArray
@@ -30,8 +30,8 @@ from numpy.typing import NDArray
 
 def _limits():
     """Return the weight search's constants (an argument: numba would freeze globals)."""
-    return np.array([_OMEGA_BRACKET, 1.0 - _OMEGA_BRACKET, OMEGA_EDGE, OMEGA_TOLERANCE,
-                     _OMEGA_QUADRATIC])
+    return np.array([OMEGA_BRACKET, 1.0 - OMEGA_BRACKET, OMEGA_EDGE, OMEGA_TOLERANCE,
+                     OMEGA_QUADRATIC])
 
 
 def _scale4(d0, d1, d2, d3):

@@ -24,7 +24,7 @@ from collections import deque
 import copy
 from typing import Any, Deque, Dict, List, Mapping, Optional, Sequence, Tuple, Union
 
-from landmark_ros.core._arrays import mahalanobis_sq_2x2, unique_ints
+from landmark_ros.core.arrays import mahalanobis_sq_2x2, unique_ints
 from landmark_ros.core.gating import chi2_threshold
 from landmark_ros.fusion.methods import METHODS, Rows
 from landmark_ros.fusion.records import (agreeing, Batch, Checkpoint, gate_due, MapSnapshot,

@@ -9,7 +9,7 @@ from collections import Counter
 from dataclasses import dataclass, field
 from typing import Any, Callable, Deque, Dict, List, Mapping, NamedTuple, Sequence, Tuple
 
-from landmark_ros.core._arrays import mahalanobis_sq_2x2
+from landmark_ros.core.arrays import mahalanobis_sq_2x2
 from landmark_ros.fusion.methods import Rows
 from landmark_ros.fusion.source_sums import entries, Estimates
 import numpy as np

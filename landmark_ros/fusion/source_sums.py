@@ -15,8 +15,8 @@ data fusion with covariance intersection", Handbook of Multisensor Data Fusion, 
 
 from typing import Any, Callable, Dict, List, NamedTuple, Sequence, Tuple
 
-from landmark_ros.core._arrays import (inverse_2x2, power_of_4_scale, psd_projection_2x2,
-                                       symmetric_2x2, unique_ints)
+from landmark_ros.core.arrays import (inverse_2x2, power_of_4_scale, psd_projection_2x2,
+                                      symmetric_2x2, unique_ints)
 from landmark_ros.core.gaussian import information, sci_omega_2x2, split_ci_2x2_entries
 from landmark_ros.fusion import compiled
 import numpy as np

@@ -8,13 +8,13 @@ what a fuser or a localizer may take from another node or a map file).
 """
 
 from collections import Counter
-from typing import Any, Mapping, Optional, Sequence, Tuple
+from typing import Any, Sequence, Tuple
 
 from landmark_ros.core.covariance import (COVARIANCE_ASYMMETRIC, COVARIANCE_NOT_PSD,
                                           COVARIANCE_RANGE_PROBLEMS,
                                           covariance_range_status, covariance_status,
                                           MAX_CONDITION, MAX_VARIANCE, MIN_VARIANCE)
-from landmark_ros.pipeline.limits import landmark_problems, MAX_COORDINATE
+from landmark_ros.pipeline.limits import landmark_problems
 import numpy as np
 from numpy.typing import NDArray
 

@@ -334,7 +334,7 @@ def test_sci_omega_quadratic_stop_agrees_with_the_full_search(monkeypatch):
     for parts in quadratic_stop_cases(3, 20_000):
         quick = gaussian.sci_omega_2x2(*parts)
         with monkeypatch.context() as patch:
-            patch.setattr(_split_ci, '_OMEGA_QUADRATIC', 0.0)
+            patch.setattr(_split_ci, 'OMEGA_QUADRATIC', 0.0)
             full = gaussian.sci_omega_2x2(*parts)
         difference = np.abs(quick - full)
         assert difference.max() <= 1e-6
@@ -347,8 +347,8 @@ def test_sci_omega_quadratic_stop_saves_a_newton_step(monkeypatch):
     monkeypatch.setattr(_split_ci, '_sci_slope', lambda *a: calls.append(1) or slope(*a))
     parts = quadratic_stop_cases(5, 400)[0]
     counts = []
-    for quadratic in (_split_ci._OMEGA_QUADRATIC, 0.0):
-        monkeypatch.setattr(_split_ci, '_OMEGA_QUADRATIC', quadratic)
+    for quadratic in (_split_ci.OMEGA_QUADRATIC, 0.0):
+        monkeypatch.setattr(_split_ci, 'OMEGA_QUADRATIC', quadratic)
         calls.clear()
         for i in range(100, 400):   # one element at a time: a call per Newton step
             gaussian.sci_omega_2x2(*(tuple(x[i:i + 1] for x in part) for part in parts))

@@ -6,7 +6,7 @@ from conftest import assert_psd, random_spd
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from landmark_ros.core import covariance, gaussian
-from landmark_ros.core._arrays import unique_ints
+from landmark_ros.core.arrays import unique_ints
 from landmark_ros.core.covariance import (covariance_range_status, covariance_status,
                                           validate_covariance)
 from landmark_ros.core.gating import chi2_survival, chi2_threshold, gate, mahalanobis_sq
@@ -661,16 +661,16 @@ RANGE_TOL = 1e-5
 @RANGE_SETTINGS
 @given(covariances(), st.floats(-3.0, 3.0), st.floats(-3.0, 3.0))
 def test_closed_forms_are_scale_safe_in_the_accepted_range(P, x, y):
-    from landmark_ros.core import _arrays
-    a, b, c = _arrays.entries_2x2(P)
+    from landmark_ros.core import arrays
+    a, b, c = arrays.entries_2x2(P)
     assert covariance_range_status(P) == covariance.COVARIANCE_OK
-    assert_relative(_arrays.det(P), np.linalg.det(P), RANGE_TOL)
-    assert_relative(_arrays.det_2x2(a, b, c), np.linalg.det(P), RANGE_TOL)
+    assert_relative(arrays.det(P), np.linalg.det(P), RANGE_TOL)
+    assert_relative(arrays.det_2x2(a, b, c), np.linalg.det(P), RANGE_TOL)
     assert_relative(gaussian.information(P), np.linalg.inv(P), RANGE_TOL)
-    assert_relative(np.array(_arrays.inverse_2x2(a, b, c)),
+    assert_relative(np.array(arrays.inverse_2x2(a, b, c)),
                     np.linalg.inv(P)[[0, 0, 1], [0, 1, 1]], RANGE_TOL)
     B = np.array([[x, 1.0], [y, -2.0]]) * math.sqrt(P[0, 0])
-    assert_relative(_arrays.solve(P, B), np.linalg.solve(P, B), RANGE_TOL)
+    assert_relative(arrays.solve(P, B), np.linalg.solve(P, B), RANGE_TOL)
     d = np.array([x, y]) * math.sqrt(max(P[0, 0], P[1, 1]))
     reference = d @ np.linalg.solve(P, d)
     # Relative to the reference, absolute below the normal floats (x = 9e-160 gives a
@@ -728,7 +728,7 @@ def test_fusion_is_scale_safe_in_the_accepted_range(P1, P2, P3, P4, omega):
 # --- projection onto the positive semi-definite 2x2 matrices -----------------------------------
 
 def test_psd_projection_2x2_clips_negative_eigenvalues(rng):
-    from landmark_ros.core._arrays import psd_projection_2x2
+    from landmark_ros.core.arrays import psd_projection_2x2
     A = rng.normal(size=(500, 2, 2))
     S = 0.5 * (A + np.swapaxes(A, 1, 2))
     S[:100] = A[:100] @ np.swapaxes(A[:100], 1, 2)            # already PSD

@@ -3,7 +3,6 @@
 from collections import Counter
 
 from conftest import random_spd
-from landmark_ros.core.covariance import MAX_CONDITION
 from landmark_ros.pipeline.rows import landmark_row_problems, MAX_ID
 import numpy as np
 import pytest
