@@ -197,9 +197,12 @@ def with_blocks(text, tables):
 
 def pages():
     """Return ``{path: text}`` of every generated page as it should read."""
-    nodes = DOCS / 'nodes.md'
+    from landmark_ros.pipeline import limits
+    nodes, bad_input = DOCS / 'nodes.md', DOCS / 'bad-input.md'
     return {DOCS / 'parameters.md': parameters_page(),
-            nodes: with_blocks(nodes.read_text(encoding='utf-8'), schema_tables())}
+            nodes: with_blocks(nodes.read_text(encoding='utf-8'), schema_tables()),
+            bad_input: with_blocks(bad_input.read_text(encoding='utf-8'),
+                                   {'limits': limits.markdown().rstrip('\n')})}
 
 
 def main(argv=None):
