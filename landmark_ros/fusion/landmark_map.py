@@ -27,8 +27,9 @@ from typing import Any, Deque, Dict, List, Mapping, Optional, Sequence, Tuple, U
 from landmark_ros.core.arrays import mahalanobis_sq_2x2, unique_ints
 from landmark_ros.core.gating import chi2_threshold
 from landmark_ros.fusion.methods import METHODS, Rows
-from landmark_ros.fusion.records import (agreeing, Batch, Checkpoint, gate_due, MapSnapshot,
-                                         Observation, parse_record, stack, UpdateResult)
+from landmark_ros.fusion.records import (agreeing, Batch, Checkpoint, floored, gate_due,
+                                         MapSnapshot, Observation, parse_record, stack,
+                                         UpdateResult)
 from landmark_ros.fusion.source_sums import entries as _entries, Estimates, SOURCE_BITS
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -542,14 +543,20 @@ class LandmarkMap:
         return sorted(source for source, seen in self._seen_by.items() if seen[row])
 
     def to_records(self) -> List[Dict[str, Any]]:
-        """Return the confirmed landmarks as plain dicts (for saving); stamps in ns."""
+        """
+        Return the confirmed landmarks as plain dicts (for saving); stamps in ns.
+
+        Each covariance is ``records.floored``: a record always passes the live row checks.
+        """
         records = []
         snapshot = self.snapshot()
-        for landmark_id, row in zip(snapshot.ids.tolist(), self._lookup(snapshot.ids).tolist()):
+        rows = self._lookup(snapshot.ids)
+        covariances = floored(self.cov_ind[rows] + self.cov_dep[rows])
+        for k, (landmark_id, row) in enumerate(zip(snapshot.ids.tolist(), rows.tolist())):
             records.append({
                 'id': landmark_id,
                 'mean': self.mean[row].tolist(),
-                'covariance': (self.cov_ind[row] + self.cov_dep[row]).tolist(),
+                'covariance': covariances[k].tolist(),
                 'covariance_dependent': self.cov_dep[row].tolist(),
                 'observations': int(self.observations[row]),
                 'rejections': int(self.rejections[row]),

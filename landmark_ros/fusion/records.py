@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 from typing import Any, Callable, Deque, Dict, List, Mapping, NamedTuple, Sequence, Tuple
 
 from landmark_ros.core.arrays import mahalanobis_sq_2x2
+from landmark_ros.core.covariance import MIN_VARIANCE
 from landmark_ros.fusion.methods import Rows
 from landmark_ros.fusion.source_sums import entries, Estimates
 import numpy as np
@@ -224,3 +225,33 @@ def parse_record(record: Mapping[str, Any]) -> Tuple[Estimates, Tuple[int, int],
         stamps.append(int(value))
     counts = int(record['observations']), int(record.get('rejections', 0))
     return Estimates(mean, P - P_dep, P_dep), counts, (stamps[0], stamps[1])
+
+
+def floored(P: NDArray[np.float64]) -> NDArray[np.float64]:
+    """
+    Return 2x2 covariances whose smallest eigenvalue is at least ``MIN_VARIANCE``.
+
+    An estimate fused from rows at the variance floor falls below it (two rows of
+    1e-12 m^2 give 5e-13), yet a saved record must pass the checks of a live row
+    (``core.covariance``'s accepted range) to load back. Below the floor the covariance
+    gets ``(MIN_VARIANCE - lambda_min) I`` added, with a relative margin of 1e-9: larger,
+    so still consistent; above it nothing changes, bit for bit.
+
+    Parameters
+    ----------
+    P : ndarray, shape (N, 2, 2)
+        Symmetric covariances [m^2].
+
+    Returns
+    -------
+    ndarray, shape (N, 2, 2)
+
+    """
+    a, b, c = P[:, 0, 0], P[:, 0, 1], P[:, 1, 1]
+    lambda_min = 0.5 * (a + c) - np.hypot(0.5 * (a - c), b)
+    low = lambda_min < MIN_VARIANCE
+    if not low.any():
+        return P
+    P = P.copy()
+    P[low] += ((MIN_VARIANCE * (1.0 + 1e-9) - lambda_min[low])[:, None, None] * np.eye(2))
+    return P
