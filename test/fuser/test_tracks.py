@@ -413,7 +413,7 @@ def test_a_tentative_track_with_a_bad_row_is_dropped_alone(tmp_path, rng):
 
 
 def test_shard_of_position_numbers_the_cells():
-    from landmark_ros.fuser.tracks import shard_of_position
+    from landmark_ros.fuser.sources import shard_of_position
     m = np.array([[5.0, 5.0], [25.0, 5.0], [-5.0, 5.0], [5.0, 25.0], [np.nan, 1.0]])
     # Cells (0, 0), (1, 0), (-1, 0), (0, 1); side 20 m; 3 shards.
     assert shard_of_position(m, 20.0, 3).tolist() == [0, 1, 2, 31 % 3, 0]
@@ -447,5 +447,5 @@ def test_shards_split_rows_without_ids_by_cell_and_own_their_ids(rng):
 
 def shard_of(m):
     """Return the shard (of 2, 20 m cells) of positions."""
-    from landmark_ros.fuser.tracks import shard_of_position
+    from landmark_ros.fuser.sources import shard_of_position
     return shard_of_position(m, 20.0, 2)
