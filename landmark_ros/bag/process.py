@@ -33,6 +33,7 @@ from landmark_ros.bag.storage import BagError, BagOutput, msgtype, open_bag
 from landmark_ros.bag.storage import read_message, storage_of
 from landmark_ros.fuser.fuser import Fuser
 from landmark_ros.fuser.publishing import PublicationSchedule
+from landmark_ros.fuser.sources import LandmarkMessage
 from landmark_ros.observer.observer import ObservationMessage, Observer
 from landmark_ros.pipeline.config import FuserConfig, ObserverConfig
 from landmark_ros.ros import diagnostics
@@ -273,9 +274,9 @@ class BagPipeline:
             self.out.write(topic, now_ns, landmark_message(
                 header, batch.ids, batch.m, batch.P, batch.P_dep, classes=batch.classes,
                 scan=batch.scan))
-            self.fuser.add_landmarks(topic, batch.stamp_ns, batch.ids, batch.m, batch.P,
-                                     batch.P_dep, world_frame, now_ns, batch.classes,
-                                     batch.scan)
+            self.fuser.add_landmarks(topic, LandmarkMessage(
+                batch.stamp_ns, batch.ids, batch.m, batch.P, batch.P_dep, world_frame,
+                batch.classes, batch.scan), now_ns)
 
     def _header(self, now_ns):
         header = Header(frame_id=self.fuser.config.world_frame)

@@ -24,7 +24,6 @@ from landmark_ros.fusion.landmark_map import LandmarkMap, MapSnapshot, UpdateRes
 from landmark_ros.pipeline.config import FuserConfig
 from landmark_ros.pipeline.counters import Counters, Logger, Status
 from landmark_ros.pipeline.rows import landmark_row_problems, UNKNOWN_ID
-from landmark_ros.pipeline.scan import Scan
 import numpy as np
 from numpy.typing import NDArray
 
@@ -140,21 +139,15 @@ class Fuser:
             return None
         return state
 
-    def add_landmarks(self, source: str, stamp_ns: int, ids: NDArray[Any],
-                      m: NDArray[np.float64], P: NDArray[np.float64],
-                      P_dep: NDArray[np.float64], frame_id: Optional[str] = None,
-                      now_ns: Optional[int] = None, classes: Optional[NDArray[Any]] = None,
-                      scan: Optional[Scan] = None) -> int:
+    def add_landmarks(self, source: str, message: LandmarkMessage,
+                      now_ns: Optional[int] = None) -> int:
         """
-        Check the rows of one landmark message and queue the valid ones.
+        Check the rows of one landmark message of ``source`` and queue the valid ones.
 
-        ``add_landmark_messages`` with one message: the arguments are
-        ``LandmarkMessage``'s fields (shapes and units there), after the ``source``
-        (one of the sources), and ``now_ns``, the arrival time [ns] for the
-        stale-source check. Returns the number of rows queued.
+        ``add_landmark_messages`` with one message (``now_ns``: the arrival time [ns]
+        for the stale-source check). Returns the number of rows queued.
         """
-        return self.add_landmark_messages(source, [LandmarkMessage(
-            stamp_ns, ids, m, P, P_dep, frame_id, classes, scan)], now_ns)
+        return self.add_landmark_messages(source, [message], now_ns)
 
     def add_landmark_messages(self, source: str, messages: Sequence[LandmarkMessage],
                               now_ns: Optional[int] = None) -> int:
