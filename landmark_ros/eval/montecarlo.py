@@ -61,9 +61,9 @@ import sys
 import time
 
 from landmark_ros.eval.metrics import anees_interval, evaluate
-from landmark_ros.fusion.landmark_map import FUSION_METHODS
 from landmark_ros.fuser.fuser import Fuser
 from landmark_ros.fuser.sources import LandmarkMessage
+from landmark_ros.fusion.landmark_map import FUSION_METHODS
 from landmark_ros.observer.observer import ObservationMessage, Observer
 from landmark_ros.pipeline.config import FuserConfig, ObserverConfig
 from landmark_ros.sim import simulation
