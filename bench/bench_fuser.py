@@ -230,7 +230,7 @@ def warm_fuser(fusion, truth, seed):
         pool = {key: np.resize(value, (size,) + value.shape[1:])
                 for key, value in (('ids', ids), ('m', m), ('P', P), ('P_dep', P_dep))}
         for k, message in enumerate(messages_of(pool)):
-            fuser.add_landmarks(WARMUP_SOURCE, *message)
+            fuser.add_landmarks(WARMUP_SOURCE, LandmarkMessage(*message))
             if k % 20 == 19:
                 fuser.fuse_queued()
         fuser.fuse_queued()

@@ -30,7 +30,7 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import _common  # noqa: E402
 from landmark_ros.fusion.landmark_map import LandmarkMap  # noqa: E402
 from landmark_ros.ros.markers import landmark_markers  # noqa: E402
-from landmark_ros.ros.schemas import landmark_message  # noqa: E402
+from landmark_ros.ros.schemas import fused_landmark_message  # noqa: E402
 import numpy as np  # noqa: E402
 from rclpy.serialization import serialize_message  # noqa: E402
 from std_msgs.msg import Header  # noqa: E402
@@ -65,7 +65,8 @@ def publish_cost(snapshot, markers):
     header = Header(frame_id='map')
     start = time.thread_time()
     ids, m, P, P_dep, observations = snapshot
-    size = len(serialize_message(landmark_message(header, ids, m, P, P_dep, observations)))
+    size = len(serialize_message(fused_landmark_message(header, ids, m, P, P_dep,
+                                                        observations)))
     if markers:
         size += len(serialize_message(landmark_markers(header, ids, m, P, 2.0)))
     return time.thread_time() - start, size

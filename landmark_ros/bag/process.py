@@ -33,6 +33,7 @@ from landmark_ros.bag.storage import BagError, BagOutput, msgtype, open_bag
 from landmark_ros.bag.storage import read_message, storage_of
 from landmark_ros.fuser.fuser import Fuser
 from landmark_ros.fuser.publishing import PublicationSchedule
+from landmark_ros.fuser.sources import LandmarkMessage
 from landmark_ros.observer.observer import ObservationMessage, Observer
 from landmark_ros.pipeline.config import FuserConfig, ObserverConfig
 from landmark_ros.ros import diagnostics
@@ -40,7 +41,8 @@ from landmark_ros.ros.cloud import CloudError, read_columns
 from landmark_ros.ros.conversions import InputError, pose_from_msg, pose_from_odometry
 from landmark_ros.ros.conversions import stamp_ns
 from landmark_ros.ros.markers import landmark_markers
-from landmark_ros.ros.schemas import landmark_message, OBSERVATION_FIELDS, read_landmarks
+from landmark_ros.ros.schemas import (fused_landmark_message, landmark_message,
+                                      OBSERVATION_FIELDS, read_landmarks)
 from nav_msgs.msg import Odometry
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header
@@ -272,9 +274,9 @@ class BagPipeline:
             self.out.write(topic, now_ns, landmark_message(
                 header, batch.ids, batch.m, batch.P, batch.P_dep, classes=batch.classes,
                 scan=batch.scan))
-            self.fuser.add_landmarks(topic, batch.stamp_ns, batch.ids, batch.m, batch.P,
-                                     batch.P_dep, world_frame, now_ns, batch.classes,
-                                     batch.scan)
+            self.fuser.add_landmarks(topic, LandmarkMessage(
+                batch.stamp_ns, batch.ids, batch.m, batch.P, batch.P_dep, world_frame,
+                batch.classes, batch.scan), now_ns)
 
     def _header(self, now_ns):
         header = Header(frame_id=self.fuser.config.world_frame)
@@ -294,7 +296,7 @@ class BagPipeline:
         if not self.fuser.map_changed:
             return
         ids, m, P, P_dep, observations = self.fuser.snapshot()
-        self.out.write('/fused_landmarks', now_ns, landmark_message(
+        self.out.write('/fused_landmarks', now_ns, fused_landmark_message(
             self._header(now_ns), ids, m, P, P_dep, observations))
 
     def publish_updates(self, now_ns):
@@ -303,7 +305,7 @@ class BagPipeline:
         header = self._header(now_ns)
         if len(ids):
             self.out.write('/fused_landmark_updates', now_ns,
-                           landmark_message(header, ids, m, P, P_dep, observations))
+                           fused_landmark_message(header, ids, m, P, P_dep, observations))
         if self._markers_stale:
             ids, m, P, _, _ = self.fuser.map.snapshot()
             self._markers_stale = False

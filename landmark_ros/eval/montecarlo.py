@@ -62,6 +62,7 @@ import time
 
 from landmark_ros.eval.metrics import anees_interval, evaluate
 from landmark_ros.fuser.fuser import Fuser
+from landmark_ros.fuser.sources import LandmarkMessage
 from landmark_ros.fusion.landmark_map import FUSION_METHODS
 from landmark_ros.observer.observer import ObservationMessage, Observer
 from landmark_ros.pipeline.config import FuserConfig, ObserverConfig
@@ -182,9 +183,9 @@ def fuse_simulation(sim, methods=FUSION_METHODS, gate_probability=0.999, configs
     def hand_over(robot, batches):
         for batch in batches:
             for fuser in fusers.values():
-                fuser.add_landmarks(sources[robot], batch.stamp_ns, batch.ids, batch.m,
-                                    batch.P, batch.P_dep, now_ns=now_ns,
-                                    classes=batch.classes, scan=batch.scan)
+                fuser.add_landmarks(sources[robot], LandmarkMessage(
+                    batch.stamp_ns, batch.ids, batch.m, batch.P, batch.P_dep,
+                    classes=batch.classes, scan=batch.scan), now_ns=now_ns)
                 if len(batch.partial_observations):
                     fuser.add_partial_observations(views[robot], batch.stamp_ns,
                                                    batch.partial_observations.columns(),

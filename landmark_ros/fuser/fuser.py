@@ -15,16 +15,15 @@ from collections import Counter
 import itertools
 from typing import Any, Dict, List, Optional, Sequence, Tuple
 
-from landmark_ros.fuser import map_file
+from landmark_ros.fuser import persistence, publishing
 from landmark_ros.fuser.partial import (NOT_PROBLEMS as PARTIAL_COUNTS,
                                         partial_row_problems, PartialFusion, views_from_columns)
-from landmark_ros.fuser.sources import LandmarkMessage, Queued, Source
-from landmark_ros.fuser.tracks import shard_of_position, Tracker
+from landmark_ros.fuser.sources import LandmarkMessage, Queued, shard_of_position, Source
+from landmark_ros.fuser.tracks import Tracker
 from landmark_ros.fusion.landmark_map import LandmarkMap, MapSnapshot, UpdateResult
 from landmark_ros.pipeline.config import FuserConfig
 from landmark_ros.pipeline.counters import Counters, Logger, Status
 from landmark_ros.pipeline.rows import landmark_row_problems, UNKNOWN_ID
-from landmark_ros.pipeline.scan import Scan
 import numpy as np
 from numpy.typing import NDArray
 
@@ -140,21 +139,15 @@ class Fuser:
             return None
         return state
 
-    def add_landmarks(self, source: str, stamp_ns: int, ids: NDArray[Any],
-                      m: NDArray[np.float64], P: NDArray[np.float64],
-                      P_dep: NDArray[np.float64], frame_id: Optional[str] = None,
-                      now_ns: Optional[int] = None, classes: Optional[NDArray[Any]] = None,
-                      scan: Optional[Scan] = None) -> int:
+    def add_landmarks(self, source: str, message: LandmarkMessage,
+                      now_ns: Optional[int] = None) -> int:
         """
-        Check the rows of one landmark message and queue the valid ones.
+        Check the rows of one landmark message of ``source`` and queue the valid ones.
 
-        ``add_landmark_messages`` with one message: the arguments are
-        ``LandmarkMessage``'s fields (shapes and units there), after the ``source``
-        (one of the sources), and ``now_ns``, the arrival time [ns] for the
-        stale-source check. Returns the number of rows queued.
+        ``add_landmark_messages`` with one message (``now_ns``: the arrival time [ns]
+        for the stale-source check). Returns the number of rows queued.
         """
-        return self.add_landmark_messages(source, [LandmarkMessage(
-            stamp_ns, ids, m, P, P_dep, frame_id, classes, scan)], now_ns)
+        return self.add_landmark_messages(source, [message], now_ns)
 
     def add_landmark_messages(self, source: str, messages: Sequence[LandmarkMessage],
                               now_ns: Optional[int] = None) -> int:
@@ -479,31 +472,8 @@ class Fuser:
         return [(drop, self.tracker.resolve(keep)) for drop, keep in removed]
 
     def removal_rows(self, removed: Sequence[tuple]) -> Tuple[MapSnapshot, NDArray[np.int64]]:
-        """
-        Return the rows that announce removed landmarks, and what each went into.
-
-        Parameters
-        ----------
-        removed : sequence of (int, int)
-            ``take_removed()``.
-
-        Returns
-        -------
-        rows : MapSnapshot
-            Per removed landmark whose landmark is confirmed, in order: its ID, the
-            estimate of the landmark it went into, 0 observations.
-        merged_into : ndarray of int64, shape (K,)
-            The landmark each went into.
-
-        """
-        kept = self.map.snapshot(np.array([keep for _, keep in removed], np.int64))
-        where = {landmark_id: k for k, landmark_id in enumerate(kept.ids.tolist())}
-        pairs = [(drop, keep) for drop, keep in removed if keep in where]
-        rows = np.array([where[keep] for _, keep in pairs], np.int64)
-        merged_into = np.array([keep for _, keep in pairs], np.int64)
-        return type(kept)(np.array([drop for drop, _ in pairs], np.int64), kept.m[rows],
-                          kept.P[rows], kept.P_dep[rows],
-                          np.zeros(len(pairs), np.int64)), merged_into
+        """Return the rows that announce ``removed`` (``publishing.removal_rows``)."""
+        return publishing.removal_rows(self.map, removed)
 
     def take_updates(self) -> MapSnapshot:
         """
@@ -583,104 +553,18 @@ class Fuser:
     # Persistence -----------------------------------------------------------------
 
     def save(self) -> bool:
-        """Write ``map_file`` atomically; return whether it worked."""
-        try:
-            records = self.map.to_records()
-            for record in records:
-                record['class'] = self.tracker.classes.get(record['id'], 0)
-            map_file.save(self.config.map_file, records, self.config.world_frame,
-                          self.config.fusion, next_id=self.tracker.next_id,
-                          first_new_id=self.reserved_from,
-                          tracks=self.tracker.to_dict(),
-                          waiting_partial_observations=self.partial.waiting_records())
-        except (OSError, ValueError) as error:
-            self.counters.add('save_failed', 1, f'cannot save {self.config.map_file}: {error}')
-            return False
-        self.unsaved = False
-        self.counters.add('saves', 1)
-        return True
+        """Write ``map_file`` atomically; return whether it worked (``persistence.save``)."""
+        return persistence.save(self)
 
     def load(self) -> None:
         """
         Load ``map_file`` if set: every valid record is kept, the bad ones quarantined.
 
-        A file that cannot be parsed at all (not JSON, not a map, another version or
-        frame) is moved aside and the fuser starts empty. Otherwise each landmark
-        record is checked on its own (``map_file.split_records``: the live row checks),
-        and a malformed ``next_id``, waiting partial observations or tracks section is
-        dropped on its own; what was dropped is written to a quarantine file beside the
-        map and counted in ``map_records_rejected``.
+        See ``persistence.load``: an unparsable file is moved aside and the fuser starts
+        empty; otherwise each record and section is checked on its own and what fails
+        goes to a quarantine file beside the map (``map_records_rejected``).
         """
-        path = self.config.map_file
-        if not path:
-            return
-        for stale in map_file.remove_stale_temporaries(path):
-            self.logger.info(f'removed {stale}, left by an interrupted save')
-        try:
-            document = map_file.load(path, self.config.world_frame)
-        except FileNotFoundError:
-            self.logger.info(f'no map file {path} yet: starting with an empty map')
-            return
-        except (OSError, ValueError) as error:
-            try:
-                moved = map_file.move_aside(path)
-            except OSError as move_error:
-                moved = f'(could not be moved: {move_error})'
-            self.counters.add('map_file_rejected', 1)
-            self.logger.error(f'map file {path} is unusable ({error}); moved it to {moved} '
-                              'and starting with an empty map')
-            return
-        rejected = self._restore(document)
-        if rejected:
-            self._quarantine(path, rejected)
-        if document.get('fusion') != self.config.fusion:
-            self.logger.warning(
-                f"map file {path} was made with fusion {document.get('fusion')!r}, this "
-                f'fuser uses {self.config.fusion!r}')
-        self.map_changed = True
-        self.logger.info(f'loaded {len(self.map)} landmarks from {path}')
-
-    def _restore(self, document: Dict[str, Any]) -> List[Dict[str, Any]]:
-        """Restore what ``document`` holds that passes the checks; return what did not."""
-        loaded = map_file.parse_sections(document, self.config.first_new_id)
-        rejected = list(loaded.rejected)
-        if loaded.deprecated_key:
-            self.logger.warning(
-                f'map file: key {map_file.DEPRECATED_WAITING_KEY!r} is deprecated, read as '
-                f'{map_file.WAITING_KEY!r} (the next save writes the new key)')
-        self.map.reset()
-        self.map.load_records(loaded.records)
-        self.partial.reset()
-        self.partial.restore(loaded.waiting)
-        self.tracker.reset()
-        self.tracker.next_id = loaded.next_id
-        self.reserved_from = loaded.reserved_from
-        for record in loaded.records:
-            if record.get('class', 0):
-                self.tracker.classes[record['id']] = record['class']
-        try:
-            self.tracker.restore(document.get('tracks'), self.map)
-        except ValueError as error:
-            self.tracker.reset()
-            self.tracker.next_id = loaded.next_id
-            rejected.append({'section': 'tracks', 'index': None, 'reason': f'{error}',
-                             'record': document.get('tracks')})
-        rejected += [{'section': 'tracks', 'index': landmark_id, 'record': None,
-                      'reason': f"tentative track rejected as {', '.join(reasons)}"}
-                     for landmark_id, reasons in self.tracker.rejected_tracks]
-        return rejected
-
-    def _quarantine(self, path: str, rejected: List[Dict[str, Any]]) -> None:
-        """Write rejected map-file records beside the map; count and log them."""
-        try:
-            written = map_file.quarantine(path, rejected)
-        except OSError as error:
-            written = f'(not written: {error})'
-        self.counters.add('map_records_rejected', len(rejected))
-        section, index, reason = (rejected[0][key] for key in ('section', 'index', 'reason'))
-        self.logger.error(
-            f'map file {path}: {len(rejected)} record(s) rejected, the rest loaded; first: '
-            f'{section} record {index} {reason}; rejected records in {written}')
+        persistence.load(self)
 
 
 def _combine(results: Sequence[UpdateResult]) -> UpdateResult:

@@ -1,7 +1,16 @@
-"""When the fuser publishes its map: the updates and the full map on one timer."""
+"""
+What the fuser publishes and when.
+
+The updates and the full map on one timer (``PublicationSchedule``), and the rows that
+announce removed (merged) landmarks (``removal_rows``).
+"""
 
 import math
-from typing import Tuple
+from typing import Sequence, Tuple
+
+from landmark_ros.fusion.landmark_map import LandmarkMap, MapSnapshot
+import numpy as np
+from numpy.typing import NDArray
 
 
 class PublicationSchedule:
@@ -62,3 +71,34 @@ def _every(rate: float, wanted: float) -> int:
     """Return the fewest ticks at ``rate`` between two outputs of at most ``wanted`` per s."""
     # The tolerance keeps exact ratios (10 / 5) from rounding up.
     return max(1, math.ceil(rate / wanted * (1.0 - 1e-12)))
+
+
+def removal_rows(landmark_map: LandmarkMap, removed: Sequence[tuple]
+                 ) -> Tuple[MapSnapshot, NDArray[np.int64]]:
+    """
+    Return the rows that announce removed landmarks, and what each went into.
+
+    Parameters
+    ----------
+    landmark_map : LandmarkMap
+        The fuser's map.
+    removed : sequence of (int, int)
+        ``Fuser.take_removed()``.
+
+    Returns
+    -------
+    rows : MapSnapshot
+        Per removed landmark whose landmark is confirmed, in order: its ID, the
+        estimate of the landmark it went into, 0 observations.
+    merged_into : ndarray of int64, shape (K,)
+        The landmark each went into.
+
+    """
+    kept = landmark_map.snapshot(np.array([keep for _, keep in removed], np.int64))
+    where = {landmark_id: k for k, landmark_id in enumerate(kept.ids.tolist())}
+    pairs = [(drop, keep) for drop, keep in removed if keep in where]
+    rows = np.array([where[keep] for _, keep in pairs], np.int64)
+    merged_into = np.array([keep for _, keep in pairs], np.int64)
+    return type(kept)(np.array([drop for drop, _ in pairs], np.int64), kept.m[rows],
+                      kept.P[rows], kept.P_dep[rows],
+                      np.zeros(len(pairs), np.int64)), merged_into

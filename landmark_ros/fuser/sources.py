@@ -3,7 +3,8 @@ What the fuser (``fuser.fuser``) keeps per input: its queue of messages and coun
 
 ``LandmarkMessage`` is a message as the fuser takes it (``Fuser.add_landmarks``);
 ``Queued`` the rows of one message once checked and queued; ``Source`` an input topic's
-queue, counters and the stamp of its last message.
+queue, counters and the stamp of its last message; ``shard_of_position`` the shard
+that takes a row without an ID (``shard_count`` fusers, each taking its own).
 """
 
 from collections import Counter, deque
@@ -76,3 +77,34 @@ class Source:
     last_message_ns: Optional[int] = None
     optional: bool = False
     """A partial source: not stale before its first message (rb-only teams)."""
+
+
+def shard_of_position(m: NDArray[np.float64], cell_m: float,
+                      shard_count: int) -> NDArray[np.int64]:
+    """
+    Return the shard of each row without an ID, from its world position.
+
+    Square cells of side ``cell_m``: ``(floor(x / cell_m) + 31 floor(y / cell_m))``
+    modulo ``shard_count``. A non-finite position (a row the checks reject anyway)
+    goes to shard 0.
+
+    Parameters
+    ----------
+    m : ndarray, shape (N, 2) [m]
+        Positions in the world.
+    cell_m : float
+        Side of a cell [m].
+    shard_count : int
+        Number of shards.
+
+    Returns
+    -------
+    ndarray of int64, shape (N,)
+
+    """
+    m = np.asarray(m, np.float64).reshape(-1, 2)
+    finite = np.isfinite(m).all(axis=1)
+    cells = np.zeros((len(m), 2))
+    cells[finite] = np.floor(np.clip(m[finite] / cell_m, -1e15, 1e15))
+    return ((cells[:, 0].astype(np.int64) + 31 * cells[:, 1].astype(np.int64))
+            % int(shard_count)).astype(np.int64)

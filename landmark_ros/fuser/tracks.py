@@ -27,7 +27,6 @@ C_z : their joint covariance, shape (2N, 2N) [m^2] (``association.scan_covarianc
 """
 
 from collections import Counter
-from dataclasses import dataclass, field
 from typing import Any, Dict, List, Optional, Set, Tuple
 
 from landmark_ros.core.association import (Association, Candidates, candidates,
@@ -35,9 +34,11 @@ from landmark_ros.core.association import (Association, Candidates, candidates,
                                            nearest_neighbour, scan_covariance)
 from landmark_ros.core.gating import chi2_threshold
 from landmark_ros.core.joint_compatibility import jcbb
+from landmark_ros.fuser import track_file
+from landmark_ros.fuser.track_file import Track
 from landmark_ros.fusion.landmark_map import LandmarkMap, MapSnapshot, UpdateResult
 from landmark_ros.pipeline.config import FuserConfig
-from landmark_ros.pipeline.rows import landmark_row_problems, MAX_LABEL_ID, UNKNOWN_ID
+from landmark_ros.pipeline.rows import MAX_LABEL_ID, UNKNOWN_ID
 from landmark_ros.pipeline.scan import Scan
 import numpy as np
 from numpy.typing import NDArray
@@ -48,51 +49,6 @@ TRACK_ROWS_KEPT = 16
 ASSOCIATION_COUNTERS = ('associated', 'new_tentative', 'confirmed', 'deleted', 'merged',
                         'ambiguous', 'jcbb_fallback')
 """Per-source counters of the association (throughput, not rejections)."""
-
-
-def shard_of_position(m: NDArray[np.float64], cell_m: float,
-                      shard_count: int) -> NDArray[np.int64]:
-    """
-    Return the shard of each row without an ID, from its world position.
-
-    Square cells of side ``cell_m``: ``(floor(x / cell_m) + 31 floor(y / cell_m))``
-    modulo ``shard_count``. A non-finite position (a row the checks reject anyway)
-    goes to shard 0.
-
-    Parameters
-    ----------
-    m : ndarray, shape (N, 2) [m]
-        Positions in the world.
-    cell_m : float
-        Side of a cell [m].
-    shard_count : int
-        Number of shards.
-
-    Returns
-    -------
-    ndarray of int64, shape (N,)
-
-    """
-    m = np.asarray(m, np.float64).reshape(-1, 2)
-    finite = np.isfinite(m).all(axis=1)
-    cells = np.zeros((len(m), 2))
-    cells[finite] = np.floor(np.clip(m[finite] / cell_m, -1e15, 1e15))
-    return ((cells[:, 0].astype(np.int64) + 31 * cells[:, 1].astype(np.int64))
-            % int(shard_count)).astype(np.int64)
-
-
-@dataclass
-class _Track:
-    """A tentative track: the latest row paired with it (mean [m], covariance [m^2])."""
-
-    m: NDArray[np.float64]
-    P: NDArray[np.float64]
-    landmark_class: int
-    first_ns: int
-    source: str
-    rows: List[tuple] = field(default_factory=list)
-    """``(m, P, P_dep, source, stamp_ns)`` of the rows it got (the newest
-    ``TRACK_ROWS_KEPT``): what the map holds for it, saved in the map file."""
 
 
 class Tracker:
@@ -113,7 +69,7 @@ class Tracker:
         """The next ID the allocator tries (persisted in the map file)."""
         self.classes: Dict[int, int] = {}
         """Class of each landmark ID with a class other than 0."""
-        self.tentative: Dict[int, _Track] = {}
+        self.tentative: Dict[int, Track] = {}
         """Tentative tracks started by unlabelled rows, by ID."""
         self.dirty = True
         """Whether the index must be rebuilt before the next association."""
@@ -262,8 +218,8 @@ class Tracker:
             landmark_class = int(classes[i])
             if landmark_class:
                 self.classes[landmark_id] = landmark_class
-            self.tentative[landmark_id] = _Track(z[i].copy(), R[i].copy(), landmark_class,
-                                                 int(stamp_ns), source)
+            self.tentative[landmark_id] = Track(z[i].copy(), R[i].copy(), landmark_class,
+                                                int(stamp_ns), source)
             counts['new_tentative'] += 1
             self.dirty = True
         self.note_sightings(ids)
@@ -442,32 +398,8 @@ class Tracker:
                 del track.rows[:-TRACK_ROWS_KEPT]
 
     def to_dict(self) -> Dict[str, Any]:
-        """
-        Return what a restart needs to resume the tracks, as plain JSON data.
-
-        ``tentative`` (per track: ``id``, ``class``, ``first_stamp_ns``, ``source`` and
-        its ``rows``, each ``mean``, ``covariance``, ``covariance_dependent``,
-        ``source``, ``stamp_ns``), ``owned`` (the IDs this tracker allocated that are
-        still landmarks or tracks), ``sightings`` (``[id, messages]`` for each of them
-        a message saw), ``together`` (``[a, b, messages]``, ``a < b``, for each pair of
-        them a message saw together), ``merged_into`` (``[retired, kept]`` pairs) and
-        ``now_ns`` (the expiry clock, or null).
-        """
-        return {
-            'tentative': [{
-                'id': int(landmark_id), 'class': int(track.landmark_class),
-                'first_stamp_ns': int(track.first_ns), 'source': track.source,
-                'rows': [{'mean': m.tolist(), 'covariance': P.tolist(),
-                          'covariance_dependent': P_dep.tolist(), 'source': source,
-                          'stamp_ns': int(stamp)}
-                         for m, P, P_dep, source, stamp in track.rows]}
-                for landmark_id, track in sorted(self.tentative.items())],
-            'owned': sorted(int(i) for i in self.owned),
-            'sightings': sorted([int(a), int(n)] for a, n in self.sightings.items()),
-            'together': sorted([int(a), int(b), int(k)] for a, partners in self.together.items()
-                               for b, k in partners.items() if a < b),
-            'merged_into': sorted([int(a), int(b)] for a, b in self.merged_into.items()),
-            'now_ns': None if self.now_ns is None else int(self.now_ns)}
+        """Return what a restart needs to resume the tracks (``track_file.tracks_to_dict``)."""
+        return track_file.tracks_to_dict(self)
 
     def restore(self, document: Optional[Dict[str, Any]], landmark_map: LandmarkMap) -> int:
         """
@@ -486,46 +418,9 @@ class Tracker:
         """
         if document is None:
             return 0
-        try:
-            def ident(value):
-                if isinstance(value, bool) or not isinstance(value, int) or not (
-                        0 <= value <= MAX_LABEL_ID):
-                    raise ValueError(f'{value!r} is not a landmark ID')
-                return value
-
-            def count(value):
-                if isinstance(value, bool) or not isinstance(value, int) or value < 0:
-                    raise ValueError(f'{value!r} is not a count')
-                return value
-            owned = {ident(i) for i in document.get('owned', [])}
-            sightings = {ident(a): count(n) for a, n in document.get('sightings', [])}
-            together: Dict[int, Dict[int, int]] = {}
-            for entry in document.get('together', []):
-                # [a, b, messages]; an older file's [a, b] counts once.
-                a, b, k = (*entry, 1) if len(entry) == 2 else entry
-                a, b, k = ident(a), ident(b), count(k)
-                together.setdefault(a, {})[b] = together.setdefault(b, {})[a] = k
-            merged = {ident(a): ident(b) for a, b in document.get('merged_into', [])}
-            now_ns = document.get('now_ns')
-            if now_ns is not None and (isinstance(now_ns, bool) or not isinstance(now_ns, int)):
-                raise ValueError(f'now_ns {now_ns!r} is not an integer')
-            tracks, rows = {}, []
-            for entry in document.get('tentative', []):
-                landmark_id = ident(entry['id'])
-                track_rows = [(np.array(r['mean'], np.float64).reshape(2),
-                               np.array(r['covariance'], np.float64).reshape(2, 2),
-                               np.array(r['covariance_dependent'], np.float64).reshape(2, 2),
-                               str(r['source']), int(r['stamp_ns'])) for r in entry['rows']]
-                if not track_rows:
-                    raise ValueError(f'tentative track {landmark_id} has no row')
-                last = track_rows[-1]
-                tracks[landmark_id] = _Track(last[0], last[1], int(entry['class']),
-                                             int(entry['first_stamp_ns']),
-                                             str(entry['source']), track_rows)
-                rows += [(landmark_id, *row) for row in track_rows]
-        except (KeyError, TypeError, ValueError) as error:
-            raise ValueError(f'tracks section: {error}') from error
-        rows = self._checked_rows(tracks, rows)
+        owned, sightings, together, merged, now_ns, tracks, rows = track_file.parse_tracks(
+            document)
+        rows, self.rejected_tracks = track_file.checked_rows(tracks, rows)
         rows.sort(key=lambda row: row[5])
         if rows:
             landmark_map.update(np.array([r[0] for r in rows], np.int64),
@@ -540,30 +435,6 @@ class Tracker:
                 self.classes[landmark_id] = track.landmark_class
         self.dirty = True
         return len(tracks)
-
-    def _checked_rows(self, tracks: Dict[int, Any], rows: List[Any]) -> List[Any]:
-        """
-        Drop the tentative tracks with a row the live row checks refuse; return the rest.
-
-        The rows of a track go through ``rows.landmark_row_problems``, the check of live
-        landmark rows; each track dropped is listed in ``rejected_tracks`` as
-        ``(track ID, reasons)``.
-        """
-        self.rejected_tracks = []
-        if not rows:
-            return rows
-        valid, _ = landmark_row_problems(
-            np.array([r[0] for r in rows], np.int64), np.array([r[1] for r in rows]),
-            np.array([r[2] for r in rows]), np.array([r[3] for r in rows]))
-        bad = sorted({rows[k][0] for k in np.flatnonzero(~valid)})
-        for landmark_id in bad:
-            mine = [r for r in rows if r[0] == landmark_id]
-            _, reasons = landmark_row_problems(
-                np.array([r[0] for r in mine], np.int64), np.array([r[1] for r in mine]),
-                np.array([r[2] for r in mine]), np.array([r[3] for r in mine]))
-            self.rejected_tracks.append((landmark_id, sorted(reasons)))
-            del tracks[landmark_id]
-        return [r for r in rows if r[0] not in bad]
 
     def resolve(self, landmark_id: int) -> int:
         """Return the ID a landmark ended up as, following merges."""

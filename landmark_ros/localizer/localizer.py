@@ -44,7 +44,7 @@ after ``lost_after_s`` without an accepted row; else ``ok``.
 
 import bisect
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 import math
 from typing import Any, Callable, List, Optional
 
@@ -494,8 +494,9 @@ class Localizer:
         try:
             shared = 1.0 if batch.shared is None else batch.shared[:, None, None]
             R = batch.R * (self._white + self._correlated * shared)
-            result = update(x, P, batch.m, batch.P_m, batch.z, R, batch.kind, self.settings,
-                            batch.correlation)
+            settings = self.settings if not batch.correlation else replace(
+                self.settings, correlation=batch.correlation)
+            result = update(x, P, batch.m, batch.P_m, batch.z, R, batch.kind, settings)
         except ValueError as error:
             self.counters.add('update_failed', len(batch.z), detail=str(error))
             return x, P

@@ -54,7 +54,6 @@ iterate with the same ``P1``, ``P2``.
 
 from dataclasses import dataclass
 import math
-from typing import Optional
 
 from landmark_ros.core import sensors
 import numpy as np
@@ -201,8 +200,7 @@ def split_ci_weight(P: NDArray[np.float64], H: NDArray[np.float64], R_s: NDArray
 
 def update(x: NDArray[np.float64], P: NDArray[np.float64], m: NDArray[np.float64],
            P_m: NDArray[np.float64], z: NDArray[np.float64], R: NDArray[np.float64],
-           kind: NDArray[np.int64], settings: UpdateSettings,
-           correlation: Optional[str] = None) -> UpdateResult:
+           kind: NDArray[np.int64], settings: UpdateSettings) -> UpdateResult:
     """
     Update the pose from N landmark sightings: gate each row, then one (iterated) update.
 
@@ -224,9 +222,9 @@ def update(x: NDArray[np.float64], P: NDArray[np.float64], m: NDArray[np.float64
     kind : ndarray of int, shape (N,)
         ``RANGE_BEARING``, ``RANGE`` or ``BEARING`` per row.
     settings : UpdateSettings
-        Gates, correlation and iteration (``LocalizerConfig``).
-    correlation : str, optional
-        Overrides ``settings.correlation``.
+        Gates, correlation and iteration (``LocalizerConfig``); a caller that wants
+        another correlation for some rows passes ``dataclasses.replace(settings,
+        correlation=...)``.
 
     Returns
     -------
@@ -238,7 +236,6 @@ def update(x: NDArray[np.float64], P: NDArray[np.float64], m: NDArray[np.float64
         If a landmark is closer than ``sensors.MIN_RANGE`` to the pose.
 
     """
-    correlation = correlation or settings.correlation
     z = np.where(np.isfinite(z), z, 0.0)
     d2, passed = _row_gate(x, P, m, P_m, z, R, kind, settings)
     used = passed.copy()
@@ -253,7 +250,7 @@ def update(x: NDArray[np.float64], P: NDArray[np.float64], m: NDArray[np.float64
     z_s = z[rows_g, comps]
     h0, H0 = _stack(x, m, rows_g, comps)
     w = 1.0
-    if correlation == 'split_ci' and np.any(M_s):
+    if settings.correlation == 'split_ci' and np.any(M_s):
         w = split_ci_weight(P, H0, R_s, M_s)
     P1, P2 = P / w, R_s + (M_s / (1.0 - w) if w < 1.0 else M_s)
     x_i, h_i, H_i, iterations = x, h0, H0, 0

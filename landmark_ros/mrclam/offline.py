@@ -25,6 +25,7 @@ from typing import Dict, Iterator, List, Sequence, Tuple
 
 from landmark_ros.eval.metrics import evaluate_association
 from landmark_ros.fuser.fuser import Fuser
+from landmark_ros.fuser.sources import LandmarkMessage
 from landmark_ros.fuser.tracks import ASSOCIATION_COUNTERS
 from landmark_ros.mrclam.report import method_result, MethodResult
 from landmark_ros.observer.observer import (LandmarkBatch, NOT_PROBLEMS, ObservationMessage,
@@ -173,9 +174,9 @@ def run_offline(dataset, config, methods, chunk=FUSE_CHUNK, sensor='rb',
         source = rows.topics[robot]
         for method, fuser in fusers.items():
             if len(batch.ids) or sensor == 'rb':
-                added = fuser.add_landmarks(source, batch.stamp_ns, batch.ids, batch.m,
-                                            batch.P, batch.P_dep, classes=batch.classes,
-                                            scan=batch.scan)
+                added = fuser.add_landmarks(source, LandmarkMessage(
+                    batch.stamp_ns, batch.ids, batch.m, batch.P, batch.P_dep,
+                    classes=batch.classes, scan=batch.scan))
                 if hide_ids and added:
                     a, b = batch.token
                     whole = added == b - a

@@ -56,7 +56,7 @@ class MapOutputs:
         if not fuser.map_changed:
             return
         ids, m, P, P_dep, observations = fuser.snapshot()
-        self.map_pub.publish(schemas.landmark_message(
+        self.map_pub.publish(schemas.fused_landmark_message(
             self._header(fuser), ids, m, P, P_dep, observations,
             classes=fuser.classes_of(ids)))
 
@@ -78,7 +78,7 @@ class MapOutputs:
             ids, m, P, P_dep, observations = (np.concatenate([a, b]) for a, b in zip(
                 (ids, m, P, P_dep, observations), gone))
         if len(ids):
-            self.updates_pub.publish(schemas.landmark_message(
+            self.updates_pub.publish(schemas.fused_landmark_message(
                 header, ids, m, P, P_dep, observations, classes=classes,
                 merged_into=merged_into))
         if merged_into is not None:
@@ -113,7 +113,7 @@ class MapOutputs:
     def clear(self, fuser):
         """Publish an empty map and delete every marker (after a reset)."""
         header = self._header(fuser)
-        self.map_pub.publish(schemas.landmark_message(
-            header, [], np.empty((0, 2)), np.empty((0, 2, 2)), observations=[]))
+        self.map_pub.publish(schemas.fused_landmark_message(
+            header, [], np.empty((0, 2)), np.empty((0, 2, 2)), None, []))
         self.marker_pub.publish(markers.delete_all(header))
         self.markers_stale = True

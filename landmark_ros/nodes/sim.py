@@ -204,9 +204,8 @@ class LandmarkSim(Node):
         count = len(world.ids)
         stamp_ns = (self._start_ns + self._sim_ns) if self.started else self._created_ns
         header = Header(stamp=Time(nanoseconds=stamp_ns).to_msg(), frame_id=self.config.frame)
-        self.truth_pub.publish(schemas.landmark_message(
-            header, world.ids, world.positions, np.zeros((count, 2, 2)),
-            observations=self.counts))
+        self.truth_pub.publish(schemas.fused_landmark_message(
+            header, world.ids, world.positions, np.zeros((count, 2, 2)), None, self.counts))
         self._truth_dirty = False
         self._last_truth_ns = self.get_clock().now().nanoseconds
 

@@ -17,7 +17,7 @@ from typing import Any, Callable, Deque, Dict, List, Optional, Sequence, Tuple
 
 from landmark_ros.core.covariance import COVARIANCE_PROBLEMS, covariance_status
 from landmark_ros.observer.partial import (CorrelatedNoise, partial_observations_from_rows,
-                                           split_partial)
+                                           SensorMount, split_partial)
 from landmark_ros.observer.rows import landmarks_from_rows, observation_noise
 from landmark_ros.pipeline import limits, pose_buffer
 from landmark_ros.pipeline.config import ObserverConfig
@@ -454,8 +454,9 @@ class Observer:
             if partial.any():
                 rows = {name: np.asarray(values)[partial] for name, values in columns.items()}
                 found, reasons = partial_observations_from_rows(
-                    rows, self.noise(rows), pose, P_pose, self._sensor_pose, self._R_bias,
-                    self._view_group, item.stamp_ns, self._correlated)
+                    rows, self.noise(rows), pose, P_pose,
+                    SensorMount(self._sensor_pose, self._R_bias), self._view_group,
+                    item.stamp_ns, self._correlated)
                 self.counters.add('partial_rows', int(partial.sum()))
                 for reason, count in reasons.items():
                     self.counters.add(reason, count, f'{count} of {int(partial.sum())} '

@@ -9,6 +9,7 @@ integer nanoseconds.
 """
 
 from collections import Counter
+from dataclasses import dataclass
 from typing import Any, Dict, Optional, Tuple
 
 from landmark_ros.core.partial import BEARING, RANGE, views_from_robot
@@ -131,11 +132,19 @@ class CorrelatedNoise:
         return (1.0 - f) + f * coth
 
 
+@dataclass(frozen=True)
+class SensorMount:
+    """Where the sensor sits on the robot and how biased it is (from ``ObserverConfig``)."""
+
+    sensor_pose: Optional[NDArray[np.float64]] = None
+    """Sensor pose in the robot frame, shape (3,); None means the robot origin."""
+    R_bias: Optional[NDArray[np.float64]] = None
+    """Covariance of the sensor bias, shape (2, 2); None means no bias."""
+
+
 def partial_observations_from_rows(columns: Dict[str, NDArray[Any]], R: NDArray[np.float64],
                                    pose: NDArray[np.float64], P_pose: NDArray[np.float64],
-                                   sensor_pose: Optional[NDArray[np.float64]],
-                                   R_bias: Optional[NDArray[np.float64]],
-                                   view_group: int, stamp_ns: int = 0,
+                                   mount: SensorMount, view_group: int, stamp_ns: int = 0,
                                    correlated: Optional[CorrelatedNoise] = None
                                    ) -> Tuple[PartialObservations, Counter[str]]:
     """
@@ -152,10 +161,9 @@ def partial_observations_from_rows(columns: Dict[str, NDArray[Any]], R: NDArray[
         Robot pose in the world.
     P_pose : ndarray, shape (3, 3)
         Its covariance.
-    sensor_pose : ndarray, shape (3,), optional
-        Sensor pose in the robot frame; None means the robot origin.
-    R_bias : ndarray, shape (2, 2), optional
-        Covariance of the sensor bias; its diagonal gives ``R_bias`` of the views.
+    mount : SensorMount
+        Sensor pose in the robot frame and covariance of the sensor bias (its diagonal
+        gives ``R_bias`` of the views).
     view_group : int
         In [0, 2^32 - 1]: the number every view of this pose gets.
     stamp_ns : int
@@ -176,6 +184,7 @@ def partial_observations_from_rows(columns: Dict[str, NDArray[Any]], R: NDArray[
     r = np.asarray(columns['range'], dtype=np.float64)
     b = np.asarray(columns['bearing'], dtype=np.float64)
     count = len(ids)
+    sensor_pose, R_bias = mount.sensor_pose, mount.R_bias
     kind = np.where(np.isnan(r), BEARING, RANGE)
     y = np.where(kind == RANGE, r, b)
     R = np.broadcast_to(R, (count, 2, 2))

@@ -213,10 +213,9 @@ def observation_message(header, ids, z, R=None):
     return writer.message(header, rows)
 
 
-def landmark_message(header, ids, m, P_m, P_dep=None, observations=None, out=None,
-                     classes=None, scan=None, merged_into=None):
+def landmark_message(header, ids, m, P_m, P_dep=None, out=None, classes=None, scan=None):
     """
-    Return a ``landmarks`` cloud, or a ``fused_landmarks`` one with ``observations``.
+    Return a ``landmarks`` cloud (the fused schema is ``fused_landmark_message``).
 
     Parameters
     ----------
@@ -230,47 +229,26 @@ def landmark_message(header, ids, m, P_m, P_dep=None, observations=None, out=Non
         Total covariances [m^2].
     P_dep : array_like, shape (N, 2, 2), optional
         Their dependent parts; zero when not given.
-    observations : array_like of int, shape (N,), optional
-        Observations fused per landmark; given, the cloud has the fused schema.
     out : sensor_msgs.msg.PointCloud2, optional
         A message to fill instead of a new one.
     classes : array_like of int, shape (N,), optional
-        Landmark classes; given (or with ``observations``), the cloud has ``class``.
-    scan : landmark_ros.fuser.tracks.Scan, optional
+        Landmark classes; given, the cloud has ``class``.
+    scan : landmark_ros.pipeline.scan.Scan, optional
         Robot pose terms of the message, written to every row (``SCAN_FIELDS``, and
-        ``BIAS_FIELDS`` when it has a bias); not with ``observations``.
-    merged_into : array_like of int, shape (N,), optional
-        With ``observations``: per row the landmark a removed landmark went into,
-        ``NOT_MERGED`` for the others (``fused_landmark_updates``).
+        ``BIAS_FIELDS`` when it has a bias).
 
     Returns
     -------
     sensor_msgs.msg.PointCloud2
 
     """
-    m = np.asarray(m, dtype=np.float64).reshape(-1, 2)
-    P_m = np.asarray(P_m, dtype=np.float64).reshape(-1, 2, 2)
-    if observations is not None:
-        writer = FUSED_WRITER if merged_into is None else _REMOVED_WRITER
-    elif scan is not None:
+    if scan is not None:
         writer = _SCAN_WRITER if scan.R_bias is None else _BIAS_WRITER
     else:
         writer = LANDMARK_WRITER if classes is None else _CLASS_WRITER
-    rows = writer.rows(len(m))
-    rows['id'] = np.asarray(ids).reshape(-1)
-    rows['x'], rows['y'] = m[:, 0], m[:, 1]           # rounded to float32
-    rows['mean_x'], rows['mean_y'] = m[:, 0], m[:, 1]
-    rows['cov_xx'], rows['cov_xy'], rows['cov_yy'] = P_m[:, 0, 0], P_m[:, 0, 1], P_m[:, 1, 1]
-    if P_dep is not None:
-        P_dep = np.asarray(P_dep, dtype=np.float64).reshape(-1, 2, 2)
-        rows['cov_dep_xx'], rows['cov_dep_xy'] = P_dep[:, 0, 0], P_dep[:, 0, 1]
-        rows['cov_dep_yy'] = P_dep[:, 1, 1]
-    if observations is not None:
-        rows['observations'] = np.asarray(observations).reshape(-1)
+    rows = _landmark_rows(writer, ids, m, P_m, P_dep)
     if classes is not None:
         rows['class'] = np.asarray(classes).reshape(-1)
-    if merged_into is not None and observations is not None:
-        rows['merged_into'] = np.asarray(merged_into).reshape(-1)
     if scan is not None:
         rows['robot_x'], rows['robot_y'] = scan.robot_xy
         P = scan.P_pose
@@ -281,6 +259,62 @@ def landmark_message(header, ids, m, P_m, P_dep=None, observations=None, out=Non
             rows['bias_cov_bb'] = scan.R_bias[1, 1]
             rows['sensor_x'], rows['sensor_y'] = scan.sensor_xy
     return writer.message(header, rows, out)
+
+
+def fused_landmark_message(header, ids, m, P_m, P_dep, observations, classes=None,
+                           merged_into=None):
+    """
+    Return a ``fused_landmarks`` cloud, or a ``fused_landmark_updates`` one.
+
+    Parameters
+    ----------
+    header : std_msgs.msg.Header
+        Stamp and world frame.
+    ids : array_like of int, shape (N,)
+        Landmark IDs.
+    m : array_like, shape (N, 2)
+        Positions [m].
+    P_m : array_like, shape (N, 2, 2)
+        Total covariances [m^2].
+    P_dep : array_like, shape (N, 2, 2), or None
+        Their dependent parts; None writes zeros.
+    observations : array_like of int, shape (N,)
+        Observations fused per landmark.
+    classes : array_like of int, shape (N,), optional
+        Landmark classes (0 when not given).
+    merged_into : array_like of int, shape (N,), optional
+        Per row the landmark a removed landmark went into, ``NOT_MERGED`` for the
+        others; given, the cloud has ``merged_into`` (``fused_landmark_updates``).
+
+    Returns
+    -------
+    sensor_msgs.msg.PointCloud2
+
+    """
+    writer = FUSED_WRITER if merged_into is None else _REMOVED_WRITER
+    rows = _landmark_rows(writer, ids, m, P_m, P_dep)
+    rows['observations'] = np.asarray(observations).reshape(-1)
+    if classes is not None:
+        rows['class'] = np.asarray(classes).reshape(-1)
+    if merged_into is not None:
+        rows['merged_into'] = np.asarray(merged_into).reshape(-1)
+    return writer.message(header, rows)
+
+
+def _landmark_rows(writer, ids, m, P_m, P_dep):
+    """Return the rows of ``writer`` with the IDs, positions and covariances filled."""
+    m = np.asarray(m, dtype=np.float64).reshape(-1, 2)
+    P_m = np.asarray(P_m, dtype=np.float64).reshape(-1, 2, 2)
+    rows = writer.rows(len(m))
+    rows['id'] = np.asarray(ids).reshape(-1)
+    rows['x'], rows['y'] = m[:, 0], m[:, 1]           # rounded to float32
+    rows['mean_x'], rows['mean_y'] = m[:, 0], m[:, 1]
+    rows['cov_xx'], rows['cov_xy'], rows['cov_yy'] = P_m[:, 0, 0], P_m[:, 0, 1], P_m[:, 1, 1]
+    if P_dep is not None:
+        P_dep = np.asarray(P_dep, dtype=np.float64).reshape(-1, 2, 2)
+        rows['cov_dep_xx'], rows['cov_dep_xy'] = P_dep[:, 0, 0], P_dep[:, 0, 1]
+        rows['cov_dep_yy'] = P_dep[:, 1, 1]
+    return rows
 
 
 def read_removed(msg):

@@ -39,7 +39,7 @@ def test_queued_messages_fuse_as_the_map_would(fusion, rng):
     for k in range(6):
         source = SOURCES[k % 2]
         ids, m, P, P_dep = rows(5, rng)
-        assert fuser.add_landmarks(source, (k + 1) * S, ids, m, P, P_dep) == 5
+        assert fuser.add_landmarks(source, LandmarkMessage((k + 1) * S, ids, m, P, P_dep)) == 5
         reference.update(ids, m, P, P_dep, source, (k + 1) * S)
     result = fuser.fuse_queued()
     assert result.changed and fuser.map_changed and fuser.unsaved
@@ -56,7 +56,7 @@ def test_bad_rows_are_counted_per_source_and_good_rows_kept(rng):
     m[1, 0] = np.nan
     P[2] = -P[2]
     ids[3] = -1
-    assert fuser.add_landmarks(SOURCES[0], S, ids, m, P, P_dep) == 1
+    assert fuser.add_landmarks(SOURCES[0], LandmarkMessage(S, ids, m, P, P_dep)) == 1
     assert fuser.sources[SOURCES[0]].counts['landmark_nonfinite'] == 1
     assert problems(fuser) == {'landmark_nonfinite': 1, 'covariance_not_psd': 1,
                                'invalid_id': 1}
@@ -64,9 +64,9 @@ def test_bad_rows_are_counted_per_source_and_good_rows_kept(rng):
 
 def test_wrong_frame_and_queue_overflow(rng):
     fuser = Fuser(FuserConfig(max_queue_messages=2), SOURCES)
-    assert fuser.add_landmarks(SOURCES[0], S, *rows(3, rng), frame_id='odom') == 0
+    assert fuser.add_landmarks(SOURCES[0], LandmarkMessage(S, *rows(3, rng), frame_id='odom')) == 0
     for k in range(3):
-        fuser.add_landmarks(SOURCES[1], S + k, *rows(3, rng), frame_id='map')
+        fuser.add_landmarks(SOURCES[1], LandmarkMessage(S + k, *rows(3, rng), frame_id='map'))
     assert fuser.queued_messages() == 2
     assert problems(fuser) == {'wrong_frame': 1, 'queue_overflow': 3}
 
@@ -93,9 +93,7 @@ def test_a_burst_is_queued_as_its_messages_one_by_one(depth, rng):
     # and the fused map must be those of add_landmarks called message by message.
     messages = burst(rng)
     one, many = (Fuser(FuserConfig(max_queue_messages=depth), SOURCES) for _ in range(2))
-    queued = sum(one.add_landmarks(SOURCES[0], message.stamp_ns, message.ids, message.m,
-                                   message.P, message.P_dep, message.frame_id, 7,
-                                   message.classes) for message in messages)
+    queued = sum(one.add_landmarks(SOURCES[0], message, 7) for message in messages)
     assert many.add_landmark_messages(SOURCES[0], messages, 7) == queued
     assert queued == 4 + 2 + 4 + 4
     assert many.queued_messages() == min(depth, 4)
@@ -152,21 +150,21 @@ def test_bursts_of_several_sources_are_queued_as_each_source_alone(shards, rng):
 
 def test_statuses_name_stale_sources_and_new_problems(rng):
     fuser = Fuser(FuserConfig(source_timeout_s=1.0), SOURCES)
-    fuser.add_landmarks(SOURCES[0], S, *rows(2, rng), now_ns=10 * S)
+    fuser.add_landmarks(SOURCES[0], LandmarkMessage(S, *rows(2, rng)), now_ns=10 * S)
     first, one, two = fuser.statuses(10 * S + S // 2)
     assert (one.name, one.level, two.name, two.level) == (SOURCES[0], 'ok', SOURCES[1], 'warn')
     assert first.level == 'warn' and f'stale: {SOURCES[1]}' in first.message
-    fuser.add_landmarks(SOURCES[1], S, *rows(2, rng), now_ns=10 * S)
+    fuser.add_landmarks(SOURCES[1], LandmarkMessage(S, *rows(2, rng)), now_ns=10 * S)
     first, _, _ = fuser.statuses(10 * S + S // 2)
     assert first.level == 'ok' and first.extra['fusion'] == 'split_covariance_intersection'
 
 
 def test_reset_clears_map_and_queues(rng):
     fuser = Fuser(FuserConfig(), SOURCES)
-    fuser.add_landmarks(SOURCES[0], S, *rows(3, rng))
-    fuser.add_landmarks(SOURCES[0], S, *rows(3, rng))
+    fuser.add_landmarks(SOURCES[0], LandmarkMessage(S, *rows(3, rng)))
+    fuser.add_landmarks(SOURCES[0], LandmarkMessage(S, *rows(3, rng)))
     fuser.fuse_queued()
-    fuser.add_landmarks(SOURCES[1], S, *rows(3, rng))
+    fuser.add_landmarks(SOURCES[1], LandmarkMessage(S, *rows(3, rng)))
     assert fuser.reset() == 3 and len(fuser.map) == 0 and fuser.queued_messages() == 0
 
 
@@ -174,7 +172,7 @@ def test_save_and_load_round_trip(tmp_path, rng):
     path = str(tmp_path / 'map.json')
     fuser = Fuser(FuserConfig(map_file=path), SOURCES)
     for _ in range(3):
-        fuser.add_landmarks(SOURCES[0], S, *rows(4, rng))
+        fuser.add_landmarks(SOURCES[0], LandmarkMessage(S, *rows(4, rng)))
     fuser.fuse_queued()
     assert fuser.save() and not fuser.unsaved
     again = Fuser(FuserConfig(map_file=path), SOURCES)
@@ -188,7 +186,7 @@ def saved_map(tmp_path, rng):
     path = str(tmp_path / 'map.json')
     fuser = Fuser(FuserConfig(map_file=path), SOURCES)
     for _ in range(2):
-        fuser.add_landmarks(SOURCES[0], S, *rows(3, rng))
+        fuser.add_landmarks(SOURCES[0], LandmarkMessage(S, *rows(3, rng)))
     fuser.fuse_queued()
     assert fuser.save()
     with open(path) as stream:
@@ -246,7 +244,8 @@ def test_a_labelled_row_in_the_reserved_range_never_takes_an_allocated_id(tmp_pa
     fuser = Fuser(FuserConfig(map_file=path), SOURCES)
     first = FuserConfig().first_new_id
     _, m, P, P_dep = rows(3, rng)
-    fuser.add_landmarks(SOURCES[0], S, np.array([1, first, first + 1]), m, P, P_dep)
+    fuser.add_landmarks(SOURCES[0], LandmarkMessage(
+        S, np.array([1, first, first + 1]), m, P, P_dep))
     fuser.fuse_queued()
     assert fuser.counters['id_reserved'] == 2
     assert fuser.sources[SOURCES[0]].counts['id_reserved'] == 2
@@ -257,7 +256,7 @@ def test_a_labelled_row_in_the_reserved_range_never_takes_an_allocated_id(tmp_pa
     again.load()
     assert again.reserved_from == first
     _, m, P, P_dep = rows(1, rng)
-    again.add_landmarks(SOURCES[1], S, np.array([first + 1]), m, P, P_dep)
+    again.add_landmarks(SOURCES[1], LandmarkMessage(S, np.array([first + 1]), m, P, P_dep))
     assert again.counters['id_reserved'] == 1
 
 
@@ -272,8 +271,8 @@ def test_check_records_takes_exactly_the_live_row_checks(tmp_path, rng):
 def test_save_never_writes_a_non_finite_number(tmp_path, rng):
     path = tmp_path / 'map.json'
     fuser = Fuser(FuserConfig(map_file=str(path)), SOURCES)
-    fuser.add_landmarks(SOURCES[0], S, *rows(3, rng))
-    fuser.add_landmarks(SOURCES[0], S, *rows(3, rng))
+    fuser.add_landmarks(SOURCES[0], LandmarkMessage(S, *rows(3, rng)))
+    fuser.add_landmarks(SOURCES[0], LandmarkMessage(S, *rows(3, rng)))
     fuser.fuse_queued()
     assert fuser.save()
     before = path.read_text()
@@ -300,11 +299,11 @@ def test_duplicate_sources_are_refused():
 def test_take_updates_returns_only_the_landmarks_changed_since_last_time(rng):
     fuser = Fuser(FuserConfig(fusion='independent'), SOURCES)
     for _ in range(2):
-        fuser.add_landmarks(SOURCES[0], S, *rows(6, rng))
+        fuser.add_landmarks(SOURCES[0], LandmarkMessage(S, *rows(6, rng)))
     fuser.fuse_queued()
     assert fuser.take_updates().ids.tolist() == list(range(6))
     assert fuser.take_updates().ids.tolist() == []
-    fuser.add_landmarks(SOURCES[1], 2 * S, *rows(2, rng, ids=[4, 1]))
+    fuser.add_landmarks(SOURCES[1], LandmarkMessage(2 * S, *rows(2, rng, ids=[4, 1])))
     fuser.fuse_queued()
     updates = fuser.take_updates()
     full = fuser.snapshot()
@@ -321,7 +320,7 @@ def test_two_shards_together_give_the_map_of_one_fuser(fusion, rng):
     for k in range(8):
         batch = rows(9, rng, spread=0.1)
         for fuser in [one] + shards:
-            fuser.add_landmarks(SOURCES[k % 2], (k + 1) * S, *batch)
+            fuser.add_landmarks(SOURCES[k % 2], LandmarkMessage((k + 1) * S, *batch))
         if k % 3 == 2:
             for fuser in [one] + shards:
                 fuser.fuse_queued()

@@ -7,6 +7,7 @@ from landmark_ros.core.gating import chi2_threshold
 from landmark_ros.core.landmarks import sensor_in_world
 from landmark_ros.core.partial import BEARING, RANGE, Views
 from landmark_ros.fuser.fuser import Fuser
+from landmark_ros.fuser.sources import LandmarkMessage
 from landmark_ros.fusion.landmark_map import LandmarkMap
 from landmark_ros.observer.observer import ObservationMessage, Observer
 from landmark_ros.observer.partial import CorrelatedNoise
@@ -176,8 +177,8 @@ def test_a_mixed_landmark(fusion, rng):
     before = f.snapshot()
     # A range-bearing landmark row of another robot fuses through the map.
     R = np.diag([1e-4, 1e-4])
-    f.add_landmarks(LANDMARKS[1], 3 * S, [9], (m + [0.005, -0.005])[None], R[None],
-                    0.5 * R[None])
+    f.add_landmarks(LANDMARKS[1], LandmarkMessage(3 * S, [9], (m + [0.005, -0.005])[None], R[None],
+                    0.5 * R[None]))
     f.fuse_queued()
     after = f.snapshot()
     assert after.observations[0] == before.observations[0] + 1
@@ -196,7 +197,8 @@ def test_a_mixed_landmark(fusion, rng):
 def test_views_update_a_landmark_range_bearing_rows_confirmed():
     f = fuser(min_observations=1)
     R = np.diag([0.04, 0.04])
-    f.add_landmarks(LANDMARKS[0], S, [5], np.array([[1.0, 1.0]]), R[None], 0.0 * R[None])
+    f.add_landmarks(LANDMARKS[0], LandmarkMessage(
+        S, [5], np.array([[1.0, 1.0]]), R[None], 0.0 * R[None]))
     s = np.array([1.0, -2.0, 0.0])
     f.add_partial_observations(VIEWS[1], 2 * S, columns(5, BEARING, bearing_to(s, [1.0, 1.0]), s))
     f.fuse_queued()     # the views go first: the landmark is not yet there, the view waits
@@ -447,8 +449,8 @@ def test_waiting_partial_observations_survive_a_restart(tmp_path):
 def test_a_bad_waiting_partial_observation_is_quarantined_and_the_map_kept(tmp_path, field, value):
     path = str(tmp_path / 'map.json')
     f = fuser(map_file=path)
-    f.add_landmarks(LANDMARKS[0], S, np.array([1]), np.array([[1.0, 2.0]]),
-                    np.eye(2)[None] * 0.01, np.zeros((1, 2, 2)))
+    f.add_landmarks(LANDMARKS[0], LandmarkMessage(S, np.array([1]), np.array([[1.0, 2.0]]),
+                    np.eye(2)[None] * 0.01, np.zeros((1, 2, 2))))
     f.add_partial_observations(VIEWS[0], S, columns(7, BEARING, 0.3, [0.0, 0.0, 0.0]))
     f.fuse_queued()
     assert f.save()

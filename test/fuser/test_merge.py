@@ -4,6 +4,7 @@ from collections import Counter
 import json
 
 from landmark_ros.fuser.fuser import Fuser
+from landmark_ros.fuser.sources import LandmarkMessage
 from landmark_ros.fuser.tracks import together_log_likelihood_ratio
 from landmark_ros.pipeline.config import FuserConfig
 from landmark_ros.pipeline.rows import UNKNOWN_ID
@@ -96,8 +97,8 @@ def _duplicate_run(config):
     for k, message in enumerate(rows):
         m = np.array(message)
         P = np.broadcast_to(R, (len(m), 2, 2)).copy()
-        fuser.add_landmarks(SOURCE, (k + 1) * S, [UNKNOWN_ID] * len(m), m, P, 0.2 * P,
-                            scan=CERTAIN)
+        fuser.add_landmarks(SOURCE, LandmarkMessage(
+            (k + 1) * S, [UNKNOWN_ID] * len(m), m, P, 0.2 * P, scan=CERTAIN))
         fuser.fuse_queued()
     return fuser, fuser.sources[SOURCE].counts
 
@@ -128,8 +129,8 @@ def test_an_mrclam_like_close_pair_is_never_merged(rng):
             continue
         m = truth[seen] + rng.normal(0.0, 0.08, (len(seen), 2))
         P = np.broadcast_to(R, (len(m), 2, 2)).copy()
-        fuser.add_landmarks(SOURCE, (k + 1) * S, [UNKNOWN_ID] * len(m), m, P, 0.2 * P,
-                            scan=CERTAIN)
+        fuser.add_landmarks(SOURCE, LandmarkMessage(
+            (k + 1) * S, [UNKNOWN_ID] * len(m), m, P, 0.2 * P, scan=CERTAIN))
         fuser.fuse_queued()
     counts = fuser.sources[SOURCE].counts
     ids, m = fuser.snapshot()[:2]
@@ -177,13 +178,13 @@ def test_counts_follow_merges_and_deletions_and_survive_a_restart(tmp_path):
 def test_a_deleted_tentative_track_takes_its_counts_along():
     fuser = Fuser(FuserConfig(tentative_timeout_s=1.0), [SOURCE])
     R = np.broadcast_to(0.01 * np.eye(2), (2, 2, 2)).copy()
-    fuser.add_landmarks(SOURCE, S, [UNKNOWN_ID] * 2, np.array([[0.0, 0.0], [9.0, 0.0]]), R,
-                        0 * R, scan=CERTAIN)
+    fuser.add_landmarks(SOURCE, LandmarkMessage(
+        S, [UNKNOWN_ID] * 2, np.array([[0.0, 0.0], [9.0, 0.0]]), R, 0 * R, scan=CERTAIN))
     fuser.fuse_queued()
     a, b = sorted(fuser.tracker.tentative)
     assert fuser.tracker.sightings == {a: 1, b: 1} and fuser.tracker.together[a] == {b: 1}
-    fuser.add_landmarks(SOURCE, 3 * S, [UNKNOWN_ID], np.array([[20.0, 0.0]]), R[:1], 0 * R[:1],
-                        scan=CERTAIN)
+    fuser.add_landmarks(SOURCE, LandmarkMessage(
+        3 * S, [UNKNOWN_ID], np.array([[20.0, 0.0]]), R[:1], 0 * R[:1], scan=CERTAIN))
     fuser.fuse_queued()
     counts = fuser.sources[SOURCE].counts
     assert counts['deleted'] == 2 and a not in fuser.tracker.owned

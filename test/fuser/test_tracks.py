@@ -4,6 +4,7 @@ from collections import Counter
 import json
 
 from landmark_ros.fuser.fuser import Fuser
+from landmark_ros.fuser.sources import LandmarkMessage
 from landmark_ros.observer.observer import ObservationMessage, Observer
 from landmark_ros.pipeline.config import FuserConfig, ObserverConfig
 from landmark_ros.pipeline.rows import UNKNOWN_ID
@@ -37,8 +38,8 @@ def observe(observer, stamp_ns, pose, P_pose, z, ids=None, classes=None):
 
 def feed(fuser, source, batch):
     """Queue an observer's batch in the fuser, as the nodes do."""
-    return fuser.add_landmarks(source, batch.stamp_ns, batch.ids, batch.m, batch.P,
-                               batch.P_dep, classes=batch.classes, scan=batch.scan)
+    return fuser.add_landmarks(source, LandmarkMessage(batch.stamp_ns, batch.ids, batch.m, batch.P,
+                               batch.P_dep, classes=batch.classes, scan=batch.scan))
 
 
 @pytest.mark.parametrize('ids', [None, [UNKNOWN_ID]])
@@ -92,8 +93,8 @@ def test_two_landmarks_three_sigma_apart_stay_two(rng):
     for k in range(40):
         m, R, R_dep, scan = scan_rows(truth, (0.0, -4.0), np.diag([1e-6, 1e-6, 1e-8]),
                                       sigma ** 2 * np.eye(2), rng)
-        fuser.add_landmarks(SOURCES[0], (k + 1) * S, np.full(2, UNKNOWN_ID), m, R, R_dep,
-                            scan=scan)
+        fuser.add_landmarks(SOURCES[0], LandmarkMessage(
+            (k + 1) * S, np.full(2, UNKNOWN_ID), m, R, R_dep, scan=scan))
         fuser.fuse_queued()
     ids, m, P, _, observations = fuser.snapshot()
     assert len(ids) == 2
@@ -107,8 +108,8 @@ def test_clutter_is_never_confirmed_and_its_tracks_expire(rng):
     for k in range(100):
         m = rng.uniform(-200.0, 200.0, (1, 2))
         R = np.broadcast_to(0.01 * np.eye(2), (1, 2, 2)).copy()
-        fuser.add_landmarks(SOURCES[0], (k + 1) * S, [UNKNOWN_ID], m, R, 0.5 * R,
-                            scan=Scan(np.zeros(2), np.zeros((3, 3))))
+        fuser.add_landmarks(SOURCES[0], LandmarkMessage((k + 1) * S, [UNKNOWN_ID], m, R, 0.5 * R,
+                            scan=Scan(np.zeros(2), np.zeros((3, 3)))))
         fuser.fuse_queued()
     counts = fuser.sources[SOURCES[0]].counts
     assert len(fuser.map) == 0
@@ -123,14 +124,16 @@ def test_joint_compatibility_pairs_rows_shifted_by_a_shared_pose_error(associati
     truth = np.array([[0.0, 0.0], [1.0, 0.0]])
     tight = np.broadcast_to(1e-4 * np.eye(2), (2, 2, 2)).copy()
     for k in range(2):
-        fuser.add_landmarks(SOURCES[0], (k + 1) * S, [1, 2], truth, tight, 0 * tight)
+        fuser.add_landmarks(SOURCES[0], LandmarkMessage(
+            (k + 1) * S, [1, 2], truth, tight, 0 * tight))
     fuser.fuse_queued()
     assert fuser.snapshot().ids.tolist() == [1, 2]
     # Robot 2's x error of 0.6 m shifts both rows; its pose covariance says so.
     P_pose = np.diag([0.25, 1e-4, 0.0])
     m, R, R_dep, scan = scan_rows(truth, (0.5, -3.0), P_pose, 4e-4 * np.eye(2),
                                   np.random.default_rng(3), offset=(0.6, 0.0))
-    fuser.add_landmarks(SOURCES[1], 3 * S, np.full(2, UNKNOWN_ID), m, R, R_dep, scan=scan)
+    fuser.add_landmarks(SOURCES[1], LandmarkMessage(
+        3 * S, np.full(2, UNKNOWN_ID), m, R, R_dep, scan=scan))
     fuser.fuse_queued()
     observations = dict(zip(*[a.tolist() for a in fuser.snapshot()[::4]]))
     if association == 'jcbb':
@@ -144,10 +147,10 @@ def test_ambiguous_rows_are_skipped_on_request(rng):
     fuser = Fuser(FuserConfig(association='nearest_neighbour', ambiguous_rows='skip'), SOURCES)
     tight = np.broadcast_to(1e-2 * np.eye(2), (2, 2, 2)).copy()
     for k in range(2):
-        fuser.add_landmarks(SOURCES[0], (k + 1) * S, [1, 2],
-                            np.array([[0.0, 0.0], [0.2, 0.0]]), tight, 0 * tight)
-    fuser.add_landmarks(SOURCES[1], 3 * S, [UNKNOWN_ID], np.array([[0.1, 0.0]]), tight[:1],
-                        0 * tight[:1])
+        fuser.add_landmarks(SOURCES[0], LandmarkMessage((k + 1) * S, [1, 2],
+                            np.array([[0.0, 0.0], [0.2, 0.0]]), tight, 0 * tight))
+    fuser.add_landmarks(SOURCES[1], LandmarkMessage(
+        3 * S, [UNKNOWN_ID], np.array([[0.1, 0.0]]), tight[:1], 0 * tight[:1]))
     fuser.fuse_queued()
     counts = fuser.sources[SOURCES[1]].counts
     assert counts['ambiguous'] == 1 and counts['associated'] == 0
@@ -159,9 +162,9 @@ def test_classes_keep_landmarks_apart_and_are_published(rng):
     fuser = Fuser(FuserConfig(), SOURCES[:1])
     C = np.broadcast_to(1e-2 * np.eye(2), (2, 2, 2)).copy()
     for k in range(3):
-        fuser.add_landmarks(SOURCES[0], (k + 1) * S, np.full(2, UNKNOWN_ID),
+        fuser.add_landmarks(SOURCES[0], LandmarkMessage((k + 1) * S, np.full(2, UNKNOWN_ID),
                             np.array([[0.0, 0.0], [0.01, 0.0]]), C, 0 * C, classes=[3, 5],
-                            scan=Scan(np.zeros(2), np.zeros((3, 3))))
+                            scan=Scan(np.zeros(2), np.zeros((3, 3)))))
         fuser.fuse_queued()
     ids = fuser.snapshot().ids
     assert ids.tolist() == [FIRST, FIRST + 1]
@@ -174,11 +177,12 @@ def test_allocated_ids_persist_across_a_restart_and_never_collide(tmp_path, rng)
     fuser = Fuser(config, SOURCES[:1])
     C = np.broadcast_to(1e-2 * np.eye(2), (1, 2, 2)).copy()
     # A labelled row may not take 100: IDs from first_new_id up are the allocator's.
-    fuser.add_landmarks(SOURCES[0], S, [100], np.array([[50.0, 50.0]]), C, 0 * C)
+    fuser.add_landmarks(SOURCES[0], LandmarkMessage(S, [100], np.array([[50.0, 50.0]]), C, 0 * C))
     for k in range(2):
-        fuser.add_landmarks(SOURCES[0], (k + 2) * S, [UNKNOWN_ID], np.array([[0.0, 0.0]]), C,
-                            0 * C, classes=[4])
-    fuser.add_landmarks(SOURCES[0], 5 * S, [UNKNOWN_ID], np.array([[9.0, 9.0]]), C, 0 * C)
+        fuser.add_landmarks(SOURCES[0], LandmarkMessage(
+            (k + 2) * S, [UNKNOWN_ID], np.array([[0.0, 0.0]]), C, 0 * C, classes=[4]))
+    fuser.add_landmarks(SOURCES[0], LandmarkMessage(
+        5 * S, [UNKNOWN_ID], np.array([[9.0, 9.0]]), C, 0 * C))
     fuser.fuse_queued()
     assert fuser.counters['id_reserved'] == 1
     assert fuser.snapshot().ids.tolist() == [100]
@@ -192,11 +196,11 @@ def test_allocated_ids_persist_across_a_restart_and_never_collide(tmp_path, rng)
     assert restarted.tracker.next_id == 102
     assert restarted.classes_of(np.array([100])).tolist() == [4]
     for k in range(2):
-        restarted.add_landmarks(SOURCES[0], (k + 10) * S, [UNKNOWN_ID],
-                                np.array([[-7.0, 3.0]]), C, 0 * C)
+        restarted.add_landmarks(SOURCES[0], LandmarkMessage((k + 10) * S, [UNKNOWN_ID],
+                                np.array([[-7.0, 3.0]]), C, 0 * C))
     # Of class 4, like landmark 100: associated with it.
-    restarted.add_landmarks(SOURCES[0], 12 * S, [UNKNOWN_ID], np.array([[0.01, 0.0]]), C, 0 * C,
-                            classes=[4])
+    restarted.add_landmarks(SOURCES[0], LandmarkMessage(
+        12 * S, [UNKNOWN_ID], np.array([[0.01, 0.0]]), C, 0 * C, classes=[4]))
     restarted.fuse_queued()
     ids, _, _, _, observations = restarted.snapshot()
     assert ids.tolist() == [100, 102] and observations.tolist() == [3, 2]
@@ -208,9 +212,9 @@ def test_labelled_rows_with_classes_fuse_exactly_as_before(rng):
         ids = np.arange(5)
         m = np.column_stack([ids, 2.0 * ids]) + rng.normal(0, 0.05, (5, 2))
         P = np.broadcast_to(np.diag([0.04, 0.09]), (5, 2, 2)).copy()
-        plain.add_landmarks(SOURCES[k % 2], (k + 1) * S, ids, m, P, 0.25 * P)
-        classed.add_landmarks(SOURCES[k % 2], (k + 1) * S, ids, m, P, 0.25 * P,
-                              classes=ids % 2)
+        plain.add_landmarks(SOURCES[k % 2], LandmarkMessage((k + 1) * S, ids, m, P, 0.25 * P))
+        classed.add_landmarks(SOURCES[k % 2], LandmarkMessage((k + 1) * S, ids, m, P, 0.25 * P,
+                              classes=ids % 2))
     plain.fuse_queued()
     classed.fuse_queued()
     for a, b in zip(plain.snapshot(), classed.snapshot(), strict=True):
@@ -259,8 +263,8 @@ def _batch_independent_run(chunks):
                 (SOURCES[0], 7.1, (20.0, 0.0)), (SOURCES[1], 7.2, (20.05, 0.0)),
                 (SOURCES[1], 7.3, (20.05, 0.0)), (SOURCES[0], 7.4, (30.0, 0.0))]
     for k, (source, t, point) in enumerate(sequence):
-        fuser.add_landmarks(source, int(t * S), [UNKNOWN_ID], np.array([point]), R, 0.5 * R,
-                            scan=scan)
+        fuser.add_landmarks(source, LandmarkMessage(
+            int(t * S), [UNKNOWN_ID], np.array([point]), R, 0.5 * R, scan=scan))
         if k in chunks:
             fuser.fuse_queued()
     fuser.fuse_queued()
@@ -320,8 +324,9 @@ def test_merges_are_announced_once_with_the_kept_landmark_updated():
     fuser.map.update([b, b], np.array([[0.05, 0.0]] * 2), C[:2], 0 * C[:2], 'r', S)
     fuser.take_updates()
     # A message without an ID that changes b runs the merge check.
-    fuser.add_landmarks(SOURCES[0], 2 * S, [UNKNOWN_ID], np.array([[0.05, 0.0]]), C[:1],
-                        0 * C[:1], scan=Scan(np.zeros(2), np.zeros((3, 3))))
+    fuser.add_landmarks(SOURCES[0], LandmarkMessage(
+        2 * S, [UNKNOWN_ID], np.array([[0.05, 0.0]]), C[:1], 0 * C[:1],
+        scan=Scan(np.zeros(2), np.zeros((3, 3)))))
     fuser.fuse_queued()
     assert fuser.take_removed() == [(b, a)] and fuser.take_removed() == []
     assert a in fuser.take_updates().ids.tolist()
@@ -340,8 +345,8 @@ def _unlabelled_messages(rng, count=40):
 
 def _feed_unlabelled(fuser, messages):
     for source, stamp, m, R in messages:
-        fuser.add_landmarks(source, stamp, [UNKNOWN_ID] * len(m), m, R, 0.2 * R,
-                            scan=Scan(np.zeros(2), np.zeros((3, 3))))
+        fuser.add_landmarks(source, LandmarkMessage(stamp, [UNKNOWN_ID] * len(m), m, R, 0.2 * R,
+                            scan=Scan(np.zeros(2), np.zeros((3, 3)))))
         fuser.fuse_queued()
 
 
@@ -413,7 +418,7 @@ def test_a_tentative_track_with_a_bad_row_is_dropped_alone(tmp_path, rng):
 
 
 def test_shard_of_position_numbers_the_cells():
-    from landmark_ros.fuser.tracks import shard_of_position
+    from landmark_ros.fuser.sources import shard_of_position
     m = np.array([[5.0, 5.0], [25.0, 5.0], [-5.0, 5.0], [5.0, 25.0], [np.nan, 1.0]])
     # Cells (0, 0), (1, 0), (-1, 0), (0, 1); side 20 m; 3 shards.
     assert shard_of_position(m, 20.0, 3).tolist() == [0, 1, 2, 31 % 3, 0]
@@ -427,8 +432,9 @@ def test_shards_split_rows_without_ids_by_cell_and_own_their_ids(rng):
     for k in range(6):
         m = centres + rng.normal(0.0, 0.05, (5, 2))
         for fuser in [one] + shards:
-            fuser.add_landmarks(SOURCES[k % 2], (k + 1) * S, [UNKNOWN_ID] * 5, m, R, 0.2 * R,
-                                scan=Scan(np.zeros(2), np.zeros((3, 3))))
+            fuser.add_landmarks(SOURCES[k % 2], LandmarkMessage(
+                (k + 1) * S, [UNKNOWN_ID] * 5, m, R, 0.2 * R,
+                scan=Scan(np.zeros(2), np.zeros((3, 3)))))
             fuser.fuse_queued()
     whole = one.snapshot()
     parts = [shard.snapshot() for shard in shards]
@@ -447,5 +453,5 @@ def test_shards_split_rows_without_ids_by_cell_and_own_their_ids(rng):
 
 def shard_of(m):
     """Return the shard (of 2, 20 m cells) of positions."""
-    from landmark_ros.fuser.tracks import shard_of_position
+    from landmark_ros.fuser.sources import shard_of_position
     return shard_of_position(m, 20.0, 2)

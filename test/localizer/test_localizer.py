@@ -1,5 +1,6 @@
 """Tests of the ROS-free localizer: motion model, update, timing, events, consistency."""
 
+from dataclasses import replace
 import math
 
 from landmark_ros.core import pose2, sensors
@@ -138,7 +139,7 @@ def test_split_ci_is_consistent_when_the_map_shares_the_pose_error():
         z = sensors.observe(true[None], m_true) + rng.normal(0, [0.01, 0.001], (1, 2))
         for corr in nees:
             res = update(x, P, m, P[None, :2, :2], z, R[None], np.array([RANGE_BEARING]),
-                         SETTINGS, corr)
+                         replace(SETTINGS, correlation=corr))
             err = res.x - true
             nees[corr].append(err @ np.linalg.solve(res.P, err))
     assert np.mean(nees['split_ci']) < 3.5

@@ -15,6 +15,7 @@ from hypothesis import given, HealthCheck, settings, strategies as st
 from landmark_ros.core.covariance import MAX_VARIANCE, MIN_VARIANCE
 from landmark_ros.core.partial import BEARING, RANGE, Views
 from landmark_ros.fuser.fuser import Fuser
+from landmark_ros.fuser.sources import LandmarkMessage
 from landmark_ros.pipeline.config import FuserConfig
 from landmark_ros.pipeline.partial_rows import PartialObservations
 from landmark_ros.pipeline.rows import UNKNOWN_ID
@@ -45,12 +46,12 @@ def feed(fuser, scale, repeats, rng):
     C = np.eye(2) * scale
     for k in range(repeats):
         m = np.array([[1.0, 2.0], [5.0, -3.0]]) + rng.normal(0.0, np.sqrt(scale), (2, 2))
-        fuser.add_landmarks(LANDMARKS[0], (k + 1) * S, np.array([1, 2]), m,
-                            np.stack([C, C]), np.stack([C, C]) * 0.5)
+        fuser.add_landmarks(LANDMARKS[0], LandmarkMessage((k + 1) * S, np.array([1, 2]), m,
+                            np.stack([C, C]), np.stack([C, C]) * 0.5))
     # Unlabelled rows: a tentative track (seen once).
-    fuser.add_landmarks(LANDMARKS[0], (repeats + 1) * S, np.array([UNKNOWN_ID]),
+    fuser.add_landmarks(LANDMARKS[0], LandmarkMessage((repeats + 1) * S, np.array([UNKNOWN_ID]),
                         np.array([[-20.0, 7.0]]), C[None], 0 * C[None],
-                        classes=np.array([0]), scan=Scan(np.zeros(2), np.eye(3) * scale))
+                        classes=np.array([0]), scan=Scan(np.zeros(2), np.eye(3) * scale)))
     # Two bearings place landmark 7; one range keeps landmark 8 waiting.
     target = np.array([3.0, 4.0])
     sensors = np.array([[0.0, 0.0, 0.0], [6.0, 0.0, 0.0]])
@@ -95,8 +96,8 @@ def test_rows_fused_below_the_variance_floor_load_back(tmp_path, fusion):
     fuser = Fuser(FuserConfig(map_file=path, fusion=fusion, min_observations=1), LANDMARKS)
     C = np.eye(2)[None] * MIN_VARIANCE
     for k in range(2):
-        fuser.add_landmarks(LANDMARKS[0], (k + 1) * S, np.array([1]), np.array([[1.0, 2.0]]),
-                            C, 0 * C)
+        fuser.add_landmarks(LANDMARKS[0], LandmarkMessage(
+            (k + 1) * S, np.array([1]), np.array([[1.0, 2.0]]), C, 0 * C))
     fuser.fuse_queued()
     assert fuser.save()
     again = Fuser(FuserConfig(map_file=path, fusion=fusion), LANDMARKS)

@@ -16,6 +16,7 @@ import os
 
 from hypothesis import given, HealthCheck, settings, strategies as st
 from landmark_ros.fuser.fuser import Fuser
+from landmark_ros.fuser.sources import LandmarkMessage
 from landmark_ros.observer.observer import ObservationMessage, Observer
 from landmark_ros.pipeline.config import FuserConfig, ObserverConfig
 from landmark_ros.ros.cloud import CloudError, read_columns
@@ -106,8 +107,9 @@ def test_landmark_clouds_give_a_reason_or_rows(msgs):
             continue
         rows, extras = read
         np.testing.assert_array_equal(rows.ids, alone[0].ids)
-        fuser.add_landmarks('a', 1 + cloud.header.stamp.sec * 10 ** 9, rows.ids, rows.m,
-                            rows.P, rows.P_dep, 'map', 0, extras.classes, extras.scan)
+        fuser.add_landmarks('a', LandmarkMessage(1 + cloud.header.stamp.sec * 10 ** 9, rows.ids,
+                                                 rows.m, rows.P, rows.P_dep, 'map',
+                                                 extras.classes, extras.scan), 0)
     fuser.fuse_queued()
     fuser.statuses(0)
 

@@ -15,7 +15,8 @@ from hypothesis import given, settings, strategies as st
 from landmark_ros.pipeline.scan import Scan
 from landmark_ros.ros.cloud import CloudError, CloudWriter
 from landmark_ros.ros.cloud_bytes import read_cloud_bytes
-from landmark_ros.ros.schemas import landmark_message, make_header, read_landmark_clouds
+from landmark_ros.ros.schemas import fused_landmark_message, landmark_message, make_header
+from landmark_ros.ros.schemas import read_landmark_clouds
 from landmark_ros.ros.schemas import read_landmarks, read_removed
 import numpy as np
 import pytest
@@ -62,9 +63,9 @@ def clouds(m, ids=None):
         'landmarks': landmark_message(header, ids, m, P, 0.5 * P),
         'landmarks (class)': landmark_message(header, ids, m, P, classes=np.ones(n, int)),
         'landmarks (unlabelled rows)': landmark_message(header, ids, m, P, scan=scan),
-        'fused_landmarks': landmark_message(header, ids, m, P, 0.5 * P, np.full(n, 3)),
-        'fused_landmark_updates': landmark_message(header, ids, m, P, 0.5 * P, np.full(n, 3),
-                                                   merged_into=np.full(n, 4294967295)),
+        'fused_landmarks': fused_landmark_message(header, ids, m, P, 0.5 * P, np.full(n, 3)),
+        'fused_landmark_updates': fused_landmark_message(
+            header, ids, m, P, 0.5 * P, np.full(n, 3), merged_into=np.full(n, 4294967295)),
     }
 
 
@@ -158,8 +159,8 @@ def test_half_a_position_estimate_is_refused():
 
 
 def test_removed_landmarks_still_announced():
-    msg = landmark_message(make_header(1.0, 'map'), [5, 6], M[:2], [C, C], None, [0, 3],
-                           merged_into=[6, 4294967295])
+    msg = fused_landmark_message(make_header(1.0, 'map'), [5, 6], M[:2], [C, C], None, [0, 3],
+                                 merged_into=[6, 4294967295])
     removed, into = read_removed(msg)
     assert removed.tolist() == [5] and into.tolist() == [6]
 
