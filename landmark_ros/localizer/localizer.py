@@ -54,6 +54,7 @@ from landmark_ros.localizer.config import LocalizerConfig
 from landmark_ros.localizer.update import (RANGE_BEARING, update, UpdateResult,
                                            UpdateSettings)
 from landmark_ros.pipeline.counters import Counters, Status
+from landmark_ros.pipeline.rows import landmark_row_problems
 import numpy as np
 from numpy.typing import NDArray
 
@@ -162,6 +163,10 @@ class Localizer:
         """
         Replace the landmark map.
 
+        Landmarks that fail the fuser's live row checks (``rows.landmark_row_problems``:
+        finite, a covariance in the accepted range, plausible coordinates) are left out
+        and counted as ``map_<reason>``.
+
         Parameters
         ----------
         ids : ndarray of int, shape (N,)
@@ -172,9 +177,15 @@ class Localizer:
             Covariances [m^2].
 
         """
-        self._map_index = {int(i): k for k, i in enumerate(ids)}
-        self._map_m = np.asarray(m, dtype=np.float64).reshape(-1, 2).copy()
-        self._map_P = np.asarray(P_m, dtype=np.float64).reshape(-1, 2, 2).copy()
+        ids = np.asarray(ids, dtype=np.int64).reshape(-1)
+        m = np.asarray(m, dtype=np.float64).reshape(-1, 2)
+        P_m = np.asarray(P_m, dtype=np.float64).reshape(-1, 2, 2)
+        valid, reasons = landmark_row_problems(ids, m, P_m, np.zeros_like(P_m))
+        for reason, count in reasons.items():
+            self.counters.add(f'map_{reason}', count, f'{count} map landmarks left out')
+        self._map_index = {int(i): k for k, i in enumerate(ids[valid])}
+        self._map_m = m[valid].copy()
+        self._map_P = P_m[valid].copy()
 
     @property
     def map_size(self) -> int:
