@@ -17,7 +17,7 @@ from types import SimpleNamespace
 
 from diagnostic_msgs.msg import DiagnosticArray
 from landmark_ros.nodes._fuser_outputs import MapOutputs
-from landmark_ros.nodes.start import lazy
+from landmark_ros.nodes.start import finish, lazy
 from landmark_ros.pipeline.config import FuserConfig
 from landmark_ros.ros import diagnostics, fast_io, guard, qos, runner
 from landmark_ros.ros.cloud import CloudError
@@ -206,4 +206,4 @@ def main(args=None):
 
 
 if __name__ == '__main__':
-    sys.exit(main())
+    sys.exit(finish(main()))

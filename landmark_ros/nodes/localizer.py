@@ -22,6 +22,7 @@ from geometry_msgs.msg import PoseWithCovarianceStamped, TransformStamped
 from landmark_ros.fuser import map_file
 from landmark_ros.localizer.config import LocalizerConfig
 from landmark_ros.localizer.localizer import Estimate, Localizer
+from landmark_ros.nodes.start import finish
 from landmark_ros.ros import diagnostics, guard, qos, runner
 from landmark_ros.ros.cloud import CloudError, read_columns
 from landmark_ros.ros.conversions import InputError, stamp_ns
@@ -192,4 +193,4 @@ def main(args=None):
 
 
 if __name__ == '__main__':
-    sys.exit(main())
+    sys.exit(finish(main()))

@@ -16,7 +16,7 @@ from types import SimpleNamespace
 
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseWithCovarianceStamped
-from landmark_ros.nodes.start import lazy
+from landmark_ros.nodes.start import finish, lazy
 from landmark_ros.pipeline.config import ObserverConfig
 from landmark_ros.ros import diagnostics, fast_io, guard, qos, runner
 from landmark_ros.ros.cloud import CloudError, read_columns
@@ -211,4 +211,4 @@ def main(args=None):
 
 
 if __name__ == '__main__':
-    sys.exit(main())
+    sys.exit(finish(main()))

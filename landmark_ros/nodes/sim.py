@@ -24,7 +24,7 @@ import sys
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
-from landmark_ros.nodes.start import lazy
+from landmark_ros.nodes.start import finish, lazy
 from landmark_ros.pipeline.rows import UNKNOWN_ID
 from landmark_ros.ros import diagnostics, qos, runner
 from landmark_ros.ros.conversions import planar_pose_covariance, set_planar_pose
@@ -241,4 +241,4 @@ def main(args=None):
 
 
 if __name__ == '__main__':
-    sys.exit(main())
+    sys.exit(finish(main()))

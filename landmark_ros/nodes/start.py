@@ -37,9 +37,23 @@ def install():
     signal.signal(signal.SIGTERM, _exit_now)
 
 
+def finish(code):
+    """
+    Ignore SIGINT and SIGTERM from now on; return ``code`` (the node has stopped).
+
+    Ctrl-C in a terminal signals the whole process group and ``ros2 launch`` forwards
+    its own SIGINT, so a node gets a second one while it stops. Python's finalisation
+    puts back the default action of every signal that has a Python handler, and a
+    SIGINT then would end the process with -2; an ignored signal stays ignored.
+    """
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    return code
+
+
 def _run(name):
     install()
-    return importlib.import_module(f'landmark_ros.nodes.{name}').main()
+    return finish(importlib.import_module(f'landmark_ros.nodes.{name}').main())
 
 
 def observer():

@@ -8,6 +8,7 @@ deadline, never by a fixed sleep.
 
 import importlib.util
 import os
+import signal
 import time
 
 from diagnostic_msgs.msg import DiagnosticArray
@@ -127,6 +128,23 @@ def test_sigint_at_any_moment_exits_0_without_a_traceback(start, watcher, name, 
     assert reached or process.poll() is None, f'{name} ended before {moment}'
     code, out, err = startup.stop(process, timeout=30.0)
     assert code == 0, f'{name} stopped while {moment}: exit {code}\n{err}'
+    assert 'Traceback' not in err and 'Traceback' not in out, err
+
+
+@pytest.mark.parametrize('name', NODES)
+def test_repeated_sigint_while_stopping_still_exits_0(start, watcher, name):
+    # Ctrl-C in a terminal signals the whole process group and ros2 launch forwards
+    # its own SIGINT: a node gets two, the second while it shuts down or while Python
+    # finalises (which restores the default handler of a signal it handles). Keep
+    # signalling until the process has gone, so one lands in every phase of the stop.
+    process = start(name)
+    assert watcher.wait_endpoints(name, process.namespace, process, 30.0) is not None
+    deadline = time.monotonic() + 30.0
+    while process.poll() is None and time.monotonic() < deadline:
+        process.send_signal(signal.SIGINT)
+        _until(watcher, lambda: process.poll() is not None, 0.02)
+    code, out, err = startup.stop(process, timeout=5.0)
+    assert code == 0, f'{name}: exit {code} under repeated SIGINT\n{err}'
     assert 'Traceback' not in err and 'Traceback' not in out, err
 
 
