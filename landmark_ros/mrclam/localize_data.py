@@ -66,12 +66,12 @@ def load_all_extras(dataset):
             for r in dataset.robots}
 
 
-def _windows(extras, robot, window_s, delay_s=0.0):
+def _windows(extras, robot, window_s, delay_s=0.0, scales=(1.0, 1.0)):
     """Yield (error (3,), per-alpha covariances (4, 3, 3)) per odometry window."""
     t = extras.odom_times + delay_s
     gt_t, gt_p = robot.gt_times, robot.gt_poses
     inside = (t >= gt_t[0]) & (t <= gt_t[-1])
-    t, twist = t[inside], extras.odom_twist[inside]
+    t, twist = t[inside], extras.odom_twist[inside] * np.asarray(scales)
     truth, _ = interpolate_poses(gt_t, gt_p, t)
     poses, deltas = motion.integrate_twists(t, twist)
     terms = motion.odometry_noise_terms(deltas)  # step k -> k + 1
@@ -98,13 +98,18 @@ def _windows(extras, robot, window_s, delay_s=0.0):
         start = end
 
 
-def window_samples(dataset, extras, numbers, window_s, delay_s=0.0):
-    """Return the window errors (W, 3) and unit-alpha covariances (W, 4, 3, 3)."""
+def window_samples(dataset, extras, numbers, window_s, delay_s=0.0, scales=(1.0, 1.0)):
+    """
+    Return the window errors (W, 3) and unit-alpha covariances (W, 4, 3, 3).
+
+    ``scales`` (speed, yaw rate) multiply the odometry's twists first
+    (``odometry_scales``).
+    """
     errors, covs = [], []
     for robot in dataset.robots:
         if robot.number not in numbers:
             continue
-        for error, Ps in _windows(extras[robot.number], robot, window_s, delay_s):
+        for error, Ps in _windows(extras[robot.number], robot, window_s, delay_s, scales):
             errors.append(error)
             covs.append(Ps)
     return np.array(errors).reshape(-1, 3), np.array(covs).reshape(-1, 4, 3, 3)
@@ -157,6 +162,49 @@ def odometry_delay(dataset, extras, delays=np.arange(0.0, 0.41, 0.025)):
     return float(delays[int(np.argmin(np.sum(best, axis=0)))])
 
 
+def _motion_pairs(robot, extras, delay_s, window_s):
+    """Return per window the odometry and true (distance [m], turn [rad]), (W, 2) each."""
+    e = extras[robot.number]
+    t = np.arange(max(e.odom_times[0] + delay_s, robot.gt_times[0]),
+                  min(e.odom_times[-1] + delay_s, robot.gt_times[-1]), window_s)
+    heading = np.unwrap(robot.gt_poses[:, 2])
+    xy = np.stack([np.interp(t, robot.gt_times, robot.gt_poses[:, c]) for c in (0, 1)], 1)
+    true = np.stack([np.hypot(*np.diff(xy, axis=0).T),
+                     np.diff(np.interp(t, robot.gt_times, heading))], 1)
+    # the odometry integrated as the localizer does: each twist held until the next stamp
+    ot = e.odom_times + delay_s
+    dt = np.diff(ot)
+    cum = np.concatenate([[[0.0, 0.0]], np.cumsum(
+        np.abs(e.odom_twist[:-1]) * np.array([1.0, 0.0])[None] * dt[:, None]
+        + e.odom_twist[:-1] * np.array([0.0, 1.0])[None] * dt[:, None], axis=0)])
+    odo = np.diff(np.stack([np.interp(t, ot, cum[:, c]) for c in (0, 1)], 1), axis=0)
+    return odo, true
+
+
+def odometry_scales(dataset, extras, numbers, delay_s, window_s=0.5, min_distance=0.02):
+    """
+    Return the (speed, yaw rate) scales of the odometry: true motion per odometry motion.
+
+    Least squares through the origin over windows of ``window_s`` of the robots
+    ``numbers`` pooled: the true distance (ground truth) against the odometry's (windows
+    where the odometry moves at least ``min_distance``), the true turn against the
+    odometry's. A systematic error of the wheel odometry (wheel radius, wheel base; on
+    MRCLAM the odometry looks like the commanded twist) that the alphas, zero-mean
+    noise, cannot describe.
+    """
+    odo, true = [], []
+    for robot in dataset.robots:
+        if robot.number in numbers:
+            o, t = _motion_pairs(robot, extras, delay_s, window_s)
+            odo.append(o)
+            true.append(t)
+    odo, true = np.concatenate(odo), np.concatenate(true)
+    moving = odo[:, 0] >= min_distance
+    speed = np.sum(odo[moving, 0] * true[moving, 0]) / np.sum(odo[moving, 0] ** 2)
+    turn = np.sum(odo[:, 1] * true[:, 1]) / np.sum(odo[:, 1] ** 2)
+    return float(speed), float(turn)
+
+
 def calibrate_odometry(dataset, extras, window_s=2.0, check_windows=(1.0, 2.0, 5.0)):
     """
     Fit the alphas on all robots, and cross-check: fit on all but one, test on it.
@@ -170,36 +218,44 @@ def calibrate_odometry(dataset, extras, window_s=2.0, check_windows=(1.0, 2.0, 5
     """
     numbers = [r.number for r in dataset.robots]
     delay = odometry_delay(dataset, extras)
-    errors, covs = window_samples(dataset, extras, numbers, window_s, delay)
+    scales = odometry_scales(dataset, extras, numbers, delay)
+    errors, covs = window_samples(dataset, extras, numbers, window_s, delay, scales)
     alphas = fit_alphas(errors, covs)
     check = []
     for held in numbers:
-        e, c = window_samples(dataset, extras, [n for n in numbers if n != held], window_s,
-                              delay)
+        others = [n for n in numbers if n != held]
+        held_scales = odometry_scales(dataset, extras, others, delay)
+        e, c = window_samples(dataset, extras, others, window_s, delay, held_scales)
         fitted = fit_alphas(e, c)
         nees = {}
         for w in check_windows:
-            e_h, c_h = window_samples(dataset, extras, [held], w, delay)
+            e_h, c_h = window_samples(dataset, extras, [held], w, delay, held_scales)
             nees[str(w)] = window_nees(fitted, e_h, c_h)
-        check.append({'held_out': held, 'alphas': fitted.tolist(), 'window_nees': nees})
-    return {'alphas': alphas.tolist(), 'window_s': window_s, 'delay_s': delay,
-            'windows': len(errors),
-            'cross_check': check}
+        own = odometry_scales(dataset, extras, [held], delay)
+        check.append({'held_out': held, 'alphas': fitted.tolist(), 'scales': held_scales,
+                      'own_scales': own, 'window_nees': nees})
+    return {'alphas': alphas.tolist(), 'scales': scales, 'window_s': window_s,
+            'delay_s': delay, 'windows': len(errors), 'cross_check': check}
 
 
 def format_odometry_calibration(result):
     """Return the calibration as text with the YAML line to paste."""
     a = result['alphas']
     lines = [f'odometry alphas from {result["windows"]} windows of {result["window_s"]} s '
-             f'(all robots, odometry delay {result["delay_s"]:.3f} s): '
+             f'(all robots, odometry delay {result["delay_s"]:.3f} s, speed and yaw-rate '
+             'scales {:.4f}, {:.4f}): '.format(*result['scales'])
              + ', '.join(f'{v:.3g}' for v in a),
              'cross-check (fit without the robot, window NEES on it; 3 is right):']
     for entry in result['cross_check']:
         nees = ', '.join(f'{w} s: {v:.2f}' for w, v in entry['window_nees'].items())
         lines.append(f'  robot {entry["held_out"]}: alphas '
-                     + ', '.join(f'{v:.3g}' for v in entry['alphas']) + f'; NEES {nees}')
+                     + ', '.join(f'{v:.3g}' for v in entry['alphas'])
+                     + ', scales {:.4f}, {:.4f} (its own {:.4f}, {:.4f})'.format(
+                         *entry['scales'], *entry['own_scales']) + f'; NEES {nees}')
     lines.append('landmark_localizer:\n  ros__parameters:\n    odometry_alphas: ['
-                 + ', '.join(f'{v:.4g}' for v in a) + ']\nlandmark_mrclam:\n  ros__parameters:'
+                 + ', '.join(f'{v:.4g}' for v in a) + ']\n'
+                 f'    odometry_speed_scale: {result["scales"][0]:.4f}\n'
+                 f'    odometry_yaw_rate_scale: {result["scales"][1]:.4f}\nlandmark_mrclam:\n  ros__parameters:'
                  f'\n    odometry_delay_s: {result["delay_s"]:.3f}')
     return '\n'.join(lines)
 
