@@ -255,8 +255,9 @@ def format_odometry_calibration(result):
     lines.append('landmark_localizer:\n  ros__parameters:\n    odometry_alphas: ['
                  + ', '.join(f'{v:.4g}' for v in a) + ']\n'
                  f'    odometry_speed_scale: {result["scales"][0]:.4f}\n'
-                 f'    odometry_yaw_rate_scale: {result["scales"][1]:.4f}\nlandmark_mrclam:\n  ros__parameters:'
-                 f'\n    odometry_delay_s: {result["delay_s"]:.3f}')
+                 f'    odometry_yaw_rate_scale: {result["scales"][1]:.4f}\n'
+                 'landmark_mrclam:\n  ros__parameters:\n'
+                 f'    odometry_delay_s: {result["delay_s"]:.3f}')
     return '\n'.join(lines)
 
 
