@@ -24,7 +24,7 @@ alphas
     translation, ``a3`` [m^2/m^2] translation from translation, ``a4`` [m^2/rad^2]
     translation from rotation. The model applies to the motion between two consecutive
     odometry messages, so its alphas belong to the odometry rate they were calibrated at
-    (``landmark_ros.mrclam.localize_calibration``); the variances are quadratic in the
+    (``landmark_ros.mrclam.localize_data.calibrate_odometry``); the variances are quadratic in the
     step, so a different rate needs a new calibration.
 
 The functions take and return plain floats and small arrays: one odometry message costs a
