@@ -178,7 +178,6 @@ class SourceStatistics:
         return float(np.clip((self.detected + 1.0) / (self.expected + 2.0),
                              P_D_MIN, P_D_MAX))
 
-
     def see(self, ranges: NDArray[np.float64], paired: NDArray[np.bool_]) -> None:
         """
         Widen the view with the ranges of one message's rows.
@@ -226,6 +225,8 @@ class SourceStatistics:
                 raise ValueError(f'{f.name} {value!r} is not a count')
             values[f.name] = int(value) if f.type in (int, 'int') else value
         return cls(**values)
+
+
 def together_log_likelihood_ratio(k: int, n: int, same: float, distinct: float) -> float:
     """
     Return the log likelihood ratio of one landmark against two, from co-occurrences.
@@ -258,4 +259,3 @@ def together_log_likelihood_ratio(k: int, n: int, same: float, distinct: float) 
     """
     return float(k * np.log(same / distinct)
                  + (n - k) * (np.log1p(-same) - np.log1p(-distinct)))
-

@@ -97,10 +97,10 @@ class ScoredTracks:
         # their track's rows, in order.
         keep = ~mine | np.array([i in self.tentative and self.tentative[i].released
                                  for i in ids.tolist()], bool)
+        released = self._decide(landmark_map, touched, counts_of)
         rows = [(Queued(item.sequence, np.array([i], np.int64), m[None], P[None], P_dep[None],
                         stamp_ns), name)
-                for i, (m, P, P_dep, name, stamp_ns) in self._decide(landmark_map, touched,
-                                                                    counts_of)]
+                for i, (m, P, P_dep, name, stamp_ns) in released]
         if keep.any():
             rows.append((Queued(item.sequence, ids[keep], item.m[keep], item.P[keep],
                                 item.P_dep[keep], item.stamp_ns, None, item.scan, False),

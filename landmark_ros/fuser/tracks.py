@@ -534,4 +534,3 @@ def _open_ambiguity(cands: Candidates, result: Association) -> NDArray[np.intp]:
     rows_with_free = np.unique(cands.rows[free & (cands.landmarks != result.assignment[
         cands.rows])])
     return np.intersect1d(result.ambiguous, rows_with_free).astype(np.intp)
-

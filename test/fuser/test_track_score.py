@@ -56,7 +56,7 @@ def test_start_score_is_the_bounded_log_odds_of_past_tracks():
 
 
 def _run(rng, messages, P_D, clutter_rate, radius=5.0):
-    """A robot at the origin sees 6 landmarks at ``radius`` [m] with ``P_D`` and clutter."""
+    """Run a robot at the origin seeing 6 landmarks at ``radius`` [m] with ``P_D``, and clutter."""
     angles = np.linspace(0.0, 2 * np.pi, 6, endpoint=False)
     truth = radius * np.column_stack([np.cos(angles), np.sin(angles)])
     fuser = Fuser(FuserConfig(), [SOURCE])
