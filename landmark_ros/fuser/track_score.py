@@ -212,7 +212,7 @@ class SourceStatistics:
             If a field has the wrong type or a negative value (``clutter_rows`` aside).
 
         """
-        values = {}
+        values: Dict[str, Any] = {}
         for f in fields(cls):
             if f.name not in document:
                 continue

@@ -116,13 +116,14 @@ class ScoredTracks:
         only if no row of the message lies in its gate (a row another landmark took
         might have been its): the rest neither hit nor miss.
         """
+        assert item.scan is not None
         robot_xy = np.asarray(item.scan.robot_xy, np.float64)
         z, R = item.m[unlabelled], item.P[unlabelled]
         stats.see(np.linalg.norm(z - robot_xy, axis=1), paired[unlabelled])
         radius = stats.range_m
         threshold = chi2_threshold(2, self.config.association_gate_probability)
-        index, index_ids = self._indices[0] if self._indices else (None, None)
-        if index is not None and len(index):
+        if self._indices and len(self._indices[0][0]):
+            index, index_ids = self._indices[0]
             near = np.flatnonzero(np.linalg.norm(index.m_map - robot_xy, axis=1) <= radius)
             hit = np.isin(index_ids[near], item.ids[paired])
             gated = _gated(index.m_map[near], index.P_map[near], z, R, threshold)
