@@ -64,6 +64,8 @@ REQUIRED = [
     'landmark_ros.fuser.publishing',
     'landmark_ros.fuser.sources',
     'landmark_ros.fuser.track_file',
+    'landmark_ros.fuser.track_score',
+    'landmark_ros.fuser.track_screen',
     'landmark_ros.fuser.tracks',
 ]
 

@@ -381,7 +381,7 @@ class Fuser:
                 results.append(self._apply(group))
                 group = []
             self.tracker.expire(self.map, now_ns, self._counts_of())
-            results.append(self._apply([(self._associate(item, name), name)]))
+            results.append(self._apply(self._associate(item, name)))
             self.tracker.after_update(results[-1], self._counts_of())
             merged = self.tracker.merge(self.map, self.sources[name].counts,
                                         results[-1].changed_ids)
@@ -397,8 +397,8 @@ class Fuser:
     def _counts_of(self) -> Dict[str, Counter[str]]:
         return {name: state.counts for name, state in self.sources.items()}
 
-    def _associate(self, item: Queued, name: str) -> Queued:
-        """Return ``item`` with the IDs of its unlabelled rows given (ambiguous dropped)."""
+    def _associate(self, item: Queued, name: str) -> List[Tuple[Queued, str]]:
+        """Return what of ``item`` goes to the map, IDs given (``Tracker.screen``)."""
         unlabelled = item.ids == UNKNOWN_ID
         classes = item.classes
         if classes is None:
@@ -410,13 +410,16 @@ class Fuser:
         if self.association_log is not None:
             self.association_log.append((name, item.stamp_ns, ids[unlabelled].copy()))
         keep = ids >= 0
-        self.tracker.note_rows(ids[keep], item.m[keep], item.P[keep], item.P_dep[keep], name,
-                               item.stamp_ns)
-        return Queued(item.sequence, ids[keep], item.m[keep], item.P[keep], item.P_dep[keep],
-                      item.stamp_ns, classes[keep], item.scan, False)
+        return [(queued, source if source in self.sources else name)
+                for queued, source in self.tracker.screen(
+                    self.map, Queued(item.sequence, ids[keep], item.m[keep], item.P[keep],
+                                     item.P_dep[keep], item.stamp_ns, None, item.scan),
+                    unlabelled[keep], name, self._counts_of())]
 
     def _apply(self, items: Sequence[Tuple[Queued, str]]) -> UpdateResult:
         """Fuse queued messages (labelled rows only) in one ``LandmarkMap.update``."""
+        if not items:
+            return UpdateResult()
         lengths = [len(item.ids) for item, _ in items]
         names: Dict[str, int] = {}
         index = [names.setdefault(name, len(names)) for _, name in items]

@@ -10,6 +10,7 @@ checks refuse.
 from dataclasses import dataclass, field
 from typing import Any, Dict, List, NamedTuple, Optional, Set, Tuple, TYPE_CHECKING
 
+from landmark_ros.fuser.track_score import SourceStatistics
 from landmark_ros.pipeline.rows import landmark_row_problems, MAX_LABEL_ID
 import numpy as np
 from numpy.typing import NDArray
@@ -20,7 +21,7 @@ if TYPE_CHECKING:  # pragma: no cover
 
 @dataclass
 class Track:
-    """A tentative track: the latest row paired with it (mean [m], covariance [m^2])."""
+    """A tentative track: its estimate (mean [m], covariance [m^2]), rows and score."""
 
     m: NDArray[np.float64]
     P: NDArray[np.float64]
@@ -29,7 +30,32 @@ class Track:
     source: str
     rows: List[tuple] = field(default_factory=list)
     """``(m, P, P_dep, source, stamp_ns)`` of the rows it got (the newest
-    ``TRACK_ROWS_KEPT``): what the map holds for it, saved in the map file."""
+    ``TRACK_ROWS_KEPT``), saved in the map file; the map gets them once released."""
+    score: float = 0.0
+    """Log-likelihood ratio landmark / clutter (``fuser.track_score``)."""
+    released: bool = False
+    """Whether the score confirmed it: its rows went to the map (which confirms it once
+    ``min_observations`` of them agree)."""
+    hits: Dict[str, int] = field(default_factory=dict)
+    """Rows it got, by source (taken off the clutter count when it is confirmed)."""
+
+
+def track_estimate(rows: List[tuple]) -> Tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """
+    Return the mean (2,) [m] and covariance (2, 2) [m^2] of a track's rows.
+
+    The independent parts ``P - P_dep`` are fused as independent (information sum);
+    the dependent parts (pose error, shared by the rows of one robot) are taken as
+    fully correlated: their mean is added, which never understates the covariance.
+    """
+    P = np.array([r[1] for r in rows])
+    P_dep = np.array([r[2] for r in rows])
+    P_ind = P - P_dep + 1e-12 * np.eye(2)
+    Y = np.linalg.inv(P_ind)
+    P_fused = np.linalg.inv(Y.sum(axis=0))
+    m = P_fused @ np.einsum('nij,nj->i', Y, np.array([r[0] for r in rows]))
+    P_out = P_fused + P_dep.mean(axis=0)
+    return m, 0.5 * (P_out + P_out.T)
 
 
 class TrackSection(NamedTuple):
@@ -43,6 +69,7 @@ class TrackSection(NamedTuple):
     tracks: Dict[int, Track]
     rows: List[tuple]
     """``(track ID, m, P, P_dep, source, stamp_ns)`` of every row of the tracks."""
+    statistics: Dict[str, SourceStatistics]
 
 
 def tracks_to_dict(tracker: 'Tracker') -> Dict[str, Any]:
@@ -55,12 +82,16 @@ def tracks_to_dict(tracker: 'Tracker') -> Dict[str, Any]:
     still landmarks or tracks), ``sightings`` (``[id, messages]`` for each of them
     a message saw), ``together`` (``[a, b, messages]``, ``a < b``, for each pair of
     them a message saw together), ``merged_into`` (``[retired, kept]`` pairs) and
-    ``now_ns`` (the expiry clock, or null).
+    ``now_ns`` (the expiry clock, or null); per track also its ``score``, whether it
+    was ``released`` and its ``hits`` by source, and ``statistics``: per source, the
+    estimates of ``fuser.track_score.SourceStatistics``.
     """
     return {
         'tentative': [{
             'id': int(landmark_id), 'class': int(track.landmark_class),
             'first_stamp_ns': int(track.first_ns), 'source': track.source,
+            'score': float(track.score), 'released': bool(track.released),
+            'hits': {str(k): int(v) for k, v in sorted(track.hits.items())},
             'rows': [{'mean': m.tolist(), 'covariance': P.tolist(),
                       'covariance_dependent': P_dep.tolist(), 'source': source,
                       'stamp_ns': int(stamp)}
@@ -71,7 +102,9 @@ def tracks_to_dict(tracker: 'Tracker') -> Dict[str, Any]:
         'together': sorted([int(a), int(b), int(k)] for a, partners in tracker.together.items()
                            for b, k in partners.items() if a < b),
         'merged_into': sorted([int(a), int(b)] for a, b in tracker.merged_into.items()),
-        'now_ns': None if tracker.now_ns is None else int(tracker.now_ns)}
+        'now_ns': None if tracker.now_ns is None else int(tracker.now_ns),
+        'statistics': {name: stats.to_dict()
+                       for name, stats in sorted(tracker.statistics.items())}}
 
 
 def _ident(value: Any) -> int:
@@ -123,14 +156,22 @@ def parse_tracks(document: Dict[str, Any]) -> TrackSection:
                            str(r['source']), int(r['stamp_ns'])) for r in entry['rows']]
             if not track_rows:
                 raise ValueError(f'tentative track {landmark_id} has no row')
-            last = track_rows[-1]
-            tracks[landmark_id] = Track(last[0], last[1], int(entry['class']),
-                                        int(entry['first_stamp_ns']),
-                                        str(entry['source']), track_rows)
+            # An older file's tracks have their rows in the map: released, score 0.
+            released = entry.get('released', True)
+            score = entry.get('score', 0.0)
+            if not isinstance(released, bool) or isinstance(score, bool) or not (
+                    isinstance(score, (int, float)) and np.isfinite(score)):
+                raise ValueError(f'tentative track {landmark_id}: bad score or released')
+            tracks[landmark_id] = Track(
+                *track_estimate(track_rows), int(entry['class']), int(entry['first_stamp_ns']),
+                str(entry['source']), track_rows, float(score), released,
+                {str(k): count(v) for k, v in entry.get('hits', {}).items()})
             rows += [(landmark_id, *row) for row in track_rows]
-    except (KeyError, TypeError, ValueError) as error:
+        statistics = {str(name): SourceStatistics.from_dict(values)
+                      for name, values in document.get('statistics', {}).items()}
+    except (AttributeError, KeyError, TypeError, ValueError) as error:
         raise ValueError(f'tracks section: {error}') from error
-    return TrackSection(owned, sightings, together, merged, now_ns, tracks, rows)
+    return TrackSection(owned, sightings, together, merged, now_ns, tracks, rows, statistics)
 
 
 def checked_rows(tracks: Dict[int, Any], rows: List[Any]

@@ -36,6 +36,9 @@ from landmark_ros.core.gating import chi2_threshold
 from landmark_ros.core.joint_compatibility import jcbb
 from landmark_ros.fuser import track_file
 from landmark_ros.fuser.track_file import Track
+from landmark_ros.fuser.track_score import (SourceStatistics, start_score,
+                                            together_log_likelihood_ratio)
+from landmark_ros.fuser.track_screen import ScoredTracks
 from landmark_ros.fusion.landmark_map import LandmarkMap, MapSnapshot, UpdateResult
 from landmark_ros.pipeline.config import FuserConfig
 from landmark_ros.pipeline.rows import MAX_LABEL_ID, UNKNOWN_ID
@@ -43,15 +46,14 @@ from landmark_ros.pipeline.scan import Scan
 import numpy as np
 from numpy.typing import NDArray
 
-TRACK_ROWS_KEPT = 16
-"""Rows of a tentative track kept for the map file (the newest; what a restart replays)."""
+__all__ = ['ASSOCIATION_COUNTERS', 'Tracker', 'together_log_likelihood_ratio']
 
 ASSOCIATION_COUNTERS = ('associated', 'new_tentative', 'confirmed', 'deleted', 'merged',
                         'ambiguous', 'jcbb_fallback')
 """Per-source counters of the association (throughput, not rejections)."""
 
 
-class Tracker:
+class Tracker(ScoredTracks):
     """
     Give unlabelled rows landmark IDs by data association; keep their tentative tracks.
 
@@ -88,6 +90,9 @@ class Tracker:
         """The newest observation stamp fused so far [ns] (the clock of expiry)."""
         self.rejected_tracks: List[Tuple[int, List[str]]] = []
         """Tentative tracks the last ``restore`` dropped: ``(ID, reasons)``."""
+        self.statistics: Dict[str, SourceStatistics] = {}
+        """Per source: its view, clutter density and detection probability estimates
+        (``fuser.track_score``; persisted)."""
 
     def reset(self) -> None:
         """Forget the tracks and classes; the allocator goes on (IDs are never reused)."""
@@ -97,6 +102,7 @@ class Tracker:
         self.sightings.clear()
         self.together.clear()
         self.merged_into.clear()
+        self.statistics.clear()
         self.now_ns = None
         self.rejected_tracks = []
         self.dirty = True
@@ -207,11 +213,7 @@ class Tracker:
             skipped[rows[ambiguous]] = True
         assigned = ids >= 0
         counts['associated'] += int(assigned.sum())
-        for i in np.flatnonzero(assigned).tolist():
-            track = self.tentative.get(int(ids[i]))
-            if track is not None:
-                track.m, track.P = z[i].copy(), R[i].copy()
-                self.dirty = True
+        stats = list(self.statistics.values())
         for i in np.flatnonzero(~assigned & ~skipped).tolist():
             landmark_id = self.allocate(landmark_map)
             ids[i] = landmark_id
@@ -219,7 +221,10 @@ class Tracker:
             if landmark_class:
                 self.classes[landmark_id] = landmark_class
             self.tentative[landmark_id] = Track(z[i].copy(), R[i].copy(), landmark_class,
-                                                int(stamp_ns), source)
+                                                int(stamp_ns), source,
+                                                score=start_score(
+                                                    sum(s.confirmed for s in stats),
+                                                    sum(s.deleted for s in stats)))
             counts['new_tentative'] += 1
             self.dirty = True
         self.note_sightings(ids)
@@ -376,7 +381,10 @@ class Tracker:
         ``detection_probability`` unknown (0), one landmark when ``k = 0``; else when
         ``together_log_likelihood_ratio(k, n, merge_together_same, p_D / (2 - p_D))``
         is positive (two distinct landmarks in view are both seen in about
-        ``p_D^2 / (1 - (1 - p_D)^2)`` of the messages seeing either).
+        ``p_D^2 / (1 - (1 - p_D)^2)`` of the messages seeing either). The online
+        estimate of ``P_D`` (``fuser.track_score``) is not used here: for two landmarks
+        closer than the association resolves, one track takes the other's rows and the
+        estimate goes to 1, which would merge them.
         """
         k = self.together.get(a, {}).get(b, 0)
         p_D = self.config.detection_probability
@@ -386,17 +394,6 @@ class Tracker:
         return together_log_likelihood_ratio(
             k, n, self.config.merge_together_same, p_D / (2.0 - p_D)) > 0.0
 
-    def note_rows(self, ids: NDArray[np.int64], m: NDArray[np.float64],
-                  P: NDArray[np.float64], P_dep: NDArray[np.float64], source: str,
-                  stamp_ns: int) -> None:
-        """Keep the rows of one message that went to tentative tracks (for the map file)."""
-        for i, landmark_id in enumerate(np.asarray(ids).tolist()):
-            track = self.tentative.get(landmark_id)
-            if track is not None:
-                track.rows.append((m[i].copy(), P[i].copy(), P_dep[i].copy(), source,
-                                   int(stamp_ns)))
-                del track.rows[:-TRACK_ROWS_KEPT]
-
     def to_dict(self) -> Dict[str, Any]:
         """Return what a restart needs to resume the tracks (``track_file.tracks_to_dict``)."""
         return track_file.tracks_to_dict(self)
@@ -405,9 +402,10 @@ class Tracker:
         """
         Resume the tracks of a map file (``to_dict``); return the tentative tracks resumed.
 
-        The rows of each tentative track go through ``LandmarkMap.update`` again, so
-        the map buffers them as it did before the restart. A file without tracks (an
-        older one) resumes none.
+        The rows of each released tentative track go through ``LandmarkMap.update``
+        again, so the map buffers them as it did before the restart; the others stay
+        with their tracks. A file without tracks resumes none; one without statistics
+        (or scores) starts them afresh (``track_file.parse_tracks``).
 
         Raises
         ------
@@ -418,18 +416,19 @@ class Tracker:
         """
         if document is None:
             return 0
-        owned, sightings, together, merged, now_ns, tracks, rows = track_file.parse_tracks(
-            document)
-        rows, self.rejected_tracks = track_file.checked_rows(tracks, rows)
-        rows.sort(key=lambda row: row[5])
+        section = track_file.parse_tracks(document)
+        tracks = section.tracks
+        rows, self.rejected_tracks = track_file.checked_rows(tracks, section.rows)
+        rows = sorted((r for r in rows if tracks[r[0]].released), key=lambda row: row[5])
         if rows:
             landmark_map.update(np.array([r[0] for r in rows], np.int64),
                                 np.array([r[1] for r in rows]), np.array([r[2] for r in rows]),
                                 np.array([r[3] for r in rows]), np.array([r[4] for r in rows]),
                                 np.array([r[5] for r in rows], np.int64))
-        self.owned, self.merged_into = owned | set(tracks), merged
-        self.sightings, self.together = sightings, together
-        self.tentative, self.now_ns = tracks, now_ns
+        self.owned, self.merged_into = section.owned | set(tracks), section.merged_into
+        self.sightings, self.together = section.sightings, section.together
+        self.tentative, self.now_ns = tracks, section.now_ns
+        self.statistics = section.statistics
         for landmark_id, track in tracks.items():
             if track.landmark_class:
                 self.classes[landmark_id] = track.landmark_class
@@ -482,6 +481,9 @@ class Tracker:
             track = self.tentative.pop(landmark_id, None)
             if track is not None:
                 counts_of[track.source]['confirmed'] += 1
+                self.stats(track.source).confirmed += 1
+                for name, count in track.hits.items():
+                    self.stats(name).clutter_rows -= count
         if result.changed:
             self.dirty = True
 
@@ -512,47 +514,8 @@ class Tracker:
         old = [landmark_id for landmark_id, track in self.tentative.items()
                if now_ns - track.first_ns > timeout_ns]
         if old:
-            landmark_map.forget(np.array(old, np.int64))
-            for landmark_id in old:
-                counts_of[self.tentative.pop(landmark_id).source]['deleted'] += 1
-                self.owned.discard(landmark_id)
-                self._forget_counts(landmark_id)
-            self.dirty = True
+            self._delete(old, landmark_map, counts_of)
         return old
-
-
-def together_log_likelihood_ratio(k: int, n: int, same: float, distinct: float) -> float:
-    """
-    Return the log likelihood ratio of one landmark against two, from co-occurrences.
-
-    Of ``n`` messages that gave a row to either of two tracks, ``k`` gave rows to both.
-    Two distinct landmarks close enough to pass each other's gate are seen together in
-    a fraction ``distinct`` of such messages (about ``p_D / (2 - p_D)`` when both are
-    in view), two tracks of one landmark in a fraction ``same`` (a clutter row or a
-    mis-associated row beside it). With ``k ~ Binomial(n, rate)``:
-    ``k log(same / distinct) + (n - k) log((1 - same) / (1 - distinct))``; positive
-    favours one landmark. ``k = 0`` always favours it (the rule "never seen together"),
-    each co-occurrence costs ``log(distinct / same)``, each message that saw only one of
-    them gains ``log((1 - same) / (1 - distinct))``: asymptotically, one landmark when
-    ``k / n`` is below ``log((1 - same) / (1 - distinct)) / log(distinct (1 - same) /
-    (same (1 - distinct)))``.
-
-    Parameters
-    ----------
-    k : int
-        Messages that saw both.
-    n : int
-        Messages that saw either, ``n >= k``.
-    same, distinct : float
-        The two rates, ``0 < same < distinct < 1``.
-
-    Returns
-    -------
-    float
-
-    """
-    return float(k * np.log(same / distinct)
-                 + (n - k) * (np.log1p(-same) - np.log1p(-distinct)))
 
 
 def _open_ambiguity(cands: Candidates, result: Association) -> NDArray[np.intp]:

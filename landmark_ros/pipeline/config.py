@@ -335,6 +335,12 @@ class FuserConfig(ConfigBase):
         0.01, 'Fraction of the messages seeing either of two tracks of one landmark that '
         'give rows to both (a clutter or mis-associated row beside it), for merging.',
         low=1e-6, high=0.5)
+    false_track_probability: float = param(
+        1e-4, 'alpha of the track score test: probability that a track of clutter rows is '
+        'confirmed (confirmation at score ln((1 - beta) / alpha)).', low=1e-12, high=0.49)
+    lost_track_probability: float = param(
+        0.01, "beta of the track score test: probability that a landmark's tentative track "
+        'is deleted (deletion at score ln(beta / (1 - alpha))).', low=1e-9, high=0.49)
     ambiguous_rows: str = param(
         'assign', 'Rows without an ID that the association could pair with several '
         "landmarks: 'assign' uses the chosen pairing, 'skip' drops them.")

@@ -16,6 +16,8 @@ from scipy import stats
 S = 1_000_000_000
 SOURCE = '/robot1/landmarks'
 CERTAIN = Scan(np.zeros(2), np.zeros((3, 3)))
+EAGER = {'false_track_probability': 0.49}
+"""A score test that confirms a track on its second row (``min_observations`` decides)."""
 
 
 @pytest.mark.parametrize('k, n, same, distinct', [
@@ -72,7 +74,7 @@ def test_compatible_tracks_merge_when_their_co_occurrence_says_one_landmark(
 def test_the_test_needs_evidence_the_co_occurrence_is_rare():
     # Once together, then messages that saw one of them: the ratio turns positive
     # when (n - k) log((1 - same) / (1 - q)) outweighs k log(q / same).
-    config = FuserConfig(detection_probability=0.9)
+    config = FuserConfig(detection_probability=0.9, **EAGER)
     q = 0.9 / 1.1
     needed = int(np.ceil(np.log(q / 0.01) / (np.log(0.99) - np.log(1 - q))))
     fuser, a, b = _two_confirmed_tracks(config)
@@ -104,13 +106,13 @@ def _duplicate_run(config):
 
 
 def test_a_duplicate_started_beside_its_landmark_is_merged_when_p_D_is_known():
-    fuser, counts = _duplicate_run(FuserConfig(detection_probability=0.9))
+    fuser, counts = _duplicate_run(FuserConfig(detection_probability=0.9, **EAGER))
     assert counts['confirmed'] == 2 and counts['merged'] == 1
     (kept,) = fuser.snapshot().ids.tolist()
     assert fuser.take_removed() == [(kept + 1, kept)]
     assert fuser.tracker.sightings == {kept: 34} and fuser.tracker.together == {}
     # The package default (p_D unknown): the two tracks were seen together, kept apart.
-    fuser, counts = _duplicate_run(FuserConfig())
+    fuser, counts = _duplicate_run(FuserConfig(**EAGER))
     assert counts['confirmed'] == 2 and counts['merged'] == 0
     assert len(fuser.snapshot().ids) == 2
 
@@ -121,7 +123,7 @@ def test_an_mrclam_like_close_pair_is_never_merged(rng):
     # probability 0.35 (both in about 20 % of the messages seeing either, as on
     # dataset 6). Package defaults.
     truth = np.array([[2.0, 1.0], [2.18, 1.0]])
-    fuser = Fuser(FuserConfig(), [SOURCE])
+    fuser = Fuser(FuserConfig(**EAGER), [SOURCE])
     R = 0.0064 * np.eye(2)
     for k in range(400):
         seen = np.flatnonzero(rng.random(2) < 0.35)
@@ -140,7 +142,8 @@ def test_an_mrclam_like_close_pair_is_never_merged(rng):
 
 
 def test_counts_follow_merges_and_deletions_and_survive_a_restart(tmp_path):
-    config = FuserConfig(map_file=str(tmp_path / 'map.json'), detection_probability=0.9)
+    config = FuserConfig(map_file=str(tmp_path / 'map.json'), detection_probability=0.9,
+                         **EAGER)
     fuser, a, b = _two_confirmed_tracks(config)
     tracker = fuser.tracker
     c = tracker.allocate(fuser.map)

@@ -1,5 +1,7 @@
 """The Monte Carlo study of landmarks without IDs computes its quantities right."""
 
+from dataclasses import replace
+
 from landmark_ros.eval import association_study as study
 from landmark_ros.fuser.fuser import Fuser
 from landmark_ros.pipeline.config import FuserConfig
@@ -101,11 +103,9 @@ def test_the_shared_frame_case_scores_the_frame_averaged_anees():
                for score in plain.values())
 
 
-def test_the_study_setting_gives_the_fusers_the_simulated_p_D():
+def test_the_study_runs_the_package_defaults():
     configs = study.study_configs(references=True)
-    p_D = study.HEADLINE['detection_probability']
-    for name in (*study.METHODS, 'independent'):
-        assert configs[name].detection_probability == p_D, name
-        assert configs[name].min_observations == study.STUDY_SETTING['min_observations']
-    # The package defaults: p_D unknown, tracks once seen together never merged.
-    assert configs['defaults'] == FuserConfig() and configs['defaults'].detection_probability == 0
+    assert study.STUDY_SETTING == {}
+    for method in study.METHODS:
+        assert configs[method] == replace(FuserConfig(), association=method), method
+    assert configs['independent'] == replace(FuserConfig(), fusion='independent')

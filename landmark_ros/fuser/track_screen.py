@@ -1,0 +1,186 @@
+"""
+The score step of the ``Tracker`` (``fuser.tracks``): hits, misses, release, deletion.
+
+After each message's association, ``ScoredTracks.screen`` scores the tentative tracks
+(``fuser.track_score``), keeps the rows of those not yet confirmed by their score,
+releases (sends to the map) the rows of those that reach the confirmation threshold
+and deletes those that fall to the deletion threshold.
+"""
+
+from collections import Counter
+from typing import Any, Dict, List, Set, Tuple
+
+from landmark_ros.core.gating import chi2_threshold
+from landmark_ros.fuser.sources import Queued
+from landmark_ros.fuser.track_file import track_estimate
+from landmark_ros.fuser.track_score import (hit_increments, miss_increment, SourceStatistics,
+                                            sprt_thresholds)
+from landmark_ros.fusion.landmark_map import LandmarkMap
+import numpy as np
+from numpy.typing import NDArray
+
+TRACK_ROWS_KEPT = 32
+"""Rows of a tentative track kept (the newest): what the map gets when the score confirms
+it, and what the map file keeps."""
+
+
+class ScoredTracks:
+    """The score step of ``fuser.tracks.Tracker`` (a mixin: it uses the tracker's state)."""
+
+    config: Any
+    tentative: Dict[int, Any]
+    statistics: Dict[str, SourceStatistics]
+    owned: Set[int]
+    dirty: bool
+    _indices: List[Any]
+
+    def _forget_counts(self, landmark_id: int) -> None:  # pragma: no cover - overridden
+        raise NotImplementedError
+
+    def stats(self, source: str) -> SourceStatistics:
+        """Return the estimates of ``source`` (``fuser.track_score``), new ones if none."""
+        return self.statistics.setdefault(source, SourceStatistics())
+
+    def screen(self, landmark_map: LandmarkMap, item: Queued, unlabelled: NDArray[np.bool_],
+               source: str, counts_of: Dict[str, Counter[str]]) -> List[Tuple[Queued, str]]:
+        """
+        Score the tracks after one message's association; return what goes to the map.
+
+        The tentative tracks that got rows score hits, those in the source's view that
+        got none misses (``fuser.track_score``); the source's estimates take the
+        message in. A track whose score reaches the confirmation threshold is released
+        (its rows go to the map, which confirms it), one whose score falls to the
+        deletion threshold is deleted (``deleted``). Rows of tracks not released stay
+        here (``Track.rows``).
+
+        Parameters
+        ----------
+        landmark_map : LandmarkMap
+            The map as the message's association saw it.
+        item : Queued
+            The message with the IDs its rows got (rows dropped as ambiguous removed).
+        unlabelled : ndarray of bool, shape (N,)
+            Which of its rows came without an ID.
+        source : str
+            The message's source.
+        counts_of : dict of str to collections.Counter
+            Counters by source.
+
+        Returns
+        -------
+        list of (Queued, str)
+            The rows of released tracks (one entry per row, in their order), then the
+            message's rows for the map, with the source of each entry.
+
+        """
+        stats, ids = self.stats(source), item.ids
+        confirmed_ids = self._indices[0][1] if self._indices else np.empty(0, np.int64)
+        paired = np.isin(ids, confirmed_ids) & unlabelled
+        mine = np.array([i in self.tentative for i in ids.tolist()], bool)
+        touched = set(ids[mine].tolist())
+        if item.scan is not None:
+            self._view(stats, item, unlabelled, paired, touched)
+        for k in np.flatnonzero(mine).tolist():
+            track = self.tentative[int(ids[k])]
+            row = (item.m[k].copy(), item.P[k].copy(), item.P_dep[k].copy(), source,
+                   int(item.stamp_ns))
+            if track.rows:
+                track.score += float(hit_increments(
+                    item.m[k:k + 1], track.m[None], (track.P + item.P[k])[None],
+                    stats.detection_probability, stats.clutter_density)[0])
+            track.rows.append(row)
+            del track.rows[:-TRACK_ROWS_KEPT]
+            track.m, track.P = track_estimate(track.rows)
+            track.hits[source] = track.hits.get(source, 0) + 1
+            self.dirty = True
+        # Rows of tracks released before: to the map now; of those released now: with
+        # their track's rows, in order.
+        keep = ~mine | np.array([i in self.tentative and self.tentative[i].released
+                                 for i in ids.tolist()], bool)
+        released = self._decide(landmark_map, touched, counts_of)
+        rows = [(Queued(item.sequence, np.array([i], np.int64), m[None], P[None], P_dep[None],
+                        stamp_ns), name)
+                for i, (m, P, P_dep, name, stamp_ns) in released]
+        if keep.any():
+            rows.append((Queued(item.sequence, ids[keep], item.m[keep], item.P[keep],
+                                item.P_dep[keep], item.stamp_ns, None, item.scan, False),
+                         source))
+        return rows
+
+    def _view(self, stats: SourceStatistics, item: Queued, unlabelled: NDArray[np.bool_],
+              paired: NDArray[np.bool_], touched: Set[int]) -> None:
+        """
+        Take one message's view in: range, clutter, detections; score the misses.
+
+        A landmark or track in view (``fuser.track_score``) that got no row is missed
+        only if no row of the message lies in its gate (a row another landmark took
+        might have been its): the rest neither hit nor miss.
+        """
+        assert item.scan is not None
+        robot_xy = np.asarray(item.scan.robot_xy, np.float64)
+        z, R = item.m[unlabelled], item.P[unlabelled]
+        stats.see(np.linalg.norm(z - robot_xy, axis=1), paired[unlabelled])
+        radius = stats.range_m
+        threshold = chi2_threshold(2, self.config.association_gate_probability)
+        if self._indices and len(self._indices[0][0]):
+            index, index_ids = self._indices[0]
+            near = np.flatnonzero(np.linalg.norm(index.m_map - robot_xy, axis=1) <= radius)
+            hit = np.isin(index_ids[near], item.ids[paired])
+            gated = _gated(index.m_map[near], index.P_map[near], z, R, threshold)
+            stats.expected += int((hit | ~gated).sum())
+            stats.detected += int(hit.sum())
+        stats.clutter_rows += int((unlabelled & ~paired).sum())
+        stats.area += float(np.pi * radius ** 2)
+        ids = [i for i, t in self.tentative.items() if i not in touched and t.rows]
+        if not ids:
+            return
+        m = np.array([self.tentative[i].m for i in ids])
+        P = np.array([self.tentative[i].P for i in ids])
+        missed = (np.linalg.norm(m - robot_xy, axis=1) <= radius) & ~_gated(m, P, z, R,
+                                                                            threshold)
+        miss = miss_increment(stats.detection_probability)
+        for k in np.flatnonzero(missed).tolist():
+            self.tentative[ids[k]].score += miss
+            touched.add(ids[k])
+
+    def _decide(self, landmark_map: LandmarkMap, touched: Set[int],
+                counts_of: Dict[str, Counter[str]]) -> List[tuple]:
+        """Release or delete the touched tracks by their scores; return the rows released."""
+        confirm, delete = sprt_thresholds(self.config.false_track_probability,
+                                          self.config.lost_track_probability)
+        released: List[tuple] = []
+        for landmark_id in sorted(touched):
+            track = self.tentative.get(landmark_id)
+            if track is None:
+                continue
+            if not track.released and track.score >= confirm:
+                track.released = True
+                released += [(landmark_id, row) for row in track.rows]
+            elif not track.released and track.score <= delete:
+                self._delete([landmark_id], landmark_map, counts_of)
+        return released
+
+    def _delete(self, old: List[int], landmark_map: LandmarkMap,
+                counts_of: Dict[str, Counter[str]]) -> None:
+        """Delete tentative tracks: their rows in the map are forgotten, counted."""
+        landmark_map.forget(np.array(old, np.int64))
+        for landmark_id in old:
+            track = self.tentative.pop(landmark_id)
+            counts = counts_of.get(track.source)
+            if counts is not None:
+                counts['deleted'] += 1
+            self.stats(track.source).deleted += 1
+            self.owned.discard(landmark_id)
+            self._forget_counts(landmark_id)
+        self.dirty = True
+
+
+def _gated(m: NDArray[np.float64], P: NDArray[np.float64], z: NDArray[np.float64],
+           R: NDArray[np.float64], threshold: float) -> NDArray[np.bool_]:
+    """Return, per landmark ``m`` (K, 2), ``P`` (K, 2, 2), whether a row lies in its gate."""
+    if not len(m) or not len(z):
+        return np.zeros(len(m), bool)
+    nu = z[None, :, :] - m[:, None, :]
+    S = P[:, None] + R[None, :]
+    d2 = np.einsum('kni,kni->kn', nu, np.linalg.solve(S, nu[..., None])[..., 0])
+    return (d2 <= threshold).any(axis=1)
