@@ -23,7 +23,6 @@ from landmark_ros.core.curvature import CONFIDENCE_RADIUS_95, observe_hessians, 
 from landmark_ros.core.gating import chi2_threshold
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.optimize import least_squares
 
 
 @dataclass(frozen=True)
@@ -269,6 +268,7 @@ def _refine(views, m0, params, reweight):
     def jac(m, w):
         return -observe_view_jacobians(views.kind, views.s, m)[1][:, 0, :] * w[:, None]
 
+    from scipy.optimize import least_squares  # a second or more: when first needed
     m = np.asarray(m0, dtype=np.float64)
     try:
         for tol in ((1e-10, 1e-14) if reweight else (1e-10,)):

@@ -50,7 +50,6 @@ from landmark_ros.core.arrays import as_matrices, as_vectors
 from landmark_ros.core.gating import chi2_threshold, mahalanobis_sq
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
 from scipy.special import chdtri
 
@@ -470,6 +469,7 @@ def _gnn_pairs(cands):
     cost = np.full((n, k + n), np.inf)
     cost[row_of, landmark_of] = cands.d2
     cost[np.arange(n), k + np.arange(n)] = cands.threshold
+    from scipy.optimize import linear_sum_assignment  # a second or more: when first needed
     assigned_row, column = linear_sum_assignment(cost)
     real = column < k
     assigned_row, column = assigned_row[real], column[real]

@@ -212,7 +212,7 @@ class LandmarkMap:
             rows = np.flatnonzero(taken)
         return Checkpoint(
             self._count, rows,
-            {name: getattr(self, name)[rows].copy() for name in self._ROW_ARRAYS},
+            {name: getattr(self, name).take(rows, axis=0) for name in self._ROW_ARRAYS},
             {source: seen[rows].copy() for source, seen in self._seen_by.items()},
             {row: copy.copy(self._buffers[row]) for row in rows.tolist() if row in self._buffers},
             list(self._source_names), self._method.checkpoint(rows))
@@ -261,6 +261,8 @@ class LandmarkMap:
                 self._update_confirmed(rows[i:i + 1], batch, np.array([i]), result, changed)
             else:
                 self._add_tentative(rows[i], batch.observation(i), result, changed)
+        # By source once per update, not once per pass (60 sources: a loop over them).
+        self._count_by_source(batch.codes[batch.taken], rows[batch.taken], result.accepted, True)
         if changed:
             result.changed_ids = unique_ints(self.ids[np.concatenate(changed)])
         return result
@@ -285,9 +287,10 @@ class LandmarkMap:
         starts = np.flatnonzero(first)
         group = np.cumsum(first) - 1
         start = starts[group]
-        gate = self.gate[rows]
-        R_ind, R_dep = batch.R_ind[positions], batch.R_dep[positions]
-        d = batch.z[positions] - gate[:, :2]
+        # take(): numpy's fancy indexing of (N, 2, 2) rows is several times slower.
+        gate = self.gate.take(rows, axis=0)
+        R_ind, R_dep = batch.R_ind.take(positions, axis=0), batch.R_dep.take(positions, axis=0)
+        d = batch.z.take(positions, axis=0) - gate[:, :2]
         d2 = mahalanobis_sq_2x2(d[:, 0], d[:, 1], *(
             gate[:, 2 + k] + _entries(R_ind)[k] + _entries(R_dep)[k] for k in range(3)))
         ok = d2 <= self.threshold   # NaN (degenerate input) is rejected
@@ -319,15 +322,15 @@ class LandmarkMap:
             first = np.ones(len(good), bool)
             first[1:] = good[1:] != good[:-1]
             landmarks, index = good[first], np.cumsum(first) - 1
-            current = Estimates(self.mean[landmarks], self.cov_ind[landmarks],
-                                self.cov_dep[landmarks])
+            current = Estimates(*(x.take(landmarks, axis=0)
+                                  for x in (self.mean, self.cov_ind, self.cov_dep)))
             fused = self._method.absorb(landmarks, current, index, batch.rows(good, at))
             if fused is not None:
                 self.mean[landmarks], self.cov_ind[landmarks], self.cov_dep[landmarks] = fused
             self.observations[landmarks] += np.bincount(index)
             self.last_stamp_ns[landmarks] = batch.stamps_ns[at[np.append(first[1:], True)]]
             changed.append(landmarks)
-            self._count_by_source(codes[ok], good, result.accepted, True)
+            batch.taken[at] = True
             if self._buffers:
                 for row in self._buffers.keys() & set(landmarks.tolist()):
                     del self._buffers[row]

@@ -98,6 +98,8 @@ class Batch:
     names: list
     codes: np.ndarray
     stamps_ns: np.ndarray
+    taken: np.ndarray
+    """Rows fused into confirmed landmarks so far (bool), counted by source at the end."""
 
     @staticmethod
     def of(count: int, rows: Tuple[Any, Any, Any, Any], sources: Tuple[Any, Any],
@@ -137,7 +139,7 @@ class Batch:
                 by_name[k] = source_code(str(given[k]))
             codes = by_name[inverse]
         # The one conversion to the independent part.
-        return Batch(z, R - R_dep, R_dep, names, codes, stamps_ns)
+        return Batch(z, R - R_dep, R_dep, names, codes, stamps_ns, np.zeros(count, bool))
 
     def observation(self, i: int) -> Observation:
         """Return row ``i`` as an ``Observation``."""
@@ -146,8 +148,8 @@ class Batch:
 
     def rows(self, rows: NDArray[np.int64], positions: NDArray[np.int64]) -> Rows:
         """Return the rows at ``positions`` as ``Rows`` of the landmark rows ``rows``."""
-        return Rows(rows, self.codes[positions], self.z[positions], self.R_ind[positions],
-                    self.R_dep[positions])
+        return Rows(rows, self.codes[positions], *(
+            x.take(positions, axis=0) for x in (self.z, self.R_ind, self.R_dep)))
 
 
 def stack(observations: Sequence[Observation]) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:

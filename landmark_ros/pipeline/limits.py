@@ -213,7 +213,7 @@ def partial_problems(columns: Mapping[str, NDArray[Any]], kind: NDArray[Any],
 def landmark_problems(m: NDArray[np.float64]) -> List[Tuple[str, NDArray[np.bool_]]]:
     """Return the plausibility check of landmark positions ``m``, shape (N, 2) [m]."""
     far = outside(m, -MAX_COORDINATE, MAX_COORDINATE).reshape(len(m), 2)
-    return [('landmark_out_of_range', np.asarray(far.any(axis=1)))]
+    return [('landmark_out_of_range', far[:, 0] | far[:, 1])]
 
 
 def markdown() -> str:

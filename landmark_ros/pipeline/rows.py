@@ -82,15 +82,18 @@ def landmark_row_problems(
         Rejected rows per reason (each row counted once, under its first problem).
 
     """
-    finite = np.isfinite(m.sum(axis=1) + P.sum(axis=(1, 2)) + P_dep.sum(axis=(1, 2)))
+    # Entries 00, 01, 10, 11 as contiguous rows: a few times faster than (N, 2, 2) axes.
+    p, q = (np.reshape(x, (-1, 4)).T.copy() for x in (P, P_dep))
     with np.errstate(invalid='ignore', over='ignore', divide='ignore'):
+        finite = np.isfinite(m[:, 0] + m[:, 1] + (p[0] + p[1] + p[2] + p[3])
+                             + (q[0] + q[1] + q[2] + q[3]))
         # Scaled to unit size, so that huge and tiny covariances compare alike.
-        scale = np.abs(P).max(axis=(1, 2))
-        unit, dep = P / scale[:, None, None], P_dep / scale[:, None, None]
-        a, b, c = unit[:, 0, 0], unit[:, 0, 1], unit[:, 1, 1]
-        definite = (a > 0.0) & (a * c - b * b > 1e-12) & (np.abs(b - unit[:, 1, 0]) <= 1e-9)
-        rest = unit - dep
-        dependent = _psd_2x2(dep) & _psd_2x2(rest)
+        scale = np.maximum(np.maximum(np.abs(p[0]), np.abs(p[1])),
+                           np.maximum(np.abs(p[2]), np.abs(p[3])))
+        unit, dep = p / scale, q / scale
+        a, b, c = unit[0], unit[1], unit[3]
+        definite = (a > 0.0) & (a * c - b * b > 1e-12) & (np.abs(b - unit[2]) <= 1e-9)
+        dependent = _psd_2x2(dep) & _psd_2x2(unit - dep)
         in_range = range_status(P, finite & definite) == 0
         valid = finite & definite & in_range & dependent & (ids >= 0) & (ids <= MAX_ID)
         valid &= ~landmark_problems(m)[0][1]
@@ -145,7 +148,6 @@ def range_status(P: NDArray[np.float64], usable: NDArray[np.bool_]) -> NDArray[n
 
 
 def _psd_2x2(P, tol=1e-9):
-    """Return where unit-scaled symmetric 2x2 matrices are positive semi-definite."""
-    a, b, c = P[:, 0, 0], 0.5 * (P[:, 0, 1] + P[:, 1, 0]), P[:, 1, 1]
-    return (a >= -tol) & (c >= -tol) & (a * c - b * b >= -tol) & (
-        np.abs(P[:, 0, 1] - P[:, 1, 0]) <= tol)
+    """Return where unit-scaled 2x2 matrices (entries 00, 01, 10, 11 as rows) are PSD."""
+    a, b, c = P[0], 0.5 * (P[1] + P[2]), P[3]
+    return (a >= -tol) & (c >= -tol) & (a * c - b * b >= -tol) & (np.abs(P[1] - P[2]) <= tol)
