@@ -27,10 +27,10 @@ Printed per fusion method:
 """
 
 import argparse
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 import sys
 import time
-from typing import List, Optional
+from typing import Optional
 
 from landmark_ros.core.landmarks import landmark_to_world_parts
 from landmark_ros.eval.metrics import anees_interval
@@ -70,7 +70,6 @@ class SeedResult:
     """Alarms on static landmarks."""
     moved_counted: int = 0
     """The fuser's ``landmark_moved`` counter at the end."""
-    notes: List[str] = field(default_factory=list)
 
 
 def draw_rows(rng, truth):

@@ -70,7 +70,8 @@ def test_detector_keeps_post_change_rows_only():
 
 
 def test_detector_carries_its_state_across_batches():
-    """Row by row and all at once: the same first alarms and post-change rows.
+    """
+    Row by row and all at once: the same first alarms and post-change rows.
 
     In one batch the rows after the alarm are post-change rows too (they are fused
     already); row by row the alarm takes the rows up to it.
