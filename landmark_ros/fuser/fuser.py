@@ -16,11 +16,13 @@ import itertools
 from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 from landmark_ros.fuser import persistence, publishing
+from landmark_ros.fuser.change_detection import detect_moves, MoveDetector
 from landmark_ros.fuser.partial import (NOT_PROBLEMS as PARTIAL_COUNTS,
                                         partial_row_problems, PartialFusion, views_from_columns)
 from landmark_ros.fuser.sources import LandmarkMessage, Queued, shard_of_position, Source
 from landmark_ros.fuser.tracks import Tracker
-from landmark_ros.fusion.landmark_map import LandmarkMap, MapSnapshot, UpdateResult
+from landmark_ros.fusion.landmark_map import MapSnapshot, UpdateResult
+from landmark_ros.fusion.moves import MovingLandmarkMap
 from landmark_ros.pipeline.config import FuserConfig
 from landmark_ros.pipeline.counters import Counters, Logger, Status
 from landmark_ros.pipeline.rows import landmark_row_problems, UNKNOWN_ID
@@ -85,8 +87,11 @@ class Fuser:
         for warning in config.deprecations():
             self.logger.warning(warning)
         self.counters = Counters(self.logger.warning, config.log_throttle_s)
-        self.map = LandmarkMap(config.fusion, config.gate_probability,
-                               config.min_observations, config.max_consecutive_rejections)
+        self.map = MovingLandmarkMap(config.fusion, config.gate_probability,
+                                     config.min_observations, config.max_consecutive_rejections)
+        self.moves = MoveDetector(config.move_false_alarm_rate, config.move_shift_sigma,
+                                  self.map.threshold) if config.move_false_alarm_rate else None
+        """Change detection on the confirmed landmarks (``fuser.change_detection``)."""
         self.sources: Dict[str, Source] = {
             name: Source(name, optional=name in partial_sources) for name in sources}
         self._sequence = itertools.count()
@@ -423,14 +428,21 @@ class Fuser:
         lengths = [len(item.ids) for item, _ in items]
         names: Dict[str, int] = {}
         index = [names.setdefault(name, len(names)) for _, name in items]
-        result = self.map.update(
-            np.concatenate([item.ids for item, _ in items]),
-            np.concatenate([item.m for item, _ in items]),
-            np.concatenate([item.P for item, _ in items]),
-            np.concatenate([item.P_dep for item, _ in items]),
-            list(names), np.repeat([item.stamp_ns for item, _ in items], lengths),
-            settle=False,   # folded when read: snapshot, estimate, records
-            source_index=np.repeat(index, lengths))
+        rows = [np.concatenate([getattr(item, name) for item, _ in items])
+                for name in ('ids', 'm', 'P', 'P_dep')]
+        stamps, index = np.repeat([item.stamp_ns for item, _ in items], lengths), np.repeat(
+            index, lengths)
+        d2 = None if self.moves is None else self.map.gate_distances(*rows[:3])
+        result = self.map.update(*rows, list(names), stamps, settle=False,  # folded when read
+                                 source_index=index)
+        if d2 is not None:
+            moved = detect_moves(self.moves, self.map, d2, (*rows, np.array(list(names))[
+                index], stamps), result)
+            if moved:
+                self.counters.add('landmark_moved', len(moved), f'landmarks {moved} moved: '
+                                  'rebuilt from their rows since the change (change detection)')
+                self._updated.append(np.array(moved, np.int64))
+                self.map_changed = self.unsaved = True
         for name, count in result.accepted.items():
             self.sources[name].counts['fused'] += count
         for name, count in result.rejected.items():
@@ -499,6 +511,8 @@ class Fuser:
         self.map.reset()
         self.tracker.reset()
         self.partial.reset()
+        if self.moves is not None:
+            self.moves.reset()
         for state in self.sources.values():
             state.queue.clear()
         self._updated = []

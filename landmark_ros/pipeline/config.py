@@ -267,6 +267,15 @@ class FuserConfig(ConfigBase):
     max_consecutive_rejections: int = param(
         5, 'Rejections in a row after which a landmark is rebuilt from them.',
         read_only=True, low=1, high=1000)
+    move_false_alarm_rate: float = param(
+        2e-5, 'Change detection (Page CUSUM on the innovations of each confirmed landmark, '
+        'fuser.change_detection): false alarms per observation of a static landmark its '
+        'threshold is set for; an alarm rebuilds the landmark from its post-change rows '
+        '(landmark_moved). 0 turns it off.', read_only=True, low=0.0, high=0.1)
+    move_shift_sigma: float = param(
+        1.75, 'The move change detection is tuned to, in standard deviations of one '
+        'observation (its noncentrality is the square).', read_only=True, low=0.1,
+        high=100.0)
     update_period_s: float = param(
         0.02, 'Queued observations are fused in one batch at this period [s].',
         read_only=True, low=0.001, high=10.0)
@@ -362,6 +371,9 @@ class FuserConfig(ConfigBase):
                              f'{self.ambiguous_rows!r}')
         if self.fusion not in FUSION_METHODS:
             raise ValueError(f'fusion must be one of {FUSION_METHODS}, got {self.fusion!r}')
+        if 0.0 < self.move_false_alarm_rate < 1e-12:
+            raise ValueError('move_false_alarm_rate must be 0 (off) or at least 1e-12, got '
+                             f'{self.move_false_alarm_rate}')
         if not self.input_topics or not all(self.input_topics):
             raise ValueError('input_topics must list at least one topic name')
         if len(set(self.input_topics)) != len(self.input_topics):

@@ -1,0 +1,360 @@
+"""
+A moved landmark, found from its innovation sequence by Page's CUSUM test (ROS-free).
+
+Symbols: ``d2`` the normalised innovation squared (NIS) of an observation of a confirmed
+landmark, ``d^T S^-1 d`` with ``d = z - m_ref`` and ``S = P_ref + R`` (``m_ref, P_ref``
+the landmark's gate reference, ``LandmarkMap.gate_distances``: the gate's own distance);
+``lambda`` a noncentrality; ``h`` the test's threshold; ``alpha`` the false-alarm rate
+per observation of a static landmark.
+
+The test
+--------
+While a landmark stays where it is, ``d2`` is chi-square with 2 degrees of freedom (H0).
+Once it has moved by ``delta``, ``d`` has mean ``delta`` and ``d2`` is noncentral
+chi-square, noncentrality ``lambda = delta^T S^-1 delta`` (H1). The density of the
+latter is ``f_lambda(x) = exp(-(x + lambda) / 2) I0(sqrt(lambda x)) / 2``, so the
+log-likelihood ratio of one observation is
+
+    g(x) = log(f_lambda1(x) / f_0(x)) = log I0(sqrt(lambda1 x)) - lambda1 / 2
+
+and Page's test (E. S. Page, "Continuous inspection schemes", Biometrika 41, 1954)
+accumulates it: ``C_k = max(0, C_{k-1} + g(min(d2_k, clip)))``, an alarm when
+``C_k > h``. ``lambda1 = shift_sigma ** 2``: the test is tuned to a move of
+``shift_sigma`` standard deviations of one observation (the direction does not matter;
+``g`` is the optimal increment for that size). ``d2`` is clipped at the gate's
+threshold, so one wild row adds at most ``g(clip)`` (about 3 for the defaults) and cannot
+raise an alarm alone; the clip is part of the run-length computation below. There is one
+test per landmark over the whole team (every source's rows, in arrival order): a move is
+seen by every source, and the rows of all of them shorten the delay.
+
+Threshold from the false-alarm rate
+-----------------------------------
+After an alarm the test restarts, so the long-run rate of false alarms per observation of a
+static landmark is ``1 / ARL0``, the average run length under H0 (renewal theorem). ``h``
+is the threshold whose ARL0 is ``1 / alpha``, found by bisection on the ARL computed with
+Brook and Evans' Markov chain (D. Brook and D. A. Evans, "An approach to the probability
+distribution of cusum run length", Biometrika 59, 1972): ``C`` on ``[0, h]`` in
+``STATES`` cells plus the atom at 0, the transition probabilities from the distribution
+of ``g(min(d2, clip))`` (``d2`` chi-square, ``P(d2 <= x) = 1 - exp(-x / 2)``), and
+``ARL = (I - Q)^-1 1`` from the atom. The same chain with the noncentral distribution
+gives the mean delay to detection (``average_run_length(..., lambda_true)``). With the
+defaults (``alpha`` 2e-5, ``shift_sigma`` 1.75, gate 0.999) ``h`` is 8.71 and a
+2-sigma move (``lambda`` 4) takes 10.5 observations on average from ``C = 0``
+(``lambda`` 3: 15.1). ``shift_sigma`` a little under 2 detects a 2-sigma move within
+20 observations more often at the same false-alarm rate than 2 or more (simulated:
+``lambda1`` 3, 4, 5, 6: 97.8, 96.6, 95.2, 93.1 % at about 0.25 false alarms per
+10,000 observations, without the clip).
+
+The ARL assumes independent innovations with the covariance the map gives them. Errors
+correlated in time (a robot's pose error held over several observations) or an
+over-confident map raise the false-alarm rate; a conservative map (CI) lowers it and
+slows detection. ``python -m landmark_ros.eval.moved_landmark`` measures both.
+
+Change point and rebuild
+------------------------
+Page's estimate of where the change began is just after the last observation with
+``C = 0``: the rows since (the post-change rows, at most ``MAX_POST_CHANGE_ROWS``, the
+most recent) are kept while ``C > 0``. On an alarm the landmark is rebuilt from them
+alone (``LandmarkMap.rebuild``: their largest agreeing subset, at least
+``min_observations``), by the map's fusion method (split CI: its per-source sums start
+again from those rows). The test restarts at 0 whether or not the rebuild took place.
+The detector's state is not saved with the map: after a restart a test starts at 0,
+which only delays a detection.
+"""
+
+from collections import Counter
+from functools import lru_cache
+from typing import Any, Dict, List, NamedTuple, Optional, Sequence, Tuple
+
+from landmark_ros.fusion.records import Observation, UpdateResult
+import numpy as np
+from numpy.typing import NDArray
+from scipy import optimize, special, stats
+
+STATES = 200
+"""Cells of Brook and Evans' Markov chain on [0, h] (for the defaults the ARL differs by
+0.1 % from that of 800 cells)."""
+
+MAX_POST_CHANGE_ROWS = 64
+"""Post-change rows kept per landmark (the most recent) for the rebuild."""
+
+
+def increment(d2: NDArray[np.float64], noncentrality: float) -> NDArray[np.float64]:
+    """
+    Return Page's increment ``g(d2) = log I0(sqrt(lambda1 d2)) - lambda1 / 2``.
+
+    Parameters
+    ----------
+    d2 : ndarray, shape (N,)
+        Normalised innovations squared (not negative, finite).
+    noncentrality : float
+        ``lambda1``, the noncentrality of the move the test is tuned to (> 0).
+
+    Returns
+    -------
+    ndarray, shape (N,)
+        The log-likelihood ratios (``i0e`` keeps them finite for any ``d2``).
+
+    """
+    s = np.sqrt(noncentrality * np.asarray(d2, np.float64))
+    return np.log(special.i0e(s)) + s - 0.5 * noncentrality
+
+
+def _increment_cdf(y, noncentrality, clip, d2_cdf):
+    """Return ``P(g(min(d2, clip)) <= y)`` for the ``d2`` distribution ``d2_cdf``."""
+    grid = np.linspace(0.0, clip, 4001)
+    values = increment(grid, noncentrality)
+    x = np.interp(y, values, grid)       # g is increasing: its inverse on the grid
+    return np.where(y >= values[-1], 1.0, np.where(y < values[0], 0.0, d2_cdf(x)))
+
+
+def average_run_length(threshold: float, noncentrality: float, clip: float,
+                       true_noncentrality: float = 0.0) -> float:
+    """
+    Return the average run length of Page's test to its first alarm (Brook and Evans).
+
+    Parameters
+    ----------
+    threshold : float
+        ``h`` (> 0).
+    noncentrality : float
+        ``lambda1``, what the test is tuned to.
+    clip : float
+        ``d2`` is clipped at this value (> 0).
+    true_noncentrality : float
+        The noncentrality of the observations: 0 for a static landmark (ARL0, the mean
+        number of observations to a false alarm), else the mean delay to detection of a
+        move of that size.
+
+    Returns
+    -------
+    float
+        Observations, counted from ``C = 0``.
+
+    """
+    if true_noncentrality > 0.0:
+        def d2_cdf(x):
+            return stats.ncx2.cdf(x, 2, true_noncentrality)
+    else:
+        def d2_cdf(x):
+            return -np.expm1(-0.5 * x)
+    width = threshold / STATES
+    levels = np.concatenate([[0.0], (np.arange(1, STATES + 1) - 0.5) * width])
+    edges = np.arange(STATES + 1) * width           # cell j is (edges[j-1], edges[j]]
+    cdf = _increment_cdf(edges[None, :] - levels[:, None], noncentrality, clip, d2_cdf)
+    Q = np.empty((STATES + 1, STATES + 1))
+    Q[:, 0] = cdf[:, 0]
+    Q[:, 1:] = np.diff(cdf, axis=1)
+    run = np.linalg.solve(np.eye(STATES + 1) - Q, np.ones(STATES + 1))
+    return float(run[0])
+
+
+@lru_cache(maxsize=32)
+def threshold_for(false_alarm_rate: float, noncentrality: float, clip: float) -> float:
+    """
+    Return ``h`` whose ARL0 is ``1 / false_alarm_rate`` (bisection on the ARL).
+
+    Parameters
+    ----------
+    false_alarm_rate : float
+        False alarms per observation of a static landmark, in [1e-12, 0.5).
+    noncentrality : float
+        ``lambda1``.
+    clip : float
+        The clip of ``d2``.
+
+    Returns
+    -------
+    float
+
+    Raises
+    ------
+    ValueError
+        If ``false_alarm_rate`` is out of range.
+
+    """
+    if not 1e-12 <= false_alarm_rate < 0.5:
+        raise ValueError(f'false_alarm_rate must be in (0, 0.5), got {false_alarm_rate}')
+    target = -np.log(false_alarm_rate)
+
+    def gap(h):
+        return np.log(average_run_length(h, noncentrality, clip)) - target
+    return float(optimize.brentq(gap, 1e-3, _highest_threshold(noncentrality, clip), xtol=1e-6))
+
+
+def _highest_threshold(noncentrality, clip):
+    """Return an ``h`` whose ARL0 is above 1e12 (the bisection's upper end)."""
+    h = 4.0
+    while average_run_length(h, noncentrality, clip) < 1e12:
+        h *= 1.5
+    return h
+
+
+class PostChange(NamedTuple):
+    """A landmark whose test raised an alarm, with its post-change rows."""
+
+    landmark_id: int
+    observations: List[Observation]
+
+
+class MoveDetector:
+    """
+    Page's test per confirmed landmark over its NIS sequence (module notes).
+
+    Parameters
+    ----------
+    false_alarm_rate : float
+        False alarms per observation of a static landmark, in [1e-12, 0.5).
+    shift_sigma : float
+        The move the test is tuned to, in standard deviations of one observation (> 0).
+    clip : float
+        ``d2`` is clipped here (the gate's chi-square threshold).
+
+    Raises
+    ------
+    ValueError
+        If ``false_alarm_rate`` is out of range.
+
+    """
+
+    def __init__(self, false_alarm_rate: float, shift_sigma: float, clip: float) -> None:
+        self.noncentrality = float(shift_sigma) ** 2
+        self.clip = float(clip)
+        self.threshold = threshold_for(float(false_alarm_rate), self.noncentrality, self.clip)
+        self.alarms: Counter[int] = Counter()
+        """Alarms raised per landmark ID (whether or not the rebuild took place)."""
+        self.statistic: Dict[int, float] = {}
+        """``C`` of each landmark whose test is above 0."""
+        self._pending: Dict[int, List[Observation]] = {}
+
+    def reset(self, ids: Optional[Sequence[int]] = None) -> None:
+        """Restart the tests of ``ids`` (all when None) at 0."""
+        for landmark_id in (list(self.statistic) if ids is None else ids):
+            self.statistic.pop(int(landmark_id), None)
+            self._pending.pop(int(landmark_id), None)
+
+    def observe(self, ids: NDArray[np.int64], d2: NDArray[np.float64],
+                rows: Tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64],
+                            Sequence[str], NDArray[np.int64]]) -> List[PostChange]:
+        """
+        Add rows (in arrival order) to their landmarks' tests; return the alarms.
+
+        Parameters
+        ----------
+        ids : ndarray of int, shape (N,)
+            Landmark IDs.
+        d2 : ndarray, shape (N,)
+            Their NIS; NaN for rows the test does not take (landmarks not confirmed).
+        rows : tuple
+            ``z`` (N, 2) [m], ``R_ind``, ``R_dep`` (N, 2, 2) [m^2], the source names (N,)
+            and stamps (N,) [ns] of the rows (for the rebuild).
+
+        Returns
+        -------
+        list of PostChange
+            The landmarks whose test raised an alarm (restarted at 0), each with its
+            post-change rows in arrival order.
+
+        """
+        taken = np.flatnonzero(np.isfinite(d2))
+        if not len(taken):
+            return []
+        taken = taken[np.argsort(ids[taken], kind='stable')]
+        g = increment(np.minimum(d2[taken], self.clip), self.noncentrality)
+        landmarks = ids[taken]
+        first = np.ones(len(taken), bool)
+        first[1:] = landmarks[1:] != landmarks[:-1]
+        starts = np.flatnonzero(first)
+        group = np.cumsum(first) - 1
+        start_values = np.array([self.statistic.get(int(i), 0.0)
+                                 for i in landmarks[starts].tolist()])
+        total = np.cumsum(g)
+        C = start_values[group] + total - (total[starts] - g[starts])[group]
+        # Lindley's recursion in closed form: C_k - min(0, min_{j<=k} C_j), per landmark
+        # (the offset keeps the running minimum of a landmark from reaching the next).
+        span = 2.0 * (np.abs(C).max() + 1.0)
+        offset = group * span
+        low = np.minimum.accumulate(np.minimum(C, 0.0) - offset) + offset
+        low = np.minimum(low, 0.0)
+        statistic = C - low
+        # The offset costs the last bits: a statistic within its rounding error is 0.
+        statistic[statistic <= 8.0 * np.finfo(float).eps * (offset + span)] = 0.0
+        ends = np.append(starts[1:], len(taken))
+        busy = (np.maximum.reduceat(statistic, starts) > self.threshold) | (
+            statistic[ends - 1] > 0.0)
+        for landmark_id in landmarks[starts[~busy]].tolist():    # back at 0: nothing kept
+            if self.statistic.pop(landmark_id, None) is not None:
+                self._pending.pop(landmark_id, None)
+        alarms = []
+        for begin, end in zip(starts[busy].tolist(), ends[busy].tolist()):
+            alarm = self._close(int(landmarks[begin]), statistic[begin:end],
+                                taken[begin:end], rows)
+            if alarm is not None:
+                alarms.append(alarm)
+        return alarms
+
+    def _close(self, landmark_id, statistic, positions, rows):
+        """Update one landmark's test from its rows' ``statistic``; return an alarm."""
+        over = np.flatnonzero(statistic > self.threshold)
+        stop = int(over[0]) if len(over) else len(statistic) - 1
+        zeros = np.flatnonzero(statistic[:stop + 1] <= 0.0)
+        kept = self._pending.pop(landmark_id, [])
+        if len(zeros):
+            kept = []
+        after = positions[(int(zeros[-1]) + 1) if len(zeros) else 0:]
+        if not len(over) and statistic[-1] <= 0.0:
+            self.statistic.pop(landmark_id, None)
+            return None
+        if len(over):
+            self.alarms[landmark_id] += 1
+            self.statistic.pop(landmark_id, None)
+            return PostChange(landmark_id,
+                              (kept + _observations(after, rows))[-MAX_POST_CHANGE_ROWS:])
+        self.statistic[landmark_id] = float(statistic[-1])
+        self._pending[landmark_id] = (kept + _observations(after, rows))[-MAX_POST_CHANGE_ROWS:]
+        return None
+
+
+def _observations(positions, rows):
+    """Return the rows at ``positions`` as ``Observation``s."""
+    z, R_ind, R_dep, sources, stamps = rows
+    return [Observation(z[i], R_ind[i], R_dep[i], str(sources[i]), int(stamps[i]))
+            for i in positions.tolist()]
+
+
+def detect_moves(detector: MoveDetector, landmark_map: Any, d2: NDArray[np.float64],
+                 rows: Tuple[NDArray[Any], ...], result: UpdateResult) -> List[int]:
+    """
+    Feed one update's rows to the tests; rebuild the landmarks that moved; return their IDs.
+
+    Parameters
+    ----------
+    detector : MoveDetector
+        The tests.
+    landmark_map : MovingLandmarkMap
+        The map the rows were just fused into.
+    d2 : ndarray, shape (N,)
+        The rows' NIS against the gate references before the update (NaN: not confirmed).
+    rows : tuple
+        ``ids`` (N,), ``z`` (N, 2) [m], ``P``, ``P_dep`` (N, 2, 2) [m^2], source names
+        (N,) and stamps (N,) [ns] of the update's rows.
+    result : UpdateResult
+        The update's result: landmarks it confirmed or rebuilt restart their tests and
+        their rows are left out.
+
+    Returns
+    -------
+    list of int
+        The IDs rebuilt from their post-change rows, in ID order.
+
+    """
+    ids, z, P, P_dep, sources, stamps = rows
+    fresh = list(result.confirmed) + list(result.reinitialised)
+    if fresh:
+        detector.reset(fresh)
+        d2 = np.where(np.isin(ids, fresh), np.nan, d2)
+    moved = []
+    for alarm in detector.observe(ids, d2, (z, P - P_dep, P_dep, sources, stamps)):
+        if landmark_map.rebuild(alarm.landmark_id, alarm.observations):
+            moved.append(alarm.landmark_id)
+    return moved
