@@ -15,6 +15,14 @@ NEES_2SIGMA = 4.0
 """A 2D estimate whose truth lies outside its 2-sigma ellipse has NEES above 4."""
 MIN_OBSERVATIONS_NO_IDS = 2
 """The fuser's ``min_observations`` with ``--no-ids``: a track needs a second row."""
+SIGHTINGS_TO_CONFIRM_NO_IDS = 5
+"""Sightings after which a landmark must be in the map without IDs.
+
+The track score (``fuser.track_score``) confirms a clean track after two to four
+rows with its prior clutter and detection estimates; five leaves a margin for the
+misses scored while the landmark is in view and not sighted. Landmarks sighted
+fewer times may be confirmed already and are then matched like the others.
+"""
 
 
 def rejections_by_id(path, frame):
@@ -101,7 +109,7 @@ def evaluate_run(monitor, rejections, no_ids=False):
     """
     import numpy as np
     truth = monitor.truth
-    needed = MIN_OBSERVATIONS_NO_IDS if no_ids else 1
+    needed = SIGHTINGS_TO_CONFIRM_NO_IDS if no_ids else 1
     seen = [int(i) for i, n in zip(truth.ids.tolist(), truth.observations.tolist())
             if n >= needed]
     fused = monitor.fused

@@ -325,7 +325,8 @@ def test_short_demo_run_without_ids_matches_tracks_by_position(tmp_path):
                       r'landmark \(of (\d+) measured\), 0 extra; GOSPA (\d+\.\d+) m', output)
     assert match, output
     tracks, matched, measured = (int(g) for g in match.groups()[:3])
-    assert tracks == matched == measured >= 3, output
+    # Every track is a true landmark; every landmark sighted often enough is a track.
+    assert tracks == matched >= measured >= 3, output
     # The matched tracks are reported under the IDs of their true landmarks (1 .. 8).
     rows = re.findall(r'^\s+(\d+)\s+-?\d+\.\d{3}\s+-?\d+\.\d{3}\s', output, re.M)
     assert sorted(int(r) for r in rows) == sorted({int(r) for r in rows})
