@@ -8,6 +8,21 @@ rows of a 20-landmark map, applied at the newest odometry stamp (no re-filtering
 (``time.thread_time``), best of ``--repeats``; the machine is shared, so the ratios
 between cases taken side by side mean more than the absolute figures.
 
+Node level (``--node-rounds``, 0 to skip), side by side in one run: a
+``landmark_localizer`` process and a relay process (this script with ``--relay``: a node
+that only receives ``odometry`` and republishes it as ``pose``, and receives
+``observations`` and republishes them), both started by
+``landmark_ros.ros.launcher`` in one private ROS domain, inputs reliable, alive for the
+whole run. The driver sends ``--node-messages`` odometry messages (a 20-landmark map,
+a batch of ``--rows`` sightings after every fifth) with at most 8 odometry messages in
+flight (each gives one ``pose``), the relay and the localizer in turn in each round.
+Cost per odometry message = CPU time of the node process (``/proc/<pid>/stat``) over
+the messages; rate = poses per second at the driver. Medians over the rounds.
+
+MRCLAM (skipped without ``../shared``): the offline localization replay of dataset 6
+(surveyed map, landmark sightings, every robot): real-time factor by CPU time and by
+the wall clock.
+
 Run from the repository root in the dev venv: ``python bench/bench_localizer.py``; the
 last line is machine-readable (``RESULT bench_localizer ...``).
 """
