@@ -227,8 +227,8 @@ ratios above 1 mean faster than the relay); `bench_fuser.py` also a split-CI fus
 `bench_association.py` data association into 10,000 landmarks; `bench_outputs.py` what
 the fuser publishes at 10,000 landmarks; `bench_localizer.py` the localizer's cost per
 odometry message and per sighting row, its node next to a relay node in the same run,
-and the MRCLAM localization replay's real-time factor. Each benchmark prints PASS or FAIL per target
-in its log. On a shared machine message rates vary from run to run; ratios measured
+and the MRCLAM localization replay's real-time factor. Each benchmark prints PASS or
+FAIL per target in its log. On a shared machine message rates vary from run to run; ratios measured
 side by side hold better than absolute rates.
 """
 

@@ -59,6 +59,7 @@ class LocalizationCollector:
     """Every true and localized pose of every robot, by stamp (on the demo's node)."""
 
     def __init__(self, node, robots):
+        """Subscribe to every robot's true and localized pose on ``node``."""
         from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
         from landmark_ros.ros.qos import reliable_output
         depth = reliable_output(1000)

@@ -30,8 +30,8 @@ invertible linear map. ``P_obs_i`` holds the pose term, so the rows of one messa
 correlated through the shared pose error: ``jcbb`` takes their joint covariance
 (``core.association.scan_covariance``), ``nn`` gates each row alone.
 
-Methods
--------
+The methods (parameter ``association``):
+
 ``nn``
     Each row to its candidate of smallest d2 (``core.association.nearest_neighbour``).
 ``jcbb``
@@ -100,6 +100,7 @@ class MapAssociation:
 
     def __init__(self, m_map: NDArray[np.float64], P_map: NDArray[np.float64],
                  method: str, probability: float) -> None:
+        """Build the index of the map (class docstring)."""
         if method not in ('nn', 'jcbb'):
             raise ValueError(f"association method must be 'nn' or 'jcbb', got {method!r}")
         self.method = method

@@ -16,12 +16,12 @@ leave-one-robot-out cross-check (``localize_data.calibrate_odometry``).
 from pathlib import Path
 import sys
 
+from landmark_ros.localizer.localizer import UNKNOWN_ID
 from landmark_ros.mrclam.config import node_section
 from landmark_ros.mrclam.localize import (format_table, fused_map, localizer_config,
                                           run_all, surveyed_map, targets)
 from landmark_ros.mrclam.localize_data import (calibrate_odometry,
                                                format_odometry_calibration, load_all_extras)
-from landmark_ros.localizer.localizer import UNKNOWN_ID
 from landmark_ros.mrclam.localize_plan import hide_ids, slice_run
 from landmark_ros.mrclam.report import write_json
 

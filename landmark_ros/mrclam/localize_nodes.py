@@ -107,6 +107,7 @@ class LocalizePlayer:
     """Publish every robot's schedule into its localizer and collect the poses."""
 
     def __init__(self, node, executor, launcher, streams):
+        """Create the publishers, pose subscriptions and parameter clients of each robot."""
         self.node, self.executor, self.launcher = node, executor, launcher
         depth = qos.reliable_output(10000)
         self.robots = []

@@ -40,8 +40,8 @@ def test_schedule_makes_the_offline_calls_in_the_offline_order():
         odom[0] - 0.05, odom[-1] + 0.05, 40), 3), np.full(2, odom[0] - 0.01)]))
     obs = np.repeat(obs, rng.integers(1, 3, len(obs)))  # batches of one or two rows
     ids = rng.integers(0, 4, len(obs))
-    z = sensors.observe(np.zeros((len(obs), 3)), LANDMARKS[ids]) + rng.normal(0, 0.02,
-                                                                             (len(obs), 2))
+    z = sensors.observe(np.zeros((len(obs), 3)), LANDMARKS[ids])
+    z += rng.normal(0, 0.02, z.shape)
     odom_ns, obs_ns = seconds_to_stamps_ns(odom), seconds_to_stamps_ns(obs)
     plan = schedule(SimpleNamespace(times=obs), SimpleNamespace(odom_times=odom), 0.0)
     assert np.count_nonzero(plan.kind == ODOMETRY) == len(odom)
