@@ -15,6 +15,10 @@ of ``localize_plan.schedule``, at most ``WINDOW`` odometry messages in flight pe
 (each gives one ``pose``), and collects the poses. The node's diagnostics give the
 rows used and gated. ``compare`` measures the agreement with the offline tracks.
 
+With rows without IDs (``--hide-ids``) every batch also waits for the pose of the
+odometry before it (``schedule(strict=True)``): the association uses the newest pose at
+or before the batch's stamp, which must be the offline run's.
+
 The robot-to-robot sightings are not replayed through the nodes: the node applies a
 sighting with the other robot's latest published pose, the offline run with the other's
 pose at the sighting's stamp, and the two differ by design.
@@ -30,6 +34,7 @@ from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from landmark_ros.fuser import map_file
+from landmark_ros.localizer.localizer import UNKNOWN_ID
 from landmark_ros.mrclam.data import interpolate_poses, seconds_to_stamps_ns
 from landmark_ros.mrclam.localize import Track
 from landmark_ros.mrclam.localize_plan import ODOMETRY, schedule
@@ -251,7 +256,9 @@ def _start(launcher, dataset, extras, setup):
         launcher.start_module(f'localizer_{name}_{robot.name}', 'landmark_ros.nodes.localizer',
                               localizer_arguments(robot, config_path, params))
         shown = robot if the_map is not None else _without_sightings(robot)
-        streams.append((shown, ex, schedule(shown, ex, delay_s)))
+        # rows without IDs: the node must associate from the offline run's pose
+        strict = bool(np.any(shown.ids == UNKNOWN_ID))
+        streams.append((shown, ex, schedule(shown, ex, delay_s, strict)))
     return streams
 
 

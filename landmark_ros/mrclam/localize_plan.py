@@ -71,9 +71,14 @@ def batches(times):
     return starts, np.append(starts[1:], len(times))
 
 
-def schedule(robot, extras, delay_s):
+def schedule(robot, extras, delay_s, strict=False):
     """
     Return a robot's ``Schedule`` (module docstring).
+
+    With ``strict`` a batch between odometry ``k - 1`` and ``k`` also waits for the pose
+    of ``k - 1``: the node then takes it with the same newest odometry as the offline
+    run, which the association of rows without IDs needs (it places the rows from the
+    newest pose at or before their stamp).
 
     Parameters
     ----------
@@ -102,7 +107,8 @@ def schedule(robot, extras, delay_s):
     end = np.concatenate([np.zeros(len(odom_ns), np.intp), ends])
     stamp = np.concatenate([odom_ns, obs_ns])
     # Every batch after the first pose: before any odometry the node has no pose at all.
-    after = np.concatenate([np.zeros(len(odom_ns), np.int64), np.where(tie, k + 1, 1)])
+    after = np.concatenate([np.zeros(len(odom_ns), np.int64),
+                            np.where(tie, k + 1, np.maximum(k, 1) if strict else 1)])
     order = np.lexsort((index, slot))
     kind, index, end, stamp, after = (a[order] for a in (kind, index, end, stamp, after))
     barrier = np.zeros(len(kind), bool)

@@ -4,6 +4,7 @@ import json
 from pathlib import Path
 from types import SimpleNamespace
 
+from landmark_ros.localizer.localizer import UNKNOWN_ID
 from landmark_ros.mrclam.localize_plan import ODOMETRY, schedule, SIGHTINGS, slice_run
 import numpy as np
 import pytest
@@ -30,7 +31,8 @@ def _localizer(initialise):
     return loc
 
 
-def test_schedule_makes_the_offline_calls_in_the_offline_order():
+@pytest.mark.parametrize('hide', [False, True])
+def test_schedule_makes_the_offline_calls_in_the_offline_order(hide):
     from landmark_ros.core import sensors
     from landmark_ros.mrclam.data import seconds_to_stamps_ns
     rng = np.random.default_rng(0)
@@ -42,8 +44,10 @@ def test_schedule_makes_the_offline_calls_in_the_offline_order():
     ids = rng.integers(0, 4, len(obs))
     z = sensors.observe(np.zeros((len(obs), 3)), LANDMARKS[ids])
     z += rng.normal(0, 0.02, z.shape)
+    if hide:  # the node associates: from the newest pose when it takes the batch
+        ids = np.full(len(obs), UNKNOWN_ID, np.int64)
     odom_ns, obs_ns = seconds_to_stamps_ns(odom), seconds_to_stamps_ns(obs)
-    plan = schedule(SimpleNamespace(times=obs), SimpleNamespace(odom_times=odom), 0.0)
+    plan = schedule(SimpleNamespace(times=obs), SimpleNamespace(odom_times=odom), 0.0, hide)
     assert np.count_nonzero(plan.kind == ODOMETRY) == len(odom)
     assert np.count_nonzero(plan.kind == SIGHTINGS) == len(np.unique(obs))
     # offline (mrclam.localize.run): events by (time, odometry first)
@@ -58,22 +62,41 @@ def test_schedule_makes_the_offline_calls_in_the_offline_order():
         else:
             offline.add_observations(obs_ns[starts[k]], ids[starts[k]:ends[k]],
                                      z[starts[k]:ends[k]])
-    # the node: initialised from its parameter, the schedule's order
-    node, node_poses = _localizer(None), []
-    for i in range(len(plan)):
-        assert len(node_poses) >= plan.after_poses[i]
-        if plan.kind[i] == ODOMETRY:
-            node_poses.append(node.add_odometry(plan.stamp_ns[i], twist=twist[plan.index[i]]))
-        else:
-            a, b = plan.index[i], plan.end[i]
-            node.add_observations(plan.stamp_ns[i], ids[a:b], z[a:b])
-    assert offline.counters['rows_used'] > 20
-    for key in ('rows_used', 'rows_gated', 'too_old'):
-        assert node.counters[key] == offline.counters[key], key
-    for p, q in zip(poses, node_poses):
-        assert p.stamp_ns == q.stamp_ns
-        np.testing.assert_array_equal(p.x, q.x)
-        np.testing.assert_array_equal(p.P, q.P)
+    # The node, initialised from its parameter, takes a batch anywhere from the moment
+    # the player may send it (its poses received: odometry still in flight is taken
+    # later) to the barrier before the next odometry: both extremes.
+    for earliest in (False, True):
+        order = [(i, i) for i in range(len(plan))]
+        if earliest:
+            odometry = np.cumsum(plan.kind == ODOMETRY)  # odometry sent up to item i
+            at, slots = 0, []
+            for i in range(len(plan)):
+                if plan.kind[i] == SIGHTINGS:
+                    at = max(at, int(plan.after_poses[i]))
+                    assert at <= odometry[i]
+                    slots.append((np.flatnonzero(odometry == at)[0] if at else -1, i))
+            batches_at = {}
+            for slot, i in slots:
+                batches_at.setdefault(slot, []).append(i)
+            order = [(-1, i) for i in batches_at.get(-1, [])]
+            for i in np.flatnonzero(plan.kind == ODOMETRY):
+                order += [(i, i)] + [(i, j) for j in batches_at.get(i, [])]
+        node, node_poses = _localizer(None), []
+        for _, i in order:
+            if plan.kind[i] == ODOMETRY:
+                node_poses.append(node.add_odometry(plan.stamp_ns[i],
+                                                    twist=twist[plan.index[i]]))
+            else:
+                a, b = plan.index[i], plan.end[i]
+                node.add_observations(plan.stamp_ns[i], ids[a:b], z[a:b])
+        assert offline.counters['rows_used'] > 20
+        assert not hide or offline.counters['associated'] > 20
+        for key in ('rows_used', 'rows_gated', 'too_old', 'associated'):
+            assert node.counters[key] == offline.counters[key], key
+        for p, q in zip(poses, node_poses):
+            assert p.stamp_ns == q.stamp_ns
+            np.testing.assert_array_equal(p.x, q.x)
+            np.testing.assert_array_equal(p.P, q.P)
     # every batch after the first pose; a barrier before each odometry after sightings
     assert np.all(plan.after_poses[plan.kind == SIGHTINGS] >= 1)
     after_batch = np.flatnonzero((plan.kind[1:] == ODOMETRY) & (plan.kind[:-1] == SIGHTINGS)) + 1
