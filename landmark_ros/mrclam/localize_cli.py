@@ -25,7 +25,7 @@ from landmark_ros.mrclam.localize_data import (calibrate_odometry,
 from landmark_ros.mrclam.localize_plan import hide_ids, slice_run
 from landmark_ros.mrclam.report import write_json
 
-ASSOCIATION_COUNTERS = ('no_id', 'associated', 'association_ambiguous',
+ASSOCIATION_KEYS = ('no_id', 'associated', 'association_ambiguous',
                         'association_unmatched', 'rows_used', 'rows_gated')
 
 
@@ -109,7 +109,7 @@ def association_counts(tracks):
     """Return per run (``map``, ``cooperative``) the association counters summed over robots."""
     return [{'map': name, 'cooperative': coop,
              **{key: sum(int(t.counts.get(key, 0)) for t in result)
-                for key in ASSOCIATION_COUNTERS}}
+                for key in ASSOCIATION_KEYS}}
             for (name, coop), result in tracks.items() if name != 'dead_reckoning']
 
 
@@ -118,7 +118,7 @@ def format_association_counts(entries):
     lines = ['rows without ID (--hide-ids), associated by the localizers:']
     for e in entries:
         lines.append(f'  {e["map"]:9s} {"+ robots" if e["cooperative"] else "        "} '
-                     + ', '.join(f'{key} {e[key]}' for key in ASSOCIATION_COUNTERS))
+                     + ', '.join(f'{key} {e[key]}' for key in ASSOCIATION_KEYS))
     return '\n'.join(lines)
 
 
