@@ -42,7 +42,10 @@ A row with more than one candidate whose choice the method did not settle
 (``Association.ambiguous``: for ``nn`` every row with two or more candidates, for
 ``jcbb`` a row that another candidate would also fit jointly) is not used: a wrong
 pairing moves the pose by the distance between two landmarks, which no later update
-repairs, while a skipped row costs one sighting. Partial rows (range-only or
+repairs, while a skipped row costs one sighting. With ``take_ambiguous`` (parameter
+``association_take_ambiguous``) the method's choice stands: where the pose is known
+only to a fraction of the landmark spacing every row has several candidates, and
+skipping them all leaves the filter on dead reckoning for good. Partial rows (range-only or
 bearing-only) cannot be placed in the map and are not associated.
 """
 
@@ -90,6 +93,9 @@ class MapAssociation:
         ``nn`` or ``jcbb``.
     probability : float
         Gate probability in (0, 1).
+    take_ambiguous : bool
+        Keep the method's choice for a row with several candidates (else it is left
+        out, counted ambiguous).
 
     Raises
     ------
@@ -99,8 +105,9 @@ class MapAssociation:
     """
 
     def __init__(self, m_map: NDArray[np.float64], P_map: NDArray[np.float64],
-                 method: str, probability: float) -> None:
+                 method: str, probability: float, take_ambiguous: bool = False) -> None:
         """Build the index of the map (class docstring)."""
+        self.take_ambiguous = bool(take_ambiguous)
         if method not in ('nn', 'jcbb'):
             raise ValueError(f"association method must be 'nn' or 'jcbb', got {method!r}")
         self.method = method
@@ -143,9 +150,11 @@ class MapAssociation:
         else:
             result = jcbb(cands, self.index, m_obs, scan_covariance(m_obs, P_obs, x[:2], P))
         chosen = result.assignment.copy()
-        chosen[result.ambiguous] = -1
+        ambiguous = 0
+        if not self.take_ambiguous:
+            chosen[result.ambiguous] = -1
+            ambiguous = int(np.count_nonzero(result.assignment[result.ambiguous] >= 0))
         landmark[rows] = chosen
-        ambiguous = int(np.count_nonzero(result.assignment[result.ambiguous] >= 0))
         return Assigned(landmark, ambiguous, int(np.count_nonzero(landmark < 0)) - ambiguous)
 
 

@@ -93,6 +93,9 @@ class LocalizerConfig(ConfigBase):
         'compatibility over the message) against the map, from the pose at their stamp')
     association_probability: float = param(
         0.999, 'chi-square gate of the association (2 dof)', low=0.5, high=0.999999)
+    association_take_ambiguous: bool = param(
+        False, "rows without ID with several candidates take the method's choice "
+        '(nearest, or the joint hypothesis) instead of being skipped')
 
     def check(self) -> None:
         """Check the choices and the list values."""

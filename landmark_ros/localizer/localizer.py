@@ -400,7 +400,8 @@ class Localizer:
         if self._association is None:
             self._association = MapAssociation(self._map_m, self._map_P,
                                                self.config.association,
-                                               self.config.association_probability)
+                                               self.config.association_probability,
+                                               self.config.association_take_ambiguous)
         est = self.pose_at(stamp_ns) or self.estimate()
         map_ids = np.fromiter(self._map_index, np.int64, len(self._map_index))
         ids, counts = label_rows(self._association, est, map_ids, ids, z, kind, R)

@@ -117,6 +117,11 @@ def test_ambiguous_rows_are_skipped():
                              np.array([1, 2]), np.array([UNKNOWN_ID]), z,
                              np.array([RANGE_BEARING]), np.tile(np.eye(2) * 1e-4, (1, 1, 1)))
     assert counts['association_ambiguous'] == 1 and out[0] == UNKNOWN_ID
+    take = MapAssociation(m, np.tile(np.eye(2) * 1e-6, (2, 1, 1)), 'nn', 0.999, True)
+    out, counts = label_rows(take, Estimate(0, np.zeros(3), np.eye(3) * 0.25),
+                             np.array([1, 2]), np.array([UNKNOWN_ID]), z,
+                             np.array([RANGE_BEARING]), np.tile(np.eye(2) * 1e-4, (1, 1, 1)))
+    assert counts['association_ambiguous'] == 0 and out[0] == 1  # the nearest
 
 
 def test_config_rejects_an_unknown_method():
