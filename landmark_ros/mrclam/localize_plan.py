@@ -88,6 +88,8 @@ def schedule(robot, extras, delay_s, strict=False):
         Its odometry (``odom_times``).
     delay_s : float
         Added to the odometry stamps [s], as in the offline run.
+    strict : bool
+        Every batch also waits for the pose of the odometry before it (above).
 
     """
     odom_ns = seconds_to_stamps_ns(extras.odom_times + delay_s)
