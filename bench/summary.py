@@ -34,7 +34,7 @@ GENERIC_KEY = re.compile(r'obs_per_s|msg_per_s|per_s$|ratio|speed|real_?time|_mb
                          re.IGNORECASE)
 FUSIONS = (('independent', 'independent'), ('ci', 'covariance intersection'),
            ('split_ci', 'split covariance intersection'))
-KNOWN = ('bench_core', 'bench_fuser', 'bench_observer')
+KNOWN = ('bench_core', 'bench_fuser', 'bench_observer', 'bench_localizer')
 
 
 def parse(lines):
@@ -146,6 +146,7 @@ def rows_for(results):
                          'last input -> queues empty after a fusion (in the node); end to end to '
                          f'fused_landmarks {_num(fuser.get(f"e2e_lag_{short}_ms"))} ms',
                          'bench_fuser'))
+    rows += localizer_rows(results.get('bench_localizer', {}))
     for short, name in (('split_ci_50_sources', 'split CI, 50 input topics, every robot '
                          'seeing every landmark'),
                         ('split_ci_50_sources_local', 'split CI, 50 input topics, each robot '
@@ -186,6 +187,29 @@ def rows_for(results):
     return rows
 
 
+def localizer_rows(loc):
+    """Return the rows of ``bench_localizer``: pipeline costs, node against its relay."""
+    rows = []
+    if 'odometry_us' in loc:
+        rows.append(('pipeline', 'Localizer.add_odometry', f'{_num(loc["odometry_us"])} us/msg',
+                     'thread CPU time', 'bench_localizer'))
+    for correlation in ('independent', 'split_ci'):
+        for when, what in (('now', 'at the newest odometry'), ('late', '0.5 s late')):
+            key = f'{correlation}_{when}_row_us'
+            if key in loc:
+                rows.append(('pipeline', f'Localizer.add_observations, {correlation}, {what}',
+                             f'{_num(loc[key])} us/row', 'thread CPU time, batches of '
+                             f'{_num(loc.get("rows"))} rows', 'bench_localizer'))
+    if 'localizer_msg_per_s' in loc:
+        rows.append(('node', 'landmark_localizer, odometry (a sighting batch every 5th)',
+                     si(loc['localizer_msg_per_s'], 'msg/s'),
+                     f'{_num(loc.get("node_ratio"))} x relay '
+                     f'({si(loc.get("relay_msg_per_s"), "msg/s")}); CPU/msg localizer '
+                     f'{_num(loc.get("localizer_cpu_us_per_msg"))} us, relay '
+                     f'{_num(loc.get("relay_cpu_us_per_msg"))} us', 'bench_localizer'))
+    return rows
+
+
 PAGE_HEAD = """\
 # Benchmarks
 
@@ -201,8 +225,10 @@ ratios above 1 mean faster than the relay); `bench_fuser.py` also a split-CI fus
 50 input topics next to a relay on the same 50 topics; `bench_map.py`
 `LandmarkMap.update` on big batches, the three fusion methods side by side;
 `bench_association.py` data association into 10,000 landmarks; `bench_outputs.py` what
-the fuser publishes at 10,000 landmarks. Each benchmark prints PASS or FAIL per target
-in its log. On a shared machine message rates vary from run to run; ratios measured
+the fuser publishes at 10,000 landmarks; `bench_localizer.py` the localizer's cost per
+odometry message and per sighting row, its node next to a relay node in the same run,
+and the MRCLAM localization replay's real-time factor. Each benchmark prints PASS or
+FAIL per target in its log. On a shared machine message rates vary from run to run; ratios measured
 side by side hold better than absolute rates.
 """
 

@@ -38,6 +38,8 @@ class Monitor:
         self.partial = set(partial)
         self.context = self.node = self.executor = None
         self.callbacks = 0
+        self.localization = None
+        """``demo.localize.LocalizationCollector`` with ``--localize``, else None."""
         if domain_id is None:
             for candidate in _domain_candidates():
                 self._open(candidate)

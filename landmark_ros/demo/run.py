@@ -42,6 +42,9 @@ import signal
 import sys
 import time
 
+from landmark_ros.demo.localize import (evaluate as evaluate_localization,
+                                        LocalizationCollector, localizer_parameters,
+                                        start_localizers)
 from landmark_ros.demo.monitor import Monitor
 from landmark_ros.demo.report import (evaluate_run, MIN_OBSERVATIONS_NO_IDS, NEES_2SIGMA,
                                       plot_run, rejections_by_id)
@@ -93,6 +96,9 @@ def parse_args(argv=None):
                         help='sensor of each robot in turn, comma-separated: rb '
                         '(range-bearing), range (UWB, radio) or bearing (camera); e.g. '
                         'rb,range,bearing (default rb)')
+    parser.add_argument('--localize', action='store_true',
+                        help='also localize every robot on its wheel odometry against the '
+                        'fused map (landmark_localizer) and report pose RMSE and ANEES')
     parser.add_argument('--no-progress', action='store_true',
                         help='no progress bar (default: a tqdm bar on stderr when it is a '
                         'terminal)')
@@ -265,6 +271,10 @@ def drive(config, launcher, monitor, params_path, progress):
     launcher.start_module('fuser', 'landmark_ros.nodes.fuser', ros_args)
     wait_until(monitor, launcher, monitor.pipeline_ready, 60.0,
                'the observers and the fuser to come up')
+    localization = monitor.localization
+    if localization is not None:  # --localize
+        start_localizers(launcher, config, params_path)
+        wait_until(monitor, launcher, localization.ready, 60.0, 'the localizers to come up')
     launcher.start_module('sim', 'landmark_ros.nodes.sim', ros_args)
     wall = config.duration_s / config.time_scale
     wait_until(monitor, launcher, lambda: monitor.sim_finished, 2.0 * wall + 60.0,
@@ -275,6 +285,13 @@ def drive(config, launcher, monitor, params_path, progress):
         drained = True
     except RunError:
         drained = False
+    localization = monitor.localization
+    if localization is not None:  # the localizers may lag behind the fuser
+        try:
+            wait_until(monitor, launcher, localization.complete, 30.0,
+                       'the last localized poses', progress)
+        except RunError:
+            pass  # evaluated on what arrived; the counts are printed
     show_progress(progress, monitor)
     progress.close()
     return drained
@@ -331,13 +348,19 @@ def execute(args, config, paths):
     The exit code is 2 when the run failed, 130 on Ctrl-C, None when the run can be
     evaluated (the monitor then holds what it saw).
     """
-    write_params_file(paths.params_path,
-                      node_parameters(config, args.fusion, paths.map_path))
+    parameters = node_parameters(config, args.fusion, paths.map_path)
+    if getattr(args, 'localize', False):
+        parameters.update(localizer_parameters(config, Simulation(config)))
+        # the localizers start from the first pose: they must get the first odometry
+        parameters['/landmark_sim']['wait_for_odometry_subscribers'] = True
+    write_params_file(paths.params_path, parameters)
     progress = progress_bar(config.duration_s, False if args.no_progress else None)
     removed_shm = []
     monitor = None
     try:
         monitor = Monitor(args.domain_id, config.robots, partial_robots(config))
+        if getattr(args, 'localize', False):
+            monitor.localization = LocalizationCollector(monitor.node, config.robots)
         announce(args, config, monitor, paths.log_dir)
         with Launcher(paths.log_dir, monitor.domain_id) as launcher:
             drained = drive(config, launcher, monitor, paths.params_path, progress)
@@ -470,6 +493,12 @@ def judge(args, config, paths, monitor, started):
     results, _, seen, unfused, _ = evaluation
     unfused, waiting = split_waiting(config, results, seen, unfused)
     failures = failures_of(evaluation, unfused)
+    localization = monitor.localization
+    if localization is not None:
+        entry, text = evaluate_localization(localization, monitor.latest)
+        print(text)
+        if entry is None:
+            failures.append('no localized poses')
     print(f'wall time {time.monotonic() - started:.1f} s')
     if failures:
         print('FAILED: ' + '; '.join(failures))

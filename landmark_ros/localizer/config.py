@@ -3,6 +3,7 @@
 from dataclasses import dataclass
 from typing import Tuple
 
+from landmark_ros.localizer.association import METHODS as ASSOCIATION_METHODS
 from landmark_ros.localizer.update import CORRELATIONS
 from landmark_ros.pipeline.config import ConfigBase, param
 
@@ -87,12 +88,23 @@ class LocalizerConfig(ConfigBase):
         '[m]', low=0.0, high=1e6)
     lost_gated_rows: int = param(
         30, 'localization lost after this many consecutive gated rows', low=1, high=1e6)
+    association: str = param(
+        'jcbb', 'rows without ID: none (skipped), nn (nearest neighbour) or jcbb (joint '
+        'compatibility over the message) against the map, from the pose at their stamp')
+    association_probability: float = param(
+        0.999, 'chi-square gate of the association (2 dof)', low=0.5, high=0.999999)
+    association_take_ambiguous: bool = param(
+        False, "rows without ID with several candidates take the method's choice "
+        '(nearest, or the joint hypothesis) instead of being skipped')
 
     def check(self) -> None:
         """Check the choices and the list values."""
         if self.correlation not in CORRELATIONS:
             raise ValueError(f'correlation must be one of {CORRELATIONS}, '
                              f'got {self.correlation!r}')
+        if self.association not in ASSOCIATION_METHODS:
+            raise ValueError(f'association must be one of {ASSOCIATION_METHODS}, '
+                             f'got {self.association!r}')
         if any(a < 0.0 for a in self.odometry_alphas):
             raise ValueError(f'odometry_alphas must be >= 0, got {self.odometry_alphas}')
         if any(s <= 0.0 for s in self.initial_stddev):

@@ -50,6 +50,7 @@ from typing import Any, Callable, List, Optional
 
 from landmark_ros.core.gating import chi2_threshold
 from landmark_ros.localizer import motion
+from landmark_ros.localizer.association import label_rows, MapAssociation
 from landmark_ros.localizer.config import LocalizerConfig
 from landmark_ros.localizer.update import (RANGE_BEARING, update, UpdateResult,
                                            UpdateSettings)
@@ -137,6 +138,7 @@ class Localizer:
         self._map_index: dict = {}
         self._map_m = np.empty((0, 2))
         self._map_P = np.empty((0, 2, 2))
+        self._association: Optional[MapAssociation] = None
         self._nis: deque = deque(maxlen=config.nis_window)
         self._last_update_ns: Optional[int] = None
         self._gated_in_a_row = 0
@@ -145,6 +147,7 @@ class Localizer:
     def configure(self, config: LocalizerConfig) -> None:
         """Take a new config (parameters changed at run time)."""
         self.config = config
+        self._association = None  # rebuilt with the new association parameters
         self.settings = UpdateSettings(
             chi2_threshold(1, config.gate_probability), chi2_threshold(2, config.gate_probability),
             config.correlation, config.iterate_threshold, config.max_iterations)
@@ -186,6 +189,7 @@ class Localizer:
         self._map_index = {int(i): k for k, i in enumerate(ids[valid])}
         self._map_m = m[valid].copy()
         self._map_P = P_m[valid].copy()
+        self._association = None  # built on the first row without ID
 
     @property
     def map_size(self) -> int:
@@ -354,7 +358,8 @@ class Localizer:
         stamp_ns : int
             Stamp of the sightings [ns].
         ids : ndarray of int, shape (N,)
-            Landmark IDs (``UNKNOWN_ID``: none, counted ``no_id`` and skipped).
+            Landmark IDs (``UNKNOWN_ID``: none, counted ``no_id``; associated with the
+            map by ``config.association``, ``localizer.association``, else skipped).
         z : ndarray, shape (N, 2)
             Range [m] and bearing [rad]; the missing one of a partial row may be NaN.
         kind : ndarray of int, shape (N,), optional
@@ -373,9 +378,12 @@ class Localizer:
         kind = (np.full(len(ids), RANGE_BEARING, np.int64) if kind is None
                 else np.asarray(kind, dtype=np.int64).reshape(-1))
         R = self.sensor_noise(z) if R is None else np.asarray(R, dtype=np.float64)
-        index = np.array([self._map_index.get(int(i), -1) for i in ids], np.intp)
         unknown = ids == UNKNOWN_ID
-        self.counters.add('no_id', int(unknown.sum()), detail='rows without ID skipped')
+        self.counters.add('no_id', int(unknown.sum()), detail='rows without ID')
+        if unknown.any() and self.config.association != 'none':
+            ids = self._associate(int(stamp_ns), ids, z, kind, R)
+            unknown = ids == UNKNOWN_ID
+        index = np.array([self._map_index.get(int(i), -1) for i in ids], np.intp)
         missing = (index < 0) & ~unknown
         self.counters.add('landmark_not_in_map', int(missing.sum()),
                           detail='rows of landmarks that are not in the map skipped')
@@ -386,6 +394,20 @@ class Localizer:
         self._apply_at(Batch(int(stamp_ns), self._map_m[k], self._map_P[k], z[keep], R[keep],
                              kind[keep], shared=self._shared(int(stamp_ns), ids[keep])))
         return int(keep.sum())
+
+    def _associate(self, stamp_ns, ids, z, kind, R):
+        """Pair the rows without ID with the map (``association.label_rows``)."""
+        if self._association is None:
+            self._association = MapAssociation(self._map_m, self._map_P,
+                                               self.config.association,
+                                               self.config.association_probability,
+                                               self.config.association_take_ambiguous)
+        est = self.pose_at(stamp_ns) or self.estimate()
+        map_ids = np.fromiter(self._map_index, np.int64, len(self._map_index))
+        ids, counts = label_rows(self._association, est, map_ids, ids, z, kind, R)
+        for name, count in counts.items():
+            self.counters.add(name, count, detail=f'rows without ID: {name}')
+        return ids
 
     def add_robot_sighting(self, stamp_ns: int, z: NDArray[np.float64],
                            other: Estimate, R: Optional[NDArray[np.float64]] = None,

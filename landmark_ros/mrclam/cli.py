@@ -165,6 +165,8 @@ def parse_args(argv=None):
     parser.add_argument('--localize', action='store_true',
                         help='localize every robot from odometry and sightings (surveyed '
                         'and fused maps, with and without robot sightings)')
+    parser.add_argument('--duration', type=float, default=None, metavar='SECONDS',
+                        help='--localize: only the first SECONDS of the run')
     parser.add_argument('--calibrate-odometry', action='store_true',
                         help='estimate the odometry delay and motion noise from ground truth')
     parser.add_argument('--export-bag', type=Path, default=None, metavar='OUT',

@@ -34,6 +34,7 @@ from landmark_ros.ros.schemas import OBSERVATION_FIELDS, read_landmarks
 from nav_msgs.msg import Odometry
 import numpy as np
 from rclpy.node import Node
+from rclpy.qos_overriding_options import QoSOverridingOptions
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header
 
@@ -48,10 +49,12 @@ class LandmarkLocalizer(Node):
         keep_in_sync(self, lambda: self.localizer.config, self.localizer.configure)
         self._previous = None
         depth = config.input_depth
+        overrides = QoSOverridingOptions.with_default_policies()
         self.create_subscription(Odometry, 'odometry', self._guard(self.on_odometry),
-                                 qos.sensor_input(depth))
+                                 qos.sensor_input(depth), qos_overriding_options=overrides)
         self.create_subscription(PointCloud2, 'observations',
-                                 self._guard(self.on_observations), qos.sensor_input(depth))
+                                 self._guard(self.on_observations), qos.sensor_input(depth),
+                                 qos_overriding_options=overrides)
         self.create_subscription(PointCloud2, 'fused_landmarks', self._guard(self.on_map),
                                  qos.LATCHED)
         self.create_subscription(PoseWithCovarianceStamped, 'initialpose',

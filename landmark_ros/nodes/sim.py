@@ -114,8 +114,9 @@ class LandmarkSim(Node):
         wait = self.config.wait_for_subscribers_s
         if wait <= 0.0 or (now_ns - self._created_ns) * 1e-9 >= wait:
             return True
+        odometry = self.odometry_pubs if self.config.wait_for_odometry_subscribers else []
         return all(pub.get_subscription_count() > 0
-                   for pub in self.pose_pubs + self.observation_pubs)
+                   for pub in self.pose_pubs + self.observation_pubs + odometry)
 
     def step(self):
         """Publish every pose and observation whose stamp the simulated time reached."""

@@ -133,6 +133,9 @@ class SimConfig(ConfigBase):
         0.0, 'Before starting the simulated clock, wait up to this long for a subscriber '
         'on every pose and observations topic [wall s]; 0 starts at once.',
         read_only=True, low=0.0, high=3600.0)
+    wait_for_odometry_subscribers: bool = param(
+        False, 'wait_for_subscribers_s also waits for a subscriber on every odometry topic '
+        '(localizers that must see the first odometry message).', read_only=True)
     ground_truth_period_s: float = param(
         1.0, 'Ground truth (with the observation counts so far) is republished at most '
         'this often, when the counts changed [wall s].', read_only=True,

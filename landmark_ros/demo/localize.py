@@ -1,0 +1,132 @@
+"""
+``--localize`` of the demo: the team localizes on wheel odometry against the fused map.
+
+With ``--localize`` the demo also starts one ``landmark_localizer`` per robot (namespace
+``robotN``): its ``odometry`` is the simulator's wheel odometry (``robotN/odometry``,
+the noise model of ``landmark_ros.sim.odometry``), its ``observations`` the simulator's
+sightings (the ones the observer gets), its map the fuser's ``/fused_landmarks`` as it
+grows; its ``pose`` goes to ``robotN/localized_pose`` (``robotN/pose`` is the
+simulator's reported pose, which the observers use to build the map: the loop stays
+open). Each localizer starts at its robot's true first pose (standard deviations 5 cm,
+5 cm, 0.05 rad) and knows the simulator's models: ``odometry_alphas``, ``range_stddev``,
+``bearing_stddev``. The map is made from the same sightings the localizer applies, so
+it is correlated with the pose: split CI (the default ``correlation``).
+
+``LocalizationCollector`` (on the demo's node) pairs each localized pose with the true
+pose of the same stamp; ``evaluate`` gives per robot and overall the position and
+heading RMSE, the average NEES of the 3-dof pose (3 is consistent) and the fraction of
+poses whose true position lies inside the 95 % ellipse
+(``landmark_ros.mrclam.localize.metrics``, the MRCLAM replay's figures).
+"""
+
+import math
+
+from landmark_ros.mrclam.localize import format_table, metrics, Track
+from landmark_ros.ros.conversions import InputError, pose_from_msg, stamp_ns
+import numpy as np
+
+INITIAL_STDDEV = (0.05, 0.05, 0.05)
+"""Standard deviations of the localizers' initial poses (x [m], y [m], yaw [rad])."""
+
+
+def localizer_parameters(config, sim):
+    """Return ``name -> parameters`` of every robot's localizer (``write_params_file``)."""
+    out = {}
+    for robot in range(config.robots):
+        _, true, _, _ = sim.reported_pose(robot, 0)
+        out[f'/robot{robot + 1}/landmark_localizer'] = {
+            'map_frame': config.frame, 'odometry_alphas': list(config.odometry_alphas),
+            'range_stddev': config.range_stddev, 'range_stddev_per_m': 0.0,
+            'bearing_stddev': config.bearing_stddev, 'input_depth': 1000,
+            'initial_pose': [float(v) for v in true], 'initial_stddev': list(INITIAL_STDDEV),
+            'diagnostics_period_s': 0.5}
+    return out
+
+
+def start_localizers(launcher, config, params_path):
+    """Start one localizer per robot (inputs reliable, output ``localized_pose``)."""
+    for robot in range(config.robots):
+        ns = f'/robot{robot + 1}'
+        args = ['-r', f'__ns:={ns}', '-r', 'pose:=localized_pose',
+                '-r', 'fused_landmarks:=/fused_landmarks', '--params-file', str(params_path)]
+        for topic in ('odometry', 'observations'):
+            args += ['-p', f'qos_overrides.{ns}/{topic}.subscription.reliability:=reliable']
+        launcher.start_module(f'localizer_robot{robot + 1}', 'landmark_ros.nodes.localizer',
+                              args)
+
+
+class LocalizationCollector:
+    """Every true and localized pose of every robot, by stamp (on the demo's node)."""
+
+    def __init__(self, node, robots):
+        """Subscribe to every robot's true and localized pose on ``node``."""
+        from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
+        from landmark_ros.ros.qos import reliable_output
+        depth = reliable_output(1000)
+        self.node, self.robots = node, robots
+        self.truth = [{} for _ in range(robots)]
+        self.estimates = [{} for _ in range(robots)]
+        self.read_errors = 0
+        for i in range(robots):
+            node.create_subscription(PoseStamped, f'/robot{i + 1}/true_pose',
+                                     lambda msg, i=i: self._on_truth(i, msg), depth)
+            node.create_subscription(PoseWithCovarianceStamped, f'/robot{i + 1}/localized_pose',
+                                     lambda msg, i=i: self._on_estimate(i, msg), depth)
+
+    def _on_truth(self, robot, msg):
+        q = msg.pose.orientation
+        yaw = math.atan2(2.0 * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * (q.y * q.y + q.z * q.z))
+        self.truth[robot][stamp_ns(msg.header.stamp)] = (msg.pose.position.x,
+                                                         msg.pose.position.y, yaw)
+
+    def _on_estimate(self, robot, msg):
+        try:
+            x, P = pose_from_msg(msg, msg.header.frame_id)
+        except InputError:
+            self.read_errors += 1
+            return
+        self.estimates[robot][stamp_ns(msg.header.stamp)] = (x, P)
+
+    def ready(self):
+        """Return whether every localizer's pose output is matched."""
+        return all(self.node.count_publishers(f'/robot{i + 1}/localized_pose')
+                   for i in range(self.robots))
+
+    def complete(self):
+        """Return whether every robot has a localized pose at each true pose's stamp."""
+        return all(len(e) >= len(t) for e, t in zip(self.estimates, self.truth))
+
+    def tracks(self, statuses=None):
+        """
+        Return one ``mrclam.localize.Track`` per robot: the stamps with both poses.
+
+        ``statuses`` (the monitor's latest diagnostics values by status name) give the
+        localizers' counters (rows used and gated).
+        """
+        out = []
+        for i in range(self.robots):
+            stamps = sorted(set(self.truth[i]) & set(self.estimates[i]))
+            x = np.array([self.estimates[i][s][0] for s in stamps]).reshape(-1, 3)
+            P = np.array([self.estimates[i][s][1] for s in stamps]).reshape(-1, 3, 3)
+            truth = np.array([self.truth[i][s] for s in stamps]).reshape(-1, 3)
+            values = (statuses or {}).get(f'/robot{i + 1}/landmark_localizer', {})
+            counts = {k: int(v) for k, v in values.items() if str(v).isdigit()}
+            out.append(Track(i + 1, np.array(stamps) * 1e-9, x, P, truth, counts))
+        return out
+
+
+def evaluate(collector, statuses=None):
+    """Return ``(entry, text)``: the figures (``metrics``) and their table, or None."""
+    tracks = collector.tracks(statuses)
+    if any(len(t.times) == 0 for t in tracks):
+        return None, ('localization: no localized pose paired with a true pose for some '
+                      f'robot (true poses {[len(t) for t in collector.truth]}, localized '
+                      f'{[len(e) for e in collector.estimates]}, unreadable '
+                      f'{collector.read_errors})')
+    robots, overall = metrics(tracks)
+    entry = {'map': 'fused (live)', 'cooperative': False, **overall, 'robots': robots,
+             'seconds': math.nan, 'cpu_seconds': math.nan}
+    counts = ', '.join(f'robot {t.robot}: {len(t.times)}' for t in tracks)
+    text = format_table([entry], math.nan).rsplit('\n', 1)[0]
+    return entry, (f'Localization on wheel odometry against the fused map (poses {counts}):'
+                   f'\n{text}')
