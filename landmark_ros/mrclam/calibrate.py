@@ -68,6 +68,12 @@ def _fit_range_model(r, sigma, counts):
     return math.sqrt(max(a2, 0.0)), math.sqrt(max(k2, 0.0))
 
 
+OBSERVER_FIELDS = ('range_stddev', 'range_stddev_per_m', 'bearing_stddev', 'range_bias_stddev',
+                   'bearing_bias_stddev', 'noise_correlation_time_s',
+                   'range_correlated_fraction', 'bearing_correlated_fraction')
+"""The observer parameters ``calibrate`` estimates (``Calibration.observer_values``)."""
+
+
 @dataclass
 class Calibration:
     """Sensor model estimated from ground truth (``calibrate``)."""
@@ -99,6 +105,10 @@ class Calibration:
     def to_dict(self):
         """Return plain values for JSON."""
         return asdict(self)
+
+    def observer_values(self):
+        """Return the ``ObserverConfig`` fields this calibration sets, by name."""
+        return {name: float(getattr(self, name)) for name in OBSERVER_FIELDS}
 
     def suggested_yaml(self):
         """Return the observer lines to put in ``config/mrclam.yaml``."""
@@ -236,7 +246,7 @@ def _weighted_bias(medians, counts, noise_variance):
     return math.sqrt(max(0.0, float(np.sum(counts * excess) / np.sum(counts))))
 
 
-def calibrate(dataset, min_pair=10, bins=10):
+def calibrate(dataset, min_pair=10, bins=10, part=None):
     """
     Estimate the observer's sensor model from ground truth.
 
@@ -293,6 +303,9 @@ def calibrate(dataset, min_pair=10, bins=10):
         Sightings a robot-landmark pair needs for steps 3-5.
     bins : int
         Range bins of step 4.
+    part : mrclam_data.Part, optional
+        Calibrate on this time slice and robot subset only (``Dataset.part``); None
+        uses every sighting.
 
     Returns
     -------
@@ -304,6 +317,8 @@ def calibrate(dataset, min_pair=10, bins=10):
         If there are too few sightings.
 
     """
+    if part is not None:
+        dataset = dataset.part(part)
     e = measurement_errors(dataset)
     count = len(e['range'])
     if count < max(2 * bins, min_pair):

@@ -8,6 +8,7 @@ the same code as the nodes, then the fused maps against the true landmark positi
                     [--through-nodes [--no-progress] [--keep-logs] [--domain-id N]]
                     [--sensor rb|range|bearing] [--json FILE] [--plot FILE] [--calibrate]
                     [--export-bag OUT (deprecated)] [--hide-ids]
+                    [--cross-validate [--folds halves|robots] [--modes MODE ...]]
 
 ``DATASET`` is a MRCLAM directory (default: ``shared/data/mrclam/dataset6`` beside the
 repository). Sightings, poses and ground truth come from ``landmark_ros.mrclam.data``:
@@ -84,6 +85,16 @@ offline (default)
 ``--calibrate-odometry``
     The odometry delay and motion-model alphas from the ground truth, with a
     leave-one-robot-out cross-check (``landmark_ros.mrclam.localize_data``).
+``--cross-validate [--folds halves|robots] [--modes MODE ...]``
+    ``landmark_ros.mrclam.crossval``: per fold, the sensor model calibrated on one
+    part of the run goes into the observer's configuration and the other part is
+    replayed, in every mode (``ids``, ``hide_ids``, ``range``, ``bearing``), split CI
+    unless ``--fusion``. Folds: the two halves of the run, both ways (default), or
+    leave one robot out. ``--json`` writes ``{"mode": "cross_validation", "scheme",
+    "dataset", "cross_validation": [{"fold", "calibrated_on", "evaluated_on", "mode",
+    "fusion", "calibration", "rmse_m", "anees", "anees_interval", "consistent", ...,
+    and with hide_ids "association_accuracy", "oracle_accuracy", "tracks_confirmed",
+    "true_landmarks", "gospa_m"}, ...]}``.
 ``--calibrate``
     Estimate the sensor model from ground truth and print suggested YAML values
     (``landmark_ros.mrclam.calibrate.calibrate`` documents the procedure).
@@ -130,6 +141,8 @@ import time
 from landmark_ros.fusion.landmark_map import FUSION_METHODS
 from landmark_ros.mrclam.calibrate import calibrate, format_calibration
 from landmark_ros.mrclam.config import config_values, default_dataset_path, load_config
+from landmark_ros.mrclam.crossval import (cross_validate, format_entry, HEADER, MODES,
+                                          SCHEMES)
 from landmark_ros.mrclam.data import load_dataset
 from landmark_ros.mrclam.offline import run_offline, SENSORS
 from landmark_ros.mrclam.replay_plan import PlayOptions
@@ -160,6 +173,14 @@ def parse_args(argv=None):
     parser.add_argument('--hide-ids', action='store_true',
                         help='strip the landmark IDs before the observers: the fusers '
                         'associate the sightings (landmarks without IDs)')
+    parser.add_argument('--cross-validate', action='store_true',
+                        help='calibrate on one part of the run and evaluate on the other, '
+                        'both ways, in every mode (split CI unless --fusion)')
+    parser.add_argument('--folds', choices=SCHEMES, default='halves',
+                        help='--cross-validate folds: the two halves of the run (default) '
+                        'or leave one robot out')
+    parser.add_argument('--modes', nargs='+', choices=list(MODES), default=list(MODES),
+                        help='--cross-validate modes (default: all)')
     parser.add_argument('--calibrate', action='store_true',
                         help='estimate the sensor model from ground truth and print it')
     parser.add_argument('--localize', action='store_true',
@@ -222,6 +243,25 @@ def calibrate_command(args, dataset):
     return 0
 
 
+def cross_validate_command(args, dataset, config):
+    """Run ``--cross-validate``: print each fold's figures per mode; exit code."""
+    methods = [args.fusion or 'split_covariance_intersection']
+    print(f'== cross-validation ({args.folds}): calibrated on one part, evaluated on the '
+          'other')
+    print(HEADER)
+    try:
+        entries = cross_validate(dataset, config, args.modes, methods, args.folds,
+                                 progress=lambda entry: print(format_entry(entry), flush=True))
+    except ValueError as error:
+        print(f'landmark_mrclam: {error}', file=sys.stderr)
+        return 2
+    if args.json:
+        write_json(args.json, {'mode': 'cross_validation', 'dataset': dataset_dict(dataset),
+                               'scheme': args.folds, 'cross_validation': entries})
+        print(f'wrote {args.json}')
+    return 0
+
+
 def record_nodes(document, timing, offline, results, info):
     """Add the replay through the nodes to the JSON document and the timing."""
     document['mode'] = 'through_nodes'
@@ -276,6 +316,8 @@ def main(argv=None):
         return localize_cli.localize(args, dataset, config, document)
     if args.calibrate:
         return calibrate_command(args, dataset)
+    if args.cross_validate:
+        return cross_validate_command(args, dataset, config)
     methods = [args.fusion] if args.fusion else list(FUSION_METHODS)
     if args.through_nodes and args.sensor != 'rb' and args.hide_ids:
         print('landmark_mrclam: --hide-ids needs --sensor rb through the nodes',

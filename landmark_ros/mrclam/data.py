@@ -23,9 +23,11 @@ between two samples). Everything dropped is counted in ``Dataset.counts``:
 """
 
 from collections import Counter
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
+import math
 from pathlib import Path
 import re
+from typing import Optional, Tuple
 import warnings
 
 from landmark_ros.core.pose2 import wrap_angle
@@ -168,6 +170,29 @@ class Robot:
         return f'/{self.name}/landmarks'
 
 
+@dataclass(frozen=True)
+class Part:
+    """A time slice and robot subset of a dataset (``Dataset.part``)."""
+
+    start_s: float = -math.inf
+    """First stamp kept, after the dataset's first kept sighting [s] (inclusive)."""
+    end_s: float = math.inf
+    """Stamps from here on are dropped [s] (exclusive)."""
+    robots: Optional[Tuple[int, ...]] = None
+    """Robot numbers (``N`` of ``RobotN``) kept; None keeps every robot."""
+
+    def label(self):
+        """Return a short description: ``0-600 s, robots 1 2``."""
+        parts = []
+        if math.isfinite(self.start_s) or math.isfinite(self.end_s):
+            low = '' if not math.isfinite(self.start_s) else f'{self.start_s:.0f}'
+            high = 'end' if not math.isfinite(self.end_s) else f'{self.end_s:.0f}'
+            parts.append(f'{low or "0"}-{high} s')
+        if self.robots is not None:
+            parts.append('robots ' + ' '.join(str(n) for n in self.robots))
+        return ', '.join(parts) or 'all'
+
+
 @dataclass
 class Dataset:
     """A loaded MRCLAM dataset."""
@@ -204,6 +229,34 @@ class Dataset:
         """Return the time from the first to the last kept measurement [s]."""
         start, end = self.time_span
         return end - start
+
+    def part(self, part):
+        """
+        Return the dataset restricted to a time slice and a subset of its robots.
+
+        Parameters
+        ----------
+        part : Part
+            Which sightings to keep.
+
+        Returns
+        -------
+        Dataset
+            The robots of ``part.robots`` (all if None), each with the sightings whose
+            stamp lies in ``[start, end)`` after the first kept sighting of the dataset;
+            ground truth, landmarks and ``counts`` (of the whole file) unchanged.
+
+        """
+        origin = self.time_span[0]
+        robots = []
+        for robot in self.robots:
+            if part.robots is not None and robot.number not in part.robots:
+                continue
+            t = robot.times - origin
+            keep = (t >= part.start_s) & (t < part.end_s)
+            robots.append(replace(robot, times=robot.times[keep], ids=robot.ids[keep],
+                                  z=robot.z[keep], poses=robot.poses[keep]))
+        return replace(self, robots=robots)
 
     def rows(self):
         """

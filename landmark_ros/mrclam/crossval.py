@@ -1,0 +1,160 @@
+"""
+Cross-validation of the MRCLAM replay: calibrate on one part, evaluate on the other.
+
+A figure on the data the sensor model was estimated from says little about data it was
+not. ``cross_validate`` splits a dataset into folds (``folds``), and for each fold
+estimates the observer's sensor model from the ground truth of one part
+(``calibrate.calibrate`` with its ``Part``), puts every estimated value into the
+observer's configuration (``calibrated_config``: the rest of the params file is kept),
+and replays the other part through the pipeline objects (``offline.run_offline``), in
+every mode asked for (``MODES``). Nothing of the evaluated part reaches the
+configuration.
+
+Schemes (``folds``):
+
+``halves`` (default)
+    Two folds: calibrate on the first half of the run (by time), evaluate on the second
+    half; and the reverse.
+``robots``
+    Leave one robot out: calibrate on every other robot, evaluate on the one left out
+    (one fold per robot; each evaluated map comes from one robot's sightings).
+"""
+
+from dataclasses import dataclass, replace
+from typing import List, Sequence
+
+from landmark_ros.mrclam.calibrate import calibrate
+from landmark_ros.mrclam.data import Part
+from landmark_ros.mrclam.offline import run_offline
+
+MODES = {'ids': ('rb', False), 'hide_ids': ('rb', True), 'range': ('range', False),
+         'bearing': ('bearing', False)}
+"""Mode name -> (``sensor``, ``hide_ids``) of ``run_offline``."""
+
+SCHEMES = ('halves', 'robots')
+"""Values of ``folds``'s ``scheme``."""
+
+
+@dataclass(frozen=True)
+class Fold:
+    """One fold: the part the sensor model is estimated from, and the part evaluated."""
+
+    name: str
+    calibrate_on: Part
+    evaluate_on: Part
+
+
+def folds(dataset, scheme='halves') -> List[Fold]:
+    """
+    Return the folds of a cross-validation scheme.
+
+    Parameters
+    ----------
+    dataset : mrclam.data.Dataset
+        The whole dataset.
+    scheme : str
+        ``halves``: two folds, the first and second half of the sightings' time span;
+        ``robots``: one fold per robot, that robot left out of the calibration.
+
+    Returns
+    -------
+    list of Fold
+
+    Raises
+    ------
+    ValueError
+        For an unknown scheme, or fewer than two robots with ``robots``.
+
+    """
+    if scheme == 'halves':
+        middle = dataset.duration / 2.0
+        first, second = Part(end_s=middle), Part(start_s=middle)
+        return [Fold('first->second', first, second), Fold('second->first', second, first)]
+    if scheme == 'robots':
+        numbers = tuple(r.number for r in dataset.robots)
+        if len(numbers) < 2:
+            raise ValueError('leave one robot out needs at least two robots')
+        return [Fold(f'robot{n}', Part(robots=tuple(m for m in numbers if m != n)),
+                     Part(robots=(n,))) for n in numbers]
+    raise ValueError(f'scheme must be one of {SCHEMES}, got {scheme!r}')
+
+
+def calibrated_config(config, calibration):
+    """Return ``config`` with every observer value the calibration estimates replaced."""
+    return replace(config, observer=replace(config.observer, **calibration.observer_values()))
+
+
+def cross_validate(dataset, config, modes: Sequence[str], methods: Sequence[str],
+                   scheme='halves', progress=None) -> List[dict]:
+    """
+    Calibrate on one part and evaluate on the other, for every fold, mode and method.
+
+    Parameters
+    ----------
+    dataset : mrclam.data.Dataset
+        The whole dataset.
+    config : mrclam.config.ReplayConfig
+        The params file; its observer's calibrated values are replaced per fold.
+    modes : sequence of str
+        Keys of ``MODES``.
+    methods : sequence of str
+        Fusion methods.
+    scheme : str
+        See ``folds``.
+    progress : callable, optional
+        Called with each entry as soon as it is ready (printing).
+
+    Returns
+    -------
+    list of dict
+        One entry per fold, mode and method: ``fold``, ``calibrated_on``,
+        ``evaluated_on``, ``mode``, ``fusion``, ``calibration`` (the observer values
+        used), ``rmse_m``, ``anees``, ``anees_interval``, ``consistent``,
+        ``landmarks_fused``, ``observations_used``, ``observations_rejected``, and
+        with ``hide_ids`` the association scores (``association_accuracy``,
+        ``oracle_accuracy``, ``tracks_confirmed``, ``true_landmarks``, ``gospa_m``).
+
+    """
+    entries = []
+    for fold in folds(dataset, scheme):
+        calibration = calibrate(dataset, part=fold.calibrate_on)
+        fold_config = calibrated_config(config, calibration)
+        evaluated = dataset.part(fold.evaluate_on)
+        for mode in modes:
+            sensor, hide_ids = MODES[mode]
+            run = run_offline(evaluated, fold_config, methods, sensor=sensor,
+                              hide_ids=hide_ids)
+            for method, result in run.results.items():
+                summary = result.to_dict()
+                del summary['landmarks']
+                entry = {'fold': fold.name, 'calibrated_on': fold.calibrate_on.label(),
+                         'evaluated_on': fold.evaluate_on.label(), 'mode': mode,
+                         'calibration': calibration.observer_values(), **summary}
+                entries.append(entry)
+                if progress is not None:
+                    progress(entry)
+    return entries
+
+
+def format_entry(entry) -> str:
+    """Return one line of the cross-validation table."""
+    low, high = entry['anees_interval']
+    rmse = entry['rmse_m']
+    line = (f"{entry['fold']:<14} {entry['mode']:<9} {entry['fusion']:<30} "
+            f"{_fmt(rmse, 100.0)} {_fmt(entry['anees'])} "
+            f"{f'[{_fmt(low).strip()}, {_fmt(high).strip()}]':>15} "
+            f"{'yes' if entry['consistent'] else 'no':>4} {entry['landmarks_fused']:5d}")
+    if 'association_accuracy' in entry:
+        line += (f"  assoc {100 * entry['association_accuracy']:.1f}% "
+                 f"(oracle {100 * entry['oracle_accuracy']:.1f}%), tracks "
+                 f"{entry['tracks_confirmed']}/{entry['true_landmarks']}")
+    return line
+
+
+def _fmt(value, scale=1.0):
+    return f"{'-':>8}" if value is None else f'{scale * value:8.2f}'
+
+
+HEADER = (f"{'fold':<14} {'mode':<9} {'fusion':<30} {'RMSE[cm]':>8} {'ANEES':>8} "
+          f"{'95 % interval':>15} {'ok':>4} {'lms':>5}")
+"""Heading of the ``format_entry`` lines."""
