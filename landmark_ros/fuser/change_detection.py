@@ -235,7 +235,7 @@ class MoveDetector:
 
     def observe(self, ids: NDArray[np.int64], d2: NDArray[np.float64],
                 rows: Tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64],
-                            Sequence[str], NDArray[np.int64]]) -> List[PostChange]:
+                            NDArray[Any], NDArray[np.int64]]) -> List[PostChange]:
         """
         Add rows (in arrival order) to their landmarks' tests; return the alarms.
 

@@ -432,12 +432,13 @@ class Fuser:
                 for name in ('ids', 'm', 'P', 'P_dep')]
         stamps, index = np.repeat([item.stamp_ns for item, _ in items], lengths), np.repeat(
             index, lengths)
-        d2 = None if self.moves is None else self.map.gate_distances(*rows[:3])
-        result = self.map.update(*rows, list(names), stamps, settle=False,  # folded when read
-                                 source_index=index)
-        if d2 is not None:
-            moved = detect_moves(self.moves, self.map, d2, (*rows, np.array(list(names))[
-                index], stamps), result)
+        ids, z, P, P_dep = rows
+        d2 = None if self.moves is None else self.map.gate_distances(ids, z, P)
+        result = self.map.update(ids, z, P, P_dep, list(names), stamps,
+                                 settle=False, source_index=index)  # folded when read
+        if self.moves is not None and d2 is not None:
+            moved = detect_moves(self.moves, self.map, d2, (ids, z, P, P_dep, np.array(
+                list(names))[index], stamps), result)
             if moved:
                 self.counters.add('landmark_moved', len(moved), f'landmarks {moved} moved: '
                                   'rebuilt from their rows since the change (change detection)')
