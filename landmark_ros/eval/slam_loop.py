@@ -53,6 +53,14 @@ class LoopConfig:
     fuser: FuserConfig
     hide_ids: bool = False
     """Send the sightings without IDs: the fuser's association names the landmarks."""
+    precision_sources: int = 1
+    """Sources per robot: 1 is one source per robot (``/NAME/landmarks``, as the
+    nodes); k > 1 gives each robot k sources by the size of a message's dependent part
+    (``precision_source``), so that its precise rows are not averaged with its loose ones
+    inside one source."""
+    precision_base_m: float = 0.02
+    """Dependent standard deviation [m] of the first precision source; each next one
+    doubles it."""
 
 
 @dataclass
@@ -86,8 +94,11 @@ class TeamLoop:
         self.names = list(names)
         self.localizers = [Localizer(config.localizer) for _ in names]
         self.observers = [Observer(config.observer) for _ in names]
-        self.sources = [f'/{name}/landmarks' for name in names]
-        self.fuser = Fuser(config.fuser, self.sources)
+        levels = max(1, int(config.precision_sources))
+        self.sources = [[f'/{name}/landmarks'] + [f'/{name}/landmarks/{k}'
+                                                  for k in range(1, levels)]
+                        for name in names]
+        self.fuser = Fuser(config.fuser, [s for robot in self.sources for s in robot])
         self.fuser.load()
         self.fuser.association_log = [] if config.hide_ids else None
         self.tracks = [PoseTrack() for _ in names]
@@ -165,7 +176,8 @@ class TeamLoop:
         if self.fuser.association_log is not None:
             self.fuser.association_log.clear()
         if len(batch.ids):
-            self.fuser.add_landmarks(self.sources[robot], LandmarkMessage(
+            source = self.sources[robot][self.precision_source(batch.P_dep)]
+            self.fuser.add_landmarks(source, LandmarkMessage(
                 batch.stamp_ns, batch.ids, batch.m, batch.P, batch.P_dep,
                 classes=batch.classes, scan=batch.scan))
             self.fuser.fuse_queued()
@@ -183,6 +195,20 @@ class TeamLoop:
             loc.set_map(before.ids, before.m, before.P)
             self._map_version[robot] = version
         self.counts['rows_to_localizer'] += loc.add_observations(batch.stamp_ns, ids, z)
+
+    def precision_source(self, P_dep: NDArray[np.float64]) -> int:
+        """
+        Return the precision source of a message with dependent parts ``P_dep`` (K, 2, 2).
+
+        ``floor(log2(s / precision_base_m))`` clipped to the sources, with ``s`` the
+        square root of the median of the rows' largest dependent variance.
+        """
+        levels = max(1, int(self.config.precision_sources))
+        if levels == 1 or not len(P_dep):
+            return 0
+        s = float(np.sqrt(np.median(np.linalg.eigvalsh(P_dep)[:, -1])))
+        level = int(np.floor(np.log2(max(s, 1e-12) / self.config.precision_base_m)))
+        return min(max(level, 0), levels - 1)
 
     def map_records(self) -> List[dict]:
         """Return the fused map's confirmed landmarks (``LandmarkMap.to_records``)."""
