@@ -350,7 +350,7 @@ def generate_launch_description():
                         'capture; with sim:=true on the simulated wheel odometry).'),
         DeclareLaunchArgument(
             'localizer_params', default_value='',
-            description="Parameter file of every landmark_localizer with localize:=true "
+            description='Parameter file of every landmark_localizer with localize:=true '
                         "('' for the defaults)."),
         DeclareLaunchArgument(
             'rviz', default_value='false',

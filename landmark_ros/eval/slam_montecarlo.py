@@ -21,8 +21,8 @@ Figures (Bar-Shalom, Li and Kirubarajan 2001, ch. 5.4):
   seeds and landmarks, against the chi-square interval of that many 2-dof estimates.
 
 Consistent: 3 inside the pose interval, the map ANEES inside its interval.
-Run: ``python -m landmark_ros.eval.slam_montecarlo [--seeds 20] [--duration 60]``;
-``--long`` adds the 10-minute run (fewer seeds).
+Run: ``python -m landmark_ros.eval.slam_montecarlo [--seeds 20] [--duration 60]
+[--precision-sources K]``; ``--long`` adds the 10-minute run (fewer seeds).
 """
 
 import argparse
@@ -60,14 +60,15 @@ class SeedResult:
     """Position errors of every robot at every stamp after 2 s [m], shape (K * robots,)."""
 
 
-def loop_config():
+def loop_config(precision_sources=1):
     """Return the loop's parameters: package defaults with the simulation's models."""
     localizer = LocalizerConfig(odometry_alphas=ALPHAS, range_stddev=RANGE_STDDEV,
                                 range_stddev_per_m=0.0, bearing_stddev=BEARING_STDDEV,
                                 initial_stddev=INITIAL_STDDEV)
     observer = ObserverConfig(range_stddev=RANGE_STDDEV, range_stddev_per_m=0.0,
                               bearing_stddev=BEARING_STDDEV)
-    return LoopConfig(localizer, observer, FuserConfig())
+    return LoopConfig(localizer, observer, FuserConfig(),
+                      precision_sources=precision_sources)
 
 
 def _sightings(generator, pose, positions):
@@ -77,7 +78,7 @@ def _sightings(generator, pose, positions):
     return mask, z
 
 
-def run_seed(seed, robots=3, duration_s=60.0, rate_hz=20.0):
+def run_seed(seed, robots=3, duration_s=60.0, rate_hz=20.0, precision_sources=1):
     """Run one seed of the closed loop; return its ``SeedResult``."""
     generator = np.random.default_rng(seed)
     world = generate_world(15, 20.0, seed)
@@ -85,7 +86,7 @@ def run_seed(seed, robots=3, duration_s=60.0, rate_hz=20.0):
     times = np.arange(0.0, duration_s, 1.0 / rate_hz)
     truth = [np.array(path.pose(times)).reshape(-1, 3) for path in paths]
     odom = [wheel_odometry(t, ALPHAS, generator) for t in truth]
-    loop = TeamLoop(loop_config(), [f'robot{i + 1}' for i in range(robots)])
+    loop = TeamLoop(loop_config(precision_sources), [f'robot{i + 1}' for i in range(robots)])
     P0 = np.diag(np.square(INITIAL_STDDEV))
     for i in range(robots):
         loop.start(i, 1, truth[i][0] + generator.multivariate_normal(np.zeros(3), P0), P0)
@@ -173,13 +174,16 @@ def main(argv=None):
     parser.add_argument('--long', action='store_true',
                         help='add a 600 s run over --long-seeds seeds')
     parser.add_argument('--long-seeds', type=int, default=5)
+    parser.add_argument('--precision-sources', type=int, default=1,
+                        help='sources per robot in the fuser (eval.slam_loop.LoopConfig)')
     args = parser.parse_args(argv)
     runs = [('short', args.seeds, args.duration)]
     if args.long:
         runs.append(('long', args.long_seeds, 600.0))
     ok = True
     for name, seeds, duration in runs:
-        results = [run_seed(seed, args.robots, duration) for seed in range(seeds)]
+        results = [run_seed(seed, args.robots, duration, precision_sources=args.precision_sources)
+                   for seed in range(seeds)]
         summary = summarise(results, args.robots)
         print(format_summary(f'{name} ({duration:.0f} s)', summary))
         ok = ok and consistent(summary)

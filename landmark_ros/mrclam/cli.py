@@ -279,8 +279,8 @@ def main(argv=None):
         return export_bag(args.dataset or default_dataset_path(), config, args.export_bag)
     if args.slam:
         from landmark_ros.mrclam import slam_cli
-        return slam_cli.slam(args, dataset, config,
-                             {'mode': 'offline', 'dataset': dataset_dict(dataset)})
+        return slam_cli.run_slam(args, dataset, config,
+                                 {'mode': 'offline', 'dataset': dataset_dict(dataset)})
     if args.localize or args.calibrate_odometry:
         from landmark_ros.mrclam import localize_cli
         document = {'mode': 'offline', 'dataset': dataset_dict(dataset)}

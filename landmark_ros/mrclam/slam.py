@@ -122,6 +122,7 @@ def run(dataset, extras, loop_config: LoopConfig, delay_s=0.0, progress=None) ->
     Parameters
     ----------
     dataset : mrclam.data.Dataset
+        Sightings and ground truth (the starting poses only).
     extras : dict
         ``localize_data.RobotExtras`` by robot number (odometry, robot sightings).
     loop_config : LoopConfig
@@ -258,7 +259,7 @@ def format_table(results: Sequence[SlamResult], duration_s: float) -> str:
 
 
 def targets(results: Sequence[SlamResult]):
-    """Return the issue's targets (no anchors) as (name, holds) pairs."""
+    """Return, for the modes without anchors, each of the issue's goals and whether it holds."""
     out = []
     for result in results:
         entry, mode = result.entry, result.mode

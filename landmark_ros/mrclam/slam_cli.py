@@ -39,7 +39,7 @@ def _plot(args, dataset, results):
         print(f'wrote {out}')
 
 
-def slam(args, dataset, replay_config, document):
+def run_slam(args, dataset, replay_config, document):
     """Run ``--slam``; return the exit code (0 also when targets fail: they print)."""
     localizer_values, replay_values = _sections(replay_config.path)
     config = slam.loop_config(replay_config, localizer_config(localizer_values))

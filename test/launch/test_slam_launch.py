@@ -40,8 +40,8 @@ def _near(estimates, truths, tolerance_m=1.0):
         return False
     est = estimates[-1]
     stamp = est.header.stamp.sec + 1e-9 * est.header.stamp.nanosec
-    true = min(truths, key=lambda m: abs(m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec
-                                          - stamp))
+    true = min(truths, key=lambda m: abs(
+        m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec - stamp))
     x, y, _ = _xy_yaw(est.pose.pose)
     tx, ty, _ = _xy_yaw(true.pose)
     return math.hypot(x - tx, y - ty) <= tolerance_m
