@@ -9,6 +9,11 @@ poses, /diagnostics), stops everything cleanly, then prints each fused landmark
 against the truth (error, NEES, observations, rejections), the RMSE and the
 average NEES with its 95 % interval, and draws the run (``demo.png``).
 
+With ``--slam`` the observers take their poses from one ``landmark_localizer`` per robot,
+running on the simulated wheel odometry against the fused map (``team.launch.py
+localize:=true``; the simulator's reported pose goes to ``sim_pose``), and the fuser uses
+split CI unless ``--fusion`` names another method than the default.
+
 With ``--no-ids`` the simulator publishes every observation without its landmark ID
 (``UNKNOWN_ID``): the fuser associates the rows (its default, JCBB) and starts tracks
 with new IDs. The report then matches the fused tracks to the true landmarks by optimal
@@ -96,7 +101,8 @@ def parse_args(argv=None):
     parser.add_argument('--no-progress', action='store_true',
                         help='no progress bar (default: a tqdm bar on stderr when it is a '
                         'terminal)')
-    args = parser.parse_args(argv)
+    add_slam_argument(parser)
+    args = slam_defaults(parser.parse_args(argv))
     if args.robots < 1 or args.landmarks < 1:
         parser.error('--robots and --landmarks must be at least 1')
     if not 0.0 < args.duration <= 3600.0:
@@ -256,16 +262,65 @@ def wait_until(monitor, launcher, predicate, timeout_s, what, progress=None):
             show_progress(progress, monitor)
 
 
-def drive(config, launcher, monitor, params_path, progress):
+def add_slam_argument(parser):
+    """Add ``--slam``: the team without motion capture (localizers on wheel odometry)."""
+    parser.add_argument('--slam', action='store_true',
+                        help='no motion capture: a landmark_localizer per robot on the '
+                        "simulated wheel odometry and the fused map gives the observer's "
+                        'pose (team.launch.py localize:=true)')
+
+
+def slam_defaults(args):
+    """
+    Return ``args`` with ``--slam``'s fusion: split CI unless another than the default.
+
+    The observers' rows then carry the localizers' pose errors, shared between rows: the
+    default ``independent`` fusion would be over-confident.
+    """
+    if getattr(args, 'slam', False) and args.fusion == 'independent':
+        args.fusion = 'split_covariance_intersection'
+    return args
+
+
+def slam_parameters(config):
+    """
+    Return the localizers' parameters for ``--slam``, by params-file key.
+
+    The simulator's odometry and sensor noise, each robot's true starting pose with a
+    small covariance, the fuser's map (``/fused_landmarks``).
+    """
+    sim = Simulation(config)
+    return {f'/robot{i + 1}/landmark_localizer': {
+        'odometry_alphas': [float(a) for a in config.odometry_alphas],
+        'range_stddev': float(config.range_stddev), 'range_stddev_per_m': 0.0,
+        'bearing_stddev': float(config.bearing_stddev), 'diagnostics_period_s': 0.5,
+        'initial_pose': [float(v) for v in sim.true_pose(i, 0.0)],
+        'initial_stddev': [0.05, 0.05, 0.02]} for i in range(config.robots)}
+
+
+def start_slam(config, launcher, ros_args):
+    """Start one localizer per robot (``--slam``); return the simulator's extra remaps."""
+    remaps = []
+    for i in range(config.robots):
+        name = f'robot{i + 1}'
+        launcher.start_module(f'localizer_{name}', 'landmark_ros.nodes.localizer',
+                              ['-r', f'__ns:=/{name}', '-r',
+                               'fused_landmarks:=/fused_landmarks', *ros_args])
+        remaps += ['-r', f'{name}/pose:=/{name}/sim_pose']
+    return remaps
+
+
+def drive(config, launcher, monitor, params_path, progress, slam=False):
     """Start the processes, follow the run and wait for the pipeline to drain."""
     ros_args = ['--params-file', str(params_path)]
+    sim_remaps = start_slam(config, launcher, ros_args) if slam else []
     for i in range(config.robots):
         launcher.start_module(f'observer_robot{i + 1}', 'landmark_ros.nodes.observer',
                               ['-r', f'__ns:=/robot{i + 1}', *ros_args])
     launcher.start_module('fuser', 'landmark_ros.nodes.fuser', ros_args)
     wait_until(monitor, launcher, monitor.pipeline_ready, 60.0,
                'the observers and the fuser to come up')
-    launcher.start_module('sim', 'landmark_ros.nodes.sim', ros_args)
+    launcher.start_module('sim', 'landmark_ros.nodes.sim', [*ros_args, *sim_remaps])
     wall = config.duration_s / config.time_scale
     wait_until(monitor, launcher, lambda: monitor.sim_finished, 2.0 * wall + 60.0,
                'the simulation to finish', progress)
@@ -331,8 +386,10 @@ def execute(args, config, paths):
     The exit code is 2 when the run failed, 130 on Ctrl-C, None when the run can be
     evaluated (the monitor then holds what it saw).
     """
-    write_params_file(paths.params_path,
-                      node_parameters(config, args.fusion, paths.map_path))
+    parameters = node_parameters(config, args.fusion, paths.map_path)
+    if getattr(args, 'slam', False):
+        parameters.update(slam_parameters(config))
+    write_params_file(paths.params_path, parameters)
     progress = progress_bar(config.duration_s, False if args.no_progress else None)
     removed_shm = []
     monitor = None
@@ -340,7 +397,8 @@ def execute(args, config, paths):
         monitor = Monitor(args.domain_id, config.robots, partial_robots(config))
         announce(args, config, monitor, paths.log_dir)
         with Launcher(paths.log_dir, monitor.domain_id) as launcher:
-            drained = drive(config, launcher, monitor, paths.params_path, progress)
+            drained = drive(config, launcher, monitor, paths.params_path, progress,
+                            getattr(args, 'slam', False))
             monitor.spin(0.0)
             codes = launcher.stop()
             removed_shm += launcher.removed_shm
