@@ -17,6 +17,15 @@ follow ``robots``, whatever the file says. The parameter files key on the node n
 ``robots`` names, its ``robot<i>/...`` topics remapped to the names given. ``fusion``
 ('' keeps the file's value) sets the fuser's fusion method.
 
+``localize:=true`` is the team without motion capture: one ``landmark_localizer`` per
+robot (``/<robot>/landmark_localizer``, ``localizer_params`` if given) takes the
+robot's ``odometry`` and ``observations`` and the fuser's ``/fused_landmarks``, and
+publishes ``/<robot>/pose``, the pose the observer takes: the observers place the
+sightings with the localizers' poses, the fuser builds the map, the localizers use it
+(``localizer_overrides``). With ``sim:=true`` the simulator's own ``pose`` goes to
+``/<robot>/sim_pose`` (unused), the localizers run on its wheel odometry and start at
+the simulated robots' true starting poses, with the simulator's noise models.
+
 Everything is checked before any process starts (``check_team``): the robot names, that
 each parameter file exists and parses as YAML, the fusion method, and with
 ``rviz:=true`` that rviz2 is installed. A failed check ends the launch with one line
@@ -44,7 +53,7 @@ FUSER_INPUTS = {
 """Fuser parameter -> the topic, relative to each robot's namespace, that it lists per
 robot: the one place that names the per-robot topics the fuser subscribes."""
 
-SIM_TOPICS = ('pose', 'true_pose', 'observations')
+SIM_TOPICS = ('pose', 'true_pose', 'observations', 'odometry')
 """The per-robot topics of landmark_sim, remapped to the robot names given."""
 
 STOP_TIMEOUT_S = '20'
@@ -107,11 +116,53 @@ def fuser_topics(robots):
             for parameter, topic in FUSER_INPUTS.items()}
 
 
-def sim_remappings(robots):
-    """Return the remappings of landmark_sim's ``robot<i>/<topic>`` to the names given."""
-    return [(f'robot{i}/{topic}', f'/{robot}/{topic}')
-            for i, robot in enumerate(robots, start=1) if robot != f'robot{i}'
-            for topic in SIM_TOPICS]
+def sim_remappings(robots, localize=False):
+    """
+    Return the remappings of landmark_sim's ``robot<i>/<topic>`` to the names given.
+
+    With ``localize`` the simulator's reported ``pose`` goes to ``/<robot>/sim_pose``:
+    the localizers publish ``/<robot>/pose``.
+    """
+    out = []
+    for i, robot in enumerate(robots, start=1):
+        for topic in SIM_TOPICS:
+            target = 'sim_pose' if localize and topic == 'pose' else topic
+            if f'robot{i}/{topic}' != f'{robot}/{target}':
+                out.append((f'robot{i}/{topic}', f'/{robot}/{target}'))
+    return out
+
+
+def localizer_overrides(robots, sim_params=None):
+    """
+    Return per robot the parameters the launch gives its ``landmark_localizer``.
+
+    The other robots are ``other_robots``; with ``sim_params`` (``sim:=true``) the
+    simulator's odometry and sensor noise and the robot's true starting pose
+    (``landmark_ros.sim.simulation.Simulation``, from the same parameters) with a
+    small covariance.
+    """
+    out = [{'other_robots': [other for other in robots if other != robot] or ['']}
+           for robot in robots]
+    if sim_params is None:
+        return out
+    from landmark_ros.sim.simulation import SimConfig, Simulation
+    with open(sim_params, encoding='utf-8') as stream:
+        document = yaml.safe_load(stream) or {}
+    values = {}
+    for key, section in document.items():
+        if str(key).rstrip('/').split('/')[-1] == 'landmark_sim':
+            values.update((section or {}).get('ros__parameters') or {})
+    values['robots'] = len(robots)
+    sim = Simulation(SimConfig.from_values(values))
+    config = sim.config
+    for i, overrides in enumerate(out):
+        overrides.update({
+            'odometry_alphas': [float(a) for a in config.odometry_alphas],
+            'range_stddev': float(config.range_stddev), 'range_stddev_per_m': 0.0,
+            'bearing_stddev': float(config.bearing_stddev),
+            'initial_pose': [float(v) for v in sim.true_pose(i, 0.0)],
+            'initial_stddev': [0.05, 0.05, 0.02]})
+    return out
 
 
 def fusion_methods():
@@ -177,12 +228,14 @@ def check_team(arguments):
     except ValueError as error:
         raise TeamError(str(error)) from None
     flags = {}
-    for name in ('sim', 'rviz'):
+    for name in ('sim', 'rviz', 'localize'):
         text = arguments[name].strip().lower()
         if text not in ('true', 'false'):
             raise TeamError(f'{name}: expected true or false, got {arguments[name]!r}')
         flags[name] = text == 'true'
     files = ['observer_params', 'fuser_params'] + (['sim_params'] if flags['sim'] else [])
+    if flags['localize'] and arguments['localizer_params']:
+        files.append('localizer_params')
     for name in files:
         check_params_file(name, arguments[name])
     methods = fusion_methods()
@@ -227,18 +280,32 @@ def team_nodes(robots, arguments):
         overrides['fusion'] = arguments['fusion']
     nodes.append(Node(executable='landmark_fuser', name='landmark_fuser',
                       parameters=[arguments['fuser_params'], overrides], **common))
-    if arguments['sim'].strip().lower() == 'true':
+    sim = arguments['sim'].strip().lower() == 'true'
+    localize = arguments['localize'].strip().lower() == 'true'
+    if localize:
+        nodes += localizer_nodes(robots, arguments, sim, common)
+    if sim:
         nodes.append(Node(executable='landmark_sim', name='landmark_sim',
                           parameters=[arguments['sim_params'], {'robots': len(robots)}],
-                          remappings=sim_remappings(robots), **common))
+                          remappings=sim_remappings(robots, localize), **common))
     if arguments['rviz'].strip().lower() == 'true':
         nodes.append(Node(package='rviz2', executable='rviz2', name='rviz2',
                           arguments=['-d', arguments['rviz_config']]))
     return nodes
 
 
+def localizer_nodes(robots, arguments, sim, common):
+    """Return one ``landmark_localizer`` per robot, on the fuser's map (``localize:=true``)."""
+    files = [arguments['localizer_params']] if arguments['localizer_params'] else []
+    overrides = localizer_overrides(robots, arguments['sim_params'] if sim else None)
+    return [Node(executable='landmark_localizer', name='landmark_localizer', namespace=robot,
+                 parameters=files + [extra],
+                 remappings=[('fused_landmarks', '/fused_landmarks')], **common)
+            for robot, extra in zip(robots, overrides)]
+
+
 ARGUMENTS = ('robots', 'observer_params', 'fuser_params', 'sim', 'sim_params', 'fusion',
-             'rviz', 'rviz_config')
+             'rviz', 'rviz_config', 'localize', 'localizer_params')
 
 
 def _team(context):
@@ -276,6 +343,15 @@ def generate_launch_description():
             'fusion', default_value='',
             description="The fuser's fusion method (independent, covariance_intersection, "
                         "split_covariance_intersection, ...); '' keeps fuser_params' value."),
+        DeclareLaunchArgument(
+            'localize', default_value='false',
+            description='Also start a landmark_localizer per robot: the observers take its '
+                        'pose, the localizers the fused map (the team without motion '
+                        'capture; with sim:=true on the simulated wheel odometry).'),
+        DeclareLaunchArgument(
+            'localizer_params', default_value='',
+            description='Parameter file of every landmark_localizer with localize:=true '
+                        "('' for the defaults)."),
         DeclareLaunchArgument(
             'rviz', default_value='false',
             description='Also start RViz with rviz_config; rviz2 must be installed.'),

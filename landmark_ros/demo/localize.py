@@ -43,16 +43,48 @@ def localizer_parameters(config, sim):
     return out
 
 
-def start_localizers(launcher, config, params_path):
-    """Start one localizer per robot (inputs reliable, output ``localized_pose``)."""
+def start_localizers(launcher, config, params_path, slam=False):
+    """
+    Start one localizer per robot (inputs reliable); return the simulator's extra remaps.
+
+    ``--localize``: the localizers' ``pose`` goes to ``localized_pose``, the observers keep
+    the simulator's. ``--slam``: the observers read the localizers' ``pose`` and the
+    simulator's reported pose goes to ``sim_pose`` (the returned remaps).
+    """
+    remaps = []
     for robot in range(config.robots):
         ns = f'/robot{robot + 1}'
-        args = ['-r', f'__ns:={ns}', '-r', 'pose:=localized_pose',
-                '-r', 'fused_landmarks:=/fused_landmarks', '--params-file', str(params_path)]
+        args = ['-r', f'__ns:={ns}', '-r', 'fused_landmarks:=/fused_landmarks',
+                '--params-file', str(params_path)]
+        if slam:
+            remaps += ['-r', f'robot{robot + 1}/pose:={ns}/sim_pose']
+        else:
+            args[2:2] = ['-r', 'pose:=localized_pose']
         for topic in ('odometry', 'observations'):
             args += ['-p', f'qos_overrides.{ns}/{topic}.subscription.reliability:=reliable']
         launcher.start_module(f'localizer_robot{robot + 1}', 'landmark_ros.nodes.localizer',
                               args)
+    return remaps
+
+
+def add_slam_argument(parser):
+    """Add ``--slam``: the team without motion capture (localizers on wheel odometry)."""
+    parser.add_argument('--slam', action='store_true',
+                        help='no motion capture: a landmark_localizer per robot on the '
+                        "simulated wheel odometry and the fused map gives the observer's "
+                        'pose (team.launch.py localize:=true)')
+
+
+def slam_defaults(args):
+    """
+    Return ``args`` with ``--slam``'s fusion: split CI unless another than the default.
+
+    The observers' rows then carry the localizers' pose errors, shared between rows: the
+    default ``independent`` fusion would be over-confident.
+    """
+    if getattr(args, 'slam', False) and args.fusion == 'independent':
+        args.fusion = 'split_covariance_intersection'
+    return args
 
 
 class LocalizationCollector:

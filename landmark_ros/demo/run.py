@@ -9,6 +9,11 @@ poses, /diagnostics), stops everything cleanly, then prints each fused landmark
 against the truth (error, NEES, observations, rejections), the RMSE and the
 average NEES with its 95 % interval, and draws the run (``demo.png``).
 
+With ``--slam`` the observers take their poses from one ``landmark_localizer`` per robot,
+running on the simulated wheel odometry against the fused map (``team.launch.py
+localize:=true``; the simulator's reported pose goes to ``sim_pose``), and the fuser uses
+split CI unless ``--fusion`` names another method than the default.
+
 With ``--no-ids`` the simulator publishes every observation without its landmark ID
 (``UNKNOWN_ID``): the fuser associates the rows (its default, JCBB) and starts tracks
 with new IDs. The report then matches the fused tracks to the true landmarks by optimal
@@ -42,9 +47,9 @@ import signal
 import sys
 import time
 
-from landmark_ros.demo.localize import (evaluate as evaluate_localization,
+from landmark_ros.demo.localize import (add_slam_argument, evaluate as evaluate_localization,
                                         LocalizationCollector, localizer_parameters,
-                                        start_localizers)
+                                        slam_defaults, start_localizers)
 from landmark_ros.demo.monitor import Monitor
 from landmark_ros.demo.report import (evaluate_run, MIN_OBSERVATIONS_NO_IDS, NEES_2SIGMA,
                                       plot_run, rejections_by_id)
@@ -102,7 +107,8 @@ def parse_args(argv=None):
     parser.add_argument('--no-progress', action='store_true',
                         help='no progress bar (default: a tqdm bar on stderr when it is a '
                         'terminal)')
-    args = parser.parse_args(argv)
+    add_slam_argument(parser)
+    args = slam_defaults(parser.parse_args(argv))
     if args.robots < 1 or args.landmarks < 1:
         parser.error('--robots and --landmarks must be at least 1')
     if not 0.0 < args.duration <= 3600.0:
@@ -262,9 +268,10 @@ def wait_until(monitor, launcher, predicate, timeout_s, what, progress=None):
             show_progress(progress, monitor)
 
 
-def drive(config, launcher, monitor, params_path, progress):
+def drive(config, launcher, monitor, params_path, progress, slam=False):
     """Start the processes, follow the run and wait for the pipeline to drain."""
     ros_args = ['--params-file', str(params_path)]
+    sim_remaps = start_localizers(launcher, config, params_path, slam) if slam else []
     for i in range(config.robots):
         launcher.start_module(f'observer_robot{i + 1}', 'landmark_ros.nodes.observer',
                               ['-r', f'__ns:=/robot{i + 1}', *ros_args])
@@ -275,7 +282,7 @@ def drive(config, launcher, monitor, params_path, progress):
     if localization is not None:  # --localize
         start_localizers(launcher, config, params_path)
         wait_until(monitor, launcher, localization.ready, 60.0, 'the localizers to come up')
-    launcher.start_module('sim', 'landmark_ros.nodes.sim', ros_args)
+    launcher.start_module('sim', 'landmark_ros.nodes.sim', [*ros_args, *sim_remaps])
     wall = config.duration_s / config.time_scale
     wait_until(monitor, launcher, lambda: monitor.sim_finished, 2.0 * wall + 60.0,
                'the simulation to finish', progress)
@@ -349,7 +356,7 @@ def execute(args, config, paths):
     evaluated (the monitor then holds what it saw).
     """
     parameters = node_parameters(config, args.fusion, paths.map_path)
-    if getattr(args, 'localize', False):
+    if getattr(args, 'localize', False) or getattr(args, 'slam', False):
         parameters.update(localizer_parameters(config, Simulation(config)))
         # the localizers start from the first pose: they must get the first odometry
         parameters['/landmark_sim']['wait_for_odometry_subscribers'] = True
@@ -363,7 +370,8 @@ def execute(args, config, paths):
             monitor.localization = LocalizationCollector(monitor.node, config.robots)
         announce(args, config, monitor, paths.log_dir)
         with Launcher(paths.log_dir, monitor.domain_id) as launcher:
-            drained = drive(config, launcher, monitor, paths.params_path, progress)
+            drained = drive(config, launcher, monitor, paths.params_path, progress,
+                            getattr(args, 'slam', False))
             monitor.spin(0.0)
             codes = launcher.stop()
             removed_shm += launcher.removed_shm

@@ -82,6 +82,11 @@ offline (default)
     pipeline object) against the surveyed and the fused map, with and without
     robot-to-robot sightings, dead reckoning as the floor
     (``landmark_ros.mrclam.localize_cli``); ``--json`` gains ``localization``.
+``--slam``
+    The team without motion capture: every robot's localizer, observer and the team's
+    fuser in a closed loop from odometry and sightings, the ground truth only at the
+    start (``landmark_ros.mrclam.slam``); with and without IDs and anchors;
+    ``--json`` gains ``slam``.
 ``--calibrate-odometry``
     The odometry delay and motion-model alphas from the ground truth, with a
     leave-one-robot-out cross-check (``landmark_ros.mrclam.localize_data``).
@@ -188,6 +193,12 @@ def parse_args(argv=None):
                         'and fused maps, with and without robot sightings)')
     parser.add_argument('--duration', type=float, default=None, metavar='SECONDS',
                         help='--localize: only the first SECONDS of the run')
+    parser.add_argument('--slam', action='store_true',
+                        help='the team without motion capture: localizers, observers and '
+                        'the fuser in a closed loop (with and without IDs and anchors)')
+    parser.add_argument('--anchors', type=Path, default=None, metavar='MAP_FILE',
+                        help='with --slam: a fuser map file of surveyed landmarks that '
+                        'anchor the frame (default: slam_anchor_ids of the config)')
     parser.add_argument('--calibrate-odometry', action='store_true',
                         help='estimate the odometry delay and motion noise from ground truth')
     parser.add_argument('--export-bag', type=Path, default=None, metavar='OUT',
@@ -308,6 +319,10 @@ def main(argv=None):
     print(f'config {config.path}; loaded in {load_s:.2f} s')
     if args.export_bag is not None:
         return export_bag(args.dataset or default_dataset_path(), config, args.export_bag)
+    if args.slam:
+        from landmark_ros.mrclam import slam_cli
+        return slam_cli.run_slam(args, dataset, config,
+                                 {'mode': 'offline', 'dataset': dataset_dict(dataset)})
     if args.localize or args.calibrate_odometry:
         from landmark_ros.mrclam import localize_cli
         document = {'mode': 'offline', 'dataset': dataset_dict(dataset)}

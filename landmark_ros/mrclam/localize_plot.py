@@ -5,7 +5,7 @@ import numpy as np
 COLOURS = ('tab:blue', 'tab:orange', 'tab:green', 'tab:red', 'tab:purple')
 
 
-def plot_run(path, dataset, tracks, title, ellipse_every_s=20.0):
+def plot_run(path, dataset, tracks, title, ellipse_every_s=20.0, landmarks=None):
     """
     Draw every robot's estimated path over its true path, with position ellipses.
 
@@ -21,6 +21,9 @@ def plot_run(path, dataset, tracks, title, ellipse_every_s=20.0):
         Figure title.
     ellipse_every_s : float
         Time between two drawn 2-sigma ellipses [s].
+    landmarks : list of dict, optional
+        Map records (``LandmarkMap.to_records``: ``mean``, ``covariance``) drawn with
+        their 2-sigma ellipses.
 
     Raises
     ------
@@ -45,6 +48,9 @@ def plot_run(path, dataset, tracks, title, ellipse_every_s=20.0):
             for i in marks:
                 plotting.draw_ellipse(ax, track.x[i, :2], track.P[i, :2, :2], 2.0,
                                       color=colour, linewidth=0.8)
+    for k, record in enumerate(landmarks or ()):
+        plotting.draw_ellipse(ax, record['mean'], record['covariance'], 2.0, color='k',
+                              linewidth=1.2, label='map (2 sigma)' if k == 0 else None)
     ax.plot([], [], color='0.5', alpha=0.4, label='truth (faint)')
     ax.set_aspect('equal', adjustable='datalim')
     plotting.finish(fig, ax, path, title)

@@ -1,0 +1,195 @@
+"""
+Monte Carlo of the team without motion capture: pose NEES and map ANEES over seeds.
+
+Each seed draws a world (``sim.world.generate_world``: 15 landmarks in 20 m), one loop
+path per robot at 0.5 m/s (``sim.world.make_paths``), wheel odometry at ``rate_hz``
+with the odometry model's noise (``sim.odometry.wheel_odometry``), range-bearing
+sightings of the landmarks in view (``sim.world.visible``: up to 8 m, all around)
+and of the other robots every 0.4 s with white noise, and starting poses drawn from
+their stated covariance. The team runs the closed loop of ``eval.slam_loop.TeamLoop``
+(the localizer, observer and fuser of the nodes, package defaults: split CI in the
+localizer and in the fuser) with the same models (exact up to the linearisation).
+
+Figures (Bar-Shalom, Li and Kirubarajan 2001, ch. 5.4):
+
+- pose: per seed the average NEES of the 3-dof poses of every robot over the run (after
+  the first 2 s); over the seeds their mean with its 95 % interval (normal
+  approximation of the seed means), and the fraction of the odometry stamps at which
+  the NEES averaged over seeds and robots lies inside its chi-square interval
+  (3 dof times seeds times robots);
+- map: the NEES of every confirmed landmark at the end of each seed, averaged over
+  seeds and landmarks, against the chi-square interval of that many 2-dof estimates.
+
+Consistent: 3 inside the pose interval, the map ANEES inside its interval.
+Run: ``python -m landmark_ros.eval.slam_montecarlo [--seeds 20] [--duration 60]
+[--precision-sources K]``; ``--long`` adds the 10-minute run (fewer seeds).
+"""
+
+import argparse
+from dataclasses import dataclass
+import math
+import sys
+
+from landmark_ros.core.gating import mahalanobis_sq
+from landmark_ros.eval.metrics import anees_interval, chi2_quantile
+from landmark_ros.eval.slam_loop import LoopConfig, TeamLoop
+from landmark_ros.localizer import motion
+from landmark_ros.localizer.config import LocalizerConfig
+from landmark_ros.pipeline.config import FuserConfig, ObserverConfig
+from landmark_ros.sim.odometry import wheel_odometry
+from landmark_ros.sim.world import generate_world, make_paths, visible
+import numpy as np
+
+ALPHAS = (0.05, 0.5, 0.05, 0.01)
+RANGE_STDDEV, BEARING_STDDEV = 0.05, 0.02
+INITIAL_STDDEV = (0.05, 0.05, 0.02)
+MAX_RANGE, FOV = 8.0, 2.0 * math.pi
+
+
+@dataclass(frozen=True)
+class SeedResult:
+    """What one seed gives."""
+
+    nees: np.ndarray
+    """Pose NEES per odometry stamp (after 2 s), averaged over the robots, shape (K,)."""
+    map_nees: np.ndarray
+    """NEES of every confirmed landmark at the end, shape (L,)."""
+    map_errors: np.ndarray
+    """Their position errors [m], shape (L,)."""
+    position_errors: np.ndarray
+    """Position errors of every robot at every stamp after 2 s [m], shape (K * robots,)."""
+
+
+def loop_config(precision_sources=1):
+    """Return the loop's parameters: package defaults with the simulation's models."""
+    localizer = LocalizerConfig(odometry_alphas=ALPHAS, range_stddev=RANGE_STDDEV,
+                                range_stddev_per_m=0.0, bearing_stddev=BEARING_STDDEV,
+                                initial_stddev=INITIAL_STDDEV)
+    observer = ObserverConfig(range_stddev=RANGE_STDDEV, range_stddev_per_m=0.0,
+                              bearing_stddev=BEARING_STDDEV)
+    return LoopConfig(localizer, observer, FuserConfig(),
+                      precision_sources=precision_sources)
+
+
+def _sightings(generator, pose, positions):
+    """Return which of ``positions`` a robot at ``pose`` sees, and noisy observations."""
+    mask, z = visible(pose, positions, 0.5, MAX_RANGE, FOV)
+    z = z[mask] + generator.normal(0.0, [RANGE_STDDEV, BEARING_STDDEV], (int(mask.sum()), 2))
+    return mask, z
+
+
+def run_seed(seed, robots=3, duration_s=60.0, rate_hz=20.0, precision_sources=1):
+    """Run one seed of the closed loop; return its ``SeedResult``."""
+    generator = np.random.default_rng(seed)
+    world = generate_world(15, 20.0, seed)
+    paths = make_paths(robots, world.bounds, 0.5, seed)
+    times = np.arange(0.0, duration_s, 1.0 / rate_hz)
+    truth = [np.array(path.pose(times)).reshape(-1, 3) for path in paths]
+    odom = [wheel_odometry(t, ALPHAS, generator) for t in truth]
+    loop = TeamLoop(loop_config(precision_sources), [f'robot{i + 1}' for i in range(robots)])
+    P0 = np.diag(np.square(INITIAL_STDDEV))
+    for i in range(robots):
+        loop.start(i, 1, truth[i][0] + generator.multivariate_normal(np.zeros(3), P0), P0)
+    every = int(round(0.4 * rate_hz))
+    nees, errors = [], []
+    for k, t in enumerate(times):
+        stamp = int(round(t * 1e9)) + 2
+        for i in range(robots):
+            loop.odometry(i, stamp, pose=odom[i][k])
+        if k % every == every // 2:
+            for i in range(robots):
+                mask, z = _sightings(generator, truth[i][k], world.positions)
+                loop.sightings(i, stamp + 1000, world.ids[mask], z)
+                others = [j for j in range(robots) if j != i]
+                mask, z = _sightings(generator, truth[i][k],
+                                     np.array([truth[j][k, :2] for j in others]))
+                for j, z_j in zip(np.array(others)[mask].tolist(), z):
+                    loop.robot_sighting(i, stamp, j, z_j)
+        if t >= 2.0:
+            step_nees = []
+            for i in range(robots):
+                est = loop.localizers[i].estimate()
+                e = est.x - truth[i][k]
+                e[2] = motion.wrap(e[2])
+                step_nees.append(float(e @ np.linalg.solve(est.P, e)))
+                errors.append(math.hypot(e[0], e[1]))
+            nees.append(np.mean(step_nees))
+    snapshot = loop.fuser.snapshot()
+    truth_m = world.positions[np.searchsorted(world.ids, snapshot.ids)]
+    map_nees = np.array([float(mahalanobis_sq(truth_m[k], snapshot.m[k], snapshot.P[k]))
+                         for k in range(len(snapshot.ids))])
+    map_errors = np.linalg.norm(snapshot.m - truth_m, axis=1)
+    return SeedResult(np.array(nees), map_nees, map_errors, np.array(errors))
+
+
+def summarise(results, robots):
+    """Return the figures of a list of ``SeedResult`` (module docstring) as a dict."""
+    means = np.array([r.nees.mean() for r in results])
+    half = 1.96 * means.std(ddof=1) / math.sqrt(len(means)) if len(means) > 1 else math.inf
+    count = min(len(r.nees) for r in results)
+    per_stamp = np.mean([r.nees[:count] for r in results], axis=0)
+    n = len(results) * robots
+    low, high = chi2_quantile(3 * n, 0.025) / n, chi2_quantile(3 * n, 0.975) / n
+    inside = float(np.mean((per_stamp >= low) & (per_stamp <= high)))
+    map_nees = np.concatenate([r.map_nees for r in results])
+    map_low, map_high = anees_interval(len(map_nees))
+    errors = np.concatenate([r.position_errors for r in results])
+    return {'seeds': len(results), 'pose_anees': float(means.mean()),
+            'pose_anees_interval': [float(means.mean() - half), float(means.mean() + half)],
+            'pose_stamps_inside_fraction': inside,
+            'pose_stamp_interval': [float(low), float(high)],
+            'position_rmse_m': float(math.sqrt(np.mean(errors ** 2))),
+            'map_anees': float(map_nees.mean()),
+            'map_anees_interval': [float(map_low), float(map_high)],
+            'map_rmse_m': float(math.sqrt(np.mean(np.concatenate(
+                [r.map_errors for r in results]) ** 2))),
+            'landmarks_scored': int(len(map_nees))}
+
+
+def consistent(summary):
+    """Return whether 3 lies in the pose interval and the map ANEES in its interval."""
+    low, high = summary['pose_anees_interval']
+    map_low, map_high = summary['map_anees_interval']
+    return low <= 3.0 <= high and map_low <= summary['map_anees'] <= map_high
+
+
+def format_summary(name, s):
+    """Return one line per figure."""
+    low, high = s['pose_anees_interval']
+    map_low, map_high = s['map_anees_interval']
+    return (f'{name}: {s["seeds"]} seeds; pose ANEES {s["pose_anees"]:.2f} (95 % interval '
+            f'{low:.2f} to {high:.2f}; 3 is consistent), stamps inside the chi-square '
+            f'interval {s["pose_stamps_inside_fraction"]:.3f}, position RMSE '
+            f'{s["position_rmse_m"]:.3f} m; map ANEES {s["map_anees"]:.2f} (interval '
+            f'{map_low:.2f} to {map_high:.2f}, {s["landmarks_scored"]} landmarks), map RMSE '
+            f'{s["map_rmse_m"]:.3f} m; {"consistent" if consistent(s) else "NOT consistent"}')
+
+
+def main(argv=None):
+    """Print the Monte Carlo figures; exit 1 when a run is not consistent."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[1])
+    parser.add_argument('--seeds', type=int, default=20)
+    parser.add_argument('--robots', type=int, default=3)
+    parser.add_argument('--duration', type=float, default=60.0, help='[s] per seed')
+    parser.add_argument('--long', action='store_true',
+                        help='add a 600 s run over --long-seeds seeds')
+    parser.add_argument('--long-seeds', type=int, default=2)
+    parser.add_argument('--first-seed', type=int, default=0)
+    parser.add_argument('--precision-sources', type=int, default=1,
+                        help='sources per robot in the fuser (eval.slam_loop.LoopConfig)')
+    args = parser.parse_args(argv)
+    runs = [('short', args.seeds, args.duration)] if args.seeds > 0 else []
+    if args.long:
+        runs.append(('long', args.long_seeds, 600.0))
+    ok = True
+    for name, seeds, duration in runs:
+        results = [run_seed(seed, args.robots, duration, precision_sources=args.precision_sources)
+                   for seed in range(args.first_seed, args.first_seed + seeds)]
+        summary = summarise(results, args.robots)
+        print(format_summary(f'{name} ({duration:.0f} s)', summary))
+        ok = ok and consistent(summary)
+    return 0 if ok else 1
+
+
+if __name__ == '__main__':
+    sys.exit(main())

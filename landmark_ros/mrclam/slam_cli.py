@@ -1,0 +1,74 @@
+"""
+The ``--slam`` mode of ``landmark_mrclam``: the team without motion capture.
+
+``mrclam.slam.run_all`` with the params file's observer, fuser and localizer sections
+(``config/mrclam.yaml``) and, from its ``landmark_mrclam`` section, the odometry delay
+(``odometry_delay_s``) and the anchors (``slam_anchor_ids``: surveyed landmarks written
+as a fuser map file; ``--anchors FILE`` takes a map file instead). Runs the four modes
+(IDs shown or hidden, without or with anchors); with ``--hide-ids`` only the two
+without IDs. Prints the per-robot table, the map figures and which of the issue's
+targets hold; ``--json`` gains ``slam`` (one entry per mode), ``--plot FILE`` draws one
+picture per mode (``FILE`` stem + ``-ids|-noids`` + ``-anchors``).
+"""
+
+from dataclasses import replace
+from pathlib import Path
+
+from landmark_ros.mrclam import slam
+from landmark_ros.mrclam.localize import localizer_config
+from landmark_ros.mrclam.localize_cli import _Bar, _sections
+from landmark_ros.mrclam.localize_data import load_all_extras
+from landmark_ros.mrclam.report import write_json
+
+
+def _modes(args):
+    if args.hide_ids:
+        return tuple(mode for mode in slam.MODES if mode.hide_ids)
+    return slam.MODES
+
+
+def _plot(args, dataset, results):
+    from landmark_ros.mrclam.localize_plot import plot_run
+    path = Path(args.plot)
+    for result in results:
+        mode = result.mode
+        out = path.with_name(f'{path.stem}-{"noids" if mode.hide_ids else "ids"}'
+                             f'{"-anchors" if mode.anchors else ""}{path.suffix}')
+        plot_run(out, dataset, result.tracks, f'MRCLAM {dataset.path.name}, no motion capture '
+                 f'({mode.label}): paths and map, 2 sigma', landmarks=result.records)
+        print(f'wrote {out}')
+
+
+def run_slam(args, dataset, replay_config, document):
+    """Run ``--slam``; return the exit code (0 also when targets fail: they print)."""
+    localizer_values, replay_values = _sections(replay_config.path)
+    config = slam.loop_config(replay_config, localizer_config(localizer_values))
+    delay_s = float(replay_values.get('odometry_delay_s', 0.0))
+    anchor_ids = tuple(int(i) for i in replay_values.get('slam_anchor_ids',
+                                                         slam.DEFAULT_ANCHORS))
+    extras = load_all_extras(dataset)
+    bar = None if args.no_progress else _Bar
+    modes = _modes(args)
+    if args.anchors is not None:
+        no_anchors = [m for m in modes if not m.anchors]
+        results = slam.run_all(dataset, extras, config, (), delay_s, no_anchors, bar)
+        results += [slam.run_mode(dataset, extras, config, m, delay_s, str(args.anchors))
+                    for m in modes if m.anchors]
+    else:
+        results = slam.run_all(dataset, extras, config, anchor_ids, delay_s, modes, bar)
+    print(slam.format_table(results, dataset.duration))
+    print('targets (no anchors):')
+    for name, holds in slam.targets(results):
+        print(f'  {"holds" if holds else "FAILS"}: {name}')
+    document['slam'] = [result.entry for result in results]
+    document['slam_anchors'] = (str(args.anchors) if args.anchors is not None
+                                else list(anchor_ids))
+    document['localizer_config'] = {k: (list(v) if isinstance(v, tuple) else v)
+                                    for k, v in vars(replace(config.localizer)).items()}
+    document['odometry_delay_s'] = delay_s
+    if args.json:
+        write_json(args.json, document)
+        print(f'wrote {args.json}')
+    if args.plot:
+        _plot(args, dataset, results)
+    return 0

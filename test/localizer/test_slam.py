@@ -1,0 +1,107 @@
+"""The closed loop of localizers, observers and fuser (``eval.slam_loop``), its tools."""
+
+import dataclasses
+import json
+from pathlib import Path
+
+from landmark_ros.eval import slam_montecarlo
+from landmark_ros.eval.slam_loop import LoopConfig, TeamLoop
+from landmark_ros.localizer.config import LocalizerConfig
+from landmark_ros.mrclam import slam
+from landmark_ros.mrclam.data import load_dataset
+from landmark_ros.mrclam.localize_data import load_all_extras
+from landmark_ros.pipeline.config import FuserConfig, ObserverConfig
+import numpy as np
+import pytest
+from test_mrclam_localize import _first_seconds, DATASET
+
+MS = 1_000_000
+
+
+def _loop(hide_ids=False, precision_sources=1):
+    config = LoopConfig(LocalizerConfig(initial_stddev=(0.01, 0.01, 0.01)),
+                        ObserverConfig(range_stddev=0.05, bearing_stddev=0.02),
+                        FuserConfig(min_observations=2), hide_ids, precision_sources)
+    loop = TeamLoop(config, ['robot1'])
+    loop.start(0, 1 * MS, np.zeros(3), np.diag([1e-4, 1e-4, 1e-4]))
+    return loop
+
+
+def _see(loop, k, landmark=(3.0, 1.0), ids=(7,)):
+    """Stand still; one sighting of ``landmark`` between odometry ``k`` and ``k + 1``."""
+    loop.odometry(0, (10 * k + 2) * MS, pose=np.zeros(3))
+    z = np.array([[np.hypot(*landmark), np.arctan2(landmark[1], landmark[0])]])
+    loop.sightings(0, (10 * k + 5) * MS, np.array(ids), z)
+    loop.odometry(0, (10 * k + 8) * MS, pose=np.zeros(3))
+
+
+@pytest.mark.parametrize('hide_ids', [False, True])
+def test_a_sighting_updates_the_pose_against_the_map_without_itself(hide_ids):
+    loop = _loop(hide_ids)
+    loc = loop.localizers[0]
+    _see(loop, 0)
+    _see(loop, 1)
+    # Two agreeing rows confirm the landmark; neither was in the map that updated the
+    # pose when it came (the map before its own batch was fused).
+    assert len(loop.fuser.snapshot().ids) == 1
+    assert loc.counters['rows_used'] == 0
+    _see(loop, 2)
+    assert loc.counters['rows_used'] == 1
+    assert loop.counts['rows_to_localizer'] == 1
+    # The observer placed every row with the localizer's pose, the pose error as the
+    # dependent part (the localizer's covariance, not the observer's default).
+    record = loop.map_records()[0]
+    assert np.trace(np.array(record['covariance_dependent'])) > 1e-4
+
+
+def test_precision_sources_split_a_robot_by_its_dependent_part():
+    loop = _loop(precision_sources=4)
+    assert [loop.precision_source(np.eye(2)[None] * s ** 2) for s in
+            (0.001, 0.03, 0.05, 0.1, 10.0)] == [0, 0, 1, 2, 3]
+    assert len(loop.fuser.sources) == 4
+    assert _loop().precision_source(np.eye(2)[None]) == 0
+
+
+@pytest.mark.slow
+def test_monte_carlo_of_the_loop_is_not_over_confident():
+    results = [slam_montecarlo.run_seed(seed, robots=3, duration_s=30.0) for seed in range(4)]
+    summary = slam_montecarlo.summarise(results, 3)
+    # The map is conservative with one source per robot (below its interval), never
+    # above it; the poses are consistent.
+    _, high = summary['map_anees_interval']
+    assert summary['map_anees'] <= high, summary
+    assert 1.5 <= summary['pose_anees'] <= 4.5, summary
+    assert summary['landmarks_scored'] >= 20
+
+
+@pytest.mark.skipif(not DATASET.is_dir(), reason='needs ../shared MRCLAM dataset 6')
+def test_mrclam_slam_on_the_first_minute_reports_the_issue_keys(tmp_path):
+    dataset = load_dataset(DATASET)
+    dataset, extras = _first_seconds(dataset, load_all_extras(dataset), 60.0, (3, 5))
+    config = LoopConfig(LocalizerConfig(odometry_alphas=(2.0, 6.8, 1.6, 0.26),
+                                        range_stddev=0.04, range_stddev_per_m=0.05,
+                                        bearing_stddev=0.017,
+                                        initial_stddev=(0.02, 0.02, 0.02)),
+                        ObserverConfig(range_stddev=0.03, range_stddev_per_m=0.05,
+                                       bearing_stddev=0.017), FuserConfig())
+    results = slam.run_all(dataset, extras, config, (6, 11, 19), 0.175,
+                           modes=(slam.SlamMode(True, False), slam.SlamMode(False, True)))
+    keys = {'ids_hidden', 'anchors', 'position_rmse_m', 'heading_rmse_rad', 'anees',
+            'inside_95_fraction', 'robots', 'map_rmse_m', 'map_anees', 'map_anees_interval',
+            'tracks_confirmed', 'true_landmarks'}
+    for result in results:
+        entry = result.entry
+        assert keys <= set(entry)
+        assert [r['robot'] for r in entry['robots']] == [3, 5]
+        assert entry['rows_used'] > 0 and entry['tracks_confirmed'] > 0
+        assert entry['position_rmse_m'] < 1.0
+        json.dumps(entry)
+    hidden, anchored = (r.entry for r in results)
+    assert hidden['ids_hidden'] and not hidden['anchors']
+    assert anchored['anchors'] and not anchored['ids_hidden']
+    # The anchors are in the fused map (loaded from the map file).
+    assert {6, 11, 19} <= {r['id'] for r in results[1].records}
+    assert len(slam.targets(results)) == 5
+    path = Path(tmp_path) / 'anchors.json'
+    assert slam.write_anchor_file(path, dataset, {6, 11, 19}) == 3
+    assert dataclasses.is_dataclass(results[0].mode)
