@@ -246,6 +246,21 @@ def _weighted_bias(medians, counts, noise_variance):
     return math.sqrt(max(0.0, float(np.sum(counts * excess) / np.sum(counts))))
 
 
+def _robot_medians(dataset, e):
+    """Return each robot's median errors: report entries and ``((range, bearing), n)``."""
+    robots, robot_medians = [], []
+    for index, robot in enumerate(dataset.robots):
+        mine = e['robot'] == index
+        if not mine.any():
+            continue
+        medians = (float(np.median(e['range_error'][mine])),
+                   float(np.median(e['bearing_error'][mine])))
+        robots.append({'robot': robot.name, 'n': int(mine.sum()),
+                       'range_median': medians[0], 'bearing_median': medians[1]})
+        robot_medians.append((medians, int(mine.sum())))
+    return robots, robot_medians
+
+
 def calibrate(dataset, min_pair=10, bins=10, part=None):
     """
     Estimate the observer's sensor model from ground truth.
@@ -330,17 +345,7 @@ def calibrate(dataset, min_pair=10, bins=10, part=None):
         overall[name] = {'n': count, 'mean': float(np.mean(err)), 'std': float(np.std(err)),
                          'median': float(np.median(err)), 'robust_sd': sd,
                          'tail_3sd': float(np.mean(np.abs(err - np.median(err)) > 3 * sd))}
-    robots = []
-    robot_medians = []
-    for index, robot in enumerate(dataset.robots):
-        mine = e['robot'] == index
-        if not mine.any():
-            continue
-        medians = (float(np.median(e['range_error'][mine])),
-                   float(np.median(e['bearing_error'][mine])))
-        robots.append({'robot': robot.name, 'n': int(mine.sum()),
-                       'range_median': medians[0], 'bearing_median': medians[1]})
-        robot_medians.append((medians, int(mine.sum())))
+    robots, robot_medians = _robot_medians(dataset, e)
     # Pairs: robot-landmark combinations with enough sightings.
     pair_key = e['robot'].astype(np.int64) * (int(e['id'].max()) + 1) + e['id'].astype(np.int64)
     keys, inverse, sizes = np.unique(pair_key, return_inverse=True, return_counts=True)

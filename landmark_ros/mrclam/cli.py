@@ -304,19 +304,8 @@ def write_outputs(args, dataset, results, document):
     return True
 
 
-def main(argv=None):
-    """Run the replay from the command line; return the exit code."""
-    args = parse_args(argv)
-    try:
-        config = load_config(args.config)
-        t0 = time.monotonic()
-        dataset = load_dataset(args.dataset or default_dataset_path(), config.pose_stddev)
-        load_s = time.monotonic() - t0
-    except (OSError, ValueError) as error:
-        print(f'landmark_mrclam: {error}', file=sys.stderr)
-        return 2
-    print(dataset_report(dataset))
-    print(f'config {config.path}; loaded in {load_s:.2f} s')
+def other_command(args, dataset, config):
+    """Run the mode other than the fusion replay that ``args`` asks for: its exit code."""
     if args.export_bag is not None:
         return export_bag(args.dataset or default_dataset_path(), config, args.export_bag)
     if args.slam:
@@ -333,6 +322,25 @@ def main(argv=None):
         return calibrate_command(args, dataset)
     if args.cross_validate:
         return cross_validate_command(args, dataset, config)
+    return None
+
+
+def main(argv=None):
+    """Run the replay from the command line; return the exit code."""
+    args = parse_args(argv)
+    try:
+        config = load_config(args.config)
+        t0 = time.monotonic()
+        dataset = load_dataset(args.dataset or default_dataset_path(), config.pose_stddev)
+        load_s = time.monotonic() - t0
+    except (OSError, ValueError) as error:
+        print(f'landmark_mrclam: {error}', file=sys.stderr)
+        return 2
+    print(dataset_report(dataset))
+    print(f'config {config.path}; loaded in {load_s:.2f} s')
+    code = other_command(args, dataset, config)
+    if code is not None:
+        return code
     methods = [args.fusion] if args.fusion else list(FUSION_METHODS)
     if args.through_nodes and args.sensor != 'rb' and args.hide_ids:
         print('landmark_mrclam: --hide-ids needs --sensor rb through the nodes',
