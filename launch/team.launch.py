@@ -54,6 +54,9 @@ FUSER_INPUTS = {
 robot: the one place that names the per-robot topics the fuser subscribes."""
 
 SIM_TOPICS = ('pose', 'true_pose', 'observations', 'odometry')
+SIM_WAIT_S = 60.0
+"""With ``localize:=true`` the simulator waits up to this long [wall s] for every
+subscriber, the localizers' odometry included, before its first step."""
 """The per-robot topics of landmark_sim, remapped to the robot names given."""
 
 STOP_TIMEOUT_S = '20'
@@ -285,8 +288,12 @@ def team_nodes(robots, arguments):
     if localize:
         nodes += localizer_nodes(robots, arguments, sim, common)
     if sim:
+        sim_overrides = {'robots': len(robots)}
+        if localize:  # the localizers start at the first pose: they need the first odometry
+            sim_overrides.update(wait_for_odometry_subscribers=True,
+                                 wait_for_subscribers_s=SIM_WAIT_S)
         nodes.append(Node(executable='landmark_sim', name='landmark_sim',
-                          parameters=[arguments['sim_params'], {'robots': len(robots)}],
+                          parameters=[arguments['sim_params'], sim_overrides],
                           remappings=sim_remappings(robots, localize), **common))
     if arguments['rviz'].strip().lower() == 'true':
         nodes.append(Node(package='rviz2', executable='rviz2', name='rviz2',

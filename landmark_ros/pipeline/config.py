@@ -268,10 +268,12 @@ class FuserConfig(ConfigBase):
         5, 'Rejections in a row after which a landmark is rebuilt from them.',
         read_only=True, low=1, high=1000)
     move_false_alarm_rate: float = param(
-        2e-5, 'Change detection (Page CUSUM on the innovations of each confirmed landmark, '
+        0.0, 'Change detection (Page CUSUM on the innovations of each confirmed landmark, '
         'fuser.change_detection): false alarms per observation of a static landmark its '
-        'threshold is set for; an alarm rebuilds the landmark from its post-change rows '
-        '(landmark_moved). 0 turns it off.', read_only=True, low=0.0, high=0.1)
+        'threshold is set for (e.g. 2e-5); an alarm rebuilds the landmark from its '
+        'post-change rows (landmark_moved). 0 (default) turns it off: the rate holds only '
+        'for sightings whose errors are independent in time.', read_only=True, low=0.0,
+        high=0.1)
     move_shift_sigma: float = param(
         1.75, 'The move change detection is tuned to, in standard deviations of one '
         'observation (its noncentrality is the square).', read_only=True, low=0.1,

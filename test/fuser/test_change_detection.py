@@ -17,6 +17,8 @@ from scipy import stats
 
 CLIP = chi2_threshold(2, 0.999)
 SOURCES = ['/robot1/landmarks', '/robot2/landmarks', '/robot3/landmarks']
+RATE = 2e-5
+"""The false-alarm rate the tests switch detection on with (off by default)."""
 
 
 def test_increment_is_the_log_likelihood_ratio():
@@ -112,7 +114,7 @@ def _feed(fuser, rng, truth, steps, stamp):
 def test_a_moved_landmark_is_rebuilt_from_post_change_rows(fusion):
     rng = np.random.default_rng(11)
     truth = np.array([[0.0, 0.0], [5.0, 5.0]])
-    fuser = Fuser(FuserConfig(fusion=fusion), SOURCES)
+    fuser = Fuser(FuserConfig(fusion=fusion, move_false_alarm_rate=RATE), SOURCES)
     stamp = _feed(fuser, rng, truth, 60, 1_000_000_000)
     assert fuser.counters['landmark_moved'] == 0
     moved_at = stamp
@@ -155,7 +157,7 @@ def test_no_false_alarm_on_a_long_static_run():
     rng = np.random.default_rng(7)
     truth = rng.uniform(-10.0, 10.0, (20, 2))
     for fusion in FUSION_METHODS:
-        fuser = Fuser(FuserConfig(fusion=fusion), SOURCES)
+        fuser = Fuser(FuserConfig(fusion=fusion, move_false_alarm_rate=RATE), SOURCES)
         _feed(fuser, rng, truth, 200, 1_000_000_000)
         assert sum(fuser.moves.alarms.values()) == 0, fusion
         assert fuser.counters['landmark_moved'] == 0
@@ -191,7 +193,7 @@ def test_mutation_rebuild_from_all_rows_fails(monkeypatch):
     monkeypatch.setattr(change_detection.MoveDetector, 'history', {}, raising=False)
     rng = np.random.default_rng(11)
     truth = np.array([[0.0, 0.0], [5.0, 5.0]])
-    fuser = Fuser(replace(FuserConfig(), fusion='independent'), SOURCES)
+    fuser = Fuser(replace(FuserConfig(move_false_alarm_rate=RATE), fusion='independent'), SOURCES)
     stamp = _feed(fuser, rng, truth, 60, 1_000_000_000)
     truth[0] += [0.25, 0.0]
     _feed(fuser, rng, truth, 10, stamp)

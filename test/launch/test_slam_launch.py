@@ -47,6 +47,17 @@ def _near(estimates, truths, tolerance_m=1.0):
     return math.hypot(x - tx, y - ty) <= tolerance_m
 
 
+def _offset(estimates, truths):
+    """Return the newest estimate, its true pose then, and their distance (for messages)."""
+    est = estimates[-1]
+    stamp = est.header.stamp.sec + 1e-9 * est.header.stamp.nanosec
+    true = min(truths, key=lambda m: abs(
+        m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec - stamp))
+    x, y, yaw = _xy_yaw(est.pose.pose)
+    tx, ty, tyaw = _xy_yaw(true.pose)
+    return f'estimate {(x, y, yaw)}, truth {(tx, ty, tyaw)}, {math.hypot(x - tx, y - ty):.2f} m'
+
+
 def test_closed_loop_team_localizes_and_fuses_a_map(install, tmp_path):
     with Launch(install, ['sim:=true', 'localize:=true'], next_domain_id(),
                 tmp_path / 'launch.log') as team:
@@ -72,7 +83,8 @@ def test_closed_loop_team_localizes_and_fuses_a_map(install, tmp_path):
             for estimates, true in zip(poses, truths):
                 covariance = np.array(estimates.messages[-1].pose.covariance).reshape(6, 6)
                 assert covariance[0, 0] > 0.0 and covariance[1, 1] > 0.0
-                assert env.spin_until(lambda: _near(estimates.messages, true.messages), 30.0)
+                assert env.spin_until(lambda: _near(estimates.messages, true.messages), 30.0), (
+                    _offset(estimates.messages, true.messages))
             assert len(read_landmarks(maps.messages[-1]).ids) >= 5
         finally:
             env.close()

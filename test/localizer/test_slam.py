@@ -21,7 +21,8 @@ MS = 1_000_000
 def _loop(hide_ids=False, precision_sources=1):
     config = LoopConfig(LocalizerConfig(initial_stddev=(0.01, 0.01, 0.01)),
                         ObserverConfig(range_stddev=0.05, bearing_stddev=0.02),
-                        FuserConfig(min_observations=2), hide_ids, precision_sources)
+                        FuserConfig(min_observations=2, false_track_probability=0.49),
+                        hide_ids, precision_sources)
     loop = TeamLoop(config, ['robot1'])
     loop.start(0, 1 * MS, np.zeros(3), np.diag([1e-4, 1e-4, 1e-4]))
     return loop

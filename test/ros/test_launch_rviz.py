@@ -96,14 +96,15 @@ def fake_launch(monkeypatch):
 
 
 ARGUMENTS = {'robots', 'observer_params', 'fuser_params', 'sim', 'sim_params', 'fusion',
-             'rviz', 'rviz_config'}
+             'rviz', 'rviz_config', 'localize', 'localizer_params'}
 
 
 @pytest.fixture
 def context(tmp_path):
     """Launch arguments as ``ros2 launch`` performs them, with parameter files that exist."""
     values = {'robots': ' alpha, /beta  gamma/ ', 'sim': 'false', 'fusion': '',
-              'rviz': 'false', 'rviz_config': '/p/landmarks.rviz'}
+              'rviz': 'false', 'rviz_config': '/p/landmarks.rviz', 'localize': 'false',
+              'localizer_params': ''}
     for name in ('observer_params', 'fuser_params', 'sim_params'):
         path = tmp_path / f'{name}.yaml'
         path.write_text('/**:\n  ros__parameters: {}\n')
@@ -179,8 +180,19 @@ def test_sim_starts_the_named_robots(fake_launch, context):
     sim = start(fake_launch, context)[-1]
     assert sim.kwargs['executable'] == sim.kwargs['name'] == 'landmark_sim'
     assert sim.kwargs['parameters'] == [context['sim_params'], {'robots': 4}]
-    topics = ('pose', 'true_pose', 'observations')
-    assert sim.kwargs['remappings'] == [(f'robot2/{t}', f'/scout/{t}') for t in topics]
+    topics = ('pose', 'true_pose', 'observations', 'odometry')
+    assert sorted(sim.kwargs['remappings']) == sorted(
+        (f'robot2/{t}', f'/scout/{t}') for t in topics)
+
+
+def test_localize_starts_a_localizer_per_robot_and_moves_the_sim_pose(fake_launch, context):
+    context.update(sim='true', localize='true', robots='alpha beta')
+    nodes = start(fake_launch, context)
+    localizers = [n for n in nodes if n.kwargs.get('executable') == 'landmark_localizer']
+    assert sorted(n.kwargs['namespace'] for n in localizers) == ['alpha', 'beta']
+    sim = nodes[-1] if nodes[-1].kwargs['executable'] == 'landmark_sim' else [
+        n for n in nodes if n.kwargs.get('executable') == 'landmark_sim'][0]
+    assert ('robot1/pose', '/alpha/sim_pose') in sim.kwargs['remappings']
 
 
 def test_fusion_argument_overrides_the_file(fake_launch, context):
