@@ -32,6 +32,11 @@ ENDPOINTS = {
                        '/diagnostics'],
         'services': ['landmark_fuser/reset', 'landmark_fuser/save'],
     },
+    'landmark_localizer': {
+        'subscriptions': ['odometry', 'observations', 'fused_landmarks', 'initialpose'],
+        'publishers': ['pose', 'odom_to_map', '/diagnostics'],
+        'services': [],
+    },
     'landmark_observer': {
         'subscriptions': ['pose', 'observations'],
         'publishers': ['landmarks', 'partial_observations', 'landmark_markers',
@@ -48,6 +53,13 @@ ENDPOINTS = {
 }
 """Per console script, the endpoints of its node with the default parameters (names
 relative to the node's namespace, or absolute)."""
+
+REFERENCE = 'rclpy_reference'
+"""A plain rclpy node with the observer's endpoints (``reference_node.py``): the time
+DDS start and discovery alone take. Discovery here adds 0 to about 3 s (Fast DDS's
+participant announcement period) to any new node, at random; the reference shows it."""
+
+ENDPOINTS_OF = dict(ENDPOINTS, **{REFERENCE: ENDPOINTS['landmark_observer']})
 
 
 def script(name):
@@ -71,7 +83,9 @@ def spawn(name, domain_id, namespace, log_dir, extra_env=None, args=()):
     script hands its children an ignored SIGINT).
     """
     short = name.split('_')[1]
-    if PREFIX:
+    if name == REFERENCE:
+        command = [sys.executable, str(Path(__file__).with_name('reference_node.py'))]
+    elif PREFIX:
         command = PREFIX + [short]
     elif MODULES:
         command = [sys.executable, '-m', 'landmark_ros.nodes.' + short]
@@ -121,7 +135,7 @@ class Watcher:
 
     def missing(self, name, namespace):
         """Return the endpoints of node ``name`` not (yet) in the graph, as text."""
-        expected = ENDPOINTS[name]
+        expected = ENDPOINTS_OF[name]
         node_name = name
         absolute = [] if namespace == '/' else [namespace]
 
@@ -194,7 +208,7 @@ def main():
     options = parser.parse_args()
     log_dir = Path(tempfile.mkdtemp(prefix='start_logs_'))
     print('node                cache  seconds to every endpoint (runs)')
-    for name in ENDPOINTS:
+    for name in [*ENDPOINTS, REFERENCE]:
         for kind in ('cold', 'warm'):
             times = []
             cache = Path(tempfile.mkdtemp(prefix='numba_cache_'))
