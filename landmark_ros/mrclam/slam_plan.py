@@ -1,0 +1,190 @@
+"""
+What ``landmark_mrclam --slam --through-nodes`` sends, in which order (ROS-free).
+
+The offline loop (``eval.slam_loop.TeamLoop`` driven by ``mrclam.slam.run``) takes its
+events in global time order (ties: odometry, then sightings, then by robot). A sighting
+message of robot ``r`` is *placed* by its observer when a pose at or after its stamp is
+known: at once when the robot's newest odometry is at or after the stamp and no message
+waits before it, else at the first later odometry of ``r``, in arrival order. A message
+older than the robot's first pose is dropped by the observer (``observation_too_old``)
+and never reaches the localizer. Each placed message is one *step*, in the order the
+loop places them:
+
+1. the localizer of ``r`` has published the pose of every odometry message of ``r``
+   processed so far (``Steps.poses``) and of no later one: the sightings go to it after
+   that odometry and before the next, against the map fused from every earlier step;
+2. the observer places the message with those poses; the fuser fuses its landmarks;
+   the map that results is the one every later step's localizer uses.
+
+``plan`` computes the steps from the stamps alone; ``slam_nodes`` makes the nodes follow
+them. ``offline_reference`` runs the offline loop without the robot-to-robot sightings
+(the nodes' run has none: see ``slam_nodes``) and records, besides the loop's tracks,
+the pose each odometry gave *before* the sightings it placed: what the node publishes
+on ``pose`` (``TeamLoop`` records the estimate after them).
+"""
+
+from collections import deque
+from dataclasses import dataclass, replace
+from typing import Dict, List
+
+from landmark_ros.eval.slam_loop import LoopConfig, TeamLoop
+from landmark_ros.mrclam.data import interpolate_poses, seconds_to_stamps_ns
+from landmark_ros.mrclam.localize_plan import batches
+import numpy as np
+
+_ODOM, _OBS = 0, 1
+
+
+@dataclass(frozen=True)
+class Steps:
+    """The placed sighting messages of every robot in the offline loop's order (``S``)."""
+
+    robot: np.ndarray
+    """Index of the robot in ``dataset.robots``, shape (S,)."""
+    start: np.ndarray
+    """First row of the message in the robot's rows, shape (S,)."""
+    end: np.ndarray
+    """One past its last row, shape (S,)."""
+    stamp_ns: np.ndarray
+    """Stamp of the message [ns], shape (S,)."""
+    poses: np.ndarray
+    """Odometry messages of the robot processed before the localizer takes it, (S,)."""
+    dropped: int
+    """Messages older than their robot's first pose (dropped by the observer)."""
+
+    def __len__(self):
+        """Return the number of steps."""
+        return len(self.robot)
+
+
+def start_stamps(dataset, extras, delay_s):
+    """Return each robot's start (its first odometry stamp, delay added) [ns], shape (R,)."""
+    return np.array([int(seconds_to_stamps_ns([extras[r.number].odom_times[0] + delay_s])[0])
+                     for r in dataset.robots], np.int64)
+
+
+def start_pose(robot, extras, delay_s):
+    """Return a robot's true pose (3,) at its first odometry stamp (delay added)."""
+    pose, _ = interpolate_poses(robot.gt_times, robot.gt_poses,
+                                [extras[robot.number].odom_times[0] + delay_s])
+    return pose[0]
+
+
+def _events(dataset, extras, delay_s):
+    """Return (stamp, kind, robot, index) of every odometry and sighting message, sorted."""
+    events = []
+    for i, robot in enumerate(dataset.robots):
+        odom_ns = seconds_to_stamps_ns(extras[robot.number].odom_times + delay_s)
+        events += [(int(t), _ODOM, i, k) for k, t in enumerate(odom_ns)]
+        starts, _ = batches(robot.times)
+        if len(starts):
+            obs_ns = seconds_to_stamps_ns(robot.times[starts])
+            events += [(int(t), _OBS, i, j) for j, t in enumerate(obs_ns)]
+    events.sort()
+    return events
+
+
+def plan(dataset, extras, delay_s) -> Steps:
+    """
+    Return the ``Steps`` of a run (module docstring), from the stamps alone.
+
+    Parameters
+    ----------
+    dataset : mrclam.data.Dataset
+        Per robot its sightings (``times``; one message per run of equal stamps).
+    extras : dict
+        ``localize_data.RobotExtras`` by robot number (``odom_times``).
+    delay_s : float
+        Added to the odometry stamps [s], as in the offline run.
+
+    """
+    first = start_stamps(dataset, extras, delay_s)
+    newest = first.copy()  # the observer's newest pose: the start pose, then each odometry
+    processed = np.zeros(len(dataset.robots), np.int64)
+    pending = [deque() for _ in dataset.robots]
+    spans = [batches(r.times) for r in dataset.robots]
+    out: List[tuple] = []
+    dropped = 0
+    for stamp, kind, i, k in _events(dataset, extras, delay_s):
+        if kind == _ODOM:
+            processed[i] += 1
+            newest[i] = stamp
+            while pending[i] and pending[i][0][0] <= stamp:
+                s, j = pending[i].popleft()
+                out.append((i, j, s, processed[i]))
+        elif stamp < first[i]:
+            dropped += 1
+        elif not pending[i] and stamp <= newest[i]:
+            out.append((i, k, stamp, processed[i]))
+        else:
+            pending[i].append((stamp, k))
+    robot = np.array([o[0] for o in out], np.int64)
+    j = np.array([o[1] for o in out], np.int64)
+    start = np.array([spans[r][0][b] for r, b in zip(robot, j)], np.int64)
+    end = np.array([spans[r][1][b] for r, b in zip(robot, j)], np.int64)
+    return Steps(robot, start, end, np.array([o[2] for o in out], np.int64),
+                 np.array([o[3] for o in out], np.int64), dropped)
+
+
+def without_robot_sightings(extras):
+    """Return ``extras`` with no robot-to-robot sighting (the nodes' run replays none)."""
+    return {number: replace(ex, sighting_times=ex.sighting_times[:0],
+                            sighting_robot=ex.sighting_robot[:0],
+                            sighting_z=ex.sighting_z[:0])
+            for number, ex in extras.items()}
+
+
+class _Published:
+    """An observer that records the poses it is given (what the node publishes)."""
+
+    def __init__(self, observer):
+        self._observer = observer
+        self.poses: List[tuple] = []
+
+    def add_pose(self, stamp_ns, pose, P_pose, now_ns=0):
+        """Record the pose, then hand it to the observer."""
+        self.poses.append((int(stamp_ns), np.array(pose), np.array(P_pose)))
+        return self._observer.add_pose(stamp_ns, pose, P_pose, now_ns)
+
+    def __getattr__(self, name):
+        return getattr(self._observer, name)
+
+
+@dataclass
+class Reference:
+    """The offline loop without robot sightings, with the poses each odometry published."""
+
+    loop: TeamLoop
+    published: List[Dict[str, np.ndarray]]
+    """Per robot ``stamps_ns`` (K,), ``x`` (K, 3), ``P`` (K, 3, 3): the poses given to
+    the observer after each odometry message (the start pose left out)."""
+
+
+def offline_reference(dataset, extras, loop_config: LoopConfig, delay_s) -> Reference:
+    """
+    Run the offline loop as the nodes' run does; return it with the published poses.
+
+    The events of ``mrclam.slam.run`` without the robot-to-robot sightings; each robot
+    starts at its true pose at its first odometry stamp (``start_stamps``).
+    """
+    loop = TeamLoop(loop_config, [r.name for r in dataset.robots])
+    starts = start_stamps(dataset, extras, delay_s)
+    P0 = np.diag(np.square(loop_config.localizer.initial_stddev))
+    for i, robot in enumerate(dataset.robots):
+        loop.start(i, int(starts[i]), start_pose(robot, extras, delay_s), P0)
+    recorders = [_Published(o) for o in loop.observers]
+    loop.observers = recorders
+    spans = [batches(r.times) for r in dataset.robots]
+    for stamp, kind, i, k in _events(dataset, extras, delay_s):
+        robot = dataset.robots[i]
+        if kind == _ODOM:
+            loop.odometry(i, stamp, twist=extras[robot.number].odom_twist[k])
+        else:
+            a, b = spans[i][0][k], spans[i][1][k]
+            loop.sightings(i, stamp, robot.ids[a:b], robot.z[a:b])
+    published = []
+    for rec in recorders:
+        published.append({'stamps_ns': np.array([p[0] for p in rec.poses], np.int64),
+                          'x': np.array([p[1] for p in rec.poses]).reshape(-1, 3),
+                          'P': np.array([p[2] for p in rec.poses]).reshape(-1, 3, 3)})
+    return Reference(loop, published)
