@@ -137,7 +137,7 @@ class SlamPlayer:
         """Create the endpoints; ``setup`` is ``(dataset, extras, delay_s, loop_config)``."""
         dataset, extras, delay_s, loop_config = setup
         self.node, self.executor, self.launcher = node, executor, launcher
-        self.steps = plan(dataset, extras, delay_s)
+        self.steps = plan(dataset, extras, delay_s, loop_config.observer.max_pose_gap_s)
         depth = qos.reliable_output(10000)
         self.robots = []
         for robot in dataset.robots:

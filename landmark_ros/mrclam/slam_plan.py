@@ -6,8 +6,9 @@ events in global time order (ties: odometry, then sightings, then by robot). A s
 message of robot ``r`` is *placed* by its observer when a pose at or after its stamp is
 known: at once when the robot's newest odometry is at or after the stamp and no message
 waits before it, else at the first later odometry of ``r``, in arrival order. A message
-older than the robot's first pose is dropped by the observer (``observation_too_old``)
-and never reaches the localizer. Each placed message is one *step*, in the order the
+older than the robot's first pose takes it if within the observer's ``max_pose_gap_s``
+(the node's observer places it when that first pose arrives), else is dropped by the
+observer (``observation_too_old``) and never reaches the localizer. Each placed message is one *step*, in the order the
 loop places them:
 
 1. the localizer of ``r`` has published the pose of every odometry message of ``r``
@@ -48,7 +49,8 @@ class Steps:
     stamp_ns: np.ndarray
     """Stamp of the message [ns], shape (S,)."""
     poses: np.ndarray
-    """Odometry messages of the robot processed before the localizer takes it, (S,)."""
+    """Odometry messages of the robot processed before the localizer takes it (at least
+    one: see ``plan``), shape (S,)."""
     dropped: int
     """Messages older than their robot's first pose (dropped by the observer)."""
 
@@ -84,7 +86,7 @@ def _events(dataset, extras, delay_s):
     return events
 
 
-def plan(dataset, extras, delay_s) -> Steps:
+def plan(dataset, extras, delay_s, max_pose_gap_s) -> Steps:
     """
     Return the ``Steps`` of a run (module docstring), from the stamps alone.
 
@@ -96,9 +98,13 @@ def plan(dataset, extras, delay_s) -> Steps:
         ``localize_data.RobotExtras`` by robot number (``odom_times``).
     delay_s : float
         Added to the odometry stamps [s], as in the offline run.
+    max_pose_gap_s : float
+        The observers' ``max_pose_gap_s``: a message at most this much older than the
+        first pose takes it, an older one is dropped [s].
 
     """
     first = start_stamps(dataset, extras, delay_s)
+    gap_ns = int(max_pose_gap_s * 1e9)
     newest = first.copy()  # the observer's newest pose: the start pose, then each odometry
     processed = np.zeros(len(dataset.robots), np.int64)
     pending = [deque() for _ in dataset.robots]
@@ -112,12 +118,16 @@ def plan(dataset, extras, delay_s) -> Steps:
             while pending[i] and pending[i][0][0] <= stamp:
                 s, j = pending[i].popleft()
                 out.append((i, j, s, processed[i]))
-        elif stamp < first[i]:
+        elif stamp < first[i] - gap_ns:
             dropped += 1
         elif not pending[i] and stamp <= newest[i]:
             out.append((i, k, stamp, processed[i]))
         else:
             pending[i].append((stamp, k))
+    # Before any odometry the localizer drops the sightings either way (they wait, then
+    # are too old for the first odometry's pose; a node has no pose yet): the pose of
+    # the first odometry may come first, and the node's observer needs it.
+    out = [(i, j, s, max(c, 1)) for i, j, s, c in out]
     robot = np.array([o[0] for o in out], np.int64)
     j = np.array([o[1] for o in out], np.int64)
     start = np.array([spans[r][0][b] for r, b in zip(robot, j)], np.int64)
