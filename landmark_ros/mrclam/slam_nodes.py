@@ -37,6 +37,14 @@ without them), and the figures also beside the full offline ``--slam`` run. The 
 publishes the pose of each odometry before the sightings it unblocks (what the
 observer takes); ``TeamLoop`` records the estimate after them: the exact comparison is
 with the published poses, the loop's own tracks differ at those stamps.
+
+Live order (``live``, ``--live-order``). A robot whose localizer and observer share one
+``observations`` topic gets the sightings to the localizer before the odometry that
+passes their stamp: the localizer applies them before it publishes that pose, and the
+observer places them with a pose that already holds them (their noise fed back once,
+docs/localization.md). The player then sends each step's sightings to the localizer
+one odometry message earlier; everything else as above. The difference to the offline
+loop is what that order costs.
 """
 
 from dataclasses import dataclass
@@ -134,10 +142,18 @@ class SlamPlayer:
     """Play the loop's steps into the nodes (module docstring) and collect the outputs."""
 
     def __init__(self, node, executor, launcher, setup):
-        """Create the endpoints; ``setup`` is ``(dataset, extras, delay_s, loop_config)``."""
-        dataset, extras, delay_s, loop_config = setup
+        """
+        Create the endpoints; ``setup`` is ``(dataset, extras, delay_s, loop_config, live)``.
+
+        ``live``: each localizer takes a step's sightings one odometry message earlier
+        (``take``), before the odometry that passes their stamp, as with one shared
+        ``observations`` topic: the pose it publishes there already holds them.
+        """
+        dataset, extras, delay_s, loop_config, live = setup
         self.node, self.executor, self.launcher = node, executor, launcher
         self.steps = plan(dataset, extras, delay_s, loop_config.observer.max_pose_gap_s)
+        self.take = self.steps.poses - (1 if live else 0)
+        """Poses each step's localizer has published when it takes the sightings, (S,)."""
         depth = qos.reliable_output(10000)
         self.robots = []
         for robot in dataset.robots:
@@ -167,7 +183,8 @@ class SlamPlayer:
         self.mirror.load()
         self._odom = Odometry()
         self._odom.header.frame_id, self._odom.child_frame_id = 'odom', 'base_link'
-        self.info = {'steps': len(self.steps), 'barriers': 0, 'map_barriers': 0,
+        self.info = {'order': 'live' if live else 'offline', 'steps': len(self.steps),
+                     'barriers': 0, 'map_barriers': 0,
                      'maps_expected': 0, 'maps_unexpected': 0, 'play_wall_s': 0.0,
                      'wait_s': {}}
 
@@ -269,7 +286,7 @@ class SlamPlayer:
             r = int(steps.robot[i])
             next_of[i], first[r] = first.get(r), i
         for r, s in enumerate(self.robots):
-            s.hold = int(steps.poses[first[r]]) if r in first else len(s.odom_ns)
+            s.hold = int(self.take[first[r]]) if r in first else len(s.odom_ns)
         for i in range(len(steps)):
             self._step(i, next_of[i])
             if progress is not None:
@@ -288,7 +305,7 @@ class SlamPlayer:
         steps = self.steps
         s = self.robots[int(steps.robot[i])]
         name = s.robot.name
-        self.wait(lambda: len(s.poses) >= steps.poses[i], f'{name} pose {steps.poses[i]}',
+        self.wait(lambda: len(s.poses) >= self.take[i], f'{name} pose {self.take[i]}',
                   phase='poses')
         if s.map_seen < len(self.maps):
             seen = len(self.maps)
@@ -301,7 +318,7 @@ class SlamPlayer:
                                     s.robot.ids[a:b], s.robot.z[a:b])
         s.loc_pub.publish(cloud)
         self.barrier(s.client, f'{name} localizer (sightings)', 'sightings_barrier')
-        s.hold = len(s.odom_ns) if next_of_robot is None else int(steps.poses[next_of_robot])
+        s.hold = len(s.odom_ns) if next_of_robot is None else int(self.take[next_of_robot])
         before_outputs, before_maps = len(s.outputs), len(self.maps)
         s.obs_pub.publish(cloud)
         self.wait(lambda: len(s.outputs) > before_outputs, f'{name} landmarks',
@@ -371,11 +388,12 @@ def start_nodes(launcher, dataset, extras, setup):
 
 
 def run_through_nodes(dataset, extras, loop_config, paths, delay_s, domain_id,
-                      progress=None):
+                      live=False):
     """
     Run the loop (IDs shown, no anchors) through the nodes; return what it left.
 
-    ``paths`` is ``(config_path, work)``. Returns a dict: ``tracks`` (one
+    ``paths`` is ``(config_path, work)``; ``live``: the localizers take the sightings
+    before the odometry that passes their stamp (``SlamPlayer``). Returns a dict: ``tracks`` (one
     ``localize.Track`` per robot, the published poses), ``published`` (per robot
     ``stamps_ns``, ``x``, ``P`` of every pose), ``map`` (the last ``fused_landmarks``:
     ``ids``, ``m``, ``P``, ``observations``), ``info`` (timing, barriers, CPU time of the nodes).
@@ -393,11 +411,12 @@ def run_through_nodes(dataset, extras, loop_config, paths, delay_s, domain_id,
                                  start_parameter_services=False)
         executor = SingleThreadedExecutor(context=context)
         executor.add_node(node)
-        player = SlamPlayer(node, executor, launcher, (dataset, extras, delay_s, loop_config))
+        player = SlamPlayer(node, executor, launcher,
+                            (dataset, extras, delay_s, loop_config, live))
         t0 = time.monotonic()
         player.connect()
         player.info['startup_s'] = time.monotonic() - t0
-        player.play(progress)
+        player.play()
         cpu = cpu_seconds({n: p.pid for n, p in launcher.processes.items()})
         player.info['node_cpu_s'] = round(sum(cpu.values()), 2)
         last = read_landmarks(player.maps[-1]) if player.maps else None
