@@ -21,7 +21,10 @@ robot ``r``) at a time:
    before the request);
 3. the sightings to the localizer (on ``localizer_observations``: the loop hands them to
    it before the fuser takes them, which one shared topic could not order), a barrier;
-4. the same cloud to the observer; wait for its ``landmarks`` output; a mirror
+4. the same cloud to the observer (a *stale* step, which the loop's observer placed
+   with its newest pose after ``max_wait_s`` of stamps, with the odometry held and the
+   observer's ``max_wait_s`` briefly set short: it gives up waiting the same way);
+   wait for its ``landmarks`` output; a mirror
    ``Fuser`` in the player fed with that very cloud says whether the map changes: if
    so, wait for the fuser's next ``fused_landmarks``, else a barrier to the fuser (it
    took the cloud before the next step's).
@@ -60,7 +63,8 @@ from landmark_ros.mrclam.data import interpolate_poses, seconds_to_stamps_ns
 from landmark_ros.mrclam.localize import Track
 from landmark_ros.mrclam.localize_nodes import LOCALIZER_TRANSPORT, WINDOW
 from landmark_ros.mrclam.player import stamp_msg
-from landmark_ros.mrclam.replay_plan import cpu_seconds, observer_arguments, ReplayError
+from landmark_ros.mrclam.replay_plan import (cpu_seconds, observer_arguments,
+                                             OBSERVER_TRANSPORT, ReplayError)
 from landmark_ros.mrclam.slam_plan import plan, start_pose
 from landmark_ros.ros import qos
 from landmark_ros.ros.conversions import pose_from_msg, stamp_ns
@@ -68,7 +72,8 @@ from landmark_ros.ros.launcher import Launcher, write_params_file
 from landmark_ros.ros.schemas import observation_message, read_landmark_clouds, read_landmarks
 from nav_msgs.msg import Odometry
 import numpy as np
-from rcl_interfaces.srv import GetParameters
+from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
+from rcl_interfaces.srv import GetParameters, SetParameters
 import rclpy
 from rclpy.context import Context
 from rclpy.duration import Duration
@@ -90,6 +95,9 @@ a step waits for one fuse and one map publication, so short periods keep it quic
 
 STEP_TIMEOUT_S = 120.0
 """A step that makes no progress this long fails."""
+
+STALE_WAIT_S = 0.2
+"""The observer's ``max_wait_s`` [wall s] while it places a stale step."""
 
 
 def _param(name, value):
@@ -130,6 +138,7 @@ class _Robot:
     loc_pub: object = None
     obs_pub: object = None
     client: object = None
+    observer_params: object = None
     sent: int = 0
     hold: int = 0
     map_seen: int = 0
@@ -151,8 +160,9 @@ class SlamPlayer:
         """
         dataset, extras, delay_s, loop_config, live = setup
         self.node, self.executor, self.launcher = node, executor, launcher
-        self.steps = plan(dataset, extras, delay_s, loop_config.observer.max_pose_gap_s)
-        self.take = self.steps.poses - (1 if live else 0)
+        self.steps = plan(dataset, extras, delay_s, loop_config.observer)
+        self.live = bool(live)
+        self.take = self.steps.poses - 1 if live else self.steps.poses
         """Poses each step's localizer has published when it takes the sightings, (S,)."""
         depth = qos.reliable_output(10000)
         self.robots = []
@@ -165,6 +175,8 @@ class SlamPlayer:
             s.obs_pub = node.create_publisher(PointCloud2, f'{ns}/observations', depth)
             s.client = node.create_client(GetParameters,
                                           f'{ns}/landmark_localizer/get_parameters')
+            s.observer_params = node.create_client(
+                SetParameters, f'{ns}/landmark_observer/set_parameters')
             node.create_subscription(PoseWithCovarianceStamped, f'{ns}/pose',
                                      lambda m, s=s: s.poses.append(m), depth)
             node.create_subscription(PointCloud2, f'{ns}/landmarks',
@@ -185,7 +197,8 @@ class SlamPlayer:
         self._odom.header.frame_id, self._odom.child_frame_id = 'odom', 'base_link'
         self.info = {'order': 'live' if live else 'offline', 'steps': len(self.steps),
                      'barriers': 0, 'map_barriers': 0,
-                     'maps_expected': 0, 'maps_unexpected': 0, 'play_wall_s': 0.0,
+                     'maps_expected': 0, 'maps_unexpected': 0, 'stale_steps': 0,
+                     'dropped_messages': self.steps.dropped, 'play_wall_s': 0.0,
                      'wait_s': {}}
 
     def _diagnostics(self, msg, by_name):
@@ -252,6 +265,7 @@ class SlamPlayer:
             for s in self.robots:
                 ns = f'/{s.robot.name}'
                 if not (s.odom_pub.get_subscription_count() and s.client.service_is_ready()
+                        and s.observer_params.service_is_ready()
                         and s.loc_pub.get_subscription_count()
                         and s.obs_pub.get_subscription_count()
                         and graph.count_subscribers(f'{ns}/pose') >= 2
@@ -281,14 +295,15 @@ class SlamPlayer:
         """Play every step, then the remaining odometry; wait for the final diagnostics."""
         t0 = time.monotonic()
         steps = self.steps
-        next_of, first = [None] * len(steps), {}
+        self.next_of, first = [None] * len(steps), {}
         for i in range(len(steps) - 1, -1, -1):
             r = int(steps.robot[i])
-            next_of[i], first[r] = first.get(r), i
+            self.next_of[i], first[r] = first.get(r), i
+        self.taken = np.zeros(len(steps), bool)
         for r, s in enumerate(self.robots):
             s.hold = int(self.take[first[r]]) if r in first else len(s.odom_ns)
         for i in range(len(steps)):
-            self._step(i, next_of[i])
+            self._step(i)
             if progress is not None:
                 progress((i + 1) / max(len(steps), 1))
         for s in self.robots:
@@ -300,11 +315,20 @@ class SlamPlayer:
                               == len(s.odom_ns) for s, b in zip(self.robots, base)),
                   'the final diagnostics', 60.0)
 
-    def _step(self, i, next_of_robot):
-        """Play step ``i``; ``next_of_robot`` is the robot's next step (or None)."""
+    def _to_localizer(self, i):
+        """
+        Send step ``i``'s sightings to its localizer (after a map barrier), then a barrier.
+
+        In the live order the robot's next steps that its localizer takes at the same
+        pose go too (all before that odometry, whose pose the observer needs).
+        """
         steps = self.steps
         s = self.robots[int(steps.robot[i])]
         name = s.robot.name
+        group, j = [i], self.next_of[i]
+        while self.live and j is not None and self.take[j] == self.take[i]:
+            group.append(j)
+            j = self.next_of[j]
         self.wait(lambda: len(s.poses) >= self.take[i], f'{name} pose {self.take[i]}',
                   phase='poses')
         if s.map_seen < len(self.maps):
@@ -312,17 +336,31 @@ class SlamPlayer:
             self.barrier(s.client, f'{name} localizer (map)', 'map_barrier')
             self.info['map_barriers'] += 1
             s.map_seen = seen
-        a, b = int(steps.start[i]), int(steps.end[i])
-        cloud = observation_message(Header(stamp=stamp_msg(steps.stamp_ns[i]),
-                                           frame_id='base_link'),
-                                    s.robot.ids[a:b], s.robot.z[a:b])
-        s.loc_pub.publish(cloud)
+        for k in group:
+            s.loc_pub.publish(self._cloud(k))
         self.barrier(s.client, f'{name} localizer (sightings)', 'sightings_barrier')
-        s.hold = len(s.odom_ns) if next_of_robot is None else int(self.take[next_of_robot])
+        self.taken[group] = True
+        return len(s.odom_ns) if j is None else int(self.take[j])
+
+    def _cloud(self, i):
+        steps, robot = self.steps, self.robots[int(self.steps.robot[i])].robot
+        a, b = int(steps.start[i]), int(steps.end[i])
+        return observation_message(Header(stamp=stamp_msg(steps.stamp_ns[i]),
+                                          frame_id='base_link'), robot.ids[a:b], robot.z[a:b])
+
+    def _step(self, i):
+        """Play step ``i``: localizer, observer, fuser (module docstring)."""
+        s = self.robots[int(self.steps.robot[i])]
+        name = s.robot.name
+        if not self.taken[i]:
+            s.hold = self._to_localizer(i)
         before_outputs, before_maps = len(s.outputs), len(self.maps)
-        s.obs_pub.publish(cloud)
-        self.wait(lambda: len(s.outputs) > before_outputs, f'{name} landmarks',
-                  phase='landmarks')
+        if self.steps.stale[i]:
+            self._stale(s, i)
+        else:
+            s.obs_pub.publish(self._cloud(i))
+            self.wait(lambda: len(s.outputs) > before_outputs, f'{name} landmarks',
+                      phase='landmarks')
         if self._mirror(s.outputs[before_outputs], f'/{name}/landmarks'):
             self.info['maps_expected'] += 1
             self.wait(lambda: len(self.maps) > before_maps, 'the fused map', phase='map')
@@ -331,6 +369,34 @@ class SlamPlayer:
         self.barrier(self.fuser_client, 'the fuser', 'fuser_barrier')
         if len(self.maps) > before_maps:
             self.info['maps_unexpected'] += 1
+
+    def _stale(self, s, i):
+        """
+        Let the observer place a stale step with its newest pose (``Steps.stale``).
+
+        The robot's odometry is held at the step's pose; the observer's ``max_wait_s``
+        is set to ``STALE_WAIT_S`` for the step, so its drain timer gives up waiting
+        (final lookup: the newest pose), then set back.
+        """
+        hold, s.hold = s.hold, int(self.steps.poses[i])
+        self.wait(lambda: len(s.poses) >= s.hold, f'{s.robot.name} pose {s.hold}', phase='poses')
+        before = len(s.outputs)
+        self._observer_wait(s, STALE_WAIT_S)
+        s.obs_pub.publish(self._cloud(i))
+        self.wait(lambda: len(s.outputs) > before, f'{s.robot.name} landmarks (stale)',
+                  phase='stale')
+        self._observer_wait(s, OBSERVER_TRANSPORT['max_wait_s'])
+        s.hold = hold
+        self.info['stale_steps'] += 1
+
+    def _observer_wait(self, s, seconds):
+        """Set the observer's ``max_wait_s`` and wait for its answer."""
+        value = ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=float(seconds))
+        future = s.observer_params.call_async(SetParameters.Request(
+            parameters=[Parameter(name='max_wait_s', value=value)]))
+        self.wait(future.done, f'{s.robot.name} observer max_wait_s', phase='stale')
+        if not all(r.successful for r in future.result().results):
+            raise ReplayError(f'{s.robot.name} observer refused max_wait_s = {seconds}')
 
     def _mirror(self, msg, source):
         """Fuse the observer's output in the mirror fuser; return whether the map changed."""

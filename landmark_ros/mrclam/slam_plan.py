@@ -8,7 +8,10 @@ known: at once when the robot's newest odometry is at or after the stamp and no 
 waits before it, else at the first later odometry of ``r``, in arrival order. A message
 older than the robot's first pose takes it if within the observer's ``max_pose_gap_s``
 (the node's observer places it when that first pose arrives), else is dropped by the
-observer (``observation_too_old``) and never reaches the localizer. Each placed message is one *step*, in the order the
+observer (``observation_too_old``) and never reaches the localizer. The loop's observers
+run on the stamps' clock: a message still waiting ``max_wait_s`` after its stamp when
+the robot's next message comes takes the newest pose if within ``max_pose_gap_s``
+(*stale*), else is dropped (``no_pose_in_time``). Each placed message is one *step*, in the order the
 loop places them:
 
 1. the localizer of ``r`` has published the pose of every odometry message of ``r``
@@ -51,8 +54,10 @@ class Steps:
     poses: np.ndarray
     """Odometry messages of the robot processed before the localizer takes it (at least
     one: see ``plan``), shape (S,)."""
+    stale: np.ndarray
+    """Placed with the newest pose after waiting ``max_wait_s`` for the next, (S,)."""
     dropped: int
-    """Messages older than their robot's first pose (dropped by the observer)."""
+    """Messages the observer dropped (too old for its poses, or no pose in time)."""
 
     def __len__(self):
         """Return the number of steps."""
@@ -86,7 +91,53 @@ def _events(dataset, extras, delay_s):
     return events
 
 
-def plan(dataset, extras, delay_s, max_pose_gap_s) -> Steps:
+class _Observer:
+    """The stamps an ``Observer`` holds for one robot: first and newest pose, pending."""
+
+    def __init__(self, first_ns, config):
+        self.first = self.newest = int(first_ns)
+        self.gap_ns = int(config.max_pose_gap_s * 1e9)
+        self.max_wait_s = config.max_wait_s
+        self.processed = 0
+        self.pending = deque()
+
+    def pose(self, stamp):
+        """Take the pose of an odometry message; return the (stamp, index) it places."""
+        self.processed += 1
+        self.newest = stamp
+        placed = []
+        while self.pending and self.pending[0][0] <= stamp:
+            placed.append(self.pending.popleft())
+        return placed
+
+    def sightings(self, stamp, k):
+        """
+        Take a message at its own stamp (the offline loop's clock); return what it settles.
+
+        ``(placed, stale, dropped)``: messages placed with bracketing poses, placed with
+        the newest pose after ``max_wait_s`` (``Observer.drain``, final lookup), dropped.
+        """
+        if not self.pending and self.first - self.gap_ns <= stamp <= self.newest:
+            return [(stamp, k)], [], 0
+        self.pending.append((stamp, k))
+        placed, stale, dropped = [], [], 0
+        while self.pending:
+            head, _ = self.pending[0]
+            if head < self.first - self.gap_ns:
+                dropped += 1
+            elif head <= self.newest:
+                placed.append(self.pending[0])
+            elif stamp - head < self.max_wait_s * 1e9:
+                break
+            elif head - self.newest <= self.gap_ns:
+                stale.append(self.pending[0])
+            else:
+                dropped += 1
+            self.pending.popleft()
+        return placed, stale, dropped
+
+
+def plan(dataset, extras, delay_s, observer) -> Steps:
     """
     Return the ``Steps`` of a run (module docstring), from the stamps alone.
 
@@ -98,42 +149,36 @@ def plan(dataset, extras, delay_s, max_pose_gap_s) -> Steps:
         ``localize_data.RobotExtras`` by robot number (``odom_times``).
     delay_s : float
         Added to the odometry stamps [s], as in the offline run.
-    max_pose_gap_s : float
-        The observers' ``max_pose_gap_s``: a message at most this much older than the
-        first pose takes it, an older one is dropped [s].
+    observer : pipeline.config.ObserverConfig
+        The observers' ``max_pose_gap_s`` (a message at most this much older than the
+        first pose takes it; older, it is dropped) and ``max_wait_s`` (in the offline
+        loop's clock, the stamps: a message waiting that long when the next one comes
+        takes the newest pose within ``max_pose_gap_s`` or is dropped).
 
     """
-    first = start_stamps(dataset, extras, delay_s)
-    gap_ns = int(max_pose_gap_s * 1e9)
-    newest = first.copy()  # the observer's newest pose: the start pose, then each odometry
-    processed = np.zeros(len(dataset.robots), np.int64)
-    pending = [deque() for _ in dataset.robots]
+    observers = [_Observer(t, observer) for t in start_stamps(dataset, extras, delay_s)]
     spans = [batches(r.times) for r in dataset.robots]
     out: List[tuple] = []
     dropped = 0
     for stamp, kind, i, k in _events(dataset, extras, delay_s):
+        obs = observers[i]
         if kind == _ODOM:
-            processed[i] += 1
-            newest[i] = stamp
-            while pending[i] and pending[i][0][0] <= stamp:
-                s, j = pending[i].popleft()
-                out.append((i, j, s, processed[i]))
-        elif stamp < first[i] - gap_ns:
-            dropped += 1
-        elif not pending[i] and stamp <= newest[i]:
-            out.append((i, k, stamp, processed[i]))
-        else:
-            pending[i].append((stamp, k))
+            out += [(i, j, s, obs.processed, False) for s, j in obs.pose(stamp)]
+            continue
+        placed, stale, lost = obs.sightings(stamp, k)
+        out += [(i, j, s, obs.processed, False) for s, j in placed]
+        out += [(i, j, s, obs.processed, True) for s, j in stale]
+        dropped += lost
     # Before any odometry the localizer drops the sightings either way (they wait, then
     # are too old for the first odometry's pose; a node has no pose yet): the pose of
     # the first odometry may come first, and the node's observer needs it.
-    out = [(i, j, s, max(c, 1)) for i, j, s, c in out]
     robot = np.array([o[0] for o in out], np.int64)
     j = np.array([o[1] for o in out], np.int64)
     start = np.array([spans[r][0][b] for r, b in zip(robot, j)], np.int64)
     end = np.array([spans[r][1][b] for r, b in zip(robot, j)], np.int64)
     return Steps(robot, start, end, np.array([o[2] for o in out], np.int64),
-                 np.array([o[3] for o in out], np.int64), dropped)
+                 np.array([max(o[3], 1) for o in out], np.int64),
+                 np.array([o[4] for o in out], bool), dropped)
 
 
 def without_robot_sightings(extras):

@@ -37,10 +37,16 @@ def _robot(number, rng, landmarks, seconds):
                           -v / w * (np.cos(th) - np.cos(th0)), np.angle(np.exp(1j * th))])
     odom = T0 + np.round(np.cumsum(rng.uniform(0.01, 0.04, int(seconds / 0.02))), 3)
     odom = odom[odom < T0 + seconds]
+    if number == 2:  # a gap in the odometry: messages wait, some too long
+        odom = odom[(odom < T0 + 5.0) | (odom > T0 + 6.5)]
     twist = np.column_stack([np.full(len(odom), v), np.full(len(odom), w)])
     twist += rng.normal(0.0, 0.01, twist.shape)
     stamps = np.concatenate([rng.choice(odom, 30), np.round(rng.uniform(
         T0, odom[-1] + 0.1, 60), 3), [T0 - 0.5]])  # ties, between, before the first
+    if number == 2:  # in the gap: one placed with the last pose (stale), one dropped
+        last = odom[odom < T0 + 5.0][-1]
+        stamps = np.concatenate([stamps[(stamps < T0 + 5.0) | (stamps > T0 + 6.5)],
+                                 np.round([last + 0.05, last + 0.4, last + 0.95], 3)])
     stamps = np.unique(stamps)
     times = np.repeat(stamps, rng.integers(1, 4, len(stamps)))
     ids = rng.choice(sorted(landmarks), len(times))
@@ -92,13 +98,16 @@ class _Nodes:
             self.sent[r] += 1
         return placed
 
-    def step(self, r, stamp, rows, hold):
+    def step(self, r, stamp, rows, hold, stale=False):
         """The localizer takes the sightings against the map, then observer and fuser."""
         ids, z = rows
         self.locs[r].set_map(*self.the_map[:3])
         self.locs[r].add_observations(stamp, ids, z)
         message = ObservationMessage(stamp, {'id': ids, 'range': z[:, 0], 'bearing': z[:, 1]})
         placed = self.observers[r].add_observations([message], now_ns=stamp)
+        if stale:  # the player lets the node's observer time out on it
+            assert not placed
+            placed = self.observers[r].drain(now_ns=stamp + 10 ** 12)
         while not placed:  # before the first pose: placed when it comes
             assert self.sent[r] < hold
             placed = self.odometry(r, self.sent[r] + 1)
@@ -113,7 +122,7 @@ class _Nodes:
 
 def _play(dataset, extras, delay_s, rng):
     """Play the steps; every other robot's odometry runs ahead by a random amount."""
-    steps = plan(dataset, extras, delay_s, CONFIG.observer.max_pose_gap_s)
+    steps = plan(dataset, extras, delay_s, CONFIG.observer)
     nodes = _Nodes(dataset, extras, delay_s)
     count = len(dataset.robots)
     hold = [len(n) for n in nodes.odom_ns]
@@ -128,7 +137,8 @@ def _play(dataset, extras, delay_s, rng):
         hold[r] = int(steps.poses[i + 1 + later[0]]) if len(later) else len(nodes.odom_ns[r])
         a, b = int(steps.start[i]), int(steps.end[i])
         robot = dataset.robots[r]
-        nodes.step(r, int(steps.stamp_ns[i]), (robot.ids[a:b], robot.z[a:b]), hold[r])
+        nodes.step(r, int(steps.stamp_ns[i]), (robot.ids[a:b], robot.z[a:b]), hold[r],
+                   bool(steps.stale[i]))
     for q in range(count):
         assert not nodes.odometry(q, len(nodes.odom_ns[q]))
     return steps, nodes
@@ -140,7 +150,8 @@ def test_the_steps_make_the_offline_loops_calls(seed, delay_s):
     reference = offline_reference(dataset, extras, CONFIG, delay_s)
     steps, nodes = _play(dataset, extras, delay_s, np.random.default_rng(seed))
     loop = reference.loop
-    assert len(steps) == loop.counts['batches'] and steps.dropped == len(dataset.robots)
+    assert len(steps) == loop.counts['batches'] and steps.dropped >= len(dataset.robots) + 1
+    assert np.count_nonzero(steps.stale) >= 1
     assert loop.counts['rows_to_localizer'] > 100 and len(loop.map_records()) >= 4
     for pub, mine, loc, offline in zip(reference.published, nodes.published, nodes.locs,
                                        loop.localizers):
@@ -155,7 +166,7 @@ def test_the_steps_make_the_offline_loops_calls(seed, delay_s):
 
 def test_a_step_waits_for_the_pose_after_its_stamp_or_tied_with_it():
     dataset, extras = _synthetic(3, robots=1)
-    steps = plan(dataset, extras, 0.0, CONFIG.observer.max_pose_gap_s)
+    steps = plan(dataset, extras, 0.0, CONFIG.observer)
     odom_ns = seconds_to_stamps_ns(extras[1].odom_times)
     starts, _ = batches(dataset.robots[0].times)
     stamps = seconds_to_stamps_ns(dataset.robots[0].times[starts])
