@@ -115,7 +115,7 @@ def through_nodes(args, data, results, document):
     dataset, extras, loop_config, config_path, delay_s = data
     if args.hide_ids:
         print('landmark_mrclam: --slam --through-nodes runs with IDs only (a localizer '
-              'node cannot take the fuser\'s track IDs)', file=sys.stderr)
+              "node cannot take the fuser's track IDs)", file=sys.stderr)
         return 1
     extras = without_robot_sightings(extras)
     reference = offline_reference(dataset, extras, loop_config, delay_s)

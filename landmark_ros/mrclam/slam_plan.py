@@ -11,8 +11,8 @@ older than the robot's first pose takes it if within the observer's ``max_pose_g
 observer (``observation_too_old``) and never reaches the localizer. The loop's observers
 run on the stamps' clock: a message still waiting ``max_wait_s`` after its stamp when
 the robot's next message comes takes the newest pose if within ``max_pose_gap_s``
-(*stale*), else is dropped (``no_pose_in_time``). Each placed message is one *step*, in the order the
-loop places them:
+(*stale*), else is dropped (``no_pose_in_time``). Each placed message is one *step*, in
+the order the loop places them:
 
 1. the localizer of ``r`` has published the pose of every odometry message of ``r``
    processed so far (``Steps.poses``) and of no later one: the sightings go to it after

@@ -75,13 +75,13 @@ CONFIG = LoopConfig(LocalizerConfig(initial_stddev=(0.01, 0.01, 0.01)),
 class _Nodes:
     """The nodes' pipeline objects, driven the way ``slam_nodes.SlamPlayer`` drives them."""
 
-    def __init__(self, dataset, extras, delay_s):
+    def __init__(self, dataset, extras, delay_s, config):
         self.robots = dataset.robots
         self.extras = [extras[r.number] for r in dataset.robots]
-        self.locs = [Localizer(replace(CONFIG.localizer, initial_pose=tuple(
+        self.locs = [Localizer(replace(config.localizer, initial_pose=tuple(
             start_pose(r, extras, delay_s)))) for r in dataset.robots]
-        self.observers = [Observer(CONFIG.observer) for _ in dataset.robots]
-        self.fuser = Fuser(CONFIG.fuser, [f'/{r.name}/landmarks' for r in dataset.robots])
+        self.observers = [Observer(config.observer) for _ in dataset.robots]
+        self.fuser = Fuser(config.fuser, [f'/{r.name}/landmarks' for r in dataset.robots])
         self.the_map = self.fuser.snapshot()
         self.odom_ns = [seconds_to_stamps_ns(ex.odom_times + delay_s) for ex in self.extras]
         self.sent = [0] * len(self.robots)
@@ -99,7 +99,7 @@ class _Nodes:
         return placed
 
     def step(self, r, stamp, rows, hold, stale=False):
-        """The localizer takes the sightings against the map, then observer and fuser."""
+        """Give the sightings to the localizer (against the map), then observer and fuser."""
         ids, z = rows
         self.locs[r].set_map(*self.the_map[:3])
         self.locs[r].add_observations(stamp, ids, z)
@@ -120,10 +120,10 @@ class _Nodes:
                 self.the_map = self.fuser.snapshot()
 
 
-def _play(dataset, extras, delay_s, rng):
+def _play(dataset, extras, delay_s, rng, config=CONFIG):
     """Play the steps; every other robot's odometry runs ahead by a random amount."""
-    steps = plan(dataset, extras, delay_s, CONFIG.observer)
-    nodes = _Nodes(dataset, extras, delay_s)
+    steps = plan(dataset, extras, delay_s, config.observer)
+    nodes = _Nodes(dataset, extras, delay_s, config)
     count = len(dataset.robots)
     hold = [len(n) for n in nodes.odom_ns]
     for i in range(len(steps) - 1, -1, -1):
@@ -144,15 +144,8 @@ def _play(dataset, extras, delay_s, rng):
     return steps, nodes
 
 
-@pytest.mark.parametrize('seed, delay_s', [(0, 0.0), (1, 0.0), (2, 0.013)])
-def test_the_steps_make_the_offline_loops_calls(seed, delay_s):
-    dataset, extras = _synthetic(seed)
-    reference = offline_reference(dataset, extras, CONFIG, delay_s)
-    steps, nodes = _play(dataset, extras, delay_s, np.random.default_rng(seed))
+def _assert_same(reference, nodes):
     loop = reference.loop
-    assert len(steps) == loop.counts['batches'] and steps.dropped >= len(dataset.robots) + 1
-    assert np.count_nonzero(steps.stale) >= 1
-    assert loop.counts['rows_to_localizer'] > 100 and len(loop.map_records()) >= 4
     for pub, mine, loc, offline in zip(reference.published, nodes.published, nodes.locs,
                                        loop.localizers):
         assert [s for s, _, _ in mine] == pub['stamps_ns'].tolist()
@@ -162,6 +155,41 @@ def test_the_steps_make_the_offline_loops_calls(seed, delay_s):
             assert loc.counters[key] == offline.counters[key], key
     for a, b in zip(nodes.fuser.map.snapshot(), loop.fuser.map.snapshot()):
         np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.parametrize('seed, delay_s', [(0, 0.0), (1, 0.0), (2, 0.013)])
+def test_the_steps_make_the_offline_loops_calls(seed, delay_s):
+    dataset, extras = _synthetic(seed)
+    reference = offline_reference(dataset, extras, CONFIG, delay_s)
+    steps, nodes = _play(dataset, extras, delay_s, np.random.default_rng(seed))
+    loop = reference.loop
+    assert len(steps) == loop.counts['batches'] and steps.dropped >= len(dataset.robots) + 1
+    assert np.count_nonzero(steps.stale) >= 1
+    assert loop.counts['rows_to_localizer'] > 100 and len(loop.map_records()) >= 4
+    _assert_same(reference, nodes)
+
+
+@pytest.mark.skipif(not DATASET.is_dir(), reason='needs ../shared MRCLAM dataset 6')
+def test_the_steps_on_mrclam_make_the_offline_loops_calls():
+    from landmark_ros.mrclam import slam
+    from landmark_ros.mrclam.config import load_config
+    from landmark_ros.mrclam.data import load_dataset
+    from landmark_ros.mrclam.localize import localizer_config
+    from landmark_ros.mrclam.localize_cli import _sections
+    from landmark_ros.mrclam.localize_data import load_all_extras
+    from landmark_ros.mrclam.localize_plan import slice_run
+    from landmark_ros.mrclam.slam_plan import without_robot_sightings
+    replay = load_config(None)
+    dataset = load_dataset(DATASET, replay.pose_stddev)
+    extras = without_robot_sightings(load_all_extras(dataset))
+    dataset, extras = slice_run(dataset, extras, 45.0)  # robot5 drops two messages
+    localizer_values, replay_values = _sections(replay.path)
+    config = slam.loop_config(replay, localizer_config(localizer_values))
+    delay_s = float(replay_values['odometry_delay_s'])
+    reference = offline_reference(dataset, extras, config, delay_s)
+    steps, nodes = _play(dataset, extras, delay_s, np.random.default_rng(0), config)
+    assert len(steps) == reference.loop.counts['batches'] > 300 and steps.dropped == 2
+    _assert_same(reference, nodes)
 
 
 def test_a_step_waits_for_the_pose_after_its_stamp_or_tied_with_it():
