@@ -345,7 +345,7 @@ ROS_FREE = [f'landmark_ros.{folder}' for folder in
 
 MAY_IMPORT_ROS = ('landmark_ros/ros/*', 'landmark_ros/nodes/*', 'landmark_ros/mrclam/player.py',
                   'landmark_ros/mrclam/through_nodes.py', 'landmark_ros/mrclam/cli.py',
-                  'landmark_ros/mrclam/localize_nodes.py',
+                  'landmark_ros/mrclam/localize_nodes.py', 'landmark_ros/mrclam/slam_nodes.py',
                   'landmark_ros/demo/*', 'landmark_ros/bag/*')
 """Source files allowed to import ROS (``mrclam/cli.py`` only lazily, for the players; ``bag/``
 converts messages)."""

@@ -86,7 +86,10 @@ offline (default)
     The team without motion capture: every robot's localizer, observer and the team's
     fuser in a closed loop from odometry and sightings, the ground truth only at the
     start (``landmark_ros.mrclam.slam``); with and without IDs and anchors;
-    ``--json`` gains ``slam``.
+    ``--json`` gains ``slam``. ``--through-nodes [--live-order]`` also runs the loop
+    (IDs, no anchors) through the real nodes (``landmark_ros.mrclam.slam_nodes``);
+    ``--json`` then gains ``slam_nodes`` and ``slam_agreement``. ``--duration``
+    keeps the first seconds.
 ``--calibrate-odometry``
     The odometry delay and motion-model alphas from the ground truth, with a
     leave-one-robot-out cross-check (``landmark_ros.mrclam.localize_data``).
@@ -196,6 +199,10 @@ def parse_args(argv=None):
     parser.add_argument('--slam', action='store_true',
                         help='the team without motion capture: localizers, observers and '
                         'the fuser in a closed loop (with and without IDs and anchors)')
+    parser.add_argument('--live-order', action='store_true',
+                        help='with --slam --through-nodes: the localizers take each '
+                        'sighting before the odometry that passes its stamp (one shared '
+                        'observations topic) instead of the offline order')
     parser.add_argument('--anchors', type=Path, default=None, metavar='MAP_FILE',
                         help='with --slam: a fuser map file of surveyed landmarks that '
                         'anchor the frame (default: slam_anchor_ids of the config)')

@@ -18,6 +18,7 @@ from landmark_ros.mrclam import slam
 from landmark_ros.mrclam.localize import localizer_config
 from landmark_ros.mrclam.localize_cli import _Bar, _sections
 from landmark_ros.mrclam.localize_data import load_all_extras
+from landmark_ros.mrclam.localize_plan import slice_run
 from landmark_ros.mrclam.report import write_json
 
 
@@ -47,6 +48,9 @@ def run_slam(args, dataset, replay_config, document):
     anchor_ids = tuple(int(i) for i in replay_values.get('slam_anchor_ids',
                                                          slam.DEFAULT_ANCHORS))
     extras = load_all_extras(dataset)
+    if args.duration is not None:
+        dataset, extras = slice_run(dataset, extras, args.duration)
+        document['dataset']['duration_s'] = dataset.duration
     bar = None if args.no_progress else _Bar
     modes = _modes(args)
     if args.anchors is not None:
@@ -66,9 +70,14 @@ def run_slam(args, dataset, replay_config, document):
     document['localizer_config'] = {k: (list(v) if isinstance(v, tuple) else v)
                                     for k, v in vars(replace(config.localizer)).items()}
     document['odometry_delay_s'] = delay_s
+    code = 0
+    if args.through_nodes:
+        from landmark_ros.mrclam.slam_nodes_cli import through_nodes
+        code = through_nodes(args, (dataset, extras, config, replay_config.path, delay_s),
+                             results, document)
     if args.json:
         write_json(args.json, document)
         print(f'wrote {args.json}')
     if args.plot:
         _plot(args, dataset, results)
-    return 0
+    return code
