@@ -61,6 +61,11 @@ class LoopConfig:
     precision_base_m: float = 0.02
     """Dependent standard deviation [m] of the first precision source; each next one
     doubles it."""
+    association: str = 'localizer'
+    """With ``hide_ids``, who names the rows for the localizer: ``localizer`` (its own
+    association in the robot frame, the pose covariance included, against the map it
+    holds, ``localizer.association``) or ``fuser`` (the track IDs the fuser's
+    association gave the rows)."""
 
 
 @dataclass
@@ -184,7 +189,9 @@ class TeamLoop:
             if self.fuser.map_changed:
                 self._map = self.fuser.snapshot()
                 self._version += 1
-        if self.config.hide_ids:
+        if self.config.hide_ids and self.config.association == 'localizer':
+            ids = np.full(len(z), UNKNOWN_ID, np.int64)
+        elif self.config.hide_ids:
             if len(batch.ids) != len(ids) or not self.fuser.association_log:
                 self.counts['partly_rejected'] += len(batch.ids) != len(ids)
                 return
