@@ -17,7 +17,6 @@ one per line (error, NEES).
 """
 
 import argparse
-
 from dataclasses import replace
 from pathlib import Path
 

@@ -18,11 +18,11 @@ from test_mrclam_localize import _first_seconds, DATASET
 MS = 1_000_000
 
 
-def _loop(hide_ids=False, precision_sources=1):
+def _loop(hide_ids=False, precision_sources=1, association='localizer'):
     config = LoopConfig(LocalizerConfig(initial_stddev=(0.01, 0.01, 0.01)),
                         ObserverConfig(range_stddev=0.05, bearing_stddev=0.02),
                         FuserConfig(min_observations=2, false_track_probability=0.49),
-                        hide_ids, precision_sources)
+                        hide_ids, precision_sources, association=association)
     loop = TeamLoop(config, ['robot1'])
     loop.start(0, 1 * MS, np.zeros(3), np.diag([1e-4, 1e-4, 1e-4]))
     return loop
@@ -36,9 +36,10 @@ def _see(loop, k, landmark=(3.0, 1.0), ids=(7,)):
     loop.odometry(0, (10 * k + 8) * MS, pose=np.zeros(3))
 
 
-@pytest.mark.parametrize('hide_ids', [False, True])
-def test_a_sighting_updates_the_pose_against_the_map_without_itself(hide_ids):
-    loop = _loop(hide_ids)
+@pytest.mark.parametrize('hide_ids,association', [(False, 'localizer'), (True, 'localizer'),
+                                                  (True, 'fuser')])
+def test_a_sighting_updates_the_pose_against_the_map_without_itself(hide_ids, association):
+    loop = _loop(hide_ids, association=association)
     loc = loop.localizers[0]
     _see(loop, 0)
     _see(loop, 1)
@@ -53,6 +54,21 @@ def test_a_sighting_updates_the_pose_against_the_map_without_itself(hide_ids):
     # dependent part (the localizer's covariance, not the observer's default).
     record = loop.map_records()[0]
     assert np.trace(np.array(record['covariance_dependent'])) > 1e-4
+
+
+def test_without_ids_the_localizer_names_its_rows_from_its_own_map():
+    loop = _loop(True)
+    loc = loop.localizers[0]
+    for k in range(3):
+        _see(loop, k)
+    # The third row was paired by the localizer's association (robot frame, pose
+    # covariance included) with the one track of the map it held, then used.
+    assert loc.counters['associated'] == 1 and loc.counters['rows_used'] == 1
+    fused = _loop(True, association='fuser')
+    for k in range(3):
+        _see(fused, k)
+    assert fused.localizers[0].counters['associated'] == 0
+    assert fused.localizers[0].counters['rows_used'] == 1
 
 
 def test_precision_sources_split_a_robot_by_its_dependent_part():
