@@ -244,7 +244,8 @@ def terms(z: NDArray[np.float64], R_ind: NDArray[np.float64],
     return out
 
 
-def congruence_2x2(K, A):
+def congruence_2x2(K: Tuple[Any, Any, Any],
+                   A: Tuple[Any, Any, Any]) -> Tuple[Any, Any, Any]:
     """
     Return the entries of ``K A K`` for symmetric 2x2 ``K`` and ``A`` (entry tuples).
 
