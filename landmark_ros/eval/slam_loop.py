@@ -15,7 +15,8 @@ objects the nodes run: per robot a ``localizer.Localizer`` and an
   once (``fuse_queued``);
 - the same sightings update the localizer against the fused map as it was before
   that batch was fused (the map never holds the sighting that updates the pose);
-  without IDs the rows take the track IDs the fuser's association gave them;
+  without IDs the localizer associates the rows itself against the map it holds
+  (``LoopConfig.association``; ``fuser``: the track IDs the fuser gave them);
 - a sighting of another robot updates the localizer with the other's estimate at that
   stamp (``Localizer.add_robot_sighting``).
 
