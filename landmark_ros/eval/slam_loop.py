@@ -15,8 +15,8 @@ objects the nodes run: per robot a ``localizer.Localizer`` and an
   once (``fuse_queued``);
 - the same sightings update the localizer against the fused map as it was before
   that batch was fused (the map never holds the sighting that updates the pose);
-  without IDs the localizer associates the rows itself against the map it holds
-  (``LoopConfig.association``; ``fuser``: the track IDs the fuser gave them);
+  without IDs the rows take the track IDs the fuser's association gave them
+  (``LoopConfig.association``; ``localizer``: the localizer associates them itself);
 - a sighting of another robot updates the localizer with the other's estimate at that
   stamp (``Localizer.add_robot_sighting``).
 
@@ -62,7 +62,7 @@ class LoopConfig:
     precision_base_m: float = 0.02
     """Dependent standard deviation [m] of the first precision source; each next one
     doubles it."""
-    association: str = 'localizer'
+    association: str = 'fuser'
     """With ``hide_ids``, who names the rows for the localizer: ``localizer`` (its own
     association in the robot frame, the pose covariance included, against the map it
     holds, ``localizer.association``) or ``fuser`` (the track IDs the fuser's
