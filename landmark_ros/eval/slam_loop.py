@@ -15,7 +15,8 @@ objects the nodes run: per robot a ``localizer.Localizer`` and an
   once (``fuse_queued``);
 - the same sightings update the localizer against the fused map as it was before
   that batch was fused (the map never holds the sighting that updates the pose);
-  without IDs the rows take the track IDs the fuser's association gave them;
+  without IDs the rows take the track IDs the fuser's association gave them
+  (``LoopConfig.association``; ``localizer``: the localizer associates them itself);
 - a sighting of another robot updates the localizer with the other's estimate at that
   stamp (``Localizer.add_robot_sighting``).
 
@@ -61,6 +62,11 @@ class LoopConfig:
     precision_base_m: float = 0.02
     """Dependent standard deviation [m] of the first precision source; each next one
     doubles it."""
+    association: str = 'fuser'
+    """With ``hide_ids``, who names the rows for the localizer: ``localizer`` (its own
+    association in the robot frame, the pose covariance included, against the map it
+    holds, ``localizer.association``) or ``fuser`` (the track IDs the fuser's
+    association gave the rows)."""
 
 
 @dataclass
@@ -184,7 +190,9 @@ class TeamLoop:
             if self.fuser.map_changed:
                 self._map = self.fuser.snapshot()
                 self._version += 1
-        if self.config.hide_ids:
+        if self.config.hide_ids and self.config.association == 'localizer':
+            ids = np.full(len(z), UNKNOWN_ID, np.int64)
+        elif self.config.hide_ids:
             if len(batch.ids) != len(ids) or not self.fuser.association_log:
                 self.counts['partly_rejected'] += len(batch.ids) != len(ids)
                 return

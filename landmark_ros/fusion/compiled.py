@@ -194,8 +194,8 @@ def _source_part(Y, y, Q, part):
     a, b, c = _inverse(Y[0], Y[1], Y[2])
     part[0] = a * y[0] + b * y[1]
     part[1] = b * y[0] + c * y[1]
-    da, db, dc = _psd(a * Q[0] + b * Q[2], 0.5 * (a * Q[1] + b * Q[3] + b * Q[0] + c * Q[2]),
-                      b * Q[1] + c * Q[3])
+    d0, d1, d2 = _congruence(a, b, b, c, Q[0], Q[1], Q[2])
+    da, db, dc = _psd(Q[3] * d0, Q[3] * d1, Q[3] * d2)
     part[2], part[3], part[4] = a, b, c
     part[5], part[6], part[7] = da, db, dc
     return _log2_det(a + da, b + db, c + dc)

@@ -1,11 +1,23 @@
 """
 Per (landmark, source) information sums for split covariance intersection, and their fold.
 
-A source's estimate of a landmark is ``m_s = Y^-1 y`` with ``Y = sum R_ind_i^-1`` and
-``y = sum R_ind_i^-1 z_i`` (independent parts as information), covariance ``Y^-1 + D``
-where ``D`` is ``sym(Y^-1 Q)`` projected onto the positive semi-definite matrices,
-``Q = sum R_ind_i^-1 R_dep_i``: the information-weighted mean of the dependent parts, a
-shared error that averaging does not reduce. A landmark's estimate is the split-CI fold
+A source's estimate of a landmark is ``m_s = Y^-1 y`` with ``Y = sum W_i``,
+``W_i = R_ind_i^-1`` and ``y = sum W_i z_i`` (independent parts as information),
+covariance ``Y^-1 + D``. ``D`` bounds the error the dependent parts leave in ``m_s``,
+``sum_i B_i d_i`` with ``B_i = Y^-1 W_i`` and ``d_i`` of covariance ``R_dep_i``,
+correlated in any way (a shared error that averaging need not reduce): for any scalar
+weights ``w_i > 0`` summing to one, ``Cov(sum_i B_i d_i) <= sum_i B_i R_dep_i B_i^T / w_i``
+(the covariance intersection inequality), and with ``w_i = c_i / C``,
+``c_i = sqrt(trace(W_i R_dep_i W_i))``, ``C = sum c_i``, that is
+
+    D = C Y^-1 S Y^-1,   S = sum_i W_i R_dep_i W_i / c_i,
+
+a congruence of running sums, positive semi-definite by construction. With equal rows
+``D`` is their dependent part; with rows of one shape it is ``(mean sqrt(R_dep))^2``,
+at most their mean. (The matrix-weighted mean ``sym(Y^-1 sum W_i R_dep_i)`` is no
+bound: with rows whose independent parts point in different directions it can be
+indefinite, and projected onto the covariances it loses a direction.) A landmark's
+estimate is the split-CI fold
 of its sources' estimates from the tightest source up (``fold``), a pure function of
 its sums: folding once per batch or once per row gives the same bits.
 
@@ -161,7 +173,8 @@ class SourceSums:
             out.append({'source': names[key & ((1 << SOURCE_BITS) - 1)],
                         'information': [[s[0], s[1]], [s[1], s[2]]],
                         'information_mean': s[3:5],
-                        'dependent_sum': [s[5:7], s[7:9]]})
+                        'dependent_sum': [[s[5], s[6]], [s[6], s[7]]],
+                        'dependent_weight': s[8]})
         return sorted(out, key=lambda record: record['source'])
 
     def load(self, row: int, records: Sequence[Dict[str, Any]],
@@ -171,10 +184,26 @@ class SourceSums:
         slots = self._slots(np.full(len(records), row, np.int64), codes)
         for slot, record in zip(slots.tolist(), records):
             Y = np.array(record['information'], dtype=np.float64).reshape(2, 2)
-            Q = np.array(record['dependent_sum'], dtype=np.float64).reshape(4)
+            S = np.array(record['dependent_sum'], dtype=np.float64).reshape(2, 2)
             y = np.array(record['information_mean'], dtype=np.float64).reshape(2)
+            Q = _dependent_sums(Y, S, record.get('dependent_weight'))
             self.table[slot, :9] = [Y[0, 0], 0.5 * (Y[0, 1] + Y[1, 0]), Y[1, 1], *y, *Q]
             self.table[slot, compiled.DIRTY] = 1.0
+
+
+def _dependent_sums(Y, S, weight):
+    """
+    Return the four dependent sums ``(xx, xy, yy)`` of ``S`` and ``C`` of a saved source.
+
+    A record without ``dependent_weight`` is of the earlier form, ``S = sum W_i R_dep_i``:
+    it becomes one row holding its dependent part ``psd(sym(Y^-1 S))``.
+    """
+    if weight is not None:
+        return [S[0, 0], 0.5 * (S[0, 1] + S[1, 0]), S[1, 1], float(weight)]
+    D = np.linalg.solve(Y, S)
+    D = psd_projection_2x2(D[0, 0], 0.5 * (D[0, 1] + D[1, 0]), D[1, 1])
+    one = terms(np.zeros((1, 2)), np.linalg.inv(Y)[None], symmetric_2x2(*D)[None])[0]
+    return one[5:9].tolist()
 
 
 def spans(lo: NDArray[np.int64], hi: NDArray[np.int64]) -> NDArray[np.int64]:
@@ -192,8 +221,9 @@ def terms(z: NDArray[np.float64], R_ind: NDArray[np.float64],
     Returns
     -------
     ndarray, shape (N, 9)
-        ``(xx, xy, yy)`` of ``R_ind^-1``, ``R_ind^-1 z``, ``(00, 01, 10, 11)`` of
-        ``R_ind^-1 R_dep``.
+        ``(xx, xy, yy)`` of ``W = R_ind^-1``, ``W z``, ``(xx, xy, yy)`` of
+        ``W R_dep W / c`` and ``c = sqrt(trace(W R_dep W))`` (module docstring; zero
+        for a row without dependent part).
 
     """
     a, b, c = entries(R_ind)
@@ -205,20 +235,41 @@ def terms(z: NDArray[np.float64], R_ind: NDArray[np.float64],
     out = np.empty((len(z), 9))
     out[:, 0], out[:, 1], out[:, 2] = ya, yb, yc
     out[:, 3], out[:, 4] = ya * z[:, 0] + yb * z[:, 1], yb * z[:, 0] + yc * z[:, 1]
-    out[:, 5] = ya * R_dep[:, 0, 0] + yb * R_dep[:, 1, 0]
-    out[:, 6] = ya * R_dep[:, 0, 1] + yb * R_dep[:, 1, 1]
-    out[:, 7] = yb * R_dep[:, 0, 0] + yc * R_dep[:, 1, 0]
-    out[:, 8] = yb * R_dep[:, 0, 1] + yc * R_dep[:, 1, 1]
+    t0, t1, t2 = congruence_2x2((ya, yb, yc), (R_dep[:, 0, 0],
+                                               0.5 * (R_dep[:, 0, 1] + R_dep[:, 1, 0]),
+                                               R_dep[:, 1, 1]))
+    c = np.sqrt(np.maximum(t0 + t2, 0.0))
+    inv_c = np.divide(1.0, c, out=np.zeros_like(c), where=c > 0.0)
+    out[:, 5], out[:, 6], out[:, 7], out[:, 8] = t0 * inv_c, t1 * inv_c, t2 * inv_c, c
     return out
+
+
+def congruence_2x2(K: Tuple[Any, Any, Any],
+                   A: Tuple[Any, Any, Any]) -> Tuple[Any, Any, Any]:
+    """
+    Return the entries of ``K A K`` for symmetric 2x2 ``K`` and ``A`` (entry tuples).
+
+    ``K``, ``A``: ``(xx, xy, yy)`` of arrays of one shape; the same operations, in the
+    same order, as ``compiled._congruence``.
+    """
+    k0, k1, k2 = K
+    a, b, c = A
+    r00, r01 = k0 * a + k1 * b, k0 * b + k1 * c
+    r10, r11 = k1 * a + k2 * b, k1 * b + k2 * c
+    return r00 * k0 + r01 * k1, r00 * k1 + r01 * k2, r10 * k1 + r11 * k2
 
 
 def one_source(mean: NDArray[np.float64], P_ind: NDArray[np.float64],
                P_dep: NDArray[np.float64]) -> List[Dict[str, Any]]:
     """Return the per-source record of an estimate held as a single source."""
     Y = information(P_ind)
+    sums = terms(np.asarray(mean, np.float64).reshape(1, 2),
+                 np.asarray(P_ind, np.float64).reshape(1, 2, 2),
+                 np.asarray(P_dep, np.float64).reshape(1, 2, 2))[0]
     return [{'source': 'loaded', 'information': Y.tolist(),
              'information_mean': (Y @ mean).tolist(),
-             'dependent_sum': (Y @ P_dep).tolist()}]
+             'dependent_sum': [[sums[5], sums[6]], [sums[6], sums[7]]],
+             'dependent_weight': sums[8]}]
 
 
 def fold(table: NDArray[np.float64], slots: NDArray[np.int64], lo: NDArray[np.int64],
@@ -258,13 +309,11 @@ def _estimate(Y, y, Q):
     P_ind = inverse_2x2(Y[..., 0], Y[..., 1], Y[..., 2])
     a, b, c = P_ind
     m = (a * y[..., 0] + b * y[..., 1], b * y[..., 0] + c * y[..., 1])
-    P_dep = (a * Q[..., 0] + b * Q[..., 2],
-             0.5 * (a * Q[..., 1] + b * Q[..., 3] + b * Q[..., 0] + c * Q[..., 2]),
-             b * Q[..., 1] + c * Q[..., 3])
-    # sym(Y^-1 Q) is indefinite when a source's rows have differently shaped
-    # dependent fractions; split CI needs a covariance there (its weight objective is
-    # concave only for positive semi-definite parts), so it is projected onto them.
-    return m, P_ind, psd_projection_2x2(*P_dep)
+    # D = C Y^-1 S Y^-1 (module docstring): positive semi-definite up to rounding,
+    # which the projection removes (split CI's weight objective needs covariances).
+    d0, d1, d2 = congruence_2x2(P_ind, (Q[..., 0], Q[..., 1], Q[..., 2]))
+    C = Q[..., 3]
+    return m, P_ind, psd_projection_2x2(C * d0, C * d1, C * d2)
 
 
 def fold_numpy(table: NDArray[np.float64], slots: NDArray[np.int64], lo: NDArray[np.int64],

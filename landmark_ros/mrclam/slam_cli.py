@@ -9,17 +9,26 @@ as a fuser map file; ``--anchors FILE`` takes a map file instead). Runs the four
 without IDs. Prints the per-robot table, the map figures and which of the issue's
 targets hold; ``--json`` gains ``slam`` (one entry per mode), ``--plot FILE`` draws one
 picture per mode (``FILE`` stem + ``-ids|-noids`` + ``-anchors``).
+
+One mode in its own process (a whole run takes minutes; one mode per process keeps the
+runs apart): ``python -m landmark_ros.mrclam.slam_cli [--hide-ids] [--anchors]
+[--duration S] [--json OUT] [DATASET]`` prints the same table and the map's landmarks
+one per line (error, NEES).
 """
 
+import argparse
 from dataclasses import replace
 from pathlib import Path
 
 from landmark_ros.mrclam import slam
+from landmark_ros.mrclam.config import default_dataset_path, load_config
+from landmark_ros.mrclam.data import load_dataset
 from landmark_ros.mrclam.localize import localizer_config
 from landmark_ros.mrclam.localize_cli import _Bar, _sections
 from landmark_ros.mrclam.localize_data import load_all_extras
 from landmark_ros.mrclam.localize_plan import slice_run
 from landmark_ros.mrclam.report import write_json
+import numpy as np
 
 
 def _modes(args):
@@ -81,3 +90,48 @@ def run_slam(args, dataset, replay_config, document):
     if args.plot:
         _plot(args, dataset, results)
     return code
+
+
+def _landmark_lines(records, truth):
+    """Return one line per scored landmark: ID, error [m], NEES, standard deviations."""
+    from landmark_ros.mrclam.report import method_result
+    lines = []
+    for row in method_result('split_covariance_intersection', records, truth, 0, 0).results:
+        sd = np.sqrt(np.linalg.eigvalsh(row.P))
+        lines.append(f'  landmark {row.id:3d}: error {row.error_m:.3f} m, NEES {row.nees:7.2f}, '
+                     f'sd {sd[0]:.3f} {sd[1]:.3f} m, {row.observations} rows')
+    return lines
+
+
+def main(argv=None):
+    """Run one ``--slam`` mode (module docstring); return the exit code."""
+    parser = argparse.ArgumentParser(description='landmark_mrclam --slam, one mode.')
+    parser.add_argument('dataset', nargs='?', type=Path, default=None)
+    parser.add_argument('--config', type=Path, default=None)
+    parser.add_argument('--hide-ids', action='store_true')
+    parser.add_argument('--anchors', action='store_true',
+                        help='anchor the frame with slam_anchor_ids of the config')
+    parser.add_argument('--duration', type=float, default=None, metavar='SECONDS')
+    parser.add_argument('--json', type=Path, default=None)
+    args = parser.parse_args(argv)
+    replay_config = load_config(args.config)
+    dataset = load_dataset(args.dataset or default_dataset_path(), replay_config.pose_stddev)
+    localizer_values, replay_values = _sections(replay_config.path)
+    config = slam.loop_config(replay_config, localizer_config(localizer_values))
+    delay_s = float(replay_values.get('odometry_delay_s', 0.0))
+    anchor_ids = tuple(int(i) for i in replay_values.get('slam_anchor_ids',
+                                                         slam.DEFAULT_ANCHORS))
+    extras = load_all_extras(dataset)
+    if args.duration is not None:
+        dataset, extras = slice_run(dataset, extras, args.duration)
+    mode = slam.SlamMode(args.hide_ids, args.anchors)
+    result, = slam.run_all(dataset, extras, config, anchor_ids, delay_s, (mode,))
+    print(slam.format_table([result], dataset.duration))
+    print('\n'.join(_landmark_lines(result.records, dataset.landmarks)))
+    if args.json:
+        write_json(args.json, {'slam': [result.entry]})
+    return 0
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

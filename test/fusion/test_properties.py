@@ -68,9 +68,12 @@ class Reference:
         R_ind = R - R_dep
         if self.fusion == 'split_covariance_intersection':
             sums = entry['sources'].setdefault(name, [np.zeros((2, 2)), np.zeros(2),
-                                                      np.zeros((2, 2))])
+                                                      np.zeros((2, 2)), 0.0])
             Y = gaussian.information(R_ind + 1e-12 * np.trace(R_ind) * np.eye(2))
-            sums[0], sums[1], sums[2] = sums[0] + Y, sums[1] + Y @ z, sums[2] + Y @ R_dep
+            T = Y @ (0.5 * (R_dep + R_dep.T)) @ Y
+            c = np.sqrt(np.trace(T))
+            sums[0], sums[1] = sums[0] + Y, sums[1] + Y @ z
+            sums[2], sums[3] = sums[2] + (T / c if c > 0.0 else 0.0 * T), sums[3] + c
             entry['m'], entry['P_ind'], entry['P_dep'] = self._fold(entry['sources'])
         elif entry['count'] == 1:
             P = R if self.fusion == 'independent' else np.zeros((2, 2))
@@ -86,10 +89,10 @@ class Reference:
     def _fold(sources):
         parts = []
         for name in sources:      # in the order the sources first came (their codes)
-            Y, y, Q = sources[name]
+            Y, y, S, C = sources[name]
             P_ind = np.linalg.inv(Y)
-            D = P_ind @ Q
-            parts.append((P_ind @ y, P_ind, 0.5 * (D + D.T)))
+            # The dependent bound of source_sums: C Y^-1 S Y^-1.
+            parts.append((P_ind @ y, P_ind, C * P_ind @ S @ P_ind))
         order = sorted(range(len(parts)), key=lambda k: np.linalg.det(parts[k][1] + parts[k][2]))
         m, P_ind, P_dep = parts[order[0]]
         for k in order[1:]:
