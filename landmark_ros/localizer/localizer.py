@@ -46,14 +46,14 @@ import bisect
 from collections import deque
 from dataclasses import dataclass, field, replace
 import math
-from typing import Any, Callable, List, Optional
+from typing import Any, Callable, List, Optional, Tuple
 
 from landmark_ros.core.gating import chi2_threshold
 from landmark_ros.localizer import motion
 from landmark_ros.localizer.association import label_rows, MapAssociation
 from landmark_ros.localizer.config import LocalizerConfig
-from landmark_ros.localizer.update import (RANGE_BEARING, update, UpdateResult,
-                                           UpdateSettings)
+from landmark_ros.localizer.update import (correct_ranges, RANGE_BEARING, update,
+                                           UpdateResult, UpdateSettings)
 from landmark_ros.pipeline.counters import Counters, Status
 from landmark_ros.pipeline.rows import landmark_row_problems
 import numpy as np
@@ -377,7 +377,7 @@ class Localizer:
         z = np.asarray(z, dtype=np.float64).reshape(-1, 2)
         kind = (np.full(len(ids), RANGE_BEARING, np.int64) if kind is None
                 else np.asarray(kind, dtype=np.int64).reshape(-1))
-        R = self.sensor_noise(z) if R is None else np.asarray(R, dtype=np.float64)
+        z, R = self.correct_ranges(z, kind, R)
         unknown = ids == UNKNOWN_ID
         self.counters.add('no_id', int(unknown.sum()), detail='rows without ID')
         if unknown.any() and self.config.association != 'none':
@@ -426,7 +426,8 @@ class Localizer:
             self.counters.add('robot_stale', detail='other robot pose far from the sighting')
             return
         z = np.asarray(z, dtype=np.float64).reshape(1, 2)
-        R = self.sensor_noise(z) if R is None else np.asarray(R).reshape(1, 2, 2)
+        z, R = self.correct_ranges(z, np.array([RANGE_BEARING]),
+                                   None if R is None else np.asarray(R).reshape(1, 2, 2))
         P_m = other.P[:2, :2] + np.eye(2) * self.config.robot_stddev_floor ** 2
         shared = None if other_id is None else self._shared(int(stamp_ns), [('robot', other_id)])
         self._apply_at(Batch(int(stamp_ns), other.x[None, :2], P_m[None], z, R,
@@ -457,6 +458,18 @@ class Localizer:
                 seen.popleft()
             shared[row] = sum(1 for t in seen if t <= stamp_ns)
         return shared
+
+    def correct_ranges(self, z: NDArray[np.float64], kind: NDArray[np.int64],
+                       R: Optional[NDArray[np.float64]] = None
+                       ) -> Tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """
+        Return readings (N, 2) without the config's range scale error, and their noise.
+
+        ``update.correct_ranges``; ``R`` None: ``sensor_noise`` of the corrected readings.
+        """
+        cfg = self.config
+        z, R = correct_ranges(z, kind, R, cfg.range_scale_coeffs, cfg.range_scale_per_m)
+        return z, (self.sensor_noise(z) if R is None else R)
 
     def sensor_noise(self, z: NDArray[np.float64]) -> NDArray[np.float64]:
         """Return the config's noise of observations ``z`` (N, 2), shape (N, 2, 2)."""

@@ -12,6 +12,7 @@ residuals for the independent noise, with a range-dependent range noise
 from dataclasses import asdict, dataclass
 import math
 
+from landmark_ros.core import range_scale
 from landmark_ros.core.pose2 import wrap_angle
 import numpy as np
 from scipy import special
@@ -70,8 +71,90 @@ def _fit_range_model(r, sigma, counts):
 
 OBSERVER_FIELDS = ('range_stddev', 'range_stddev_per_m', 'bearing_stddev', 'range_bias_stddev',
                    'bearing_bias_stddev', 'noise_correlation_time_s',
-                   'range_correlated_fraction', 'bearing_correlated_fraction')
+                   'range_correlated_fraction', 'bearing_correlated_fraction',
+                   'range_scale_per_m')
 """The observer parameters ``calibrate`` estimates (``Calibration.observer_values``)."""
+
+LOCALIZER_FIELDS = ('range_stddev_per_m', 'noise_correlation_time_s', 'range_correlated_fraction',
+                    'bearing_correlated_fraction', 'range_scale_per_m')
+"""Localizer parameters taken as they are (``Calibration.localizer_values``)."""
+
+HUBER_K = 2.0
+"""Huber's tuning constant of ``fit_range_scale``, in robust standard deviations."""
+
+BISQUARE_C = 4.685
+"""Tukey's bisquare tuning constant of ``fit_range_scale`` (95 % Gaussian efficiency)."""
+
+
+def _robust_weights(e, huber):
+    """Return IRLS weights of residuals ``e`` and their robust standard deviation."""
+    sigma = max(robust_sigma(e), 1e-12)
+    if huber:
+        return np.minimum(1.0, HUBER_K * sigma / np.maximum(np.abs(e), 1e-300)), sigma
+    u = e / (BISQUARE_C * sigma)
+    return np.where(np.abs(u) < 1.0, (1.0 - u * u) ** 2, 0.0), sigma
+
+
+def fit_range_scale(r, b, r_true, iterations=30):
+    """
+    Estimate the range scale error ``core.range_scale`` from readings and true ranges.
+
+    The relative error of a reading, ``r / r_true - 1 = c0 + c1 b + c2 b^2 + k r + e``,
+    is linear in the coefficients: a robust linear regression by iteratively
+    reweighted least squares, so that the far tail of the readings (far too short
+    ones: another barcode, a partly hidden one) does not pull the fit. The first
+    ``iterations`` rounds use Huber's weights (Huber 1964; ``min(1, K s / |e|)``,
+    ``K = HUBER_K``), which converge from the least-squares start; the same number of
+    rounds then use Tukey's bisquare (``(1 - (e / (C s))^2)^2`` inside ``C s``, else 0,
+    ``C = BISQUARE_C``), which gives the tail no weight at all (an M-estimator with a
+    redescending function started from a robust fit, as in Maronna, Martin and
+    Yohai, "Robust Statistics", 2006, ch. 4-5). ``s`` is the MAD-based standard
+    deviation of the residuals, re-estimated every round.
+
+    Parameters
+    ----------
+    r : ndarray, shape (N,)
+        Range readings [m].
+    b : ndarray, shape (N,)
+        Bearing readings [rad] (the position in the image).
+    r_true : ndarray, shape (N,)
+        True ranges [m], positive.
+    iterations : int
+        Rounds of each weight function (each stops early when the coefficients
+        settle to 1e-10); 1 gives plain least squares then one reweighting.
+
+    Returns
+    -------
+    coeffs : tuple of 3 float
+        ``(c0, c1, c2)``.
+    per_m : float
+        ``k`` [1/m].
+    sigma : float
+        Robust standard deviation of the relative residuals.
+
+    Raises
+    ------
+    ValueError
+        With fewer than 4 readings.
+
+    """
+    r, b, r_true = (np.asarray(v, dtype=np.float64).reshape(-1) for v in (r, b, r_true))
+    if len(r) < 4:
+        raise ValueError(f'{len(r)} readings: at least 4 are needed to fit the range scale')
+    y = r / r_true - 1.0
+    A = np.stack([np.ones_like(b), b, b * b, r], axis=1)
+    w = np.ones_like(y)
+    theta = np.zeros(4)
+    for huber in (True, False):
+        for step in range(iterations):
+            sw = np.sqrt(w)
+            new, *_ = np.linalg.lstsq(A * sw[:, None], y * sw, rcond=None)
+            done = step > 0 and np.max(np.abs(new - theta)) < 1e-10
+            theta = new
+            w, sigma = _robust_weights(y - A @ theta, huber)
+            if done:
+                break
+    return (float(theta[0]), float(theta[1]), float(theta[2])), float(theta[3]), sigma
 
 
 @dataclass
@@ -101,6 +184,11 @@ class Calibration:
     noise_correlation_time_s: float = 0.0
     correlation: dict = None
     """``correlation_model``: the binned correlations the time constant was fitted to."""
+    range_scale_coeffs: tuple = (0.0, 0.0, 0.0)
+    range_scale_per_m: float = 0.0
+    scale: dict = None
+    """``_scale_report``: relative error per bearing bin, and the short tail, raw and
+    corrected."""
 
     def to_dict(self):
         """Return plain values for JSON."""
@@ -108,7 +196,23 @@ class Calibration:
 
     def observer_values(self):
         """Return the ``ObserverConfig`` fields this calibration sets, by name."""
-        return {name: float(getattr(self, name)) for name in OBSERVER_FIELDS}
+        values = {name: float(getattr(self, name)) for name in OBSERVER_FIELDS}
+        values['range_scale_coeffs'] = tuple(float(c) for c in self.range_scale_coeffs)
+        return values
+
+    def localizer_values(self):
+        """
+        Return the ``LocalizerConfig`` fields this calibration sets, by name.
+
+        The localizer has no dependent part: its white noise takes the bias variance
+        too (``range_stddev = hypot(range_stddev, range_bias_stddev)``, the same for
+        the bearing); the rest as in the observer.
+        """
+        values = {name: float(getattr(self, name)) for name in LOCALIZER_FIELDS}
+        values['range_stddev'] = math.hypot(self.range_stddev, self.range_bias_stddev)
+        values['bearing_stddev'] = math.hypot(self.bearing_stddev, self.bearing_bias_stddev)
+        values['range_scale_coeffs'] = tuple(float(c) for c in self.range_scale_coeffs)
+        return values
 
     def suggested_yaml(self):
         """Return the observer lines to put in ``config/mrclam.yaml``."""
@@ -120,7 +224,18 @@ class Calibration:
                 f'    bearing_bias_stddev: {self.bearing_bias_stddev:.4f}\n'
                 f'    noise_correlation_time_s: {self.noise_correlation_time_s:.1f}\n'
                 f'    range_correlated_fraction: {self.range_correlated_fraction:.2f}\n'
-                f'    bearing_correlated_fraction: {self.bearing_correlated_fraction:.2f}')
+                f'    bearing_correlated_fraction: {self.bearing_correlated_fraction:.2f}\n'
+                f'    range_scale_coeffs: [{", ".join(f"{c:.4f}" for c in self.range_scale_coeffs)}]\n'
+                f'    range_scale_per_m: {self.range_scale_per_m:.5f}\n'
+                '/**/landmark_localizer:\n  ros__parameters:\n'
+                + '\n'.join(f'    {k}: {_yaml_value(v)}'
+                            for k, v in self.localizer_values().items()))
+
+
+def _yaml_value(value):
+    if isinstance(value, tuple):
+        return '[' + ', '.join(f'{v:.4f}' for v in value) + ']'
+    return f'{value:.5g}'
 
 
 def measurement_errors(dataset):
@@ -130,11 +245,12 @@ def measurement_errors(dataset):
     Returns
     -------
     dict of ndarray
-        ``robot`` (index), ``id``, ``time`` [s], ``range``, ``range_error``,
-        ``bearing_error`` (measured minus true, bearing wrapped), one entry per sighting.
+        ``robot`` (index), ``id``, ``time`` [s], ``range``, ``bearing`` (the readings),
+        ``range_error``, ``bearing_error`` (measured minus true, bearing wrapped), one
+        entry per sighting.
 
     """
-    columns = {key: [] for key in ('robot', 'id', 'time', 'range', 'range_error',
+    columns = {key: [] for key in ('robot', 'id', 'time', 'range', 'bearing', 'range_error',
                                    'bearing_error')}
     for index, robot in enumerate(dataset.robots):
         known = np.array([i in dataset.landmarks for i in robot.ids.tolist()], dtype=bool)
@@ -147,6 +263,7 @@ def measurement_errors(dataset):
         columns['id'].append(robot.ids[known])
         columns['time'].append(robot.times[known])
         columns['range'].append(z[:, 0])
+        columns['bearing'].append(z[:, 1])
         columns['range_error'].append(z[:, 0] - np.hypot(d[:, 0], d[:, 1]))
         columns['bearing_error'].append(wrap_angle(
             z[:, 1] - (np.arctan2(d[:, 1], d[:, 0]) - pose[:, 2])))
@@ -345,6 +462,7 @@ def calibrate(dataset, min_pair=10, bins=10, part=None):
         overall[name] = {'n': count, 'mean': float(np.mean(err)), 'std': float(np.std(err)),
                          'median': float(np.median(err)), 'robust_sd': sd,
                          'tail_3sd': float(np.mean(np.abs(err - np.median(err)) > 3 * sd))}
+    e, scale_coeffs, scale_per_m, scale = _remove_range_scale(e)
     robots, robot_medians = _robot_medians(dataset, e)
     # Pairs: robot-landmark combinations with enough sightings.
     pair_key = e['robot'].astype(np.int64) * (int(e['id'].max()) + 1) + e['id'].astype(np.int64)
@@ -402,7 +520,45 @@ def calibrate(dataset, min_pair=10, bins=10, part=None):
     return Calibration(count, overall, robots, int(big.sum()), range_bins, a, k, sigma_b,
                        range_bias, bearing_bias, pair_range, pair_bearing, tails,
                        correlation['fraction']['range'], correlation['fraction']['bearing'],
-                       correlation['tau_s'], correlation)
+                       correlation['tau_s'], correlation, scale_coeffs, scale_per_m, scale)
+
+
+SHORT_TAIL_M = 0.3
+"""A reading this much shorter than the truth counts in the short tail [m]."""
+
+BEARING_EDGES = (-0.6, -0.45, -0.3, -0.15, 0.0, 0.15, 0.3, 0.45, 0.6)
+"""Bearing bins [rad] of the range scale report."""
+
+
+def _remove_range_scale(e):
+    """
+    Fit the range scale (``fit_range_scale``) and return the errors of corrected ranges.
+
+    Returns ``(e, coeffs, per_m, report)``: ``e`` with ``range`` and ``range_error``
+    of the corrected readings (``core.range_scale.correct``), and the report: per
+    bearing bin the median relative error before and after, and the share of the
+    short tail (``SHORT_TAIL_M``) before and after, overall and beyond 3 m.
+    """
+    true = e['range'] - e['range_error']
+    coeffs, per_m, sigma = fit_range_scale(e['range'], e['bearing'], true)
+    z_c, _ = range_scale.correct(np.stack([e['range'], e['bearing']], axis=1), coeffs, per_m)
+    out = dict(e, range=z_c[:, 0], range_error=z_c[:, 0] - true)
+    rel_raw, rel = e['range'] / true - 1.0, z_c[:, 0] / true - 1.0
+    bins = []
+    for low, high in zip(BEARING_EDGES[:-1], BEARING_EDGES[1:]):
+        sel = (e['bearing'] >= low) & (e['bearing'] < high)
+        if sel.any():
+            bins.append({'low': low, 'high': high, 'n': int(sel.sum()),
+                         'raw': float(np.median(rel_raw[sel])),
+                         'corrected': float(np.median(rel[sel])),
+                         'raw_sd': robust_sigma(rel_raw[sel]), 'corrected_sd': robust_sigma(rel[sel])})
+    far = true > 3.0
+    short = {'raw': float(np.mean(e['range_error'] < -SHORT_TAIL_M)),
+             'corrected': float(np.mean(out['range_error'] < -SHORT_TAIL_M)),
+             'raw_beyond_3m': float(np.mean(e['range_error'][far] < -SHORT_TAIL_M)) if far.any() else 0.0,
+             'corrected_beyond_3m': float(np.mean(out['range_error'][far] < -SHORT_TAIL_M)) if far.any() else 0.0}
+    return out, coeffs, per_m, {'bearing_bins': bins, 'short_tail': short,
+                                'relative_sd': sigma}
 
 
 def format_calibration(cal):
@@ -414,6 +570,22 @@ def format_calibration(cal):
         o = cal.overall[name]
         lines.append(f'{name:<8} {o["mean"]:9.4f} {o["std"]:9.4f} {o["median"]:9.4f} '
                      f'{o["robust_sd"]:10.4f} {100 * o["tail_3sd"]:7.2f}%   [{unit}]')
+    if cal.scale:
+        c0, c1, c2 = cal.range_scale_coeffs
+        lines.append('range scale (reading = true range x g, g = 1 + c0 + c1 b + c2 b^2 + k r; '
+                     f'robust fit): c0 {c0:+.4f}, c1 {c1:+.4f} /rad, c2 {c2:+.4f} /rad^2, '
+                     f'k {cal.range_scale_per_m:+.5f} /m; relative residual sd '
+                     f'{cal.scale["relative_sd"]:.4f}')
+        lines.append(f"  {'bearing [rad]':>15} {'n':>6} {'median rel. error':>18} "
+                     f"{'corrected':>10} {'rsd':>7} {'corrected':>10}")
+        for b in cal.scale['bearing_bins']:
+            lines.append(f'  {b["low"]:+6.2f} - {b["high"]:+5.2f} {b["n"]:6d} {b["raw"]:+18.4f} '
+                         f'{b["corrected"]:+10.4f} {b["raw_sd"]:7.4f} {b["corrected_sd"]:10.4f}')
+        t = cal.scale['short_tail']
+        lines.append(f'  readings more than {SHORT_TAIL_M} m short: {100 * t["raw"]:.2f} % raw, '
+                     f'{100 * t["corrected"]:.2f} % corrected (beyond 3 m: '
+                     f'{100 * t["raw_beyond_3m"]:.2f} %, {100 * t["corrected_beyond_3m"]:.2f} %)')
+        lines.append('  (every figure below is of the corrected ranges)')
     lines.append('per robot median error:')
     for r in cal.robots:
         lines.append(f'  {r["robot"]:<8} n {r["n"]:6d}  range {r["range_median"]:+8.4f} m  '

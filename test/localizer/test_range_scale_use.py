@@ -1,0 +1,114 @@
+"""The range scale model (core.range_scale) where the package uses ranges."""
+
+from dataclasses import replace
+
+from landmark_ros.core import range_scale, sensors
+from landmark_ros.core.landmarks import landmark_to_world_dependent
+from landmark_ros.localizer.config import LocalizerConfig
+from landmark_ros.localizer.localizer import Localizer
+from landmark_ros.localizer.update import correct_ranges, RANGE, RANGE_BEARING
+from landmark_ros.observer.observer import ObservationMessage, Observer
+from landmark_ros.pipeline.config import ObserverConfig
+import numpy as np
+
+MS = 1_000_000
+S = 1000 * MS
+COEFFS = (0.047, -0.0044, -0.4675)
+PER_M = -0.0034
+LANDMARKS = np.array([[4.0, 1.0], [-3.0, 5.0], [2.0, -4.0], [6.0, 6.0], [-5.0, -2.0],
+                      [3.0, 3.5], [1.0, 5.5]])
+
+
+def scaled(z):
+    """Return readings ``z`` (true range, bearing) with the range scale error, (N, 2)."""
+    z = np.array(z, dtype=np.float64)
+    p = 1.0 + COEFFS[0] + COEFFS[1] * z[:, 1] + COEFFS[2] * z[:, 1] ** 2
+    z[:, 0] = z[:, 0] * p / (1.0 - PER_M * z[:, 0])   # solves r = r_true g(r, b)
+    return z
+
+
+def test_scaled_readings_are_what_the_model_describes():
+    z = np.array([[3.0, 0.4], [5.0, -0.55], [1.0, 0.0]])
+    z_c, _ = range_scale.correct(scaled(z), COEFFS, PER_M)
+    np.testing.assert_allclose(z_c, z, rtol=1e-13)
+
+
+def test_correct_ranges_default_and_partial_rows_untouched(rng):
+    z = np.stack([rng.uniform(1, 6, 6), rng.uniform(-0.5, 0.5, 6)], axis=1)
+    kind = np.array([RANGE_BEARING, RANGE, RANGE_BEARING, RANGE, RANGE_BEARING, RANGE])
+    R = np.tile(np.diag([0.01, 0.0004]), (6, 1, 1))
+    same, R_same = correct_ranges(z, kind, R, range_scale.IDENTITY, 0.0)
+    np.testing.assert_array_equal(same, z)
+    np.testing.assert_array_equal(R_same, R)
+    z_c, R_c = correct_ranges(z, kind, R, COEFFS, PER_M)
+    full = kind == RANGE_BEARING
+    np.testing.assert_array_equal(z_c[~full], z[~full])
+    np.testing.assert_array_equal(R_c[~full], R[~full])
+    expect, R_expect = range_scale.correct_with_noise(z[full], R[full], COEFFS, PER_M)
+    np.testing.assert_allclose(z_c[full], expect, rtol=1e-15)
+    np.testing.assert_allclose(R_c[full], R_expect, rtol=1e-15)
+    z_n, R_n = correct_ranges(z, kind, None, COEFFS, PER_M)
+    assert R_n is None
+    np.testing.assert_array_equal(z_n, z_c)
+
+
+def _localize(config, pose, steps=40):
+    """Return the estimate of a robot standing at ``pose`` after ``steps`` sightings."""
+    loc = Localizer(config)
+    loc.initialize(0, pose + np.array([0.15, -0.1, 0.03]), np.diag([0.04, 0.04, 0.01]))
+    loc.set_map(np.arange(len(LANDMARKS)) + 10, LANDMARKS,
+                np.tile(np.eye(2) * 1e-6, (len(LANDMARKS), 1, 1)))
+    z = sensors.observe(pose, LANDMARKS)
+    seen = np.abs(z[:, 1]) < 0.6
+    for k in range(1, steps + 1):
+        loc.add_odometry(k * 100 * MS, twist=np.zeros(2))
+        loc.add_observations(k * 100 * MS, np.flatnonzero(seen) + 10, scaled(z[seen]))
+    loc.add_odometry((steps + 1) * 100 * MS, twist=np.zeros(2))
+    return loc.estimate()
+
+
+def test_localizer_with_the_model_removes_the_scale_bias():
+    pose = np.array([0.5, 0.8, 0.6])
+    base = LocalizerConfig(range_stddev=0.01, range_stddev_per_m=0.0, bearing_stddev=0.005,
+                           odometry_alphas=(0.0, 0.0, 0.0, 0.0), gate_probability=0.999999)
+    model = replace(base, range_scale_coeffs=COEFFS, range_scale_per_m=PER_M)
+    good = _localize(model, pose)
+    bad = _localize(base, pose)   # mutation: the model switched off
+    assert np.hypot(*(good.x[:2] - pose[:2])) < 0.005
+    assert np.hypot(*(bad.x[:2] - pose[:2])) > 0.02
+
+
+def test_observer_places_scaled_readings_at_the_truth():
+    pose = np.array([1.0, 2.0, 0.5])
+    m_true = np.array([[4.0, 3.5], [2.5, 4.0], [5.0, 1.0]])
+    z = scaled(sensors.observe(pose, m_true))
+    config = ObserverConfig(range_stddev=0.01, bearing_stddev=0.01,
+                            range_scale_coeffs=COEFFS, range_scale_per_m=PER_M)
+    placed = []
+    for cfg in (config, replace(config, range_scale_coeffs=(0.0, 0.0, 0.0),
+                                range_scale_per_m=0.0)):
+        observer = Observer(cfg)
+        observer.add_pose(S, pose, np.eye(3) * 1e-9)
+        columns = {'id': np.array([7, 8, 9]), 'range': z[:, 0], 'bearing': z[:, 1]}
+        batch, = observer.add_observations([ObservationMessage(S, columns)])
+        placed.append(batch.m)
+    np.testing.assert_allclose(placed[0], m_true, atol=1e-9)
+    assert np.max(np.hypot(*(placed[1] - m_true).T)) > 0.1   # mutation: no model
+
+
+def test_observer_propagates_a_messages_own_noise():
+    pose = np.array([0.0, 0.0, 0.0])
+    z = np.array([[3.0, 0.5]])
+    config = ObserverConfig(range_scale_coeffs=COEFFS, range_scale_per_m=PER_M)
+    observer = Observer(config)
+    observer.add_pose(S, pose, np.eye(3) * 1e-9)
+    columns = {'id': np.array([7]), 'range': z[:, 0], 'bearing': z[:, 1],
+               'range_variance': np.array([0.04]), 'bearing_variance': np.array([0.001])}
+    batch, = observer.add_observations([ObservationMessage(S, columns)])
+    z_c, R_c = range_scale.correct_with_noise(z, np.diag([0.04, 0.001]), COEFFS, PER_M)
+    m, P, _ = landmark_to_world_dependent(pose, np.eye(3) * 1e-9, z_c, R_c)
+    np.testing.assert_allclose(batch.m, m, atol=1e-12)
+    np.testing.assert_allclose(batch.P, P, atol=1e-12)
+    m_raw, P_raw, _ = landmark_to_world_dependent(pose, np.eye(3) * 1e-9, z,
+                                                  np.diag([0.04, 0.001])[None])
+    assert not np.allclose(batch.P, P_raw, atol=1e-6)   # mutation: raw noise
