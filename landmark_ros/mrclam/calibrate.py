@@ -186,6 +186,8 @@ class Calibration:
     """``correlation_model``: the binned correlations the time constant was fitted to."""
     range_scale_coeffs: tuple = (0.0, 0.0, 0.0)
     range_scale_per_m: float = 0.0
+    range_scale_no_bearing: tuple = (0.0, 0.0)
+    """Mean and standard deviation of ``c0 + c1 b + c2 b^2`` over the sightings."""
     scale: dict = None
     """``_scale_report``: relative error per bearing bin, and the short tail, raw and
     corrected."""
@@ -198,6 +200,7 @@ class Calibration:
         """Return the ``ObserverConfig`` fields this calibration sets, by name."""
         values = {name: float(getattr(self, name)) for name in OBSERVER_FIELDS}
         values['range_scale_coeffs'] = tuple(float(c) for c in self.range_scale_coeffs)
+        values['range_scale_no_bearing'] = tuple(float(c) for c in self.range_scale_no_bearing)
         return values
 
     def localizer_values(self):
@@ -227,6 +230,8 @@ class Calibration:
                 f'    bearing_correlated_fraction: {self.bearing_correlated_fraction:.2f}\n'
                 f'    range_scale_coeffs: [{", ".join(f"{c:.4f}" for c in self.range_scale_coeffs)}]\n'
                 f'    range_scale_per_m: {self.range_scale_per_m:.5f}\n'
+                f'    range_scale_no_bearing: [{self.range_scale_no_bearing[0]:.4f}, '
+                f'{self.range_scale_no_bearing[1]:.4f}]\n'
                 '/**/landmark_localizer:\n  ros__parameters:\n'
                 + '\n'.join(f'    {k}: {_yaml_value(v)}'
                             for k, v in self.localizer_values().items()))
@@ -520,7 +525,8 @@ def calibrate(dataset, min_pair=10, bins=10, part=None):
     return Calibration(count, overall, robots, int(big.sum()), range_bins, a, k, sigma_b,
                        range_bias, bearing_bias, pair_range, pair_bearing, tails,
                        correlation['fraction']['range'], correlation['fraction']['bearing'],
-                       correlation['tau_s'], correlation, scale_coeffs, scale_per_m, scale)
+                       correlation['tau_s'], correlation, scale_coeffs, scale_per_m,
+                       scale['no_bearing'], scale)
 
 
 SHORT_TAIL_M = 0.3
@@ -557,8 +563,10 @@ def _remove_range_scale(e):
              'corrected': float(np.mean(out['range_error'] < -SHORT_TAIL_M)),
              'raw_beyond_3m': float(np.mean(e['range_error'][far] < -SHORT_TAIL_M)) if far.any() else 0.0,
              'corrected_beyond_3m': float(np.mean(out['range_error'][far] < -SHORT_TAIL_M)) if far.any() else 0.0}
+    s_b = coeffs[0] + e['bearing'] * (coeffs[1] + coeffs[2] * e['bearing'])
     return out, coeffs, per_m, {'bearing_bins': bins, 'short_tail': short,
-                                'relative_sd': sigma}
+                                'relative_sd': sigma,
+                                'no_bearing': (float(np.mean(s_b)), float(np.std(s_b)))}
 
 
 def format_calibration(cal):

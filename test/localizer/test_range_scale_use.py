@@ -112,3 +112,25 @@ def test_observer_propagates_a_messages_own_noise():
     m_raw, P_raw, _ = landmark_to_world_dependent(pose, np.eye(3) * 1e-9, z,
                                                   np.diag([0.04, 0.001])[None])
     assert not np.allclose(batch.P, P_raw, atol=1e-6)   # mutation: raw noise
+
+
+def test_observer_range_only_rows_take_the_mean_scale_and_its_spread_as_noise():
+    pose = np.array([0.0, 0.0, 0.0])
+    r = np.array([4.0, 2.0])
+    base = ObserverConfig(range_stddev=0.02, range_stddev_per_m=0.0,
+                          range_scale_per_m=PER_M)
+    views = []
+    for no_bearing in ((0.05, 0.04), (0.0, 0.0)):
+        observer = Observer(replace(base, range_scale_no_bearing=no_bearing))
+        observer.add_pose(S, pose, np.eye(3) * 1e-9)
+        columns = {'id': np.array([7, 8]), 'range': r}
+        batch, = observer.add_observations([ObservationMessage(S, columns)])
+        views.append(batch.partial_observations.views)
+    g = 1.0 + 0.05 + PER_M * r
+    np.testing.assert_allclose(views[0].y.reshape(-1), r / g, rtol=1e-12)
+    np.testing.assert_allclose(views[0].R.reshape(-1),
+                               0.02 ** 2 / g ** 2 + (0.04 * r / g) ** 2, rtol=1e-12)
+    # Without the bearing part only range_scale_per_m applies.
+    g1 = 1.0 + PER_M * r
+    np.testing.assert_allclose(views[1].y.reshape(-1), r / g1, rtol=1e-12)
+    np.testing.assert_allclose(views[1].R.reshape(-1), 0.02 ** 2 / g1 ** 2, rtol=1e-12)
