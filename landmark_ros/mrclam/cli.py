@@ -95,12 +95,15 @@ offline (default)
     part of the run goes into the observer's configuration and the other part is
     replayed, in every mode (``ids``, ``hide_ids``, ``range``, ``bearing``), split CI
     unless ``--fusion``; ``--modes localize localize_fused`` cross-validate
-    ``--localize`` the same way (surveyed and fused map). Folds: the two halves of the run, both ways (default), or
-    leave one robot out. ``--json`` writes ``{"mode": "cross_validation", "scheme",
-    "dataset", "cross_validation": [{"fold", "calibrated_on", "evaluated_on", "mode",
-    "fusion", "calibration", "rmse_m", "anees", "anees_interval", "consistent", ...,
-    and with hide_ids "association_accuracy", "oracle_accuracy", "tracks_confirmed",
-    "true_landmarks", "gospa_m"}, ...]}``.
+    ``--localize`` the same way (surveyed and fused map). Folds: the two halves of
+    the run, both ways (default), or leave one robot out. ``--json`` writes
+    ``{"mode": "cross_validation", "scheme", "dataset", "cross_validation": [{"fold",
+    "calibrated_on", "evaluated_on", "mode", "fusion", "calibration", "rmse_m",
+    "anees", "anees_interval", "consistent", ..., and with hide_ids
+    "association_accuracy", "oracle_accuracy", "tracks_confirmed", "true_landmarks",
+    "gospa_m"}, ...]}``; a localization entry has "map", the localization keys
+    ("position_rmse_m", "heading_rmse_rad", "anees", "inside_95_fraction"),
+    "consistent" (every robot) and "robots".
 ``--calibrate``
     Estimate the sensor model from ground truth and print suggested YAML values
     (``landmark_ros.mrclam.calibrate.calibrate`` documents the procedure).

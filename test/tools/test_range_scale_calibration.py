@@ -1,8 +1,9 @@
-"""The range scale estimator of mrclam.calibrate (fit_range_scale) and its use."""
+"""The range scale estimator (mrclam.range_calibration.fit_range_scale) and its use."""
 
 from landmark_ros.core import range_scale
-from landmark_ros.mrclam.calibrate import calibrate, fit_range_scale
+from landmark_ros.mrclam.calibrate import calibrate
 from landmark_ros.mrclam.data import load_dataset, Part
+from landmark_ros.mrclam.range_calibration import fit_range_scale
 import numpy as np
 import pytest
 from test_mrclam import DATASET6
