@@ -52,6 +52,12 @@ class LocalizerConfig(ConfigBase):
         0.0, 'range scale error per metre of the reading [1/m] (range_scale_coeffs)',
         low=-1.0, high=1.0)
     bearing_stddev: float = param(0.02, 'bearing noise [rad]', low=0.0, high=1e6)
+    range_bias_stddev: float = param(
+        0.0, 'range error shared by all sightings of the robot [m] (camera calibration): '
+        'the sightings of every landmark within noise_correlation_time_s share it (0: none)',
+        low=0.0, high=1e6)
+    bearing_bias_stddev: float = param(
+        0.0, 'bearing error shared by all sightings of the robot [rad]', low=0.0, high=1e6)
     range_correlated_fraction: float = param(
         0.0, 'share of the range noise variance that is time-correlated (repeats between '
         'sightings; with split_ci it is not trusted as independent)', low=0.0, high=1.0)

@@ -86,6 +86,8 @@ class Batch:
     """Counter prefix: ``rows`` (landmarks) or ``robot_rows`` (other robots)."""
     shared: Optional[NDArray[np.float64]] = None
     """Per row, how many sightings share its time-correlated error (>= 1), shape (N,)."""
+    shared_bias: Optional[NDArray[np.float64]] = None
+    """Per row, how many sightings (any landmark) share the sensor bias, shape (N,)."""
     result: Optional[UpdateResult] = None
 
 
@@ -159,6 +161,7 @@ class Localizer:
         share = np.array([config.range_correlated_fraction, config.bearing_correlated_fraction])
         self._correlated = np.sqrt(share[:, None] * share[None, :])
         self._white = np.sqrt((1.0 - share)[:, None] * (1.0 - share)[None, :])
+        self._bias_R = np.diag([config.range_bias_stddev ** 2, config.bearing_bias_stddev ** 2])
 
     # ----------------------------------------------------------------- map and pose
     def set_map(self, ids: NDArray[np.int64], m: NDArray[np.float64],
@@ -392,7 +395,8 @@ class Localizer:
             return 0
         k = index[keep]
         self._apply_at(Batch(int(stamp_ns), self._map_m[k], self._map_P[k], z[keep], R[keep],
-                             kind[keep], shared=self._shared(int(stamp_ns), ids[keep])))
+                             kind[keep], shared=self._shared(int(stamp_ns), ids[keep]),
+                             shared_bias=self._shared(int(stamp_ns), [None] * int(keep.sum()))))
         return int(keep.sum())
 
     def _associate(self, stamp_ns, ids, z, kind, R):
@@ -540,6 +544,8 @@ class Localizer:
         try:
             shared = 1.0 if batch.shared is None else batch.shared[:, None, None]
             R = batch.R * (self._white + self._correlated * shared)
+            if batch.shared_bias is not None and self._bias_R.any():
+                R = R + self._bias_R * batch.shared_bias[:, None, None]
             settings = self.settings if not batch.correlation else replace(
                 self.settings, correlation=batch.correlation)
             result = update(x, P, batch.m, batch.P_m, batch.z, R, batch.kind, settings)

@@ -65,8 +65,10 @@ OBSERVER_FIELDS = ('range_stddev', 'range_stddev_per_m', 'bearing_stddev', 'rang
                    'range_scale_per_m')
 """The observer parameters ``calibrate`` estimates (``Calibration.observer_values``)."""
 
-LOCALIZER_FIELDS = ('range_stddev_per_m', 'noise_correlation_time_s', 'range_correlated_fraction',
-                    'bearing_correlated_fraction', 'range_scale_per_m')
+LOCALIZER_FIELDS = ('range_stddev', 'range_stddev_per_m', 'bearing_stddev', 'range_bias_stddev',
+                    'bearing_bias_stddev', 'noise_correlation_time_s',
+                    'range_correlated_fraction', 'bearing_correlated_fraction',
+                    'range_scale_per_m')
 """Localizer parameters taken as they are (``Calibration.localizer_values``)."""
 
 
@@ -120,13 +122,11 @@ class Calibration:
         """
         Return the ``LocalizerConfig`` fields this calibration sets, by name.
 
-        The localizer has no dependent part: its white noise takes the bias variance
-        too (``range_stddev = hypot(range_stddev, range_bias_stddev)``, the same for
-        the bearing); the rest as in the observer.
+        The same values as the observer's: the bias is shared by every sighting of
+        the robot within the correlation time (``Localizer``), the rest as in the
+        observer (range-only rows of the localizer are not corrected).
         """
         values = {name: float(getattr(self, name)) for name in LOCALIZER_FIELDS}
-        values['range_stddev'] = math.hypot(self.range_stddev, self.range_bias_stddev)
-        values['bearing_stddev'] = math.hypot(self.bearing_stddev, self.bearing_bias_stddev)
         values['range_scale_coeffs'] = tuple(float(c) for c in self.range_scale_coeffs)
         return values
 

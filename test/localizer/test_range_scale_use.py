@@ -6,7 +6,7 @@ from landmark_ros.core import range_scale, sensors
 from landmark_ros.core.landmarks import landmark_to_world_dependent
 from landmark_ros.localizer.config import LocalizerConfig
 from landmark_ros.localizer.localizer import Localizer
-from landmark_ros.localizer.update import correct_ranges, RANGE, RANGE_BEARING
+from landmark_ros.localizer.update import correct_ranges, RANGE, RANGE_BEARING, update
 from landmark_ros.observer.observer import ObservationMessage, Observer
 from landmark_ros.pipeline.config import ObserverConfig
 import numpy as np
@@ -134,3 +134,33 @@ def test_observer_range_only_rows_take_the_mean_scale_and_its_spread_as_noise():
     g1 = 1.0 + PER_M * r
     np.testing.assert_allclose(views[1].y.reshape(-1), r / g1, rtol=1e-12)
     np.testing.assert_allclose(views[1].R.reshape(-1), 0.02 ** 2 / g1 ** 2, rtol=1e-12)
+
+
+def test_the_bias_is_shared_by_every_sighting_within_the_correlation_time():
+    pose = np.array([0.5, 0.8, 0.6])
+    config = LocalizerConfig(range_stddev=0.02, range_stddev_per_m=0.0, bearing_stddev=0.01,
+                             range_bias_stddev=0.03, bearing_bias_stddev=0.005,
+                             noise_correlation_time_s=10.0, correlation='independent',
+                             odometry_alphas=(0.0, 0.0, 0.0, 0.0), gate_probability=0.999999)
+    z = sensors.observe(pose, LANDMARKS[:3])
+    P0 = np.diag([0.04, 0.04, 0.01])
+    results = []
+    for cfg in (config, replace(config, range_bias_stddev=0.0, bearing_bias_stddev=0.0)):
+        loc = Localizer(cfg)
+        loc.initialize(0, pose, P0)
+        loc.set_map(np.array([10, 11, 12]), LANDMARKS[:3], np.tile(np.eye(2) * 1e-6, (3, 1, 1)))
+        loc.add_odometry(0, twist=np.zeros(2))
+        loc.add_odometry(MS, twist=np.zeros(2))
+        loc.add_observations(MS, np.array([10, 11, 12]), z)
+        assert loc.counters['rows_used'] == 3
+        results.append(loc.estimate().P)
+    # The k-th row of the batch shares the bias with the k - 1 before it.
+    R = np.tile(np.diag([0.02 ** 2, 0.01 ** 2]), (3, 1, 1))
+    R_bias = R + np.diag([0.03 ** 2, 0.005 ** 2]) * np.arange(1, 4)[:, None, None]
+    settings = Localizer(config).settings
+    for R_rows, P in ((R_bias, results[0]), (R, results[1])):
+        expect = update(pose, P0 + Localizer(config)._floor, LANDMARKS[:3],
+                        np.tile(np.eye(2) * 1e-6, (3, 1, 1)), z, R_rows,
+                        np.zeros(3, np.int64), settings)
+        np.testing.assert_allclose(P, expect.P, rtol=0, atol=1e-12)
+    assert np.trace(results[0]) > np.trace(results[1])
