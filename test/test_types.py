@@ -36,6 +36,7 @@ REQUIRED = [
     'landmark_ros.core.joint_compatibility',
     'landmark_ros.core.landmarks',
     'landmark_ros.core.partial',
+    'landmark_ros.core.range_scale',
     'landmark_ros.core.pose2',
     'landmark_ros.core.sensors',
     'landmark_ros.fusion',

@@ -42,7 +42,22 @@ class LocalizerConfig(ConfigBase):
                                 high=1e6)
     range_stddev_per_m: float = param(0.05, 'range noise growing with range [m/m]',
                                       low=0.0, high=1e6)
+    range_scale_coeffs: Tuple[float, float, float] = param(
+        (0.0, 0.0, 0.0), 'range scale error of the sensor (core.range_scale): the reading is '
+        'the true range times 1 + c0 + c1 b + c2 b^2 + range_scale_per_m r (b the bearing '
+        '[rad], r the reading [m]); range-bearing rows are divided by it (a noise given '
+        'with the rows is propagated; the model noise above describes the corrected range). '
+        '(0, 0, 0): no correction')
+    range_scale_per_m: float = param(
+        0.0, 'range scale error per metre of the reading [1/m] (range_scale_coeffs)',
+        low=-1.0, high=1.0)
     bearing_stddev: float = param(0.02, 'bearing noise [rad]', low=0.0, high=1e6)
+    range_bias_stddev: float = param(
+        0.0, 'range error shared by all sightings of the robot [m] (camera calibration): '
+        'the sightings of every landmark within noise_correlation_time_s share it (0: none)',
+        low=0.0, high=1e6)
+    bearing_bias_stddev: float = param(
+        0.0, 'bearing error shared by all sightings of the robot [rad]', low=0.0, high=1e6)
     range_correlated_fraction: float = param(
         0.0, 'share of the range noise variance that is time-correlated (repeats between '
         'sightings; with split_ci it is not trusted as independent)', low=0.0, high=1.0)

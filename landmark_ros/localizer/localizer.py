@@ -46,14 +46,14 @@ import bisect
 from collections import deque
 from dataclasses import dataclass, field, replace
 import math
-from typing import Any, Callable, List, Optional
+from typing import Any, Callable, List, Optional, Tuple
 
 from landmark_ros.core.gating import chi2_threshold
 from landmark_ros.localizer import motion
 from landmark_ros.localizer.association import label_rows, MapAssociation
 from landmark_ros.localizer.config import LocalizerConfig
-from landmark_ros.localizer.update import (RANGE_BEARING, update, UpdateResult,
-                                           UpdateSettings)
+from landmark_ros.localizer.update import (correct_ranges, RANGE_BEARING, update,
+                                           UpdateResult, UpdateSettings)
 from landmark_ros.pipeline.counters import Counters, Status
 from landmark_ros.pipeline.rows import landmark_row_problems
 import numpy as np
@@ -86,6 +86,8 @@ class Batch:
     """Counter prefix: ``rows`` (landmarks) or ``robot_rows`` (other robots)."""
     shared: Optional[NDArray[np.float64]] = None
     """Per row, how many sightings share its time-correlated error (>= 1), shape (N,)."""
+    shared_bias: Optional[NDArray[np.float64]] = None
+    """Per row, how many sightings (any landmark) share the sensor bias, shape (N,)."""
     result: Optional[UpdateResult] = None
 
 
@@ -159,6 +161,7 @@ class Localizer:
         share = np.array([config.range_correlated_fraction, config.bearing_correlated_fraction])
         self._correlated = np.sqrt(share[:, None] * share[None, :])
         self._white = np.sqrt((1.0 - share)[:, None] * (1.0 - share)[None, :])
+        self._bias_R = np.diag([config.range_bias_stddev ** 2, config.bearing_bias_stddev ** 2])
 
     # ----------------------------------------------------------------- map and pose
     def set_map(self, ids: NDArray[np.int64], m: NDArray[np.float64],
@@ -377,7 +380,7 @@ class Localizer:
         z = np.asarray(z, dtype=np.float64).reshape(-1, 2)
         kind = (np.full(len(ids), RANGE_BEARING, np.int64) if kind is None
                 else np.asarray(kind, dtype=np.int64).reshape(-1))
-        R = self.sensor_noise(z) if R is None else np.asarray(R, dtype=np.float64)
+        z, R = self.correct_ranges(z, kind, R)
         unknown = ids == UNKNOWN_ID
         self.counters.add('no_id', int(unknown.sum()), detail='rows without ID')
         if unknown.any() and self.config.association != 'none':
@@ -392,7 +395,8 @@ class Localizer:
             return 0
         k = index[keep]
         self._apply_at(Batch(int(stamp_ns), self._map_m[k], self._map_P[k], z[keep], R[keep],
-                             kind[keep], shared=self._shared(int(stamp_ns), ids[keep])))
+                             kind[keep], shared=self._shared(int(stamp_ns), ids[keep]),
+                             shared_bias=self._shared(int(stamp_ns), [None] * int(keep.sum()))))
         return int(keep.sum())
 
     def _associate(self, stamp_ns, ids, z, kind, R):
@@ -426,7 +430,8 @@ class Localizer:
             self.counters.add('robot_stale', detail='other robot pose far from the sighting')
             return
         z = np.asarray(z, dtype=np.float64).reshape(1, 2)
-        R = self.sensor_noise(z) if R is None else np.asarray(R).reshape(1, 2, 2)
+        z, R = self.correct_ranges(z, np.array([RANGE_BEARING]),
+                                   None if R is None else np.asarray(R).reshape(1, 2, 2))
         P_m = other.P[:2, :2] + np.eye(2) * self.config.robot_stddev_floor ** 2
         shared = None if other_id is None else self._shared(int(stamp_ns), [('robot', other_id)])
         self._apply_at(Batch(int(stamp_ns), other.x[None, :2], P_m[None], z, R,
@@ -457,6 +462,18 @@ class Localizer:
                 seen.popleft()
             shared[row] = sum(1 for t in seen if t <= stamp_ns)
         return shared
+
+    def correct_ranges(self, z: NDArray[np.float64], kind: NDArray[np.int64],
+                       R: Optional[NDArray[np.float64]] = None
+                       ) -> Tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """
+        Return readings (N, 2) without the config's range scale error, and their noise.
+
+        ``update.correct_ranges``; ``R`` None: ``sensor_noise`` of the corrected readings.
+        """
+        cfg = self.config
+        z, R = correct_ranges(z, kind, R, cfg.range_scale_coeffs, cfg.range_scale_per_m)
+        return z, (self.sensor_noise(z) if R is None else R)
 
     def sensor_noise(self, z: NDArray[np.float64]) -> NDArray[np.float64]:
         """Return the config's noise of observations ``z`` (N, 2), shape (N, 2, 2)."""
@@ -527,6 +544,8 @@ class Localizer:
         try:
             shared = 1.0 if batch.shared is None else batch.shared[:, None, None]
             R = batch.R * (self._white + self._correlated * shared)
+            if batch.shared_bias is not None and self._bias_R.any():
+                R = R + self._bias_R * batch.shared_bias[:, None, None]
             settings = self.settings if not batch.correlation else replace(
                 self.settings, correlation=batch.correlation)
             result = update(x, P, batch.m, batch.P_m, batch.z, R, batch.kind, settings)

@@ -54,8 +54,9 @@ iterate with the same ``P1``, ``P2``.
 
 from dataclasses import dataclass
 import math
+from typing import Optional, Sequence, Tuple
 
-from landmark_ros.core import sensors
+from landmark_ros.core import range_scale, sensors
 import numpy as np
 from numpy.typing import NDArray
 
@@ -99,6 +100,53 @@ class UpdateSettings:
     correlation: str = 'split_ci'
     iterate_threshold: float = 0.1
     max_iterations: int = 5
+
+
+def correct_ranges(z: NDArray[np.float64], kind: NDArray[np.int64],
+                   R: Optional[NDArray[np.float64]], coeffs: Sequence[float],
+                   per_m: float) -> Tuple[NDArray[np.float64], Optional[NDArray[np.float64]]]:
+    """
+    Return readings with the range scale error removed (``core.range_scale``).
+
+    Only finite ``RANGE_BEARING`` rows are corrected: a range-only row has no bearing to
+    correct with; a row outside the model (scale below ``range_scale.MIN_SCALE``: a
+    bearing far outside the calibrated field of view) is left as it is. With ``coeffs``
+    zero and ``per_m`` 0 nothing changes.
+
+    Parameters
+    ----------
+    z : ndarray, shape (N, 2)
+        Readings (range [m], bearing [rad]).
+    kind : ndarray of int, shape (N,)
+        Row kinds.
+    R : ndarray, shape (N, 2, 2), optional
+        Noise of the readings, propagated as ``J R J^T`` on the corrected rows; None
+        stays None (the caller's noise model describes the corrected reading).
+    coeffs : sequence of 3 float
+        ``(c0, c1, c2)`` of ``range_scale.scale``.
+    per_m : float
+        Its ``k`` [1/m].
+
+    Returns
+    -------
+    z : ndarray, shape (N, 2)
+    R : ndarray, shape (N, 2, 2), or None
+
+    """
+    z = np.asarray(z, dtype=np.float64)
+    if range_scale.is_identity(coeffs, per_m):
+        return z, None if R is None else np.asarray(R, dtype=np.float64)
+    rows = (kind == RANGE_BEARING) & np.all(np.isfinite(z), axis=1)
+    rows[rows] = range_scale.scale(z[rows], coeffs, per_m) >= range_scale.MIN_SCALE
+    if not rows.any():
+        return z, None if R is None else np.asarray(R, dtype=np.float64)
+    z = z.copy()
+    if R is None:
+        z[rows], _ = range_scale.correct(z[rows], coeffs, per_m)
+        return z, None
+    R = np.array(R, dtype=np.float64)
+    z[rows], R[rows] = range_scale.correct_with_noise(z[rows], R[rows], coeffs, per_m)
+    return z, R
 
 
 def _components(kind):

@@ -5,7 +5,8 @@ The camera model of a MRCLAM dataset, estimated from its ground truth (ROS-free)
 sighting against the ground truth, per-robot median errors for the bias (the dependent
 part of the observer's covariance), and the Gaussian that holds the central 99 % of the
 residuals for the independent noise, with a range-dependent range noise
-``sigma_r(r)^2 = a^2 + (k r)^2``. ``landmark_mrclam --calibrate`` prints it with
+``sigma_r(r)^2 = a^2 + (k r)^2``, all of the ranges corrected for the camera's range
+scale error first (``range_calibration``). ``landmark_mrclam --calibrate`` prints it with
 ``format_calibration`` and suggests the ``config/mrclam.yaml`` values.
 """
 
@@ -13,21 +14,11 @@ from dataclasses import asdict, dataclass
 import math
 
 from landmark_ros.core.pose2 import wrap_angle
+from landmark_ros.mrclam.range_calibration import (remove_range_scale, robust_sigma,
+                                                   SHORT_TAIL_M)
 import numpy as np
 from scipy import special
 from scipy.optimize import minimize_scalar
-
-MAD_TO_SIGMA = 1.4826
-"""Median absolute deviation to standard deviation, for Gaussian data."""
-
-
-def robust_sigma(values):
-    """Return 1.4826 times the median absolute deviation from the median (NaN if empty)."""
-    values = np.asarray(values, dtype=np.float64)
-    if not len(values):
-        return float('nan')
-    return float(MAD_TO_SIGMA * np.median(np.abs(values - np.median(values))))
-
 
 CENTRAL_MASS = 0.99
 """Share of the residuals a Gaussian noise model must contain (``calibrate``)."""
@@ -70,8 +61,15 @@ def _fit_range_model(r, sigma, counts):
 
 OBSERVER_FIELDS = ('range_stddev', 'range_stddev_per_m', 'bearing_stddev', 'range_bias_stddev',
                    'bearing_bias_stddev', 'noise_correlation_time_s',
-                   'range_correlated_fraction', 'bearing_correlated_fraction')
+                   'range_correlated_fraction', 'bearing_correlated_fraction',
+                   'range_scale_per_m')
 """The observer parameters ``calibrate`` estimates (``Calibration.observer_values``)."""
+
+LOCALIZER_FIELDS = ('range_stddev', 'range_stddev_per_m', 'bearing_stddev', 'range_bias_stddev',
+                    'bearing_bias_stddev', 'noise_correlation_time_s',
+                    'range_correlated_fraction', 'bearing_correlated_fraction',
+                    'range_scale_per_m')
+"""Localizer parameters taken as they are (``Calibration.localizer_values``)."""
 
 
 @dataclass
@@ -101,6 +99,13 @@ class Calibration:
     noise_correlation_time_s: float = 0.0
     correlation: dict = None
     """``correlation_model``: the binned correlations the time constant was fitted to."""
+    range_scale_coeffs: tuple = (0.0, 0.0, 0.0)
+    range_scale_per_m: float = 0.0
+    range_scale_no_bearing: tuple = (0.0, 0.0)
+    """Mean and standard deviation of ``c0 + c1 b + c2 b^2`` over the sightings."""
+    scale: dict = None
+    """``_scale_report``: relative error per bearing bin, and the short tail, raw and
+    corrected."""
 
     def to_dict(self):
         """Return plain values for JSON."""
@@ -108,7 +113,22 @@ class Calibration:
 
     def observer_values(self):
         """Return the ``ObserverConfig`` fields this calibration sets, by name."""
-        return {name: float(getattr(self, name)) for name in OBSERVER_FIELDS}
+        values = {name: float(getattr(self, name)) for name in OBSERVER_FIELDS}
+        values['range_scale_coeffs'] = tuple(float(c) for c in self.range_scale_coeffs)
+        values['range_scale_no_bearing'] = tuple(float(c) for c in self.range_scale_no_bearing)
+        return values
+
+    def localizer_values(self):
+        """
+        Return the ``LocalizerConfig`` fields this calibration sets, by name.
+
+        The same values as the observer's: the bias is shared by every sighting of
+        the robot within the correlation time (``Localizer``), the rest as in the
+        observer (range-only rows of the localizer are not corrected).
+        """
+        values = {name: float(getattr(self, name)) for name in LOCALIZER_FIELDS}
+        values['range_scale_coeffs'] = tuple(float(c) for c in self.range_scale_coeffs)
+        return values
 
     def suggested_yaml(self):
         """Return the observer lines to put in ``config/mrclam.yaml``."""
@@ -120,7 +140,20 @@ class Calibration:
                 f'    bearing_bias_stddev: {self.bearing_bias_stddev:.4f}\n'
                 f'    noise_correlation_time_s: {self.noise_correlation_time_s:.1f}\n'
                 f'    range_correlated_fraction: {self.range_correlated_fraction:.2f}\n'
-                f'    bearing_correlated_fraction: {self.bearing_correlated_fraction:.2f}')
+                f'    bearing_correlated_fraction: {self.bearing_correlated_fraction:.2f}\n'
+                f'    range_scale_coeffs: {_yaml_value(tuple(self.range_scale_coeffs))}\n'
+                f'    range_scale_per_m: {self.range_scale_per_m:.5f}\n'
+                f'    range_scale_no_bearing: [{self.range_scale_no_bearing[0]:.4f}, '
+                f'{self.range_scale_no_bearing[1]:.4f}]\n'
+                '/**/landmark_localizer:\n  ros__parameters:\n'
+                + '\n'.join(f'    {k}: {_yaml_value(v)}'
+                            for k, v in self.localizer_values().items()))
+
+
+def _yaml_value(value):
+    if isinstance(value, tuple):
+        return '[' + ', '.join(f'{v:.4f}' for v in value) + ']'
+    return f'{value:.5g}'
 
 
 def measurement_errors(dataset):
@@ -130,11 +163,12 @@ def measurement_errors(dataset):
     Returns
     -------
     dict of ndarray
-        ``robot`` (index), ``id``, ``time`` [s], ``range``, ``range_error``,
-        ``bearing_error`` (measured minus true, bearing wrapped), one entry per sighting.
+        ``robot`` (index), ``id``, ``time`` [s], ``range``, ``bearing`` (the readings),
+        ``range_error``, ``bearing_error`` (measured minus true, bearing wrapped), one
+        entry per sighting.
 
     """
-    columns = {key: [] for key in ('robot', 'id', 'time', 'range', 'range_error',
+    columns = {key: [] for key in ('robot', 'id', 'time', 'range', 'bearing', 'range_error',
                                    'bearing_error')}
     for index, robot in enumerate(dataset.robots):
         known = np.array([i in dataset.landmarks for i in robot.ids.tolist()], dtype=bool)
@@ -147,6 +181,7 @@ def measurement_errors(dataset):
         columns['id'].append(robot.ids[known])
         columns['time'].append(robot.times[known])
         columns['range'].append(z[:, 0])
+        columns['bearing'].append(z[:, 1])
         columns['range_error'].append(z[:, 0] - np.hypot(d[:, 0], d[:, 1]))
         columns['bearing_error'].append(wrap_angle(
             z[:, 1] - (np.arctan2(d[:, 1], d[:, 0]) - pose[:, 2])))
@@ -276,6 +311,12 @@ def calibrate(dataset, min_pair=10, bins=10, part=None):
        deviation, median, robust standard deviation ``1.4826 * median(|e - median(e)|)``
        (the MAD, which outliers barely move) and the tail: the fraction of errors more
        than 3 robust standard deviations from the median (0.27 % for Gaussian errors).
+    2b. Range scale (``range_calibration.remove_range_scale``): the relative range
+       error against bearing and range, ``core.range_scale``'s model, fitted by a
+       robust regression (``fit_range_scale``); the ranges are corrected with it and
+       every later step works on the corrected ranges. The mean and standard
+       deviation of the bearing part over the sightings are the model of a range-only
+       row (``range_scale_no_bearing``).
     3. Bias model. The median error of every robot: an error shared by all sightings
        of a robot (camera mounting and calibration) does not average out when its
        sightings are fused, so these medians measure the bias the observer's
@@ -345,6 +386,7 @@ def calibrate(dataset, min_pair=10, bins=10, part=None):
         overall[name] = {'n': count, 'mean': float(np.mean(err)), 'std': float(np.std(err)),
                          'median': float(np.median(err)), 'robust_sd': sd,
                          'tail_3sd': float(np.mean(np.abs(err - np.median(err)) > 3 * sd))}
+    e, scale_coeffs, scale_per_m, scale = remove_range_scale(e)
     robots, robot_medians = _robot_medians(dataset, e)
     # Pairs: robot-landmark combinations with enough sightings.
     pair_key = e['robot'].astype(np.int64) * (int(e['id'].max()) + 1) + e['id'].astype(np.int64)
@@ -402,7 +444,8 @@ def calibrate(dataset, min_pair=10, bins=10, part=None):
     return Calibration(count, overall, robots, int(big.sum()), range_bins, a, k, sigma_b,
                        range_bias, bearing_bias, pair_range, pair_bearing, tails,
                        correlation['fraction']['range'], correlation['fraction']['bearing'],
-                       correlation['tau_s'], correlation)
+                       correlation['tau_s'], correlation, scale_coeffs, scale_per_m,
+                       scale['no_bearing'], scale)
 
 
 def format_calibration(cal):
@@ -414,6 +457,22 @@ def format_calibration(cal):
         o = cal.overall[name]
         lines.append(f'{name:<8} {o["mean"]:9.4f} {o["std"]:9.4f} {o["median"]:9.4f} '
                      f'{o["robust_sd"]:10.4f} {100 * o["tail_3sd"]:7.2f}%   [{unit}]')
+    if cal.scale:
+        c0, c1, c2 = cal.range_scale_coeffs
+        lines.append('range scale (reading = true range x g, g = 1 + c0 + c1 b + c2 b^2 + k r; '
+                     f'robust fit): c0 {c0:+.4f}, c1 {c1:+.4f} /rad, c2 {c2:+.4f} /rad^2, '
+                     f'k {cal.range_scale_per_m:+.5f} /m; relative residual sd '
+                     f'{cal.scale["relative_sd"]:.4f}')
+        lines.append(f"  {'bearing [rad]':>15} {'n':>6} {'median rel. error':>18} "
+                     f"{'corrected':>10} {'rsd':>7} {'corrected':>10}")
+        for b in cal.scale['bearing_bins']:
+            lines.append(f'  {b["low"]:+6.2f} - {b["high"]:+5.2f} {b["n"]:6d} {b["raw"]:+18.4f} '
+                         f'{b["corrected"]:+10.4f} {b["raw_sd"]:7.4f} {b["corrected_sd"]:10.4f}')
+        t = cal.scale['short_tail']
+        lines.append(f'  readings more than {SHORT_TAIL_M} m short: {100 * t["raw"]:.2f} % raw, '
+                     f'{100 * t["corrected"]:.2f} % corrected (beyond 3 m: '
+                     f'{100 * t["raw_beyond_3m"]:.2f} %, {100 * t["corrected_beyond_3m"]:.2f} %)')
+        lines.append('  (every figure below is of the corrected ranges)')
     lines.append('per robot median error:')
     for r in cal.robots:
         lines.append(f'  {r["robot"]:<8} n {r["n"]:6d}  range {r["range_median"]:+8.4f} m  '

@@ -97,12 +97,16 @@ offline (default)
     ``landmark_ros.mrclam.crossval``: per fold, the sensor model calibrated on one
     part of the run goes into the observer's configuration and the other part is
     replayed, in every mode (``ids``, ``hide_ids``, ``range``, ``bearing``), split CI
-    unless ``--fusion``. Folds: the two halves of the run, both ways (default), or
-    leave one robot out. ``--json`` writes ``{"mode": "cross_validation", "scheme",
-    "dataset", "cross_validation": [{"fold", "calibrated_on", "evaluated_on", "mode",
-    "fusion", "calibration", "rmse_m", "anees", "anees_interval", "consistent", ...,
-    and with hide_ids "association_accuracy", "oracle_accuracy", "tracks_confirmed",
-    "true_landmarks", "gospa_m"}, ...]}``.
+    unless ``--fusion``; ``--modes localize localize_fused`` cross-validate
+    ``--localize`` the same way (surveyed and fused map). Folds: the two halves of
+    the run, both ways (default), or leave one robot out. ``--json`` writes
+    ``{"mode": "cross_validation", "scheme", "dataset", "cross_validation": [{"fold",
+    "calibrated_on", "evaluated_on", "mode", "fusion", "calibration", "rmse_m",
+    "anees", "anees_interval", "consistent", ..., and with hide_ids
+    "association_accuracy", "oracle_accuracy", "tracks_confirmed", "true_landmarks",
+    "gospa_m"}, ...]}``; a localization entry has "map", the localization keys
+    ("position_rmse_m", "heading_rmse_rad", "anees", "inside_95_fraction"),
+    "consistent" (every robot) and "robots".
 ``--calibrate``
     Estimate the sensor model from ground truth and print suggested YAML values
     (``landmark_ros.mrclam.calibrate.calibrate`` documents the procedure).
@@ -149,8 +153,9 @@ import time
 from landmark_ros.fusion.landmark_map import FUSION_METHODS
 from landmark_ros.mrclam.calibrate import calibrate, format_calibration
 from landmark_ros.mrclam.config import config_values, default_dataset_path, load_config
-from landmark_ros.mrclam.crossval import (cross_validate, format_entry, HEADER, MODES,
-                                          SCHEMES)
+from landmark_ros.mrclam.crossval import (cross_validate, cross_validate_localize,
+                                          format_entry, format_localize_entry, HEADER,
+                                          LOCALIZE_HEADER, LOCALIZE_MODES, MODES, SCHEMES)
 from landmark_ros.mrclam.data import load_dataset
 from landmark_ros.mrclam.offline import run_offline, SENSORS
 from landmark_ros.mrclam.replay_plan import PlayOptions
@@ -187,8 +192,10 @@ def parse_args(argv=None):
     parser.add_argument('--folds', choices=SCHEMES, default='halves',
                         help='--cross-validate folds: the two halves of the run (default) '
                         'or leave one robot out')
-    parser.add_argument('--modes', nargs='+', choices=list(MODES), default=list(MODES),
-                        help='--cross-validate modes (default: all)')
+    parser.add_argument('--modes', nargs='+', choices=list(MODES) + list(LOCALIZE_MODES),
+                        default=list(MODES),
+                        help='--cross-validate modes (default: the fusion modes; localize '
+                        'and localize_fused cross-validate --localize)')
     parser.add_argument('--calibrate', action='store_true',
                         help='estimate the sensor model from ground truth and print it')
     parser.add_argument('--localize', action='store_true',
@@ -266,10 +273,16 @@ def cross_validate_command(args, dataset, config):
     methods = [args.fusion or 'split_covariance_intersection']
     print(f'== cross-validation ({args.folds}): calibrated on one part, evaluated on the '
           'other')
-    print(HEADER)
+    fusion_modes = [m for m in args.modes if m in MODES]
+    localize_modes = [m for m in args.modes if m in LOCALIZE_MODES]
+    entries = []
     try:
-        entries = cross_validate(dataset, config, args.modes, methods, args.folds,
-                                 progress=lambda entry: print(format_entry(entry), flush=True))
+        if fusion_modes:
+            print(HEADER)
+            entries += cross_validate(dataset, config, fusion_modes, methods, args.folds,
+                                      progress=lambda e: print(format_entry(e), flush=True))
+        if localize_modes:
+            entries += cross_validate_localize_command(args, dataset, config, localize_modes)
     except ValueError as error:
         print(f'landmark_mrclam: {error}', file=sys.stderr)
         return 2
@@ -278,6 +291,22 @@ def cross_validate_command(args, dataset, config):
                                'scheme': args.folds, 'cross_validation': entries})
         print(f'wrote {args.json}')
     return 0
+
+
+def cross_validate_localize_command(args, dataset, config, modes):
+    """Run the ``--cross-validate`` localization modes; return their entries."""
+    from landmark_ros.mrclam.config import node_section
+    from landmark_ros.mrclam.localize import localizer_config
+    from landmark_ros.mrclam.localize_data import load_all_extras
+    import yaml
+    with open(config.path, encoding='utf-8') as stream:
+        document = yaml.safe_load(stream) or {}
+    localizer = (localizer_config(node_section(document, 'landmark_localizer')),
+                 float(node_section(document, 'landmark_mrclam').get('odometry_delay_s', 0.0)))
+    print(LOCALIZE_HEADER)
+    return cross_validate_localize(
+        dataset, load_all_extras(dataset), config, localizer, modes, args.folds,
+        progress=lambda e: print(format_localize_entry(e), flush=True))
 
 
 def record_nodes(document, timing, offline, results, info):

@@ -18,18 +18,34 @@ Schemes (``folds``):
 ``robots``
     Leave one robot out: calibrate on every other robot, evaluate on the one left out
     (one fold per robot; each evaluated map comes from one robot's sightings).
+
+Localization (``LOCALIZE_MODES``, ``cross_validate_localize``): the calibration of the
+fold goes into the localizer's configuration as well (``Calibration.localizer_values``:
+range scale, noise, correlated shares; the odometry model of the params file is kept)
+and every robot of the evaluated part localizes (``localize.run``: from its
+ground-truth pose at the start of its odometry, landmark sightings only) against the
+surveyed map (``localize``) or the split-CI map the fuser builds from the evaluated part
+with the fold's observer calibration (``localize_fused``). With ``halves`` the robots
+run the whole log and the figures count the stamps of the evaluated half only (the
+estimate at a stamp uses no ground truth; the calibration saw none of that half's);
+with ``robots`` the left-out robot runs alone.
 """
 
 from dataclasses import dataclass, replace
 from typing import List, Sequence
 
+from landmark_ros.mrclam import localize
 from landmark_ros.mrclam.calibrate import calibrate
 from landmark_ros.mrclam.data import Part
 from landmark_ros.mrclam.offline import run_offline
+import numpy as np
 
 MODES = {'ids': ('rb', False), 'hide_ids': ('rb', True), 'range': ('range', False),
          'bearing': ('bearing', False)}
 """Mode name -> (``sensor``, ``hide_ids``) of ``run_offline``."""
+
+LOCALIZE_MODES = {'localize': 'surveyed', 'localize_fused': 'fused'}
+"""Localization mode name -> the map (``cross_validate_localize``)."""
 
 SCHEMES = ('halves', 'robots')
 """Values of ``folds``'s ``scheme``."""
@@ -158,3 +174,98 @@ def _fmt(value, scale=1.0):
 HEADER = (f"{'fold':<14} {'mode':<9} {'fusion':<30} {'RMSE[cm]':>8} {'ANEES':>8} "
           f"{'95 % interval':>15} {'ok':>4} {'lms':>5}")
 """Heading of the ``format_entry`` lines."""
+
+
+def cross_validate_localize(dataset, extras, config, localizer, modes: Sequence[str],
+                            scheme='halves', progress=None) -> List[dict]:
+    """
+    Cross-validate ``--localize``: calibrate on one part, localize and score the other.
+
+    Parameters
+    ----------
+    dataset : mrclam.data.Dataset
+        The whole dataset.
+    extras : dict
+        ``localize_data.RobotExtras`` by robot number (odometry, robot sightings).
+    config : mrclam.config.ReplayConfig
+        The params file (the fused map's observer and fuser).
+    localizer : tuple (LocalizerConfig, float)
+        The localizer section of the params file and the odometry delay [s]; the
+        calibrated values of each fold replace the sensor model's.
+    modes : sequence of str
+        Keys of ``LOCALIZE_MODES``.
+    scheme : str
+        See ``folds``.
+    progress : callable, optional
+        Called with each entry as soon as it is ready.
+
+    Returns
+    -------
+    list of dict
+        One entry per fold and mode: ``fold``, ``calibrated_on``, ``evaluated_on``,
+        ``mode``, ``map``, ``calibration`` (the localizer values used), the
+        ``localize.KEYS`` overall, ``consistent`` (every robot), and ``robots`` (per
+        robot the same keys and ``robot``).
+
+    """
+    base, delay_s = localizer
+    entries = []
+    origin = dataset.time_span[0]
+    for fold in folds(dataset, scheme):
+        calibration = calibrate(dataset, part=fold.calibrate_on)
+        values = calibration.localizer_values()
+        fold_config = replace(base, **values)
+        evaluated = dataset.part(fold.evaluate_on)
+        runner = dataset if scheme == 'halves' else evaluated
+        window = (origin + fold.evaluate_on.start_s, origin + fold.evaluate_on.end_s)
+        for mode in modes:
+            name = LOCALIZE_MODES[mode]
+            if name == 'surveyed':
+                the_map = localize.surveyed_map(dataset)
+            else:
+                the_map = _fused_map(evaluated, calibrated_config(config, calibration))
+            tracks = localize.run(runner, extras, fold_config, the_map, False, delay_s)
+            robots, overall = localize.metrics([_in_window(t, window) for t in tracks])
+            entry = {'fold': fold.name, 'calibrated_on': fold.calibrate_on.label(),
+                     'evaluated_on': fold.evaluate_on.label(), 'mode': mode, 'map': name,
+                     'calibration': {k: (list(v) if isinstance(v, tuple) else v)
+                                     for k, v in values.items()},
+                     **overall, 'consistent': all(map(localize.consistent, robots)),
+                     'robots': robots}
+            entries.append(entry)
+            if progress is not None:
+                progress(entry)
+    return entries
+
+
+def _fused_map(dataset, config):
+    """Return ids, m, P_m of the split-CI map the offline replay builds from ``dataset``."""
+    method = 'split_covariance_intersection'
+    records = run_offline(dataset, config, [method]).results[method].records
+    ids = np.array([r['id'] for r in records], np.int64)
+    m = np.array([r['mean'] for r in records], dtype=np.float64).reshape(-1, 2)
+    P = np.array([r['covariance'] for r in records], dtype=np.float64).reshape(-1, 2, 2)
+    return ids, m, P
+
+
+def _in_window(track, window):
+    """Return the track restricted to the stamps in ``[start, end)`` [s]."""
+    keep = (track.times >= window[0]) & (track.times < window[1])
+    return replace(track, times=track.times[keep], x=track.x[keep], P=track.P[keep],
+                   truth=track.truth[keep])
+
+
+def format_localize_entry(entry) -> str:
+    """Return the lines of one localization fold: overall, then per robot."""
+    lines = []
+    for row in [dict(entry, robot='all')] + entry['robots']:
+        lines.append(f"{entry['fold']:<14} {entry['mode']:<15} {str(row['robot']):>5} "
+                     f"{row['position_rmse_m']:9.3f} {row['heading_rmse_rad']:9.4f} "
+                     f"{row['anees']:7.2f} {row['inside_95_fraction']:7.3f} "
+                     f"{'yes' if localize.consistent(row) else 'no':>4}")
+    return '\n'.join(lines)
+
+
+LOCALIZE_HEADER = (f"{'fold':<14} {'mode':<15} {'robot':>5} {'pos RMSE':>9} {'yaw RMSE':>9} "
+                   f"{'ANEES':>7} {'in 95%':>7} {'ok':>4}")
+"""Heading of the ``format_localize_entry`` lines."""

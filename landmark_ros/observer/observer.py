@@ -15,10 +15,11 @@ from collections import deque
 from dataclasses import dataclass, field, replace
 from typing import Any, Callable, Deque, Dict, List, Optional, Sequence, Tuple
 
+from landmark_ros.core import range_scale
 from landmark_ros.core.covariance import COVARIANCE_PROBLEMS, covariance_status
 from landmark_ros.observer.partial import (CorrelatedNoise, partial_observations_from_rows,
                                            SensorMount, split_partial)
-from landmark_ros.observer.rows import landmarks_from_rows, observation_noise
+from landmark_ros.observer.rows import landmarks_from_rows, NOISE_FIELDS, observation_noise
 from landmark_ros.pipeline import limits, pose_buffer
 from landmark_ros.pipeline.config import ObserverConfig
 from landmark_ros.pipeline.counters import Counters, Status
@@ -384,8 +385,8 @@ class Observer:
             One per message, in order.
 
         """
-        ready = [(replace(item, columns=self._plausible(_with_ids(item.columns))), pose, P_pose)
-                 for item, pose, P_pose in ready]
+        ready = [(replace(item, columns=self._corrected(self._plausible(_with_ids(
+            item.columns)))), pose, P_pose) for item, pose, P_pose in ready]
         ready, found_partial = self._partial(ready)
         counts = [item.rows for item, _, _ in ready]
         columns = [item.columns for item, _, _ in ready]
@@ -444,6 +445,66 @@ class Observer:
                               'outside the plausible ranges (pipeline.limits)')
         return {name: np.asarray(values)[valid] for name, values in columns.items()}
 
+    def _corrected(self, columns: Dict[str, NDArray[Any]]) -> Dict[str, NDArray[Any]]:
+        """
+        Return the rows with the range scale error removed (``core.range_scale``).
+
+        Rows with a finite range and bearing are corrected with ``range_scale_coeffs``
+        and ``range_scale_per_m``; partial rows (no bearing to correct with) and rows
+        outside the model (scale below ``range_scale.MIN_SCALE``) are left as they are.
+        The noise model of the config describes the corrected range; a message with
+        its own noise columns has them propagated (``J R J^T``).
+        """
+        cfg = self.config
+        if (range_scale.is_identity(cfg.range_scale_coeffs, cfg.range_scale_per_m)
+                or 'range' not in columns or 'bearing' not in columns):
+            return columns
+        z = np.stack([np.asarray(columns['range'], np.float64),
+                      np.asarray(columns['bearing'], np.float64)], axis=1)
+        rows = np.all(np.isfinite(z), axis=1)
+        rows[rows] = range_scale.scale(z[rows], cfg.range_scale_coeffs,
+                                       cfg.range_scale_per_m) >= range_scale.MIN_SCALE
+        if not rows.any():
+            return columns
+        columns = dict(columns)
+        own_noise = any(name in columns for name in NOISE_FIELDS)
+        R = self.noise(columns) if own_noise else np.zeros((2, 2))
+        z[rows], R_c = range_scale.correct_with_noise(z[rows], R if R.ndim == 2 else R[rows],
+                                                      cfg.range_scale_coeffs,
+                                                      cfg.range_scale_per_m)
+        columns['range'] = z[:, 0]
+        if own_noise:
+            R = np.array(np.broadcast_to(R, (len(z), 2, 2)))
+            R[rows] = R_c
+            columns['range_variance'] = R[:, 0, 0]
+            columns['bearing_variance'] = R[:, 1, 1]
+            columns['range_bearing_covariance'] = R[:, 0, 1]
+        return columns
+
+    def _range_only_corrected(self, rows: Dict[str, NDArray[Any]]
+                              ) -> Tuple[Dict[str, NDArray[Any]], NDArray[np.float64]]:
+        """
+        Return partial rows with the range scale of rows without bearing removed, and R.
+
+        ``range_scale_no_bearing`` (mean ``s``, standard deviation ``d``): a range-only
+        row is divided by ``g = 1 + s + range_scale_per_m r``; its range variance
+        becomes ``R_rr / g^2 + (d r / g)^2`` (the bearing-dependent scale it could not
+        correct, as noise). Bearing-only rows are unchanged.
+        """
+        cfg = self.config
+        R = self.noise(rows)
+        mean, spread = cfg.range_scale_no_bearing
+        r = np.asarray(rows['range'], np.float64)
+        only = np.isfinite(r) & ~np.isfinite(np.asarray(rows['bearing'], np.float64))
+        if not (mean or spread or cfg.range_scale_per_m) or not only.any():
+            return rows, R
+        g = np.where(only, 1.0 + mean + cfg.range_scale_per_m * np.where(only, r, 0.0), 1.0)
+        if np.any(g < range_scale.MIN_SCALE):
+            return rows, R
+        R = np.array(np.broadcast_to(R, (len(r), 2, 2)))
+        R[:, 0, 0] = np.where(only, R[:, 0, 0] / g ** 2 + (spread * r / g) ** 2, R[:, 0, 0])
+        return dict(rows, range=np.where(only, r / g, r)), R
+
     def _partial(self, ready: Sequence[MessageWithPose]
                  ) -> Tuple[List[MessageWithPose], Dict[int, PartialObservations]]:
         """Take the partial rows out of messages; return the rest and their observations."""
@@ -453,8 +514,9 @@ class Observer:
             columns, partial = split_partial(item.columns)
             if partial.any():
                 rows = {name: np.asarray(values)[partial] for name, values in columns.items()}
+                rows, R = self._range_only_corrected(rows)
                 found, reasons = partial_observations_from_rows(
-                    rows, self.noise(rows), pose, P_pose,
+                    rows, R, pose, P_pose,
                     SensorMount(self._sensor_pose, self._R_bias), self._view_group,
                     item.stamp_ns, self._correlated)
                 self.counters.add('partial_rows', int(partial.sum()))

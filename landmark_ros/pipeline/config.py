@@ -143,6 +143,19 @@ class ObserverConfig(ConfigBase):
     range_stddev_per_m: float = param(
         0.0, 'Range noise growing with the range: standard deviation per metre of range '
         '[m/m], added in quadrature to range_stddev.', low=0.0, high=10.0)
+    range_scale_coeffs: Tuple[float, float, float] = param(
+        (0.0, 0.0, 0.0), 'Range scale error of the sensor (core.range_scale): the reading '
+        'is the true range times 1 + c0 + c1 b + c2 b^2 + range_scale_per_m r (b the '
+        'bearing [rad], r the reading [m]); rows with a range and a bearing are divided by '
+        'it (their own noise columns propagated). (0, 0, 0): no correction.')
+    range_scale_per_m: float = param(
+        0.0, 'Range scale error per metre of the reading [1/m] (range_scale_coeffs).',
+        low=-1.0, high=1.0)
+    range_scale_no_bearing: Tuple[float, float] = param(
+        (0.0, 0.0), 'Range scale error of a range-only row (no bearing to correct with): '
+        'mean and standard deviation of c0 + c1 b + c2 b^2 over where targets appear in '
+        'the field of view; the row is divided by 1 + mean + range_scale_per_m r and its '
+        'range variance grows by (stddev r)^2. (0, 0): no correction.')
     bearing_stddev: float = param(
         0.02, 'Bearing noise standard deviation [rad] for rows without bearing_variance.',
         low=0.0, high=math.pi)

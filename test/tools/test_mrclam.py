@@ -232,10 +232,12 @@ def test_rows_are_in_global_time_order_and_split_into_clouds(clean_dataset):
 def test_config_file_sections():
     config = load_config(CONFIG)
     # The calibrated MRCLAM camera model (landmark_mrclam --calibrate on dataset 6).
-    assert config.observer.range_stddev == 0.0223
-    assert config.observer.range_stddev_per_m == 0.0491
+    assert config.observer.range_scale_coeffs == (0.0469, -0.0050, -0.4656)
+    assert config.observer.range_scale_per_m == -0.00344
+    assert config.observer.range_stddev == 0.0114
+    assert config.observer.range_stddev_per_m == 0.0110
     assert config.observer.bearing_stddev == 0.0160
-    assert config.observer.range_bias_stddev == 0.0324
+    assert config.observer.range_bias_stddev == 0.0320
     assert config.observer.bearing_bias_stddev == 0.0054
     assert config.fuser.gate_probability == 0.999
     assert config.fuser.min_observations == 2

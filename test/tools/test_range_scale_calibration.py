@@ -1,0 +1,77 @@
+"""The range scale estimator (mrclam.range_calibration.fit_range_scale) and its use."""
+
+from landmark_ros.core import range_scale
+from landmark_ros.mrclam.calibrate import calibrate
+from landmark_ros.mrclam.data import load_dataset, Part
+from landmark_ros.mrclam.range_calibration import fit_range_scale
+import numpy as np
+import pytest
+from test_mrclam import DATASET6
+
+COEFFS = (0.047, -0.0044, -0.4675)
+PER_M = -0.0034
+
+
+def simulated(rng, n=5000, outliers=0.05, coeffs=COEFFS, per_m=PER_M, sd=0.015):
+    """Return readings (r, b) and true ranges with the scale error, noise and outliers."""
+    r_true = rng.uniform(1.0, 7.0, n)
+    b = rng.uniform(-0.6, 0.6, n)
+    p = 1.0 + coeffs[0] + coeffs[1] * b + coeffs[2] * b * b
+    r = r_true * p / (1.0 - per_m * r_true) * (1.0 + sd * rng.standard_normal(n))
+    bad = rng.random(n) < outliers          # heavy tail: far too short readings
+    r[bad] *= rng.uniform(0.4, 0.9, bad.sum())
+    return r, b, r_true
+
+
+@pytest.mark.parametrize('seed', range(5))
+def test_fit_recovers_the_coefficients_despite_outliers(seed):
+    rng = np.random.default_rng(seed)
+    r, b, r_true = simulated(rng)
+    coeffs, per_m, sigma = fit_range_scale(r, b, r_true)
+    assert np.all(np.abs(np.subtract(coeffs, COEFFS)) < [0.003, 0.003, 0.01])
+    assert per_m == pytest.approx(PER_M, abs=0.0008)
+    assert sigma == pytest.approx(0.015, rel=0.1)
+    # The corrected readings of the inliers are unbiased.
+    z_c, _ = range_scale.correct(np.stack([r, b], axis=1), coeffs, per_m)
+    assert abs(np.median(z_c[:, 0] / r_true - 1.0)) < 0.002
+
+
+def test_fit_of_a_sensor_without_scale_error_is_the_identity():
+    rng = np.random.default_rng(9)
+    r, b, r_true = simulated(rng, outliers=0.0, coeffs=(0.0, 0.0, 0.0), per_m=0.0)
+    coeffs, per_m, _ = fit_range_scale(r, b, r_true)
+    assert np.all(np.abs(coeffs) < [0.002, 0.002, 0.008])
+    assert abs(per_m) < 0.0006
+
+
+def test_plain_least_squares_would_be_pulled_by_the_tail():
+    """Mutation check: without the Huber weights the outliers bias the fit."""
+    rng = np.random.default_rng(4)
+    r, b, r_true = simulated(rng, outliers=0.1)
+    coeffs, _, _ = fit_range_scale(r, b, r_true)
+    plain, _, _ = fit_range_scale(r, b, r_true, iterations=1)
+    assert abs(coeffs[0] - COEFFS[0]) < 0.003
+    assert abs(plain[0] - COEFFS[0]) > 0.01
+
+
+def test_too_few_readings_is_an_error():
+    with pytest.raises(ValueError, match='at least 4'):
+        fit_range_scale([1.0, 2.0], [0.0, 0.1], [1.0, 2.0])
+
+
+@pytest.mark.skipif(not DATASET6.is_dir(), reason=f'no MRCLAM dataset at {DATASET6}')
+def test_dataset6_range_error_depends_on_the_bearing_and_carries_over():
+    dataset = load_dataset(DATASET6)
+    middle = dataset.duration / 2.0
+    halves = [calibrate(dataset, part=Part(end_s=middle)),
+              calibrate(dataset, part=Part(start_s=middle))]
+    for cal in halves:
+        assert cal.range_scale_coeffs[2] < -0.3   # shorter off the optical axis
+        assert cal.scale['short_tail']['raw_beyond_3m'] > 0.05
+        assert cal.scale['short_tail']['corrected_beyond_3m'] < 0.005
+    difference = np.subtract(halves[0].range_scale_coeffs, halves[1].range_scale_coeffs)
+    assert np.all(np.abs(difference) < [0.005, 0.005, 0.02])
+    values = halves[0].localizer_values()
+    assert values['range_scale_coeffs'] == halves[0].range_scale_coeffs
+    assert values['range_stddev'] == pytest.approx(np.hypot(halves[0].range_stddev,
+                                                            halves[0].range_bias_stddev))
