@@ -35,10 +35,13 @@ def test_average_run_length_matches_a_simulation():
     h, lam = 3.0, 3.0
     arl = average_run_length(h, lam, CLIP)
     runs, statistic, steps = [], np.zeros(4000), np.zeros(4000, int)
+    offset = change_detection.truncation_offset(lam, CLIP)
     for _ in range(4000):
-        statistic = np.maximum(0.0, statistic + increment(np.minimum(
-            rng.chisquare(2, 4000), CLIP), lam))
-        steps += 1
+        d2 = rng.chisquare(2, 4000)
+        # Rows outside the gate are not taken: the statistic and the count stay.
+        step = np.where(d2 <= CLIP, increment(d2, lam) - offset, 0.0)
+        statistic = np.where(d2 <= CLIP, np.maximum(0.0, statistic + step), statistic)
+        steps += d2 <= CLIP
         over = statistic > h
         runs += steps[over].tolist()
         statistic[over], steps[over] = 0.0, 0
