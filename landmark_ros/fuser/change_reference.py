@@ -168,8 +168,8 @@ class ReferenceFilter:
         first[1:] = ids[order][1:] != ids[order][:-1]
         starts = np.flatnonzero(first)
         rank = np.empty(len(ids), np.int64)
-        rank[order] = np.arange(len(ids)) - np.repeat(starts, np.diff(np.append(starts,
-                                                                               len(ids))))
+        counts = np.diff(np.append(starts, len(ids)))
+        rank[order] = np.arange(len(ids)) - np.repeat(starts, counts)
         for wave in range(int(rank.max()) + 1):
             rows = np.flatnonzero(rank == wave)
             fresh = np.array([int(i) not in self.slots for i in ids[rows].tolist()], bool)

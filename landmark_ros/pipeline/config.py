@@ -275,7 +275,7 @@ class FuserConfig(ConfigBase):
         'for sightings whose errors are independent in time.', read_only=True, low=0.0,
         high=0.1)
     noise_correlation_time_s: float = param(
-        0.0, 'Change detection: correlation time of the slowly varying part of the rows\' '
+        0.0, "Change detection: correlation time of the slowly varying part of the rows' "
         'noise (first-order Gauss-Markov, fuser.change_reference) [s]; the test takes the '
         'innovations of a filter that models it. 0: the rows are white.', read_only=True,
         low=0.0, high=3600.0)

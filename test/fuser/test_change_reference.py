@@ -45,7 +45,7 @@ def _rows(rng, count, sources, tau, R, fraction, start=0.0, period=0.5):
 
 def _joint_innovations(rows, tau, R, fraction):
     """
-    The definition: d2 of each row given the rows before it, by universal kriging.
+    Return the definition: d2 of each row given the rows before it (universal kriging).
 
     ``z = 1 p + e`` with a flat prior on ``p`` and the joint covariance of ``e`` from
     the model; the innovation of row k is ``z_k`` minus its best linear unbiased
@@ -80,7 +80,7 @@ def _joint_innovations(rows, tau, R, fraction):
 
 
 def _filter_innovations(rows, tau, R, fraction, batch):
-    """The filter's d2 of ``rows`` (landmark 7), fed ``batch`` rows at a time."""
+    """Return the filter's d2 of ``rows`` (landmark 7), fed ``batch`` rows at a time."""
     reference = ReferenceFilter(NoiseModel(tau, fraction, fraction), clip=1e9)
     out = []
     for begin in range(0, len(rows), batch):
