@@ -412,8 +412,8 @@ def detect_moves(detector: MoveDetector, landmark_map: Any, d2: NDArray[np.float
     white = np.full(len(ids), np.nan)
     if taken.any():
         white[taken] = detector.reference.innovations(
-            ids[taken], z[taken], P[taken], P_dep[taken], np.asarray(sources)[taken],
-            np.asarray(stamps)[taken])
+            ids[taken], z[taken], P[taken], P_dep[taken],
+            np.asarray(sources)[taken].tolist(), np.asarray(stamps)[taken])
     moved = []
     for alarm in detector.observe(ids, white, (z, P - P_dep, P_dep, sources, stamps)):
         detector.reference.reset([alarm.landmark_id])

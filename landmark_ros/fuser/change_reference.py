@@ -46,7 +46,7 @@ The first row of a landmark starts its filter (``p = z``, ``X_pp = W + C``,
 (the k-th row of every landmark together), vectorised over the landmarks.
 """
 
-from typing import Dict, List, NamedTuple, Sequence
+from typing import Dict, List, NamedTuple, Sequence, Tuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -63,7 +63,8 @@ class NoiseModel(NamedTuple):
     """Share of the bearing variance (the minor axis) that is correlated."""
 
 
-def split_noise(P: NDArray[np.float64], P_dep: NDArray[np.float64], model: NoiseModel):
+def split_noise(P: NDArray[np.float64], P_dep: NDArray[np.float64],
+                model: NoiseModel) -> Tuple[NDArray[np.float64], NDArray[np.float64]]:
     """
     Return the white and correlated parts ``W, C`` of rows' covariances (module notes).
 
@@ -209,7 +210,9 @@ class ReferenceFilter:
         self.slots[landmark_id] = slot
         return slot
 
-    def _start(self, slots, rows, z, W, C, blocks, stamps) -> None:
+    def _start(self, slots: NDArray[np.int64], rows: NDArray[np.intp], z: NDArray[np.float64],
+               W: NDArray[np.float64], C: NDArray[np.float64], blocks: NDArray[np.int64],
+               stamps: NDArray[np.int64]) -> None:
         """Start filters from one row each: the posterior from a flat prior on ``p``."""
         self.x[slots] = 0.0
         self.X[slots] = 0.0
@@ -224,7 +227,9 @@ class ReferenceFilter:
             self.X[s, c[:, :, None], c[:, None, :]] = C[rows]
             self.last_ns[slots, blocks[rows]] = stamps[rows]
 
-    def _step(self, slots, rows, z, W, C, blocks, stamps) -> NDArray[np.float64]:
+    def _step(self, slots: NDArray[np.int64], rows: NDArray[np.intp], z: NDArray[np.float64],
+              W: NDArray[np.float64], C: NDArray[np.float64], blocks: NDArray[np.int64],
+              stamps: NDArray[np.int64]) -> NDArray[np.float64]:
         """Predict, return ``d2`` and update the filters of one wave (distinct landmarks)."""
         x, X = self.x[slots], self.X[slots]
         n, D = x.shape
