@@ -11,9 +11,10 @@ way. Their score only grows while the landmark is there; the log-likelihood rati
 "the landmark has been gone since message j" against "it is there" is ``L_j - L``, so
 the largest of them is the drop of the score from its peak, ``peak - L`` (Page's test
 on the track score; Blackman and Popoli 1999, sec. 6.2 delete a confirmed track by
-its fall from the maximum). A confirmed track is deleted when the drop reaches the
-confirmation threshold ``ln((1 - beta) / alpha)``: taking a landmark out of the map needs
-as much evidence against it as putting it in needed for it. The landmark leaves the
+its fall from the maximum). With ``delete_confirmed_tracks`` (off by default: the
+view is a disc, see docs/association.md) a confirmed track is deleted when the drop
+reaches the confirmation threshold ``ln((1 - beta) / alpha)``: taking a landmark out of the map
+needs as much evidence against it as putting it in needed for it. The landmark leaves the
 map (``LandmarkMap.retire``), ``deleted`` is counted on the message's source, and the
 fuser announces it as a removal whose ``merged_into`` is the landmark's own ID, with
 its last estimate. The score and peak start at 0 when a confirmed track is first in

@@ -296,8 +296,9 @@ class Tracker(ScoredTracks):
         with fewer observations is fused into the other and taken out of the map
         (``LandmarkMap.merge``: with split CI its per-source sums are added to the
         other's, as if its rows had gone there) and its ID recorded in
-        ``merged_into``. Before that, the owned confirmed tracks whose score fell from
-        its peak by the confirmation threshold are deleted (``delete_confirmed``).
+        ``merged_into``. Before that, with ``delete_confirmed_tracks``, the owned
+        confirmed tracks whose score fell from its peak by the confirmation threshold
+        are deleted (``delete_confirmed``).
 
         Parameters
         ----------
@@ -316,7 +317,8 @@ class Tracker(ScoredTracks):
             ``(retired ID, kept ID)`` pairs; a deleted track is ``(ID, ID)``, first.
 
         """
-        deleted = self.delete_confirmed(landmark_map, counts)
+        deleted = (self.delete_confirmed(landmark_map, counts)
+                   if self.config.delete_confirmed_tracks else [])
         snapshot = landmark_map.snapshot()
         ids, observations = snapshot.ids, snapshot.observations
         merged, retired = [], set()

@@ -364,6 +364,12 @@ class FuserConfig(ConfigBase):
     lost_track_probability: float = param(
         0.01, "beta of the track score test: probability that a landmark's tentative track "
         'is deleted (deletion at score ln(beta / (1 - alpha))).', low=1e-9, high=0.49)
+    delete_confirmed_tracks: bool = param(
+        False, 'Also delete confirmed tracks of landmarks found without an ID when their '
+        'track score falls from its peak by ln((1 - beta) / alpha) (fuser.track_screen). '
+        'Off by default: the misses are scored over a disc around the robot, and on MRCLAM '
+        'a narrow field of view makes real landmarks miss for seconds on end and deletes '
+        'them.')
     ambiguous_rows: str = param(
         'assign', 'Rows without an ID that the association could pair with several '
         "landmarks: 'assign' uses the chosen pairing, 'skip' drops them.")

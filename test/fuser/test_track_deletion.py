@@ -25,7 +25,7 @@ def _send(fuser, k, z):
 
 def _run(rng, gone_after, messages=200, P_D=0.9):
     """Landmark 0 always there, landmark 1 until ``gone_after``; both in view throughout."""
-    fuser = Fuser(FuserConfig(), [SOURCE])
+    fuser = Fuser(FuserConfig(delete_confirmed_tracks=True), [SOURCE])
     for k in range(messages):
         present = TRUTH if k < gone_after else TRUTH[:1]
         seen = present[rng.random(len(present)) < P_D]
@@ -76,3 +76,13 @@ def test_landmarks_seen_half_the_time_are_kept():
     fuser = _run(np.random.default_rng(3), gone_after=10 ** 9, messages=400, P_D=0.5)
     counts = fuser.sources[SOURCE].counts
     assert counts['deleted'] == 0 and len(fuser.snapshot().ids) == 2
+
+
+def test_confirmed_tracks_are_kept_by_default():
+    fuser = Fuser(FuserConfig(), [SOURCE])
+    rng = np.random.default_rng(1)
+    for k in range(200):
+        present = TRUTH if k < 60 else TRUTH[:1]
+        seen = present[rng.random(len(present)) < 0.9]
+        _send(fuser, k, seen + rng.normal(0.0, 0.05, seen.shape))
+    assert fuser.sources[SOURCE].counts['deleted'] == 0 and len(fuser.snapshot().ids) == 2
