@@ -2,8 +2,8 @@
 A moved landmark, found from its innovation sequence by Page's CUSUM test (ROS-free).
 
 Symbols: ``d2`` the normalised innovation squared (NIS) of an observation of a confirmed
-landmark, ``d^T S^-1 d`` with ``d = z - m_ref`` and ``S = P_ref + R`` (``m_ref, P_ref``
-the landmark's gate reference, ``LandmarkMap.gate_distances``: the gate's own distance);
+landmark, ``d^T S^-1 d`` with ``d`` its innovation and ``S`` the innovation covariance
+of the detector's reference filter (``fuser.change_reference``, see below);
 ``lambda`` a noncentrality; ``h`` the test's threshold; ``alpha`` the false-alarm rate
 per observation of a static landmark.
 
@@ -45,10 +45,14 @@ defaults (``alpha`` 2e-5, ``shift_sigma`` 1.75, gate 0.999) ``h`` is 8.71 and a
 ``lambda1`` 3, 4, 5, 6: 97.8, 96.6, 95.2, 93.1 % at about 0.25 false alarms per
 10,000 observations, without the clip).
 
-The ARL assumes independent innovations with the covariance the map gives them. Errors
-correlated in time (a robot's pose error held over several observations) or an
-over-confident map raise the false-alarm rate; a conservative map (CI) lowers it and
-slows detection. ``python -m landmark_ros.eval.moved_landmark`` measures both.
+The ARL assumes independent innovations with the covariance they are normalised by.
+The ``d2`` are therefore those of the detector's reference filter
+(``fuser.change_reference``), not of the map: the Kalman filter of the rows' own model
+(time-correlated noise per source when ``noise_correlation_time_s`` is set), whose
+innovations are independent with their exact covariance whatever the fusion method
+(CI and split CI inflate the map's covariance, which would hide a move). Errors the
+model does not hold raise the false-alarm rate. ``python -m
+landmark_ros.eval.moved_landmark`` measures detection and false alarms.
 
 Change point and rebuild
 ------------------------
@@ -66,6 +70,7 @@ from collections import Counter
 from functools import lru_cache
 from typing import Any, Dict, List, NamedTuple, Optional, Sequence, Tuple
 
+from landmark_ros.fuser.change_reference import NoiseModel, ReferenceFilter
 from landmark_ros.fusion.records import Observation, UpdateResult
 import numpy as np
 from numpy.typing import NDArray
@@ -209,6 +214,8 @@ class MoveDetector:
         The move the test is tuned to, in standard deviations of one observation (> 0).
     clip : float
         ``d2`` is clipped here (the gate's chi-square threshold).
+    noise : NoiseModel
+        The rows' time correlation (``fuser.change_reference``); white by default.
 
     Raises
     ------
@@ -217,7 +224,10 @@ class MoveDetector:
 
     """
 
-    def __init__(self, false_alarm_rate: float, shift_sigma: float, clip: float) -> None:
+    def __init__(self, false_alarm_rate: float, shift_sigma: float, clip: float,
+                 noise: NoiseModel = NoiseModel()) -> None:
+        self.reference = ReferenceFilter(noise, clip)
+        """The filters whose innovations the tests take."""
         self.noncentrality = float(shift_sigma) ** 2
         self.clip = float(clip)
         self.threshold = threshold_for(float(false_alarm_rate), self.noncentrality, self.clip)
@@ -225,10 +235,16 @@ class MoveDetector:
         """Alarms raised per landmark ID (whether or not the rebuild took place)."""
         self.statistic: Dict[int, float] = {}
         """``C`` of each landmark whose test is above 0."""
+        self.tested = 0
+        """Rows the tests took (the denominator of the false-alarm rate)."""
         self._pending: Dict[int, List[Observation]] = {}
 
     def reset(self, ids: Optional[Sequence[int]] = None) -> None:
-        """Restart the tests of ``ids`` (all when None) at 0."""
+        """Restart the tests of ``ids`` (all when None) at 0, and their filters."""
+        if ids is None:
+            self.reference.clear()
+        else:
+            self.reference.reset(ids)
         for landmark_id in (list(self.statistic) if ids is None else ids):
             self.statistic.pop(int(landmark_id), None)
             self._pending.pop(int(landmark_id), None)
@@ -257,6 +273,7 @@ class MoveDetector:
 
         """
         taken = np.flatnonzero(np.isfinite(d2))
+        self.tested += len(taken)
         if not len(taken):
             return []
         taken = taken[np.argsort(ids[taken], kind='stable')]
@@ -315,6 +332,22 @@ class MoveDetector:
         return None
 
 
+def move_detector(config: Any, clip: float) -> Optional[MoveDetector]:
+    """
+    Return the change detection a ``FuserConfig`` asks for (None when it is off).
+
+    ``move_false_alarm_rate`` (0: off), ``move_shift_sigma`` and the rows' noise model
+    ``noise_correlation_time_s``, ``range_correlated_fraction``,
+    ``bearing_correlated_fraction``; ``clip`` is the map's gate threshold.
+    """
+    if not config.move_false_alarm_rate:
+        return None
+    return MoveDetector(config.move_false_alarm_rate, config.move_shift_sigma, clip,
+                        NoiseModel(config.noise_correlation_time_s,
+                                   config.range_correlated_fraction,
+                                   config.bearing_correlated_fraction))
+
+
 def _observations(positions, rows):
     """Return the rows at ``positions`` as ``Observation``s."""
     z, R_ind, R_dep, sources, stamps = rows
@@ -327,6 +360,10 @@ def detect_moves(detector: MoveDetector, landmark_map: Any, d2: NDArray[np.float
     """
     Feed one update's rows to the tests; rebuild the landmarks that moved; return their IDs.
 
+    The tests take the innovations of the detector's reference filters
+    (``fuser.change_reference``), for the rows of landmarks that were confirmed before
+    the update; a landmark whose test raised an alarm restarts its filter.
+
     Parameters
     ----------
     detector : MoveDetector
@@ -334,7 +371,8 @@ def detect_moves(detector: MoveDetector, landmark_map: Any, d2: NDArray[np.float
     landmark_map : MovingLandmarkMap
         The map the rows were just fused into.
     d2 : ndarray, shape (N,)
-        The rows' NIS against the gate references before the update (NaN: not confirmed).
+        The rows' NIS against the map's gate references before the update; NaN marks
+        the rows of landmarks that were not confirmed (the only use of it).
     rows : tuple
         ``ids`` (N,), ``z`` (N, 2) [m], ``P``, ``P_dep`` (N, 2, 2) [m^2], source names
         (N,) and stamps (N,) [ns] of the update's rows.
@@ -350,11 +388,18 @@ def detect_moves(detector: MoveDetector, landmark_map: Any, d2: NDArray[np.float
     """
     ids, z, P, P_dep, sources, stamps = rows
     fresh = list(result.confirmed) + list(result.reinitialised)
+    taken = np.isfinite(d2)
     if fresh:
         detector.reset(fresh)
-        d2 = np.where(np.isin(ids, fresh), np.nan, d2)
+        taken &= ~np.isin(ids, fresh)
+    white = np.full(len(ids), np.nan)
+    if taken.any():
+        white[taken] = detector.reference.innovations(
+            ids[taken], z[taken], P[taken], P_dep[taken],
+            np.asarray(sources)[taken].tolist(), np.asarray(stamps)[taken])
     moved = []
-    for alarm in detector.observe(ids, d2, (z, P - P_dep, P_dep, sources, stamps)):
+    for alarm in detector.observe(ids, white, (z, P - P_dep, P_dep, sources, stamps)):
+        detector.reference.reset([alarm.landmark_id])
         if landmark_map.rebuild(alarm.landmark_id, alarm.observations):
             moved.append(alarm.landmark_id)
     return moved

@@ -16,7 +16,7 @@ import itertools
 from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 from landmark_ros.fuser import persistence, publishing
-from landmark_ros.fuser.change_detection import detect_moves, MoveDetector
+from landmark_ros.fuser.change_detection import detect_moves, move_detector
 from landmark_ros.fuser.partial import (NOT_PROBLEMS as PARTIAL_COUNTS,
                                         partial_row_problems, PartialFusion, views_from_columns)
 from landmark_ros.fuser.sources import LandmarkMessage, Queued, shard_of_position, Source
@@ -89,8 +89,7 @@ class Fuser:
         self.counters = Counters(self.logger.warning, config.log_throttle_s)
         self.map = MovingLandmarkMap(config.fusion, config.gate_probability,
                                      config.min_observations, config.max_consecutive_rejections)
-        self.moves = MoveDetector(config.move_false_alarm_rate, config.move_shift_sigma,
-                                  self.map.threshold) if config.move_false_alarm_rate else None
+        self.moves = move_detector(config, self.map.threshold)
         """Change detection on the confirmed landmarks (``fuser.change_detection``)."""
         self.sources: Dict[str, Source] = {
             name: Source(name, optional=name in partial_sources) for name in sources}
@@ -489,7 +488,7 @@ class Fuser:
 
     def removal_rows(self, removed: Sequence[tuple]) -> Tuple[MapSnapshot, NDArray[np.int64]]:
         """Return the rows that announce ``removed`` (``publishing.removal_rows``)."""
-        return publishing.removal_rows(self.map, removed)
+        return publishing.removal_rows(self.map, removed, self.tracker.deleted)
 
     def take_updates(self) -> MapSnapshot:
         """

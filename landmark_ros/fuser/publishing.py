@@ -73,8 +73,8 @@ def _every(rate: float, wanted: float) -> int:
     return max(1, math.ceil(rate / wanted * (1.0 - 1e-12)))
 
 
-def removal_rows(landmark_map: LandmarkMap, removed: Sequence[tuple]
-                 ) -> Tuple[MapSnapshot, NDArray[np.int64]]:
+def removal_rows(landmark_map: LandmarkMap, removed: Sequence[tuple],
+                 deleted: Sequence[tuple] = ()) -> Tuple[MapSnapshot, NDArray[np.int64]]:
     """
     Return the rows that announce removed landmarks, and what each went into.
 
@@ -83,22 +83,31 @@ def removal_rows(landmark_map: LandmarkMap, removed: Sequence[tuple]
     landmark_map : LandmarkMap
         The fuser's map.
     removed : sequence of (int, int)
-        ``Fuser.take_removed()``.
+        ``Fuser.take_removed()``: ``(ID, ID)`` for a deleted track.
+    deleted : sequence of (int, ndarray, ndarray, ndarray)
+        ``Tracker.deleted``: ``(ID, m, P, P_dep)``, the last estimate of each deleted
+        track.
 
     Returns
     -------
     rows : MapSnapshot
-        Per removed landmark whose landmark is confirmed, in order: its ID, the
-        estimate of the landmark it went into, 0 observations.
+        Per removed landmark whose landmark is confirmed (or that was deleted), in
+        order: its ID, the estimate of the landmark it went into (a deleted one: its
+        own last estimate), 0 observations.
     merged_into : ndarray of int64, shape (K,)
-        The landmark each went into.
+        The landmark each went into; its own ID for a deleted one.
 
     """
     kept = landmark_map.snapshot(np.array([keep for _, keep in removed], np.int64))
-    where = {landmark_id: k for k, landmark_id in enumerate(kept.ids.tolist())}
-    pairs = [(drop, keep) for drop, keep in removed if keep in where]
-    rows = np.array([where[keep] for _, keep in pairs], np.int64)
+    where = {landmark_id: (kept.m[k], kept.P[k], kept.P_dep[k])
+             for k, landmark_id in enumerate(kept.ids.tolist())}
+    gone = {entry[0]: tuple(entry[1:]) for entry in deleted}
+    pairs = [(drop, keep) for drop, keep in removed
+             if keep in where or (drop == keep and drop in gone)]
+    estimates = [where[keep] if keep in where else gone[keep] for _, keep in pairs]
     merged_into = np.array([keep for _, keep in pairs], np.int64)
-    return type(kept)(np.array([drop for drop, _ in pairs], np.int64), kept.m[rows],
-                      kept.P[rows], kept.P_dep[rows],
+    return type(kept)(np.array([drop for drop, _ in pairs], np.int64),
+                      np.array([e[0] for e in estimates]).reshape(-1, 2),
+                      np.array([e[1] for e in estimates]).reshape(-1, 2, 2),
+                      np.array([e[2] for e in estimates]).reshape(-1, 2, 2),
                       np.zeros(len(pairs), np.int64)), merged_into

@@ -5,6 +5,20 @@ After each message's association, ``ScoredTracks.screen`` scores the tentative t
 (``fuser.track_score``), keeps the rows of those not yet confirmed by their score,
 releases (sends to the map) the rows of those that reach the confirmation threshold
 and deletes those that fall to the deletion threshold.
+
+Confirmed tracks (those the tracker allocated) go on scoring hits and misses the same
+way. Their score only grows while the landmark is there; the log-likelihood ratio of
+"the landmark has been gone since message j" against "it is there" is ``L_j - L``, so
+the largest of them is the drop of the score from its peak, ``peak - L`` (Page's test
+on the track score; Blackman and Popoli 1999, sec. 6.2 delete a confirmed track by
+its fall from the maximum). With ``delete_confirmed_tracks`` (off by default: the
+view is a disc, see docs/association.md) a confirmed track is deleted when the drop
+reaches the confirmation threshold ``ln((1 - beta) / alpha)``: taking a landmark out of the map
+needs as much evidence against it as putting it in needed for it. The landmark leaves the
+map (``LandmarkMap.retire``), ``deleted`` is counted on the message's source, and the
+fuser announces it as a removal whose ``merged_into`` is the landmark's own ID, with
+its last estimate. The score and peak start at 0 when a confirmed track is first in
+view (after its confirmation or a restart: they are not saved).
 """
 
 from collections import Counter
@@ -33,6 +47,8 @@ class ScoredTracks:
     owned: Set[int]
     dirty: bool
     _indices: List[Any]
+    scores: Dict[int, List[float]]
+    deleted: List[Tuple[int, NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]]
 
     def _forget_counts(self, landmark_id: int) -> None:  # pragma: no cover - overridden
         raise NotImplementedError
@@ -129,6 +145,7 @@ class ScoredTracks:
             gated = _gated(index.m_map[near], index.P_map[near], z, R, threshold)
             stats.expected += int((hit | ~gated).sum())
             stats.detected += int(hit.sum())
+            self._score_confirmed(stats, item, paired, near, (hit, gated))
         stats.clutter_rows += int((unlabelled & ~paired).sum())
         stats.area += float(np.pi * radius ** 2)
         ids = [i for i, t in self.tentative.items() if i not in touched and t.rows]
@@ -142,6 +159,52 @@ class ScoredTracks:
         for k in np.flatnonzero(missed).tolist():
             self.tentative[ids[k]].score += miss
             touched.add(ids[k])
+
+    def _score_confirmed(self, stats: SourceStatistics, item: Queued,
+                         paired: NDArray[np.bool_], near: NDArray[np.intp],
+                         seen: Tuple[NDArray[np.bool_], NDArray[np.bool_]]) -> None:
+        """Score the owned confirmed tracks in view (``near``): hits, misses (module notes)."""
+        hit, gated = seen
+        index, index_ids = self._indices[0]
+        miss = miss_increment(stats.detection_probability)
+        for j in np.flatnonzero(np.isin(index_ids[near], list(self.owned))).tolist():
+            row, landmark_id = int(near[j]), int(index_ids[near[j]])
+            score = self.scores.setdefault(landmark_id, [0.0, 0.0])
+            if hit[j]:
+                k = int(np.flatnonzero((item.ids == landmark_id) & paired)[0])
+                score[0] += float(hit_increments(
+                    item.m[k:k + 1], index.m_map[row][None], (index.P_map[row] + item.P[k])[None],
+                    stats.detection_probability, stats.clutter_density)[0])
+                score[1] = max(score[1], score[0])
+            elif not gated[j]:
+                score[0] += miss
+
+    def delete_confirmed(self, landmark_map: LandmarkMap, counts: Counter[str]) -> List[int]:
+        """
+        Delete the owned confirmed tracks whose score fell from its peak by the threshold.
+
+        Returns
+        -------
+        list of int
+            Their IDs; ``deleted`` keeps ``(ID, m, P, P_dep)`` of each, its last estimate.
+
+        """
+        confirm, _ = sprt_thresholds(self.config.false_track_probability,
+                                     self.config.lost_track_probability)
+        old = sorted(i for i, (score, peak) in self.scores.items() if peak - score >= confirm)
+        if not old:
+            return []
+        snapshot = landmark_map.snapshot(np.array(old, np.int64))
+        for k, landmark_id in enumerate(snapshot.ids.tolist()):
+            self.deleted.append((landmark_id, snapshot.m[k], snapshot.P[k], snapshot.P_dep[k]))
+        landmark_map.retire(np.array(old, np.int64))
+        for landmark_id in old:
+            del self.scores[landmark_id]
+            self.owned.discard(landmark_id)
+            self._forget_counts(landmark_id)
+        counts['deleted'] += len(old)
+        self.dirty = True
+        return old
 
     def _decide(self, landmark_map: LandmarkMap, touched: Set[int],
                 counts_of: Dict[str, Counter[str]]) -> List[tuple]:

@@ -93,6 +93,11 @@ class Tracker(ScoredTracks):
         self.statistics: Dict[str, SourceStatistics] = {}
         """Per source: its view, clutter density and detection probability estimates
         (``fuser.track_score``; persisted)."""
+        self.scores: Dict[int, List[float]] = {}
+        """``[score, peak]`` of the owned confirmed tracks seen in view (``track_screen``)."""
+        self.deleted: List[Tuple[int, NDArray[np.float64], NDArray[np.float64],
+                                 NDArray[np.float64]]] = []
+        """Confirmed tracks deleted by their score: ``(ID, m, P, P_dep)``, last estimates."""
 
     def reset(self) -> None:
         """Forget the tracks and classes; the allocator goes on (IDs are never reused)."""
@@ -103,6 +108,8 @@ class Tracker(ScoredTracks):
         self.together.clear()
         self.merged_into.clear()
         self.statistics.clear()
+        self.scores.clear()
+        self.deleted.clear()
         self.now_ns = None
         self.rejected_tracks = []
         self.dirty = True
@@ -289,7 +296,9 @@ class Tracker(ScoredTracks):
         with fewer observations is fused into the other and taken out of the map
         (``LandmarkMap.merge``: with split CI its per-source sums are added to the
         other's, as if its rows had gone there) and its ID recorded in
-        ``merged_into``.
+        ``merged_into``. Before that, with ``delete_confirmed_tracks``, the owned
+        confirmed tracks whose score fell from its peak by the confirmation threshold
+        are deleted (``delete_confirmed``).
 
         Parameters
         ----------
@@ -305,9 +314,11 @@ class Tracker(ScoredTracks):
         Returns
         -------
         list of (int, int)
-            ``(retired ID, kept ID)`` pairs.
+            ``(retired ID, kept ID)`` pairs; a deleted track is ``(ID, ID)``, first.
 
         """
+        deleted = (self.delete_confirmed(landmark_map, counts)
+                   if self.config.delete_confirmed_tracks else [])
         snapshot = landmark_map.snapshot()
         ids, observations = snapshot.ids, snapshot.observations
         merged, retired = [], set()
@@ -324,11 +335,12 @@ class Tracker(ScoredTracks):
             merged.append((int(ids[drop]), int(ids[keep])))
             self.merged_into[int(ids[drop])] = int(ids[keep])
             self.owned.discard(int(ids[drop]))
+            self.scores.pop(int(ids[drop]), None)
             self._merge_counts(int(ids[keep]), int(ids[drop]))
         if merged:
             counts['merged'] += len(merged)
             self.dirty = True
-        return merged
+        return [(i, i) for i in deleted] + merged
 
     def compatible_pairs(self, snapshot: MapSnapshot,
                          changed: Optional[NDArray[np.int64]] = None

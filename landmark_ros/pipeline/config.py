@@ -287,6 +287,18 @@ class FuserConfig(ConfigBase):
         'post-change rows (landmark_moved). 0 (default) turns it off: the rate holds only '
         'for sightings whose errors are independent in time.', read_only=True, low=0.0,
         high=0.1)
+    noise_correlation_time_s: float = param(
+        0.0, "Change detection: correlation time of the slowly varying part of the rows' "
+        'noise (first-order Gauss-Markov, fuser.change_reference) [s]; the test takes the '
+        'innovations of a filter that models it. 0: the rows are white.', read_only=True,
+        low=0.0, high=3600.0)
+    range_correlated_fraction: float = param(
+        0.0, 'Change detection: share of the range variance of a row (the major axis of its '
+        'independent covariance) that is time-correlated.', read_only=True, low=0.0,
+        high=0.999)
+    bearing_correlated_fraction: float = param(
+        0.0, 'Change detection: share of the bearing variance of a row (the minor axis) '
+        'that is time-correlated.', read_only=True, low=0.0, high=0.999)
     move_shift_sigma: float = param(
         1.75, 'The move change detection is tuned to, in standard deviations of one '
         'observation (its noncentrality is the square).', read_only=True, low=0.1,
@@ -365,6 +377,12 @@ class FuserConfig(ConfigBase):
     lost_track_probability: float = param(
         0.01, "beta of the track score test: probability that a landmark's tentative track "
         'is deleted (deletion at score ln(beta / (1 - alpha))).', low=1e-9, high=0.49)
+    delete_confirmed_tracks: bool = param(
+        False, 'Also delete confirmed tracks of landmarks found without an ID when their '
+        'track score falls from its peak by ln((1 - beta) / alpha) (fuser.track_screen). '
+        'Off by default: the misses are scored over a disc around the robot, and on MRCLAM '
+        'a narrow field of view makes real landmarks miss for seconds on end and deletes '
+        'them.')
     ambiguous_rows: str = param(
         'assign', 'Rows without an ID that the association could pair with several '
         "landmarks: 'assign' uses the chosen pairing, 'skip' drops them.")

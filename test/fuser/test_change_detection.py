@@ -200,3 +200,12 @@ def test_mutation_rebuild_from_all_rows_fails(monkeypatch):
     m, _, _ = fuser.map.estimate(0)
     # The test above asserts < 0.1 m: this mutant is pulled back to the old position.
     assert fuser.counters['landmark_moved'] == 0 or np.linalg.norm(m - truth[0]) >= 0.1
+
+
+def test_the_statistic_accumulates_the_clipped_increments_and_counts_the_rows():
+    detector = MoveDetector(1e-6, 1.75, CLIP)
+    ids = np.zeros(4, np.int64)
+    d2 = np.array([8.0, 9.0, 2 * CLIP, 10.0])
+    assert detector.observe(ids, d2, _rows(ids, np.zeros((4, 2)))) == []
+    want = np.sum(increment(np.minimum(d2, CLIP), 1.75 ** 2))
+    assert detector.statistic[0] == pytest.approx(want, rel=1e-12) and detector.tested == 4
