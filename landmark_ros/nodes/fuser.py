@@ -45,14 +45,6 @@ class LandmarkFuser(Node):
         partial_topics = [topic for topic in config.partial_observation_topics if topic]
         self._source_of = {topic: self.resolve_topic_name(topic)
                            for topic in landmark_topics + partial_topics}
-        # The fusion code first (imports, map file), then the endpoints: a fuser that
-        # subscribes takes its inputs from the first message, so publishers that start
-        # on seeing a subscriber (the simulator) neither lose messages nor queue a
-        # backlog behind a node still loading.
-        self.fuser = pipeline.Fuser(
-            config, [self._source_of[topic] for topic in landmark_topics], self.get_logger(),
-            [self._source_of[topic] for topic in partial_topics])
-        self.fuser.load()
         overrides = QoSOverridingOptions.with_default_policies()
         self.landmark_inputs = fast_io.Inputs(self, fast_io.InputSpec(
             PointCloud2, landmark_topics, qos.reliable_input(config.input_depth),
@@ -75,6 +67,13 @@ class LandmarkFuser(Node):
         self.create_timer(config.diagnostics_period_s, self._guard(self.publish_diagnostics))
         if config.map_file and config.autosave_period_s > 0.0:
             self.create_timer(config.autosave_period_s, self._guard(self.autosave))
+        # The endpoints first, then the fusion code (imports: scipy, the map; the map
+        # file): no callback runs before the constructor returns, and what arrives
+        # meanwhile waits in the input queues (input_depth deep, reliable).
+        self.fuser = pipeline.Fuser(
+            config, [self._source_of[topic] for topic in landmark_topics], self.get_logger(),
+            [self._source_of[topic] for topic in partial_topics])
+        self.fuser.load()
 
     def _guard(self, callback, what=None):
         # Callbacks created before the fuser exists count into it once it does.
