@@ -222,7 +222,7 @@ class LandmarkMap:
         count, rows = checkpoint.count, checkpoint.rows
         for name, values in checkpoint.arrays.items():
             getattr(self, name)[rows] = values
-        added = np.arange(count, self._count)
+        added = slice(count, self._count)
         for name in self._ROW_ARRAYS:      # rows added by the failed update, as new
             getattr(self, name)[added] = _NO_STAMP if name == 'first_stamp_ns' else 0
         for source in list(self._seen_by):
@@ -367,7 +367,7 @@ class LandmarkMap:
 
     def _refresh_gate(self, rows):
         """Make the estimates of ``rows`` (an index or indices) their gate references."""
-        xx, xy, yy = _entries(self.cov_ind[rows] + self.cov_dep[rows])
+        xx, xy, yy = _entries(self.cov_ind.take(rows, axis=0) + self.cov_dep.take(rows, axis=0))
         self.gate[rows, 0], self.gate[rows, 1] = self.mean[rows, 0], self.mean[rows, 1]
         self.gate[rows, 2], self.gate[rows, 3], self.gate[rows, 4] = xx, xy, yy
 
@@ -534,9 +534,10 @@ class LandmarkMap:
             rows = self._known_rows(ids)
         rows = rows[np.argsort(self.ids[rows], kind='stable')]
         self._settle_rows(rows)
-        return MapSnapshot(self.ids[rows].copy(), self.mean[rows].copy(),
-                           self.cov_ind[rows] + self.cov_dep[rows], self.cov_dep[rows].copy(),
-                           self.observations[rows].copy())
+        mean, cov_ind, cov_dep = (x.take(rows, axis=0)  # take(): see _pass
+                                  for x in (self.mean, self.cov_ind, self.cov_dep))
+        return MapSnapshot(self.ids.take(rows), mean, cov_ind + cov_dep, cov_dep,
+                           self.observations.take(rows))
 
     def sources_of(self, landmark_id: int) -> List[str]:
         """Return the sorted sources whose observations a landmark fused."""
@@ -554,7 +555,7 @@ class LandmarkMap:
         records = []
         snapshot = self.snapshot()
         rows = self._lookup(snapshot.ids)
-        covariances = floored(self.cov_ind[rows] + self.cov_dep[rows])
+        covariances = floored(self.cov_ind.take(rows, axis=0) + self.cov_dep.take(rows, axis=0))
         for k, (landmark_id, row) in enumerate(zip(snapshot.ids.tolist(), rows.tolist())):
             records.append({
                 'id': landmark_id,

@@ -1,6 +1,5 @@
 """The fuser node's map outputs: the full map, its updates and the RViz markers."""
 
-from landmark_ros.fuser.publishing import PublicationSchedule
 from landmark_ros.nodes.start import lazy
 from landmark_ros.ros import qos
 import numpy as np
@@ -10,6 +9,7 @@ from visualization_msgs.msg import MarkerArray
 
 # Imported when first used, not at module import (scipy: a second or more).
 markers = lazy('landmark_ros.ros.markers')
+publishing = lazy('landmark_ros.fuser.publishing')    # the map, scipy: after the publishers
 schemas = lazy('landmark_ros.ros.schemas')
 
 
@@ -30,7 +30,8 @@ class MapOutputs:
         self.updates_pub = node.create_publisher(PointCloud2, 'fused_landmark_updates',
                                                  qos.reliable_output(10))
         self.marker_pub = node.create_publisher(MarkerArray, 'fused_markers', qos.LATCHED)
-        self._schedule = PublicationSchedule(config.publish_rate_hz, config.updates_rate_hz)
+        self._schedule = publishing.PublicationSchedule(config.publish_rate_hz,
+                                                        config.updates_rate_hz)
         self.period_s = self._schedule.period_s
         self.markers_stale = True
         self._marker_subscribers = 0

@@ -13,6 +13,7 @@ since the last update on ``fused_landmark_updates``, RViz markers on
 """
 
 import sys
+import threading
 from types import SimpleNamespace
 
 from diagnostic_msgs.msg import DiagnosticArray
@@ -45,14 +46,6 @@ class LandmarkFuser(Node):
         partial_topics = [topic for topic in config.partial_observation_topics if topic]
         self._source_of = {topic: self.resolve_topic_name(topic)
                            for topic in landmark_topics + partial_topics}
-        # The fusion code first (imports, map file), then the endpoints: a fuser that
-        # subscribes takes its inputs from the first message, so publishers that start
-        # on seeing a subscriber (the simulator) neither lose messages nor queue a
-        # backlog behind a node still loading.
-        self.fuser = pipeline.Fuser(
-            config, [self._source_of[topic] for topic in landmark_topics], self.get_logger(),
-            [self._source_of[topic] for topic in partial_topics])
-        self.fuser.load()
         overrides = QoSOverridingOptions.with_default_policies()
         self.landmark_inputs = fast_io.Inputs(self, fast_io.InputSpec(
             PointCloud2, landmark_topics, qos.reliable_input(config.input_depth),
@@ -75,6 +68,31 @@ class LandmarkFuser(Node):
         self.create_timer(config.diagnostics_period_s, self._guard(self.publish_diagnostics))
         if config.map_file and config.autosave_period_s > 0.0:
             self.create_timer(config.autosave_period_s, self._guard(self.autosave))
+        # The endpoints first, then the fusion code (imports: scipy, the map; the map
+        # file): no callback runs before the constructor returns, and what arrives
+        # meanwhile waits in the input queues (input_depth deep, reliable).
+        if not self._imported():
+            return      # a stop signal came: the runner ends the node without spinning
+        self.fuser = pipeline.Fuser(
+            config, [self._source_of[topic] for topic in landmark_topics], self.get_logger(),
+            [self._source_of[topic] for topic in partial_topics])
+        self.fuser.load()
+
+    def _imported(self):
+        """
+        Import the fusion code in a thread; return False if a stop signal comes first.
+
+        The import takes a second or more (scipy); a stop signal shuts the context down
+        but lets Python code run on, so the wait, not the import, watches for it.
+        """
+        loader = threading.Thread(target=lambda: pipeline.Fuser, daemon=True,
+                                  name='landmark_fuser.import')
+        loader.start()
+        while loader.is_alive():
+            loader.join(0.05)
+            if not self.context.ok():
+                return False
+        return True
 
     def _guard(self, callback, what=None):
         # Callbacks created before the fuser exists count into it once it does.
@@ -195,8 +213,9 @@ class LandmarkFuser(Node):
 
     def destroy_node(self):
         """Save the map (when a map file is set) before going away."""
-        if self.config.map_file and self.fuser.unsaved:
-            self.fuser.save()
+        fuser = getattr(self, 'fuser', None)     # None: stopped before it was built
+        if fuser is not None and fuser.config.map_file and fuser.unsaved:
+            fuser.save()
         return super().destroy_node()
 
 

@@ -385,7 +385,7 @@ class Observer:
             One per message, in order.
 
         """
-        ready = [(replace(item, columns=self._corrected(self._plausible(_with_ids(
+        ready = [(_with_columns(item, self._corrected(self._plausible(_with_ids(
             item.columns)))), pose, P_pose) for item, pose, P_pose in ready]
         ready, found_partial = self._partial(ready)
         counts = [item.rows for item, _, _ in ready]
@@ -393,12 +393,12 @@ class Observer:
         noise = [self.noise(c) for c in columns]
         if len(ready) == 1:
             ids = np.asarray(columns[0]['id'])
-            z = np.stack([columns[0]['range'], columns[0]['bearing']], axis=1)
+            z = _range_bearing(columns[0])
             R = noise[0]
             pose, P_pose = ready[0][1], ready[0][2]
         else:
             ids = np.concatenate([c['id'] for c in columns])
-            z = np.concatenate([np.stack([c['range'], c['bearing']], axis=1) for c in columns])
+            z = np.concatenate([_range_bearing(c) for c in columns])
             R = noise[0] if all(r.ndim == 2 for r in noise) and all(
                 np.array_equal(r, noise[0]) for r in noise) else np.concatenate(
                 [np.broadcast_to(r, (n, 2, 2)) for r, n in zip(noise, counts)])
@@ -422,7 +422,7 @@ class Observer:
             batch = LandmarkBatch(item.stamp_ns, ids[start:end], m[start:end],
                                   P_m[start:end], P_dep[start:end], item.token,
                                   found_partial.get(id(item), no_partial_observations()))
-            unlabelled = bool((batch.ids == UNKNOWN_ID).any())
+            unlabelled = np.count_nonzero(batch.ids == UNKNOWN_ID) > 0
             if unlabelled or 'class' in c:
                 classes = np.zeros(end - start, np.int64)
                 if 'class' in c:
@@ -512,7 +512,7 @@ class Observer:
         for item, pose, P_pose in ready:
             self._view_group = (self._view_group + 1) % (1 << 32)
             columns, partial = split_partial(item.columns)
-            if partial.any():
+            if np.count_nonzero(partial):
                 rows = {name: np.asarray(values)[partial] for name, values in columns.items()}
                 rows, R = self._range_only_corrected(rows)
                 found, reasons = partial_observations_from_rows(
@@ -584,3 +584,17 @@ def _with_ids(columns: Dict[str, NDArray[Any]]) -> Dict[str, NDArray[Any]]:
         return columns
     count = len(next(iter(columns.values())))
     return {**columns, 'id': np.full(count, UNKNOWN_ID, np.int64)}
+
+
+def _with_columns(message: ObservationMessage,
+                  columns: Dict[str, NDArray[Any]]) -> ObservationMessage:
+    """Return the message with ``columns`` (itself when they are its own)."""
+    return message if columns is message.columns else replace(message, columns=columns)
+
+
+def _range_bearing(columns: Dict[str, NDArray[Any]]) -> NDArray[np.float64]:
+    """Return ``z``, shape (N, 2): range and bearing (``np.stack`` costs several times more)."""
+    r, b = columns['range'], columns['bearing']
+    z = np.empty((len(r), 2), np.result_type(r, b))
+    z[:, 0], z[:, 1] = r, b
+    return z

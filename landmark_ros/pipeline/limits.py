@@ -101,9 +101,14 @@ def outside(values: NDArray[Any], low: float, high: float) -> NDArray[np.bool_]:
     ndarray of bool, the shape of ``values``
 
     """
-    values = np.asarray(values, dtype=np.float64)
     with np.errstate(invalid='ignore'):
-        return np.asarray(np.isfinite(values) & ((values < low) | (values > high)))
+        return _outside(values, low, high)
+
+
+def _outside(values, low, high):
+    """Return ``outside(values, low, high)``; the caller silences 'invalid' (NaN)."""
+    values = np.asarray(values, dtype=np.float64)
+    return np.asarray(np.isfinite(values) & ((values < low) | (values > high)))
 
 
 def observation_problems(columns: Mapping[str, NDArray[Any]],
@@ -127,20 +132,21 @@ def observation_problems(columns: Mapping[str, NDArray[Any]],
 
     """
     none = np.zeros(count, bool)
-    checks = [
-        ('range_out_of_range', outside(columns['range'], -np.inf, MAX_RANGE)
-         if 'range' in columns else none),
-        ('bearing_out_of_range', outside(columns['bearing'], -MAX_ANGLE, MAX_ANGLE)
-         if 'bearing' in columns else none),
-    ]
-    noise = none.copy()
-    for name in ('range_variance', 'bearing_variance'):
-        if name in columns:    # zero and negative: the covariance checks' own reasons
-            values = np.asarray(columns[name], dtype=np.float64)
-            with np.errstate(invalid='ignore'):
-                noise |= outside(values, MIN_VARIANCE, MAX_VARIANCE) & (values > 0.0)
-    if 'range_bearing_covariance' in columns:
-        noise |= outside(columns['range_bearing_covariance'], -MAX_VARIANCE, MAX_VARIANCE)
+    with np.errstate(invalid='ignore'):  # once per message, not once per column
+        checks = [
+            ('range_out_of_range', _outside(columns['range'], -np.inf, MAX_RANGE)
+             if 'range' in columns else none),
+            ('bearing_out_of_range', _outside(columns['bearing'], -MAX_ANGLE, MAX_ANGLE)
+             if 'bearing' in columns else none),
+        ]
+        noise = none.copy()
+        for name in ('range_variance', 'bearing_variance'):
+            if name in columns:    # zero and negative: the covariance checks' own reasons
+                values = np.asarray(columns[name], dtype=np.float64)
+                noise |= _outside(values, MIN_VARIANCE, MAX_VARIANCE) & (values > 0.0)
+        if 'range_bearing_covariance' in columns:
+            noise |= _outside(columns['range_bearing_covariance'], -MAX_VARIANCE,
+                              MAX_VARIANCE)
     checks.append(('noise_variance_out_of_range', noise))
     return checks
 

@@ -52,8 +52,9 @@ def first_problems(
     reasons: Counter[str] = Counter()
     for name, bad in checks:
         new = bad & valid
-        if new.any():
-            reasons[name] = int(new.sum())
+        rejected = int(np.count_nonzero(new))  # cheaper than any() then sum()
+        if rejected:
+            reasons[name] = rejected
             valid &= ~new
     return valid, reasons
 
@@ -97,7 +98,7 @@ def landmark_row_problems(
         in_range = range_status(P, finite & definite) == 0
         valid = finite & definite & in_range & dependent & (ids >= 0) & (ids <= MAX_ID)
         valid &= ~landmark_problems(m)[0][1]
-        if valid.all():
+        if np.count_nonzero(valid) == len(valid):
             return valid, Counter()
         total = np.atleast_1d(covariance_status(np.where(finite[:, None, None], P, 0.0)))
         span = np.atleast_1d(covariance_range_status(np.where(finite[:, None, None], P, 1.0)))
@@ -135,16 +136,35 @@ def range_status(P: NDArray[np.float64], usable: NDArray[np.bool_]) -> NDArray[n
         0 where in range, else a code of ``COVARIANCE_RANGE_PROBLEMS``.
 
     """
+    status = np.zeros(len(P), np.int64)
+    slow = usable & ~in_range_fast(P)
+    if np.count_nonzero(slow):
+        status[slow] = np.atleast_1d(covariance_range_status(P.compress(slow, axis=0)))
+    return status
+
+
+def in_range_fast(P: NDArray[np.float64]) -> NDArray[np.bool_]:
+    """
+    Return where symmetric 2x2 covariances pass ``range_status``'s sufficient test.
+
+    Diagonal inside ``[MIN_VARIANCE, MAX_VARIANCE]`` and ``trace^2 <= MAX_CONDITION
+    det``: True implies status 0; False (NaN included) says nothing.
+
+    Parameters
+    ----------
+    P : ndarray, shape (N, 2, 2)
+        Covariances [m^2]; only the entries 00, 01 and 11 are read.
+
+    Returns
+    -------
+    ndarray of bool, shape (N,)
+
+    """
     a, b, c = P[:, 0, 0], P[:, 0, 1], P[:, 1, 1]
     with np.errstate(invalid='ignore', over='ignore'):
         trace = a + c
-        fast = (np.minimum(a, c) >= MIN_VARIANCE) & (np.maximum(a, c) <= MAX_VARIANCE) & (
+        return (np.minimum(a, c) >= MIN_VARIANCE) & (np.maximum(a, c) <= MAX_VARIANCE) & (
             trace * trace <= MAX_CONDITION * (a * c - b * b))
-    status = np.zeros(len(P), np.int64)
-    slow = usable & ~fast
-    if slow.any():
-        status[slow] = np.atleast_1d(covariance_range_status(P[slow]))
-    return status
 
 
 def _psd_2x2(P, tol=1e-9):

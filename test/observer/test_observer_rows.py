@@ -3,9 +3,11 @@
 from collections import Counter
 
 from conftest import random_observations, random_poses, random_spd
+from landmark_ros.core.covariance import COVARIANCE_RANGE_PROBLEMS, covariance_range_status
 from landmark_ros.core.landmarks import landmark_to_world_dependent
 from landmark_ros.core.sensors import MIN_RANGE
 from landmark_ros.observer.rows import landmarks_from_rows, observation_noise, row_problems
+from landmark_ros.pipeline.limits import MAX_COORDINATE
 from landmark_ros.pipeline.rows import MAX_ID
 import numpy as np
 import pytest
@@ -195,6 +197,38 @@ def test_landmarks_from_rows_drops_nonfinite_results_without_warnings(rng, no_wa
     kept, m, P_m, P_dep, reasons = landmarks_from_rows(ids[1:3], z[1:3], R, pose, P_pose)
     assert kept.tolist() == [False, False] and m.shape == (0, 2) and P_m.shape == (0, 2, 2)
     assert P_dep.shape == (0, 2, 2) and reasons == Counter(result_nonfinite=2)
+
+
+@pytest.mark.parametrize('bad', ['landmark_out_of_range', 'covariance_too_small',
+                                 'covariance_too_large', 'covariance_ill_conditioned'])
+def test_landmarks_from_rows_result_checks_match_the_core(rng, no_warnings, bad):
+    # One row that fails one result check among good rows, at a random place; the
+    # expected rows come from the core's checks, not from the observer's fast path.
+    count = 12
+    pose = random_poses(rng, count)
+    P_pose = np.stack([random_spd(rng, 3, scale=0.1) for _ in range(count)])
+    z = np.column_stack([rng.uniform(1.0, 20.0, count), rng.uniform(-np.pi, np.pi, count)])
+    R = np.tile(np.diag([0.01, 0.0004]), (count, 1, 1))
+    i = rng.integers(count)
+    if bad == 'landmark_out_of_range':
+        pose[i], z[i] = [MAX_COORDINATE - 1.0, 0.0, 0.0], [5.0, 0.0]
+    else:
+        P_pose[i] = 0.0
+        z[i], R[i] = {'covariance_too_small': ([5.0, 0.1], np.diag([1e-20, 1e-20])),
+                      'covariance_too_large': ([5.0, 0.1], np.diag([1e13, 1e-4])),
+                      'covariance_ill_conditioned': ([1.0, 0.2], np.diag([1e2, 1e-10]))}[bad]
+    ids = np.arange(count, dtype=np.int64)
+    kept, m, P_m, P_dep, reasons = landmarks_from_rows(ids, z, R, pose, P_pose)
+    m_ref, P_ref, P_dep_ref = landmark_to_world_dependent(pose, P_pose, z, R)
+    status = covariance_range_status(P_ref)
+    far = np.any(np.abs(m_ref) > MAX_COORDINATE, axis=1)
+    good = (status == 0) & ~far
+    assert np.flatnonzero(~good).tolist() == [i]
+    name = bad if far[i] else COVARIANCE_RANGE_PROBLEMS[int(status[i])]
+    assert name == bad and reasons == Counter({f'result_{bad}': 1})
+    np.testing.assert_array_equal(kept, good)
+    for actual, reference in zip((m, P_m, P_dep), (m_ref, P_ref, P_dep_ref)):
+        np.testing.assert_array_equal(actual, reference[good])
 
 
 def test_landmarks_from_rows_dependent_part_is_the_pose_and_bias(rng, no_warnings):
