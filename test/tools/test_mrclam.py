@@ -12,6 +12,7 @@ import json
 import math
 import os
 from pathlib import Path
+import re
 
 from landmark_ros.core.pose2 import wrap_angle
 from landmark_ros.fusion.landmark_map import FUSION_METHODS
@@ -32,6 +33,32 @@ os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 REPO_ROOT = Path(__file__).resolve().parents[2]
 DATASET6 = REPO_ROOT.parent / 'shared' / 'data' / 'mrclam' / 'dataset6'
 CONFIG = REPO_ROOT / 'config' / 'mrclam.yaml'
+
+
+def synthetic_config(directory):
+    """
+    Write ``config/mrclam.yaml`` with the sensor model of ``noisy_dataset`` into ``directory``.
+
+    The synthetic datasets have no range scale error (the MRCLAM camera's calibrated
+    correction would put one in) and the noise of ``noisy_dataset``. Returns the path.
+    """
+    text = CONFIG.read_text()
+    for name, value in (('range_stddev', 0.02), ('range_stddev_per_m', 0.03),
+                        ('bearing_stddev', 0.01), ('range_bias_stddev', 0.02),
+                        ('bearing_bias_stddev', 0.004)):
+        text, count = re.subn(rf'\b{name}: [0-9.e-]+', f'{name}: {value}', text)
+        assert count >= 1, name
+    for pattern, value in ((r'range_scale_coeffs: \[[^\]]*\]',
+                            'range_scale_coeffs: [0.0, 0.0, 0.0]'),
+                           (r'range_scale_per_m: [-0-9.e]+', 'range_scale_per_m: 0.0'),
+                           (r'range_scale_no_bearing: \[[^\]]*\]',
+                            'range_scale_no_bearing: [0.0, 0.0]')):
+        text, count = re.subn(pattern, value, text)
+        assert count >= 1, pattern
+    path = Path(directory) / 'synthetic_mrclam.yaml'
+    path.write_text(text)
+    return path
+
 
 T0 = 1248444000.0
 ROBOT_BARCODES = {1: 5, 2: 14, 3: 41, 4: 32, 5: 23}
@@ -162,6 +189,7 @@ def clean_dataset(tmp_path):
 @pytest.fixture
 def noisy_dataset(tmp_path):
     directory = tmp_path / 'noisy'
+    # The noise that synthetic_config describes.
     info = make_dataset(directory, noise=(0.02, 0.03, 0.01), bias=(0.02, 0.004),
                         rng=np.random.default_rng(7))
     return directory, info
@@ -317,7 +345,8 @@ def test_offline_noise_free_recovers_the_truth_and_writes_json(
         clean_dataset, tmp_path, capsys):
     directory, info = clean_dataset
     out = tmp_path / 'result.json'
-    assert main([str(directory), '--config', str(CONFIG), '--json', str(out)]) == 0
+    config = synthetic_config(tmp_path)
+    assert main([str(directory), '--config', str(config), '--json', str(out)]) == 0
     printed = capsys.readouterr().out
     assert '== summary' in printed
     for method in FUSION_METHODS:
@@ -491,8 +520,9 @@ def test_offline_with_one_column_dropped_places_every_landmark_from_views(
     out = tmp_path / f'{sensor}.json'
     # The synthetic errors are white: the shipped camera's time correlation is off.
     white = tmp_path / 'white.yaml'
-    white.write_text(Path(CONFIG).read_text().replace(
-        'noise_correlation_time_s: 8.3', 'noise_correlation_time_s: 0.0'))
+    white.write_text(re.sub(r'noise_correlation_time_s: [0-9.]+',
+                            'noise_correlation_time_s: 0.0',
+                            synthetic_config(tmp_path).read_text()))
     assert 'noise_correlation_time_s: 0.0' in white.read_text()
     assert main([str(noisy_dataset[0]), '--sensor', sensor, '--fusion',
                  'split_covariance_intersection', '--json', str(out),

@@ -4,14 +4,15 @@ import json
 
 from landmark_ros.mrclam.cli import main
 import numpy as np
-from test_mrclam import CONFIG, LANDMARKS, noisy_dataset  # noqa: F401, the fixture
+from test_mrclam import LANDMARKS, noisy_dataset, synthetic_config  # noqa: F401, the fixture
 
 
 def test_hide_ids_associates_the_sightings_and_reports_it(noisy_dataset, tmp_path,  # noqa: F811
                                                           capsys):
     directory, info = noisy_dataset
     out = tmp_path / 'result.json'
-    assert main([str(directory), '--config', str(CONFIG), '--hide-ids', '--fusion',
+    config = synthetic_config(tmp_path)
+    assert main([str(directory), '--config', str(config), '--hide-ids', '--fusion',
                  'split_covariance_intersection', '--json', str(out)]) == 0
     assert '== association (IDs hidden)' in capsys.readouterr().out
     (entry,) = json.loads(out.read_text())['summary']
@@ -25,7 +26,8 @@ def test_hide_ids_associates_the_sightings_and_reports_it(noisy_dataset, tmp_pat
 def test_hide_ids_through_nodes_agrees_with_offline(noisy_dataset, tmp_path):  # noqa: F811
     directory, _ = noisy_dataset
     out = tmp_path / 'nodes.json'
-    code = main([str(directory), '--config', str(CONFIG), '--hide-ids', '--through-nodes',
+    config = synthetic_config(tmp_path)
+    code = main([str(directory), '--config', str(config), '--hide-ids', '--through-nodes',
                  '--fusion', 'split_covariance_intersection', '--no-progress',
                  '--json', str(out)])
     document = json.loads(out.read_text())
