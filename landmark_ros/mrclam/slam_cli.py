@@ -49,16 +49,24 @@ def _plot(args, dataset, results):
         print(f'wrote {out}')
 
 
-def run_slam(args, dataset, replay_config, document):
-    """Run ``--slam``; return the exit code (0 also when targets fail: they print)."""
+def _setup(replay_config, dataset, duration):
+    """Return the loop config, odometry delay, anchor IDs, dataset and extras (sliced)."""
     localizer_values, replay_values = _sections(replay_config.path)
     config = slam.loop_config(replay_config, localizer_config(localizer_values))
     delay_s = float(replay_values.get('odometry_delay_s', 0.0))
     anchor_ids = tuple(int(i) for i in replay_values.get('slam_anchor_ids',
                                                          slam.DEFAULT_ANCHORS))
     extras = load_all_extras(dataset)
+    if duration is not None:
+        dataset, extras = slice_run(dataset, extras, duration)
+    return config, delay_s, anchor_ids, dataset, extras
+
+
+def run_slam(args, dataset, replay_config, document):
+    """Run ``--slam``; return the exit code (0 also when targets fail: they print)."""
+    config, delay_s, anchor_ids, dataset, extras = _setup(replay_config, dataset,
+                                                          args.duration)
     if args.duration is not None:
-        dataset, extras = slice_run(dataset, extras, args.duration)
         document['dataset']['duration_s'] = dataset.duration
     bar = None if args.no_progress else _Bar
     modes = _modes(args)
@@ -116,14 +124,8 @@ def main(argv=None):
     args = parser.parse_args(argv)
     replay_config = load_config(args.config)
     dataset = load_dataset(args.dataset or default_dataset_path(), replay_config.pose_stddev)
-    localizer_values, replay_values = _sections(replay_config.path)
-    config = slam.loop_config(replay_config, localizer_config(localizer_values))
-    delay_s = float(replay_values.get('odometry_delay_s', 0.0))
-    anchor_ids = tuple(int(i) for i in replay_values.get('slam_anchor_ids',
-                                                         slam.DEFAULT_ANCHORS))
-    extras = load_all_extras(dataset)
-    if args.duration is not None:
-        dataset, extras = slice_run(dataset, extras, args.duration)
+    config, delay_s, anchor_ids, dataset, extras = _setup(replay_config, dataset,
+                                                          args.duration)
     mode = slam.SlamMode(args.hide_ids, args.anchors)
     result, = slam.run_all(dataset, extras, config, anchor_ids, delay_s, (mode,))
     print(slam.format_table([result], dataset.duration))
