@@ -35,6 +35,11 @@ class LocalizerConfig(ConfigBase):
         high=100.0)
     odometry_yaw_rate_scale: float = param(
         1.0, 'true turn per odometry turn (wheel base error)', low=0.01, high=100.0)
+    odometry_speed_scale_per_yaw_rate: float = param(
+        0.0, 'change of the speed scale with the odometry yaw rate [s/rad]: true distance = '
+        'odometry distance x max(0, odometry_speed_scale + this x |yaw rate|) (a drive that '
+        'slows down in turns, as a controller that keeps the turn rate and gives up speed '
+        'does); 0: none', low=-100.0, high=100.0)
     min_step_variance: float = param(
         1e-10, 'variance floor added to each motion component per odometry step', low=0.0,
         high=1e6)

@@ -325,9 +325,9 @@ class Localizer:
             delta = motion.delta_from_twist(self._last_twist[0], self._last_twist[1], dt)
         else:
             delta = _ZERO3
-        if cfg.odometry_speed_scale != 1.0 or cfg.odometry_yaw_rate_scale != 1.0:
-            delta = delta * np.array([cfg.odometry_speed_scale, cfg.odometry_speed_scale,
-                                      cfg.odometry_yaw_rate_scale])
+        delta = motion.scale_motion(delta, dt, cfg.odometry_speed_scale,
+                                    cfg.odometry_yaw_rate_scale,
+                                    cfg.odometry_speed_scale_per_yaw_rate)
         trans, rot = math.hypot(delta[0], delta[1]), abs(delta[2])
         if trans > cfg.max_speed_mps * dt or rot > cfg.max_yaw_rate * dt:
             self.counters.add('odometry_jump', detail=f'odometry moved {trans:.2f} m, '

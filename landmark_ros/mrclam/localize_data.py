@@ -71,7 +71,7 @@ def _windows(extras, robot, window_s, delay_s=0.0, scales=(1.0, 1.0)):
     t = extras.odom_times + delay_s
     gt_t, gt_p = robot.gt_times, robot.gt_poses
     inside = (t >= gt_t[0]) & (t <= gt_t[-1])
-    t, twist = t[inside], extras.odom_twist[inside] * np.asarray(scales)
+    t, twist = t[inside], motion.scale_twists(extras.odom_twist[inside], scales)
     truth, _ = interpolate_poses(gt_t, gt_p, t)
     poses, deltas = motion.integrate_twists(t, twist)
     terms = motion.odometry_noise_terms(deltas)  # step k -> k + 1
@@ -102,8 +102,8 @@ def window_samples(dataset, extras, numbers, window_s, delay_s=0.0, scales=(1.0,
     """
     Return the window errors (W, 3) and unit-alpha covariances (W, 4, 3, 3).
 
-    ``scales`` (speed, yaw rate) multiply the odometry's twists first
-    (``odometry_scales``).
+    ``scales`` (speed, yaw rate[, speed per yaw rate]) correct the odometry's twists
+    first (``motion.scale_twists``, ``odometry_scales``).
     """
     errors, covs = [], []
     for robot in dataset.robots:
@@ -163,7 +163,17 @@ def odometry_delay(dataset, extras, delays=np.arange(0.0, 0.41, 0.025)):
 
 
 def _motion_pairs(robot, extras, delay_s, window_s):
-    """Return per window the odometry and true (distance [m], turn [rad]), (W, 2) each."""
+    """
+    Return per window the odometry's and the true motion.
+
+    Returns
+    -------
+    odo : ndarray, shape (W, 3)
+        Odometry distance [m], turn [rad] and the integral of speed x |yaw rate| [rad m].
+    true : ndarray, shape (W, 2)
+        True distance [m] and turn [rad].
+
+    """
     e = extras[robot.number]
     t = np.arange(max(e.odom_times[0] + delay_s, robot.gt_times[0]),
                   min(e.odom_times[-1] + delay_s, robot.gt_times[-1]), window_s)
@@ -174,23 +184,32 @@ def _motion_pairs(robot, extras, delay_s, window_s):
     # the odometry integrated as the localizer does: each twist held until the next stamp
     ot = e.odom_times + delay_s
     dt = np.diff(ot)
-    cum = np.concatenate([[[0.0, 0.0]], np.cumsum(
-        np.abs(e.odom_twist[:-1]) * np.array([1.0, 0.0])[None] * dt[:, None]
-        + e.odom_twist[:-1] * np.array([0.0, 1.0])[None] * dt[:, None], axis=0)])
-    odo = np.diff(np.stack([np.interp(t, ot, cum[:, c]) for c in (0, 1)], 1), axis=0)
+    v, w = e.odom_twist[:-1, 0], e.odom_twist[:-1, 1]
+    rates = np.stack([np.abs(v), w, np.abs(v * w)], 1) * dt[:, None]
+    cum = np.concatenate([np.zeros((1, 3)), np.cumsum(rates, axis=0)])
+    odo = np.diff(np.stack([np.interp(t, ot, cum[:, c]) for c in range(3)], 1), axis=0)
     return odo, true
 
 
 def odometry_scales(dataset, extras, numbers, delay_s, window_s=0.5, min_distance=0.02):
     """
-    Return the (speed, yaw rate) scales of the odometry: true motion per odometry motion.
+    Return the systematic error of the odometry: true motion per odometry motion.
 
-    Least squares through the origin over windows of ``window_s`` of the robots
-    ``numbers`` pooled: the true distance (ground truth) against the odometry's (windows
-    where the odometry moves at least ``min_distance``), the true turn against the
-    odometry's. A systematic error of the wheel odometry (wheel radius, wheel base; on
-    MRCLAM the odometry looks like the commanded twist) that the alphas, zero-mean
+    Least squares over windows of ``window_s`` of the robots ``numbers`` pooled: the
+    true distance (ground truth) against the odometry's distance and its integral of
+    speed x |yaw rate| (windows where the odometry moves at least ``min_distance``), the
+    true turn against the odometry's through the origin. A systematic error of the wheel
+    odometry (wheel radius, wheel base, a drive that slows down in turns; on MRCLAM the
+    odometry is the commanded twist: straight at 0.067 m/s the robots make 0.068 m/s,
+    turning at 0.4 rad/s and 0.086 m/s they make 0.05 m/s) that the alphas, zero-mean
     noise, cannot describe.
+
+    Returns
+    -------
+    tuple of 3 float
+        ``(speed_scale, yaw_rate_scale, speed_scale_per_yaw_rate [s/rad])``, the
+        parameters of ``motion.scale_motion``.
+
     """
     odo, true = [], []
     for robot in dataset.robots:
@@ -200,9 +219,10 @@ def odometry_scales(dataset, extras, numbers, delay_s, window_s=0.5, min_distanc
             true.append(t)
     odo, true = np.concatenate(odo), np.concatenate(true)
     moving = odo[:, 0] >= min_distance
-    speed = np.sum(odo[moving, 0] * true[moving, 0]) / np.sum(odo[moving, 0] ** 2)
+    (speed, per_yaw_rate), *_ = np.linalg.lstsq(odo[moving][:, [0, 2]], true[moving, 0],
+                                                rcond=None)
     turn = np.sum(odo[:, 1] * true[:, 1]) / np.sum(odo[:, 1] ** 2)
-    return float(speed), float(turn)
+    return float(speed), float(turn), float(per_yaw_rate)
 
 
 def calibrate_odometry(dataset, extras, window_s=2.0, check_windows=(1.0, 2.0, 5.0)):
@@ -243,19 +263,21 @@ def format_odometry_calibration(result):
     a = result['alphas']
     lines = [f'odometry alphas from {result["windows"]} windows of {result["window_s"]} s '
              f'(all robots, odometry delay {result["delay_s"]:.3f} s, speed and yaw-rate '
-             'scales {:.4f}, {:.4f}): '.format(*result['scales'])
+             'scales {:.4f}, {:.4f}, speed scale per yaw rate {:.4f} s/rad): '.format(
+                 *result['scales'])
              + ', '.join(f'{v:.3g}' for v in a),
              'cross-check (fit without the robot, window NEES on it; 3 is right):']
     for entry in result['cross_check']:
         nees = ', '.join(f'{w} s: {v:.2f}' for w, v in entry['window_nees'].items())
         lines.append(f'  robot {entry["held_out"]}: alphas '
                      + ', '.join(f'{v:.3g}' for v in entry['alphas'])
-                     + ', scales {:.4f}, {:.4f} (its own {:.4f}, {:.4f})'.format(
+                     + ', scales {:.4f}, {:.4f}, {:.4f} (its own {:.4f}, {:.4f}, {:.4f})'.format(
                          *entry['scales'], *entry['own_scales']) + f'; NEES {nees}')
     lines.append('landmark_localizer:\n  ros__parameters:\n    odometry_alphas: ['
                  + ', '.join(f'{v:.4g}' for v in a) + ']\n'
                  f'    odometry_speed_scale: {result["scales"][0]:.4f}\n'
                  f'    odometry_yaw_rate_scale: {result["scales"][1]:.4f}\n'
+                 f'    odometry_speed_scale_per_yaw_rate: {result["scales"][2]:.4f}\n'
                  'landmark_mrclam:\n  ros__parameters:\n'
                  f'    odometry_delay_s: {result["delay_s"]:.3f}')
     return '\n'.join(lines)

@@ -382,3 +382,22 @@ def test_odometry_scales_apply_to_pose_and_twist_motion():
             loc.add_odometry(100 * MS, **kwargs)
             expected = motion.delta_from_twist(1.0, 0.5, 0.1) * [0.9, 0.9, 0.7]
         np.testing.assert_allclose(loc.estimate().x, expected, atol=1e-12)
+
+
+def test_speed_scale_per_yaw_rate_slows_the_motion_in_turns():
+    # speed scale 1.04 - 1.1 |w|: straight 1.04, at 0.4 rad/s 0.6
+    config = LocalizerConfig(odometry_speed_scale=1.04, odometry_yaw_rate_scale=0.9,
+                             odometry_speed_scale_per_yaw_rate=-1.1)
+    for w, scale in ((0.0, 1.04), (0.4, 0.6), (-0.4, 0.6), (2.0, 0.0)):
+        loc = Localizer(config)
+        loc.initialize(0, np.zeros(3), np.eye(3) * 0.01)
+        loc.add_odometry(0, twist=np.array([0.1, w]))
+        loc.add_odometry(100 * MS, twist=np.array([0.1, w]))
+        expected = motion.delta_from_twist(0.1, w, 0.1) * [scale, scale, 0.9]
+        np.testing.assert_allclose(loc.estimate().x, expected, atol=1e-12)
+        # from consecutive odometry poses: the yaw rate is the turn over the step
+        loc = Localizer(config)
+        loc.initialize(0, np.zeros(3), np.eye(3) * 0.01)
+        loc.add_odometry(0, pose=np.zeros(3))
+        loc.add_odometry(100 * MS, pose=motion.delta_from_twist(0.1, w, 0.1))
+        np.testing.assert_allclose(loc.estimate().x, expected, atol=1e-12)
