@@ -203,10 +203,7 @@ class SplitCovarianceIntersection(Independent):
         rows = rows[rows < len(self.stale)]
         rows = rows[self.stale[rows]]
         self.stale[rows] = False
-        rows = rows[self.sums.held(rows)]
-        if not len(rows):
-            return rows, None
-        return rows, self.sums.fold(rows)
+        return self.sums.fold_held(rows)
 
     def start(self, row: int, cluster: Rows) -> Estimates:
         """Replace a landmark's sums by those of agreeing observations; fold them."""

@@ -93,21 +93,21 @@ class SourceSums:
         at = np.searchsorted(self.keys, keys)
         found = at < len(self.keys)
         found[found] = self.keys[at[found]] == keys[found]
-        if not found.all():
-            new = unique_ints(keys[~found])
-            slots = np.arange(self.count, self.count + len(new))
-            self.count += len(new)
-            if self.count > len(self.table):
-                grown = np.zeros((2 * self.count, compiled.COLUMNS))
-                grown[:len(self.table)] = self.table
-                self.table = grown
-            self.table[slots] = 0.0
-            self.table[slots, compiled.DIRTY] = 1.0
-            where = np.searchsorted(self.keys, new)
-            self.keys = np.insert(self.keys, where, new)
-            self.slots = np.insert(self.slots, where, slots)
-            at = np.searchsorted(self.keys, keys)
-        return self.slots[at]
+        if found.all():
+            return self.slots[at]
+        new, first = unique_ints(keys[~found]), self.count
+        self.count += len(new)      # the table's rows from count on hold zeros
+        if self.count > len(self.table):
+            grown = np.zeros((2 * self.count, compiled.COLUMNS))
+            grown[:len(self.table)] = self.table
+            self.table = grown
+        slots = np.empty(len(keys), np.int64)
+        slots[found] = self.slots[at[found]]
+        slots[~found] = first + np.searchsorted(new, keys[~found])
+        where = np.searchsorted(self.keys, new)
+        self.keys = np.insert(self.keys, where, new)
+        self.slots = np.insert(self.slots, where, np.arange(first, self.count))
+        return slots
 
     def add(self, rows: NDArray[np.int64], codes: NDArray[np.int64], z: NDArray[np.float64],
             R_ind: NDArray[np.float64], R_dep: NDArray[np.float64]) -> None:
@@ -122,13 +122,14 @@ class SourceSums:
 
     def fold(self, rows: NDArray[np.int64]) -> Estimates:
         """Return the split-CI fold of the sources of each of ``rows`` (each has one)."""
-        lo, hi = self._bounds(rows)
-        return fold(self.table, self.slots, lo, hi)
+        return self.fold_held(rows)[1]
 
-    def held(self, rows: NDArray[np.int64]) -> NDArray[np.bool_]:
-        """Return which of ``rows`` have sources."""
+    def fold_held(self, rows: NDArray[np.int64]) -> Tuple[NDArray[np.int64], Any]:
+        """Return those of ``rows`` that have sources and their fold (None if none have)."""
         lo, hi = self._bounds(rows)
-        return hi > lo
+        held = hi > lo
+        rows, lo, hi = rows[held], lo[held], hi[held]
+        return rows, (fold(self.table, self.slots, lo, hi) if len(rows) else None)
 
     def clear(self, rows: NDArray[np.int64]) -> None:
         """Forget the sources of landmarks (their slots stay unused until ``checkpoint``)."""
@@ -162,6 +163,7 @@ class SourceSums:
         for slots, sums in reversed(state.journal):
             self.table[slots, :9] = sums
             self.table[slots, compiled.DIRTY] = 1.0
+        self.table[state.slot_count:self.count] = 0.0
         self.keys, self.slots, self.count = state.keys, state.slots, state.slot_count
 
     def records(self, row: int, names: Sequence[str]) -> List[Dict[str, Any]]:

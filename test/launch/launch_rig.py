@@ -11,6 +11,7 @@ every process that still carries the token, whatever happened in the test.
 
 import os
 from pathlib import Path
+import select
 import shutil
 import signal
 import subprocess
@@ -93,6 +94,22 @@ def processes_with(token):
     return found
 
 
+def wait_for_any_exit(pids, timeout_s):
+    """Return once one of ``pids`` has ended (or is gone) or after ``timeout_s``."""
+    poller, fds = select.poll(), []
+    try:
+        for pid in pids:
+            try:
+                fds.append(os.pidfd_open(pid))
+            except ProcessLookupError:      # ended already
+                return
+            poller.register(fds[-1], select.POLLIN)
+        poller.poll(max(0.0, timeout_s) * 1000.0)
+    finally:
+        for fd in fds:
+            os.close(fd)
+
+
 class Launch:
     """
     ``ros2 launch landmark_ros team.launch.py ARGS`` in its own session and domain.
@@ -141,13 +158,18 @@ class Launch:
             return None
 
     def left_running(self, grace_s=5.0):
-        """Return the PIDs of the launch's processes still alive after up to ``grace_s``."""
+        """
+        Return the PIDs of the launch's processes still alive after up to ``grace_s``.
+
+        Waits on the processes' exit (``pidfd_open`` and ``poll``), not by sleeping.
+        """
         deadline = time.monotonic() + grace_s
         while True:
             pids = processes_with(self.token)
-            if not pids or time.monotonic() > deadline:
+            left = deadline - time.monotonic()
+            if not pids or left <= 0.0:
                 return pids
-            time.sleep(0.1)
+            wait_for_any_exit(pids, left)
 
     def close(self):
         """Kill the process group and every process with the token, whatever runs."""
