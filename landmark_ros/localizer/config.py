@@ -3,9 +3,15 @@
 from dataclasses import dataclass
 from typing import Tuple
 
-from landmark_ros.localizer.association import METHODS as ASSOCIATION_METHODS
-from landmark_ros.localizer.update import CORRELATIONS
 from landmark_ros.pipeline.config import ConfigBase, param
+
+# The choices live here, not in the modules that implement them: the node reads its
+# parameters before it imports the filter (scipy, a second or more).
+ASSOCIATION_METHODS = ('none', 'nn', 'jcbb')
+"""Values of the ``association`` parameter (``none``: rows without ID are skipped)."""
+
+CORRELATIONS = ('independent', 'split_ci')
+"""Values of ``correlation``: how the map's errors relate to the pose's (``update``)."""
 
 
 @dataclass(frozen=True)

@@ -13,12 +13,11 @@ since the last update on ``fused_landmark_updates``, RViz markers on
 """
 
 import sys
-import threading
 from types import SimpleNamespace
 
 from diagnostic_msgs.msg import DiagnosticArray
 from landmark_ros.nodes._fuser_outputs import MapOutputs
-from landmark_ros.nodes.start import finish, lazy
+from landmark_ros.nodes.start import finish, imported, lazy
 from landmark_ros.pipeline.config import FuserConfig
 from landmark_ros.ros import diagnostics, fast_io, guard, qos, runner
 from landmark_ros.ros.cloud import CloudError
@@ -71,28 +70,12 @@ class LandmarkFuser(Node):
         # The endpoints first, then the fusion code (imports: scipy, the map; the map
         # file): no callback runs before the constructor returns, and what arrives
         # meanwhile waits in the input queues (input_depth deep, reliable).
-        if not self._imported():
+        if not imported(self, lambda: pipeline.Fuser):
             return      # a stop signal came: the runner ends the node without spinning
         self.fuser = pipeline.Fuser(
             config, [self._source_of[topic] for topic in landmark_topics], self.get_logger(),
             [self._source_of[topic] for topic in partial_topics])
         self.fuser.load()
-
-    def _imported(self):
-        """
-        Import the fusion code in a thread; return False if a stop signal comes first.
-
-        The import takes a second or more (scipy); a stop signal shuts the context down
-        but lets Python code run on, so the wait, not the import, watches for it.
-        """
-        loader = threading.Thread(target=lambda: pipeline.Fuser, daemon=True,
-                                  name='landmark_fuser.import')
-        loader.start()
-        while loader.is_alive():
-            loader.join(0.05)
-            if not self.context.ok():
-                return False
-        return True
 
     def _guard(self, callback, what=None):
         # Callbacks created before the fuser exists count into it once it does.

@@ -16,13 +16,12 @@ messages: the work is ``landmark_ros.localizer.localizer.Localizer``.
 """
 
 import sys
+from types import SimpleNamespace
 
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseWithCovarianceStamped, TransformStamped
-from landmark_ros.fuser import map_file
 from landmark_ros.localizer.config import LocalizerConfig
-from landmark_ros.localizer.localizer import Estimate, Localizer
-from landmark_ros.nodes.start import finish
+from landmark_ros.nodes.start import finish, imported, lazy
 from landmark_ros.ros import diagnostics, guard, qos, runner
 from landmark_ros.ros.cloud import CloudError, read_columns
 from landmark_ros.ros.conversions import InputError, stamp_ns
@@ -30,13 +29,17 @@ from landmark_ros.ros.localizer_messages import (initial_pose, observation_rows,
                                                  odometry_motion, pose_message,
                                                  transform_message)
 from landmark_ros.ros.params import declare_config, keep_in_sync
-from landmark_ros.ros.schemas import OBSERVATION_FIELDS, read_landmarks
 from nav_msgs.msg import Odometry
 import numpy as np
 from rclpy.node import Node
 from rclpy.qos_overriding_options import QoSOverridingOptions
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header
+
+# Imported when the node is built, after its endpoints (scipy: a second or more).
+pipeline = lazy('landmark_ros.localizer.localizer')
+map_file = lazy('landmark_ros.fuser.map_file')
+schemas = lazy('landmark_ros.ros.schemas')
 
 
 class LandmarkLocalizer(Node):
@@ -45,8 +48,6 @@ class LandmarkLocalizer(Node):
     def __init__(self, **kwargs):
         super().__init__('landmark_localizer', **kwargs)
         config = declare_config(self, LocalizerConfig)
-        self.localizer = Localizer(config, self.get_logger().warning)
-        keep_in_sync(self, lambda: self.localizer.config, self.localizer.configure)
         self._previous = None
         depth = config.input_depth
         overrides = QoSOverridingOptions.with_default_policies()
@@ -76,12 +77,20 @@ class LandmarkLocalizer(Node):
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics',
                                                      qos.DIAGNOSTICS)
         self._pose_msg = PoseWithCovarianceStamped()
+        # The endpoints first, then the filter (imports: scipy); no callback runs before
+        # the constructor returns, and what arrives meanwhile waits in the input queues.
+        if not imported(self, lambda: (pipeline.Localizer, schemas.read_landmarks)):
+            return      # a stop signal came: the runner ends the node without spinning
+        self.localizer = pipeline.Localizer(config, self.get_logger().warning)
+        keep_in_sync(self, lambda: self.localizer.config, self.localizer.configure)
         if config.map_file:
             self.load_map_file(config.map_file)
         self.create_timer(config.diagnostics_period_s, self._guard(self.publish_diagnostics))
 
     def _guard(self, callback):
-        return guard.guarded(self, self.localizer.counters, callback, callback.__name__)
+        # Callbacks created before the localizer exists count into it once it does.
+        counters = SimpleNamespace(add=lambda *args: self.localizer.counters.add(*args))
+        return guard.guarded(self, counters, callback, callback.__name__)
 
     @property
     def config(self):
@@ -122,7 +131,7 @@ class LandmarkLocalizer(Node):
     def on_observations(self, msg):
         """Hand the sightings to the localizer (applied at their own stamp)."""
         try:
-            columns = read_columns(msg, OBSERVATION_FIELDS)
+            columns = read_columns(msg, schemas.OBSERVATION_FIELDS)
         except CloudError as error:
             self.localizer.counters.add(error.reason, detail=f'observations dropped: {error}')
             return
@@ -137,7 +146,7 @@ class LandmarkLocalizer(Node):
     def on_robot_observations(self, msg):
         """Apply sightings of other robots with their latest published pose."""
         try:
-            ids, z, kind, R = observation_rows(read_columns(msg, OBSERVATION_FIELDS))
+            ids, z, kind, R = observation_rows(read_columns(msg, schemas.OBSERVATION_FIELDS))
         except CloudError as error:
             self.localizer.counters.add(error.reason, detail=f'robot sightings dropped: {error}')
             return
@@ -154,7 +163,7 @@ class LandmarkLocalizer(Node):
                 self.localizer.counters.add(error.reason, detail=error.detail)
                 continue
             self.localizer.add_robot_sighting(
-                stamp, z[row], Estimate(stamp_ns(other.header.stamp), x, P),
+                stamp, z[row], pipeline.Estimate(stamp_ns(other.header.stamp), x, P),
                 None if R is None else R[row], other_id=str(index))
 
     def on_map(self, msg):
@@ -164,7 +173,7 @@ class LandmarkLocalizer(Node):
                                         detail=f"map in '{msg.header.frame_id}'")
             return
         try:
-            landmarks = read_landmarks(msg)
+            landmarks = schemas.read_landmarks(msg)
         except CloudError as error:
             self.localizer.counters.add(error.reason, detail=f'map dropped: {error}')
             return

@@ -10,7 +10,8 @@ yet to close); ``ros.runner.run`` replaces it with its own before ``rclpy.init``
 ``__init__``. Only the standard library is imported here.
 
 ``lazy`` defers a heavy module to its first use, so that a node creates its
-endpoints before it imports the fusion or geometry code.
+endpoints before it imports the fusion or geometry code; ``imported`` runs that import in
+a thread while watching for a stop signal.
 """
 
 import importlib
@@ -18,6 +19,7 @@ import importlib.util
 import os
 import signal
 import sys
+import threading
 
 
 def _exit_now(signum, frame):
@@ -102,3 +104,33 @@ def lazy(name):
     sys.modules[name] = module
     loader.exec_module(module)
     return module
+
+
+def imported(node, load):
+    """
+    Call ``load`` (an import) in a thread; return False if a stop signal comes first.
+
+    The import takes a second or more (scipy); a stop signal shuts the node's context
+    down but lets Python code run on, so the wait, not the import, watches for it.
+
+    Parameters
+    ----------
+    node : rclpy.node.Node
+        The node being built; its context tells whether a stop signal came.
+    load : callable
+        Imports what the node needs (its first use of a ``lazy`` module).
+
+    Returns
+    -------
+    bool
+        True once ``load`` has returned, False if the context shut down first.
+
+    """
+    loader = threading.Thread(target=load, daemon=True,
+                              name=f'{node.get_name()}.import')
+    loader.start()
+    while loader.is_alive():
+        loader.join(0.05)
+        if not node.context.ok():
+            return False
+    return True
