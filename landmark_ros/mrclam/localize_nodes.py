@@ -45,7 +45,6 @@ from landmark_ros.ros.launcher import Launcher, write_params_file
 from landmark_ros.ros.schemas import observation_message
 from nav_msgs.msg import Odometry
 import numpy as np
-from rcl_interfaces.srv import GetParameters
 import rclpy
 from rclpy.context import Context
 from rclpy.duration import Duration
@@ -53,8 +52,9 @@ from rclpy.executors import SingleThreadedExecutor
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header
 
-LOCALIZER_TRANSPORT = {'input_depth': 10000, 'diagnostics_period_s': 0.25}
-"""Localizer parameters the replay sets on top of the config file (transport only)."""
+LOCALIZER_TRANSPORT = {'input_depth': 10000, 'diagnostics_period_s': 0.01}
+"""Localizer parameters the replay sets on top of the config file (transport only): the
+player waits for the diagnostics that count the sightings in."""
 
 WINDOW = 100
 """Odometry messages in flight per robot (sent, pose not received yet)."""
@@ -96,11 +96,10 @@ class _Robot:
     plan: object
     odom_pub: object
     obs_pub: object
-    client: object
     next_item: int = 0
     sent_odometry: int = 0
-    barrier: object = None
-    barrier_for: int = -1
+    sent_sightings: int = 0
+    """Clouds sent (the empty one of ``connect`` included)."""
 
     def __post_init__(self):
         self.poses = []
@@ -112,7 +111,7 @@ class LocalizePlayer:
     """Publish every robot's schedule into its localizer and collect the poses."""
 
     def __init__(self, node, executor, launcher, streams):
-        """Create the publishers, pose subscriptions and parameter clients of each robot."""
+        """Create the publishers and pose subscriptions of each robot."""
         self.node, self.executor, self.launcher = node, executor, launcher
         depth = qos.reliable_output(10000)
         self.robots = []
@@ -120,9 +119,7 @@ class LocalizePlayer:
             ns = f'/{robot.name}'
             state = _Robot(robot, extras, plan,
                            node.create_publisher(Odometry, f'{ns}/odometry', depth),
-                           node.create_publisher(PointCloud2, f'{ns}/observations', depth),
-                           node.create_client(GetParameters,
-                                              f'{ns}/landmark_localizer/get_parameters'))
+                           node.create_publisher(PointCloud2, f'{ns}/observations', depth))
             node.create_subscription(PoseWithCovarianceStamped, f'{ns}/pose',
                                      lambda msg, s=state: s.poses.append(msg), depth)
             self.robots.append(state)
@@ -150,10 +147,10 @@ class LocalizePlayer:
             self.executor.spin_once(timeout_sec=0.05)
 
     def connect(self, timeout_s=120.0):
-        """Wait until every localizer's inputs, outputs and parameter service match."""
+        """Wait until every localizer's inputs and outputs match."""
         def matched():
             return all(s.odom_pub.get_subscription_count() and s.obs_pub.get_subscription_count()
-                       and s.client.service_is_ready() for s in self.robots)
+                       for s in self.robots)
         self.spin_until(matched, timeout_s, 'the localizers to connect')
         for state in self.robots:  # the pose outputs too
             self.spin_until(lambda: self.node.count_publishers(
@@ -163,6 +160,7 @@ class LocalizePlayer:
         empty = observation_message(Header(frame_id='base_link'), [], np.zeros((0, 2)))
         for state in self.robots:
             state.obs_pub.publish(empty)
+            state.sent_sightings += 1
         for state in self.robots:
             if not state.obs_pub.wait_for_all_acked(Duration(seconds=timeout_s)):
                 raise ReplayError(f'{state.robot.name}/observations never acknowledged')
@@ -173,12 +171,8 @@ class LocalizePlayer:
         while state.next_item < len(plan) and sent < limit:
             i = state.next_item
             if plan.kind[i] == ODOMETRY:
-                if plan.barrier[i] and state.barrier_for != i:
-                    state.barrier = state.client.call_async(GetParameters.Request())
-                    state.barrier_for = i
-                if state.barrier is not None and not state.barrier.done():
+                if plan.barrier[i] and taken(state) < state.sent_sightings:
                     return sent
-                state.barrier = None
                 if state.sent_odometry - len(state.poses) >= WINDOW:
                     return sent
                 self._publish_odometry(state, plan.stamp_ns[i], plan.index[i])
@@ -190,6 +184,7 @@ class LocalizePlayer:
                 state.obs_pub.publish(observation_message(
                     Header(stamp=_time(plan.stamp_ns[i]), frame_id='base_link'),
                     r.ids[a:b], r.z[a:b]))
+                state.sent_sightings += 1
             state.next_item += 1
             sent += 1
         return sent
@@ -238,6 +233,11 @@ class LocalizePlayer:
             out.append(Track(s.robot.number, times[inside], x[inside], P[inside],
                              truth[inside], counts))
         return out
+
+
+def taken(state):
+    """Return the sighting messages a robot's localizer counts in (its diagnostics)."""
+    return int((state.counts or {}).get('observation_messages_in', -1))
 
 
 def _start(launcher, dataset, extras, setup):
@@ -306,7 +306,7 @@ def compare(offline, nodes):
     Return the agreement of the node tracks with the offline ones (one run).
 
     Keys: ``same_stamps`` (every robot the same odometry stamps), ``same_counts`` (rows
-    used and gated), ``max_position_diff_m``, ``max_heading_diff_rad``,
+    used and gated, re-filtered batches), ``max_position_diff_m``, ``max_heading_diff_rad``,
     ``max_cov_diff`` (largest absolute difference of a covariance entry).
     """
     same_stamps = same_counts = True
@@ -316,7 +316,7 @@ def compare(offline, nodes):
                 seconds_to_stamps_ns(a.times), seconds_to_stamps_ns(b.times)):
             same_stamps = False
             continue
-        for key in ('rows_used', 'rows_gated'):
+        for key in ('rows_used', 'rows_gated', 'refiltered'):
             same_counts &= a.counts.get(key, 0) == b.counts.get(key, 0)
         if len(a.x):
             dpos = max(dpos, float(np.max(np.hypot(*(a.x[:, :2] - b.x[:, :2]).T))))
