@@ -13,7 +13,9 @@ override parameters). A player in this process publishes each robot's odometry
 batches (the observation cloud: ``id``, ``range``, ``bearing`` in float64) in the order
 of ``localize_plan.schedule``, at most ``WINDOW`` odometry messages in flight per robot
 (each gives one ``pose``), and collects the poses. The node's diagnostics give the
-rows used and gated. ``compare`` measures the agreement with the offline tracks.
+rows used and gated, and the sighting messages taken in (``observation_messages_in``):
+an odometry message after sightings waits until they are all in. ``compare`` measures
+the agreement with the offline tracks.
 
 With rows without IDs (``--hide-ids``) every batch also waits for the pose of the
 odometry before it (``schedule(strict=True)``): the association uses the newest pose at
@@ -221,18 +223,30 @@ class LocalizePlayer:
 
     def tracks(self):
         """Return one ``localize.Track`` per robot from the received poses."""
-        out = []
-        for s in self.robots:
-            stamps = np.array([stamp_ns(m.header.stamp) for m in s.poses], np.int64)
-            xP = [pose_from_msg(m, 'map') for m in s.poses]
-            x = np.array([a for a, _ in xP]).reshape(-1, 3)
-            P = np.array([b for _, b in xP]).reshape(-1, 3, 3)
-            times = stamps * 1e-9
-            truth, inside = interpolate_poses(s.robot.gt_times, s.robot.gt_poses, times)
-            counts = {k: int(v) for k, v in (s.counts or {}).items() if v.lstrip('-').isdigit()}
-            out.append(Track(s.robot.number, times[inside], x[inside], P[inside],
-                             truth[inside], counts))
-        return out
+        return [track(s.robot, s.poses, s.counts) for s in self.robots]
+
+
+def published_arrays(messages):
+    """Return stamps (K,) [ns], poses (K, 3), covariances (K, 3, 3) of pose messages."""
+    stamps = np.array([stamp_ns(m.header.stamp) for m in messages], np.int64)
+    xP = [pose_from_msg(m, 'map') for m in messages]
+    return (stamps, np.array([a for a, _ in xP]).reshape(-1, 3),
+            np.array([b for _, b in xP]).reshape(-1, 3, 3))
+
+
+def track(robot, messages, values):
+    """
+    Return a robot's ``localize.Track`` from its pose messages inside the ground truth.
+
+    ``values``: the localizer's last diagnostics values (strings; None: none came); its
+    counters are the integers among them (``map_stamp_ns`` left out).
+    """
+    stamps, x, P = published_arrays(messages)
+    times = stamps * 1e-9
+    truth, inside = interpolate_poses(robot.gt_times, robot.gt_poses, times)
+    counts = {k: int(v) for k, v in (values or {}).items()
+              if v.lstrip('-').isdigit() and k != 'map_stamp_ns'}
+    return Track(robot.number, times[inside], x[inside], P[inside], truth[inside], counts)
 
 
 def taken(state):

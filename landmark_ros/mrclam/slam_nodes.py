@@ -60,15 +60,15 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from landmark_ros.fuser.fuser import Fuser
 from landmark_ros.fuser.sources import LandmarkMessage
-from landmark_ros.mrclam.data import interpolate_poses, seconds_to_stamps_ns
-from landmark_ros.mrclam.localize import Track
-from landmark_ros.mrclam.localize_nodes import LOCALIZER_TRANSPORT, WINDOW
+from landmark_ros.mrclam.data import seconds_to_stamps_ns
+from landmark_ros.mrclam.localize_nodes import (LOCALIZER_TRANSPORT, published_arrays,
+                                                track, WINDOW)
 from landmark_ros.mrclam.player import stamp_msg
 from landmark_ros.mrclam.replay_plan import (cpu_seconds, observer_arguments,
                                              OBSERVER_TRANSPORT, ReplayError)
 from landmark_ros.mrclam.slam_plan import plan, start_pose
 from landmark_ros.ros import qos
-from landmark_ros.ros.conversions import pose_from_msg, stamp_ns
+from landmark_ros.ros.conversions import stamp_ns
 from landmark_ros.ros.launcher import Launcher, write_params_file
 from landmark_ros.ros.schemas import observation_message, read_landmark_clouds, read_landmarks
 from nav_msgs.msg import Odometry
@@ -436,23 +436,7 @@ class SlamPlayer:
     # ------------------------------------------------------------------ results
     def tracks(self):
         """Return one ``localize.Track`` per robot from the published poses."""
-        out = []
-        for s in self.robots:
-            stamps, x, P = published_arrays(s.poses)
-            times = stamps * 1e-9
-            truth, inside = interpolate_poses(s.robot.gt_times, s.robot.gt_poses, times)
-            counts = {k: int(v) for k, v in (s.counts or {}).items() if v.lstrip('-').isdigit()}
-            out.append(Track(s.robot.number, times[inside], x[inside], P[inside],
-                             truth[inside], counts))
-        return out
-
-
-def published_arrays(messages):
-    """Return stamps (K,) [ns], poses (K, 3), covariances (K, 3, 3) of pose messages."""
-    stamps = np.array([stamp_ns(m.header.stamp) for m in messages], np.int64)
-    xP = [pose_from_msg(m, 'map') for m in messages]
-    return (stamps, np.array([a for a, _ in xP]).reshape(-1, 3),
-            np.array([b for _, b in xP]).reshape(-1, 3, 3))
+        return [track(s.robot, s.poses, s.counts) for s in self.robots]
 
 
 def start_nodes(launcher, dataset, extras, setup):
