@@ -13,7 +13,9 @@ override parameters). A player in this process publishes each robot's odometry
 batches (the observation cloud: ``id``, ``range``, ``bearing`` in float64) in the order
 of ``localize_plan.schedule``, at most ``WINDOW`` odometry messages in flight per robot
 (each gives one ``pose``), and collects the poses. The node's diagnostics give the
-rows used and gated. ``compare`` measures the agreement with the offline tracks.
+rows used and gated, and the sighting messages taken in (``observation_messages_in``):
+an odometry message after sightings waits until they are all in. ``compare`` measures
+the agreement with the offline tracks.
 
 With rows without IDs (``--hide-ids``) every batch also waits for the pose of the
 odometry before it (``schedule(strict=True)``): the association uses the newest pose at
@@ -45,7 +47,6 @@ from landmark_ros.ros.launcher import Launcher, write_params_file
 from landmark_ros.ros.schemas import observation_message
 from nav_msgs.msg import Odometry
 import numpy as np
-from rcl_interfaces.srv import GetParameters
 import rclpy
 from rclpy.context import Context
 from rclpy.duration import Duration
@@ -53,8 +54,9 @@ from rclpy.executors import SingleThreadedExecutor
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header
 
-LOCALIZER_TRANSPORT = {'input_depth': 10000, 'diagnostics_period_s': 0.25}
-"""Localizer parameters the replay sets on top of the config file (transport only)."""
+LOCALIZER_TRANSPORT = {'input_depth': 10000, 'diagnostics_period_s': 0.01}
+"""Localizer parameters the replay sets on top of the config file (transport only): the
+player waits for the diagnostics that count the sightings in."""
 
 WINDOW = 100
 """Odometry messages in flight per robot (sent, pose not received yet)."""
@@ -96,11 +98,10 @@ class _Robot:
     plan: object
     odom_pub: object
     obs_pub: object
-    client: object
     next_item: int = 0
     sent_odometry: int = 0
-    barrier: object = None
-    barrier_for: int = -1
+    sent_sightings: int = 0
+    """Clouds sent (the empty one of ``connect`` included)."""
 
     def __post_init__(self):
         self.poses = []
@@ -112,7 +113,7 @@ class LocalizePlayer:
     """Publish every robot's schedule into its localizer and collect the poses."""
 
     def __init__(self, node, executor, launcher, streams):
-        """Create the publishers, pose subscriptions and parameter clients of each robot."""
+        """Create the publishers and pose subscriptions of each robot."""
         self.node, self.executor, self.launcher = node, executor, launcher
         depth = qos.reliable_output(10000)
         self.robots = []
@@ -120,9 +121,7 @@ class LocalizePlayer:
             ns = f'/{robot.name}'
             state = _Robot(robot, extras, plan,
                            node.create_publisher(Odometry, f'{ns}/odometry', depth),
-                           node.create_publisher(PointCloud2, f'{ns}/observations', depth),
-                           node.create_client(GetParameters,
-                                              f'{ns}/landmark_localizer/get_parameters'))
+                           node.create_publisher(PointCloud2, f'{ns}/observations', depth))
             node.create_subscription(PoseWithCovarianceStamped, f'{ns}/pose',
                                      lambda msg, s=state: s.poses.append(msg), depth)
             self.robots.append(state)
@@ -150,10 +149,10 @@ class LocalizePlayer:
             self.executor.spin_once(timeout_sec=0.05)
 
     def connect(self, timeout_s=120.0):
-        """Wait until every localizer's inputs, outputs and parameter service match."""
+        """Wait until every localizer's inputs and outputs match."""
         def matched():
             return all(s.odom_pub.get_subscription_count() and s.obs_pub.get_subscription_count()
-                       and s.client.service_is_ready() for s in self.robots)
+                       for s in self.robots)
         self.spin_until(matched, timeout_s, 'the localizers to connect')
         for state in self.robots:  # the pose outputs too
             self.spin_until(lambda: self.node.count_publishers(
@@ -163,6 +162,7 @@ class LocalizePlayer:
         empty = observation_message(Header(frame_id='base_link'), [], np.zeros((0, 2)))
         for state in self.robots:
             state.obs_pub.publish(empty)
+            state.sent_sightings += 1
         for state in self.robots:
             if not state.obs_pub.wait_for_all_acked(Duration(seconds=timeout_s)):
                 raise ReplayError(f'{state.robot.name}/observations never acknowledged')
@@ -173,12 +173,8 @@ class LocalizePlayer:
         while state.next_item < len(plan) and sent < limit:
             i = state.next_item
             if plan.kind[i] == ODOMETRY:
-                if plan.barrier[i] and state.barrier_for != i:
-                    state.barrier = state.client.call_async(GetParameters.Request())
-                    state.barrier_for = i
-                if state.barrier is not None and not state.barrier.done():
+                if plan.barrier[i] and taken(state) < state.sent_sightings:
                     return sent
-                state.barrier = None
                 if state.sent_odometry - len(state.poses) >= WINDOW:
                     return sent
                 self._publish_odometry(state, plan.stamp_ns[i], plan.index[i])
@@ -190,6 +186,7 @@ class LocalizePlayer:
                 state.obs_pub.publish(observation_message(
                     Header(stamp=_time(plan.stamp_ns[i]), frame_id='base_link'),
                     r.ids[a:b], r.z[a:b]))
+                state.sent_sightings += 1
             state.next_item += 1
             sent += 1
         return sent
@@ -226,18 +223,35 @@ class LocalizePlayer:
 
     def tracks(self):
         """Return one ``localize.Track`` per robot from the received poses."""
-        out = []
-        for s in self.robots:
-            stamps = np.array([stamp_ns(m.header.stamp) for m in s.poses], np.int64)
-            xP = [pose_from_msg(m, 'map') for m in s.poses]
-            x = np.array([a for a, _ in xP]).reshape(-1, 3)
-            P = np.array([b for _, b in xP]).reshape(-1, 3, 3)
-            times = stamps * 1e-9
-            truth, inside = interpolate_poses(s.robot.gt_times, s.robot.gt_poses, times)
-            counts = {k: int(v) for k, v in (s.counts or {}).items() if v.lstrip('-').isdigit()}
-            out.append(Track(s.robot.number, times[inside], x[inside], P[inside],
-                             truth[inside], counts))
-        return out
+        return [track(s.robot, s.poses, s.counts) for s in self.robots]
+
+
+def published_arrays(messages):
+    """Return stamps (K,) [ns], poses (K, 3), covariances (K, 3, 3) of pose messages."""
+    stamps = np.array([stamp_ns(m.header.stamp) for m in messages], np.int64)
+    xP = [pose_from_msg(m, 'map') for m in messages]
+    return (stamps, np.array([a for a, _ in xP]).reshape(-1, 3),
+            np.array([b for _, b in xP]).reshape(-1, 3, 3))
+
+
+def track(robot, messages, values):
+    """
+    Return a robot's ``localize.Track`` from its pose messages inside the ground truth.
+
+    ``values``: the localizer's last diagnostics values (strings; None: none came); its
+    counters are the integers among them (``map_stamp_ns`` left out).
+    """
+    stamps, x, P = published_arrays(messages)
+    times = stamps * 1e-9
+    truth, inside = interpolate_poses(robot.gt_times, robot.gt_poses, times)
+    counts = {k: int(v) for k, v in (values or {}).items()
+              if v.lstrip('-').isdigit() and k != 'map_stamp_ns'}
+    return Track(robot.number, times[inside], x[inside], P[inside], truth[inside], counts)
+
+
+def taken(state):
+    """Return the sighting messages a robot's localizer counts in (its diagnostics)."""
+    return int((state.counts or {}).get('observation_messages_in', -1))
 
 
 def _start(launcher, dataset, extras, setup):
@@ -306,7 +320,7 @@ def compare(offline, nodes):
     Return the agreement of the node tracks with the offline ones (one run).
 
     Keys: ``same_stamps`` (every robot the same odometry stamps), ``same_counts`` (rows
-    used and gated), ``max_position_diff_m``, ``max_heading_diff_rad``,
+    used and gated, re-filtered batches), ``max_position_diff_m``, ``max_heading_diff_rad``,
     ``max_cov_diff`` (largest absolute difference of a covariance entry).
     """
     same_stamps = same_counts = True
@@ -316,7 +330,7 @@ def compare(offline, nodes):
                 seconds_to_stamps_ns(a.times), seconds_to_stamps_ns(b.times)):
             same_stamps = False
             continue
-        for key in ('rows_used', 'rows_gated'):
+        for key in ('rows_used', 'rows_gated', 'refiltered'):
             same_counts &= a.counts.get(key, 0) == b.counts.get(key, 0)
         if len(a.x):
             dpos = max(dpos, float(np.max(np.hypot(*(a.x[:, :2] - b.x[:, :2]).T))))

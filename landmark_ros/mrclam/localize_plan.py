@@ -21,9 +21,8 @@ message's pose is returned. A node gets the same calls in the same order when:
 The node's two subscriptions give no order between them, so the player enforces it
 (``mrclam.localize_nodes``): a batch of the second kind waits for the pose of
 odometry ``k`` (every odometry message gives one pose); after any batch, the next
-odometry waits for a barrier: a service call to the node answered (its executor has
-taken every message that was ready before the request; the batches go first through
-the same loopback transport to the same process).
+odometry waits until the node's diagnostics count every batch sent in
+(``observation_messages_in``): DDS does not order the player's two writers.
 
 ``slice_run`` cuts a run to its first seconds (``--duration``).
 """
@@ -53,7 +52,7 @@ class Schedule:
     after_poses: np.ndarray
     """Poses to have received before sending the item (0: none needed), shape (M,)."""
     barrier: np.ndarray
-    """Odometry item preceded by sightings: a barrier before it, shape (M,) bool."""
+    """Odometry item preceded by sightings: it waits for them to be taken, shape (M,) bool."""
 
     def __len__(self):
         """Return the number of items."""

@@ -16,23 +16,24 @@ robot ``r``) at a time:
 
 1. wait until ``r``'s localizer published the poses of the step (``Steps.poses``); its
    next odometry is held back until 3;
-2. if the player received a map since ``r``'s localizer last answered a barrier, a
-   barrier to it (a ``get_parameters`` round trip: its executor took every message ready
-   before the request);
+2. if the player received a map, wait until ``r``'s localizer holds it: its diagnostics
+   (``localize_nodes.LOCALIZER_TRANSPORT``: every 10 ms) name the map in use by its header stamp
+   (``map_stamp_ns``), the stamp of the player's newest map;
 3. the sightings to the localizer (on ``localizer_observations``: the loop hands them to
-   it before the fuser takes them, which one shared topic could not order), a barrier;
+   it before the fuser takes them, which one shared topic could not order); wait until
+   its diagnostics count them in (``observation_messages_in``);
 4. the same cloud to the observer (a *stale* step, which the loop's observer placed
    with its newest pose after ``max_wait_s`` of stamps, with the odometry held and the
    observer's ``max_wait_s`` briefly set short: it gives up waiting the same way);
    wait for its ``landmarks`` output; a mirror
    ``Fuser`` in the player fed with that very cloud says whether the map changes: if
-   so, wait for the fuser's next ``fused_landmarks``, else a barrier to the fuser (it
-   took the cloud before the next step's).
+   so, wait for the fuser's next ``fused_landmarks``, else until the fuser's
+   diagnostics (every 50 ms) count as many messages in from ``r``'s observer as the
+   player received, none queued (it fused the cloud before the next step's comes).
 
-Where the order is not guaranteed. The map reaches a localizer from the fuser, the
-barrier from the player: the player received the map before it sent the request, so
-the localizer's copy left the fuser's writer first, but DDS does not order two writers
-(a lost sample repaired by the fuser's writer would come later). The robot-to-robot
+No step relies on DDS ordering two writers (the fuser's map and the player's sightings,
+the player's sightings and its odometry, two observers' clouds at the fuser): each waits
+for what the node itself reports it took. The robot-to-robot
 sightings are not replayed (the node applies one with the other's latest published
 pose, the loop with the other's estimate at the stamp, which includes the other's later
 updates): the agreement is measured against ``slam_plan.offline_reference`` (the loop
@@ -59,15 +60,15 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from landmark_ros.fuser.fuser import Fuser
 from landmark_ros.fuser.sources import LandmarkMessage
-from landmark_ros.mrclam.data import interpolate_poses, seconds_to_stamps_ns
-from landmark_ros.mrclam.localize import Track
-from landmark_ros.mrclam.localize_nodes import LOCALIZER_TRANSPORT, WINDOW
+from landmark_ros.mrclam.data import seconds_to_stamps_ns
+from landmark_ros.mrclam.localize_nodes import (LOCALIZER_TRANSPORT, published_arrays,
+                                                track, WINDOW)
 from landmark_ros.mrclam.player import stamp_msg
 from landmark_ros.mrclam.replay_plan import (cpu_seconds, observer_arguments,
                                              OBSERVER_TRANSPORT, ReplayError)
 from landmark_ros.mrclam.slam_plan import plan, start_pose
 from landmark_ros.ros import qos
-from landmark_ros.ros.conversions import pose_from_msg, stamp_ns
+from landmark_ros.ros.conversions import stamp_ns
 from landmark_ros.ros.launcher import Launcher, write_params_file
 from landmark_ros.ros.schemas import observation_message, read_landmark_clouds, read_landmarks
 from nav_msgs.msg import Odometry
@@ -87,11 +88,12 @@ FUSER_NS = '/mrclam/slam'
 
 SLAM_FUSER_TRANSPORT = {
     'update_period_s': 0.005, 'publish_rate_hz': 200.0, 'updates_rate_hz': 200.0,
-    'max_queue_messages': 100000, 'input_depth': 1000, 'diagnostics_period_s': 0.25,
+    'max_queue_messages': 100000, 'input_depth': 1000, 'diagnostics_period_s': 0.05,
     'source_timeout_s': 86400.0, 'autosave_period_s': 0.0,
 }
 """Fuser parameters the replay sets on top of the config file (timers and queues only):
-a step waits for one fuse and one map publication, so short periods keep it quick."""
+a step waits for one fuse and one map publication or one diagnostics message, so short
+periods keep it quick."""
 
 STEP_TIMEOUT_S = 120.0
 """A step that makes no progress this long fails."""
@@ -141,7 +143,12 @@ class _Robot:
     observer_params: object = None
     sent: int = 0
     hold: int = 0
-    map_seen: int = 0
+    loc_sent: int = 0
+    """Clouds sent to the localizer (the empty one of ``connect`` included)."""
+    map_stamp: int = -1
+    """``map_stamp_ns`` of the localizer's newest diagnostics."""
+    fused: tuple = (-1, -1)
+    """``messages_in`` and ``queued_messages`` of the fuser's diagnostics of this source."""
 
     def __post_init__(self):
         self.poses, self.outputs, self.counts, self.diagnostics = [], [], None, 0
@@ -188,6 +195,8 @@ class SlamPlayer:
         self.fuser_client = node.create_client(
             GetParameters, f'{FUSER_NS}/landmark_fuser/get_parameters')
         by_name = {f'/{s.robot.name}/landmark_localizer': s for s in self.robots}
+        by_name.update({f'{FUSER_NS}/landmark_fuser: /{s.robot.name}/landmarks': s
+                        for s in self.robots})
         node.create_subscription(DiagnosticArray, '/diagnostics',
                                  lambda msg: self._diagnostics(msg, by_name), qos.DIAGNOSTICS)
         self.sources = [f'/{r.name}/landmarks' for r in dataset.robots]
@@ -196,7 +205,7 @@ class SlamPlayer:
         self._odom = Odometry()
         self._odom.header.frame_id, self._odom.child_frame_id = 'odom', 'base_link'
         self.info = {'order': 'live' if live else 'offline', 'steps': len(self.steps),
-                     'barriers': 0, 'map_barriers': 0,
+                     'map_waits': 0, 'fuser_waits': 0,
                      'maps_expected': 0, 'maps_unexpected': 0, 'stale_steps': 0,
                      'dropped_messages': self.steps.dropped, 'play_wall_s': 0.0,
                      'wait_s': {}}
@@ -204,9 +213,15 @@ class SlamPlayer:
     def _diagnostics(self, msg, by_name):
         for status in msg.status:
             state = by_name.get(status.name)
-            if state is not None:
-                state.counts = {kv.key: kv.value for kv in status.values}
-                state.diagnostics += 1
+            if state is None:
+                continue
+            values = {kv.key: kv.value for kv in status.values}
+            if status.name.startswith(FUSER_NS):
+                state.fused = (int(values.get('messages_in', 0)), int(values['queued_messages']))
+                continue
+            state.counts = values
+            state.map_stamp = int(values.get('map_stamp_ns', -1))
+            state.diagnostics += 1
 
     # ------------------------------------------------------------------ waiting
     def _pump(self):
@@ -250,11 +265,9 @@ class SlamPlayer:
                 checked = now
             self._pump()
 
-    def barrier(self, client, what, phase):
-        """Wait for a ``get_parameters`` round trip to ``client``'s node."""
-        future = client.call_async(GetParameters.Request())
-        self.info['barriers'] += 1
-        self.wait(future.done, f'the barrier of {what}', phase=phase)
+    def _map_stamp(self):
+        """Return the header stamp of the newest fused map received [ns]."""
+        return stamp_ns(self.maps[-1].header.stamp)
 
     # ------------------------------------------------------------------ connect
     def connect(self, timeout_s=120.0):
@@ -284,6 +297,7 @@ class SlamPlayer:
         empty = observation_message(Header(frame_id='base_link'), [], np.zeros((0, 2)))
         for s in self.robots:
             s.loc_pub.publish(empty)
+            s.loc_sent += 1
             s.obs_pub.publish(empty)
         for s in self.robots:
             for pub in (s.loc_pub, s.obs_pub):
@@ -309,7 +323,7 @@ class SlamPlayer:
         for s in self.robots:
             self.wait(lambda s=s: len(s.poses) >= len(s.odom_ns), f'{s.robot.name} poses')
         self.info['play_wall_s'] = time.monotonic() - t0
-        # Two diagnostics after the last barrier: the second was published after it.
+        # Two diagnostics after the last pose: the second was published after it.
         base = [s.diagnostics for s in self.robots]
         self.wait(lambda: all(s.diagnostics >= b + 2 and int(s.counts.get('odometry', -1))
                               == len(s.odom_ns) for s, b in zip(self.robots, base)),
@@ -317,7 +331,7 @@ class SlamPlayer:
 
     def _to_localizer(self, i):
         """
-        Send step ``i``'s sightings to its localizer (after a map barrier), then a barrier.
+        Send step ``i``'s sightings to its localizer holding the newest map; wait till taken.
 
         In the live order the robot's next steps that its localizer takes at the same
         pose go too (all before that odometry, whose pose the observer needs).
@@ -331,14 +345,15 @@ class SlamPlayer:
             j = self.next_of[j]
         self.wait(lambda: len(s.poses) >= self.take[i], f'{name} pose {self.take[i]}',
                   phase='poses')
-        if s.map_seen < len(self.maps):
-            seen = len(self.maps)
-            self.barrier(s.client, f'{name} localizer (map)', 'map_barrier')
-            self.info['map_barriers'] += 1
-            s.map_seen = seen
+        if self.maps and s.map_stamp != self._map_stamp():
+            self.info['map_waits'] += 1
+            self.wait(lambda: s.map_stamp == self._map_stamp(),
+                      f'{name} localizer to hold the map', phase='map_held')
         for k in group:
             s.loc_pub.publish(self._cloud(k))
-        self.barrier(s.client, f'{name} localizer (sightings)', 'sightings_barrier')
+            s.loc_sent += 1
+        self.wait(lambda: int((s.counts or {}).get('observation_messages_in', -1)) >= s.loc_sent,
+                  f'{name} localizer to take the sightings', phase='sightings_taken')
         self.taken[group] = True
         return len(s.odom_ns) if j is None else int(self.take[j])
 
@@ -365,8 +380,11 @@ class SlamPlayer:
             self.info['maps_expected'] += 1
             self.wait(lambda: len(self.maps) > before_maps, 'the fused map', phase='map')
             return
-        # No new map: the fuser took the cloud all the same before the next step's.
-        self.barrier(self.fuser_client, 'the fuser', 'fuser_barrier')
+        # No new map: the fuser fuses the cloud all the same before the next step's.
+        if s.fused[0] < len(s.outputs) or s.fused[1]:
+            self.info['fuser_waits'] += 1
+            self.wait(lambda: s.fused[0] >= len(s.outputs) and not s.fused[1],
+                      f'the fuser to fuse {name} landmarks', phase='fused')
         if len(self.maps) > before_maps:
             self.info['maps_unexpected'] += 1
 
@@ -418,23 +436,7 @@ class SlamPlayer:
     # ------------------------------------------------------------------ results
     def tracks(self):
         """Return one ``localize.Track`` per robot from the published poses."""
-        out = []
-        for s in self.robots:
-            stamps, x, P = published_arrays(s.poses)
-            times = stamps * 1e-9
-            truth, inside = interpolate_poses(s.robot.gt_times, s.robot.gt_poses, times)
-            counts = {k: int(v) for k, v in (s.counts or {}).items() if v.lstrip('-').isdigit()}
-            out.append(Track(s.robot.number, times[inside], x[inside], P[inside],
-                             truth[inside], counts))
-        return out
-
-
-def published_arrays(messages):
-    """Return stamps (K,) [ns], poses (K, 3), covariances (K, 3, 3) of pose messages."""
-    stamps = np.array([stamp_ns(m.header.stamp) for m in messages], np.int64)
-    xP = [pose_from_msg(m, 'map') for m in messages]
-    return (stamps, np.array([a for a, _ in xP]).reshape(-1, 3),
-            np.array([b for _, b in xP]).reshape(-1, 3, 3))
+        return [track(s.robot, s.poses, s.counts) for s in self.robots]
 
 
 def start_nodes(launcher, dataset, extras, setup):
@@ -462,7 +464,7 @@ def run_through_nodes(dataset, extras, loop_config, paths, delay_s, domain_id,
     before the odometry that passes their stamp (``SlamPlayer``). Returns a dict: ``tracks`` (one
     ``localize.Track`` per robot, the published poses), ``published`` (per robot
     ``stamps_ns``, ``x``, ``P`` of every pose), ``map`` (the last ``fused_landmarks``:
-    ``ids``, ``m``, ``P``, ``observations``), ``info`` (timing, barriers, CPU time of the nodes).
+    ``ids``, ``m``, ``P``, ``observations``), ``info`` (timing, waits, CPU time of the nodes).
     """
     config_path, work = Path(paths[0]).resolve(), Path(paths[1])
     os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'

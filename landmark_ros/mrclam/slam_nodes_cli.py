@@ -49,8 +49,9 @@ def compare(reference, nodes):
     ``max_position_diff_m``, ``max_heading_diff_rad``, ``max_cov_diff`` (the published
     poses: the pose of each odometry before the sightings it places), ``same_map_ids``,
     ``max_map_mean_diff_m``, ``max_map_cov_diff`` (the final map), ``same_rows``
-    (rows used and gated per localizer), ``track_max_position_diff_m`` (against
-    ``TeamLoop``'s own tracks, the estimates after those sightings).
+    (rows used and gated, batches re-filtered, per localizer),
+    ``track_max_position_diff_m`` (against ``TeamLoop``'s own tracks, the estimates
+    after those sightings).
     """
     loop = reference.loop
     same, dpos, dyaw, dcov = _pose_diffs(reference.published, nodes['published'])
@@ -61,7 +62,7 @@ def compare(reference, nodes):
     same_ids = np.array_equal(ids, the_map['ids'])
     rows = all(int(loc.counters[key]) == int(track.counts.get(key, 0))
                for loc, track in zip(loop.localizers, nodes['tracks'])
-               for key in ('rows_used', 'rows_gated'))
+               for key in ('rows_used', 'rows_gated', 'refiltered'))
     return {'same_stamps': same, 'max_position_diff_m': dpos, 'max_heading_diff_rad': dyaw,
             'max_cov_diff': dcov, 'same_map_ids': bool(same_ids),
             'max_map_mean_diff_m': float(np.max(np.abs(m - the_map['m']), initial=0.0))

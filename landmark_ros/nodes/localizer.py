@@ -11,7 +11,8 @@ Pose Estimate sends), and with ``other_robots`` each one's ``pose`` and
 cooperative updates from the other's published pose and covariance (split CI).
 Publishes ``pose`` (PoseWithCovarianceStamped in the map frame, one per odometry
 message: what ``landmark_observer`` takes), ``odom_to_map`` (the map-to-odom
-correction, geometry_msgs/TransformStamped) and ``/diagnostics``. The node only converts
+correction, geometry_msgs/TransformStamped) and ``/diagnostics`` (with ``map_stamp_ns``,
+the header stamp of the ``fused_landmarks`` map in use). The node only converts
 messages: the work is ``landmark_ros.localizer.localizer.Localizer``.
 """
 
@@ -49,6 +50,7 @@ class LandmarkLocalizer(Node):
         super().__init__('landmark_localizer', **kwargs)
         config = declare_config(self, LocalizerConfig)
         self._previous = None
+        self._map_stamp_ns = 0
         depth = config.input_depth
         overrides = QoSOverridingOptions.with_default_policies()
         self.create_subscription(Odometry, 'odometry', self._guard(self.on_odometry),
@@ -130,6 +132,7 @@ class LandmarkLocalizer(Node):
 
     def on_observations(self, msg):
         """Hand the sightings to the localizer (applied at their own stamp)."""
+        self.localizer.counters.add('observation_messages_in')
         try:
             columns = read_columns(msg, schemas.OBSERVATION_FIELDS)
         except CloudError as error:
@@ -179,6 +182,7 @@ class LandmarkLocalizer(Node):
             return
         self.localizer.set_map(landmarks.ids, landmarks.m, landmarks.P)
         self.localizer.counters.add('maps_received')
+        self._map_stamp_ns = stamp_ns(msg.header.stamp)
 
     def on_initial_pose(self, msg):
         """Restart the filter at the given pose."""
@@ -192,9 +196,10 @@ class LandmarkLocalizer(Node):
     # Outputs ------------------------------------------------------------------
 
     def publish_diagnostics(self):
-        """Publish the localizer's status on /diagnostics."""
+        """Publish the localizer's status on /diagnostics (with the map's stamp in use)."""
         estimate = self.localizer.estimate()
         status = self.localizer.status(estimate.stamp_ns if estimate else None)
+        status.extra['map_stamp_ns'] = self._map_stamp_ns
         diagnostics.publish(self, self.diagnostics_pub, [diagnostics.to_msg(
             status, self.get_fully_qualified_name(), self.get_namespace())])
 

@@ -13,6 +13,7 @@ from landmark_ros.core import sensors
 from landmark_ros.localizer import motion
 from landmark_ros.nodes.localizer import LandmarkLocalizer
 from landmark_ros.ros import qos
+from landmark_ros.ros.conversions import stamp_ns
 from landmark_ros.ros.schemas import landmark_message, observation_message
 from nav_msgs.msg import Odometry
 import numpy as np
@@ -50,9 +51,9 @@ class Rig:
     def close(self):
         self.env.close()
 
-    def publish_map(self, ids=IDS, m=LANDMARKS, stddev=0.01):
+    def publish_map(self, ids=IDS, m=LANDMARKS, stddev=0.01, stamp_s=T0):
         P = np.tile(np.eye(2) * stddev ** 2, (len(ids), 1, 1))
-        self.map_pub.publish(landmark_message(header(T0, 'map'), ids, m, P))
+        self.map_pub.publish(landmark_message(header(stamp_s, 'map'), ids, m, P))
 
     def odometry(self, stamp_s, v=0.0, w=0.0, wait=True):
         """Publish one odometry message; wait until the node has taken it (best effort)."""
@@ -112,9 +113,14 @@ def test_landmark_missing_from_map_and_a_map_that_changes(rig):
     rig.wait(lambda: rig.counters['rows_used'] + rig.counters['landmark_not_in_map'] == 4)
     assert rig.counters['landmark_not_in_map'] == 2
     # the map moves (all landmarks shifted 0.5 m in x): the robot follows it
-    rig.publish_map(IDS, LANDMARKS + [0.5, 0.0])
+    rig.publish_map(IDS, LANDMARKS + [0.5, 0.0], stamp_s=T0 + 0.5)
     rig.wait(lambda: rig.counters['maps_received'] == 2)
     assert rig.node.localizer.map_size == 4
+    # the diagnostics name the map in use by its header stamp
+    rig.diagnostics.messages.clear()
+    rig.wait(lambda: len(rig.diagnostics.messages) >= 1)
+    values = {kv.key: kv.value for kv in rig.diagnostics.messages[-1].status[0].values}
+    assert values['map_stamp_ns'] == str(stamp_ns(header(T0 + 0.5, 'map').stamp))
     for k in range(2, 12):
         rig.odometry(T0 + 0.1 * k)
         rig.observe(T0 + 0.1 * k, np.zeros(3), IDS, LANDMARKS)
