@@ -277,6 +277,16 @@ def targets(results: Sequence[SlamResult]):
     return out
 
 
-def loop_config(replay_config, localizer: LocalizerConfig) -> LoopConfig:
-    """Return the loop's parameters: the params file's observer and fuser sections."""
-    return LoopConfig(localizer, replay_config.observer, replay_config.fuser)
+def loop_config(replay_config, localizer: LocalizerConfig,
+                replay_values: Optional[dict] = None) -> LoopConfig:
+    """
+    Return the loop's parameters: the params file's observer and fuser sections.
+
+    From ``replay_values`` (the ``landmark_mrclam`` section), the precision sources:
+    ``slam_precision_sources`` (``LoopConfig.precision_sources``, default 1) and
+    ``slam_precision_base_m`` (``LoopConfig.precision_base_m``, default 0.02 m).
+    """
+    values = replay_values or {}
+    return LoopConfig(localizer, replay_config.observer, replay_config.fuser,
+                      precision_sources=int(values.get('slam_precision_sources', 1)),
+                      precision_base_m=float(values.get('slam_precision_base_m', 0.02)))

@@ -52,7 +52,8 @@ def _plot(args, dataset, results):
 def _setup(replay_config, dataset, duration):
     """Return the loop config, odometry delay, anchor IDs, dataset and extras (sliced)."""
     localizer_values, replay_values = _sections(replay_config.path)
-    config = slam.loop_config(replay_config, localizer_config(localizer_values))
+    config = slam.loop_config(replay_config, localizer_config(localizer_values),
+                              replay_values)
     delay_s = float(replay_values.get('odometry_delay_s', 0.0))
     anchor_ids = tuple(int(i) for i in replay_values.get('slam_anchor_ids',
                                                          slam.DEFAULT_ANCHORS))
@@ -90,8 +91,10 @@ def run_slam(args, dataset, replay_config, document):
     code = 0
     if args.through_nodes:
         from landmark_ros.mrclam.slam_nodes_cli import through_nodes
-        code = through_nodes(args, (dataset, extras, config, replay_config.path, delay_s),
-                             results, document)
+        # The nodes publish one source per robot (/NAME/landmarks): no precision sources.
+        nodes_config = replace(config, precision_sources=1)
+        code = through_nodes(args, (dataset, extras, nodes_config, replay_config.path,
+                                    delay_s), results, document)
     if args.json:
         write_json(args.json, document)
         print(f'wrote {args.json}')

@@ -79,6 +79,32 @@ def test_precision_sources_split_a_robot_by_its_dependent_part():
     assert _loop().precision_source(np.eye(2)[None]) == 0
 
 
+def test_the_replay_section_sets_the_precision_sources():
+    from types import SimpleNamespace
+    replay = SimpleNamespace(observer=ObserverConfig(), fuser=FuserConfig())
+    default = slam.loop_config(replay, LocalizerConfig())
+    assert (default.precision_sources, default.precision_base_m) == (1, 0.02)
+    config = slam.loop_config(replay, LocalizerConfig(), {'slam_precision_sources': 4,
+                                                          'slam_precision_base_m': 0.1})
+    assert (config.precision_sources, config.precision_base_m) == (4, 0.1)
+    loop = TeamLoop(config, ['robot1'])
+    # Doubling from 0.1 m: below 0.2 m, to 0.4 m, to 0.8 m, beyond.
+    assert [loop.precision_source(np.eye(2)[None] * s ** 2) for s in
+            (0.05, 0.15, 0.3, 0.5, 2.0)] == [0, 0, 1, 2, 3]
+    assert len(loop.fuser.sources) == 4
+
+
+@pytest.mark.skipif(not DATASET.is_dir(), reason='needs ../shared MRCLAM dataset 6')
+def test_the_mrclam_config_gives_the_loop_its_precision_sources():
+    from landmark_ros.mrclam.config import load_config
+    from landmark_ros.mrclam.localize_cli import _sections
+    replay = load_config(None)
+    localizer_values, replay_values = _sections(replay.path)
+    config = slam.loop_config(replay, LocalizerConfig(), replay_values)
+    assert config.precision_sources == int(replay_values['slam_precision_sources']) > 1
+    assert config.precision_base_m == float(replay_values['slam_precision_base_m'])
+
+
 @pytest.mark.slow
 def test_monte_carlo_of_the_loop_is_not_over_confident():
     results = [slam_montecarlo.run_seed(seed, robots=3, duration_s=30.0) for seed in range(4)]
