@@ -3,18 +3,39 @@ EKF updates of a landmark with views (``partial.update``): plain, CI, split CI.
 
 One view at a time, each gated on its 1-dof innovation; CI and split CI find the
 weight omega that minimises the posterior determinant along a scalar direction.
-Private to ``core``: ``partial`` is the interface.
+Where the model is not linear over the step, the update iterates (iterated EKF,
+Gauss-Newton on the posterior: ``ITERATE_THRESHOLD``). Private to ``core``:
+``partial`` is the interface.
 """
 
 from dataclasses import dataclass
 from typing import Optional
 
 from landmark_ros.core import sensors
-from landmark_ros.core._partial_model import (_OMEGA_STEPS, GATED, linearise, METHODS,
-                                              OMEGA_EDGE, TOO_CLOSE, UPDATED, Views)
+from landmark_ros.core._partial_model import (_OMEGA_STEPS, BEARING, GATED, linearise,
+                                              METHODS, observe_view, OMEGA_EDGE, TOO_CLOSE,
+                                              UPDATED, Views)
 from landmark_ros.core.gating import chi2_threshold
+from landmark_ros.core.pose2 import wrap_angle
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+
+ITERATE_THRESHOLD = 0.1
+"""The update iterates where the linearisation error of the EKF step,
+``|h(m1) - h(m0) - H0 (m1 - m0)|`` (the part of the change of the predicted view the
+first-order model misses), exceeds this fraction of the posterior standard deviation
+of the predicted view, ``sqrt(b a / (b + a))`` with ``b = H0 A H0^T`` and ``a`` the
+view's variance (the localizer's update compares the same error with the
+innovation's ``sqrt(b + a)``; a view far more precise than the landmark makes the
+posterior, not the innovation, the scale the error must be small against). Below it
+the update's first-order error is under a tenth of the spread it leaves, and one
+linearisation is as good as the data."""
+
+MAX_ITERATIONS = 10
+"""Most linearisations of an iterated update (the first is the EKF step)."""
+
+_CONVERGED = 1e-8
+"""Iterations stop when a step's squared Mahalanobis length under the prior is below."""
 
 
 @dataclass(frozen=True)
@@ -41,6 +62,9 @@ class UpdateResult:
         ``independent``.
     status : ndarray of int, shape (N,)
         ``UPDATED``, ``GATED`` or ``TOO_CLOSE`` (``UPDATE_STATUS_NAMES``).
+    iterations : ndarray of int, shape (N,)
+        Linearisations the update took: 1 for the plain (extended) step, more where
+        it iterated (``ITERATE_THRESHOLD``), 0 where not ``UPDATED``.
 
     """
 
@@ -52,6 +76,7 @@ class UpdateResult:
     mahalanobis_sq: NDArray[np.float64]
     omega: NDArray[np.float64]
     status: NDArray[np.int64]
+    iterations: NDArray[np.int64]
 
     @property
     def updated(self) -> NDArray[np.bool_]:
@@ -132,9 +157,126 @@ def view_omega(H: NDArray[np.float64], P_m_ind: NDArray[np.float64], P_m_dep: ND
     return omega
 
 
+def _method_terms(method, H, P_m, P_ind, P_dep, lin, R_ind, omega):
+    """Return omega and the dependent parts ``A_dep``, ``a_dep`` of ``A`` and ``a``."""
+    n = len(H)
+    if method == 'independent':
+        return np.full(n, np.nan), P_dep, lin.R_dep
+    if omega is None:
+        if method == 'covariance_intersection':
+            omega = view_omega(H, np.zeros_like(P_m), P_m, np.zeros(n), lin.R_eff)
+        else:
+            omega = view_omega(H, P_ind, P_dep, R_ind, lin.R_dep)
+    omega = np.broadcast_to(np.asarray(omega, dtype=np.float64), (n,)).copy()
+    if not np.all((omega > 0.0) & (omega < 1.0)):
+        raise ValueError(f'omega must lie strictly between 0 and 1, got {omega}')
+    return omega, _prior_dep(method, P_m, P_ind, P_dep, omega), _view_dep(method, lin,
+                                                                          R_ind, omega)
+
+
+def _prior_dep(method, P_m, P_ind, P_dep, omega):
+    """Return the dependent part of the landmark's covariance ``A`` as the method sees it."""
+    w = omega[:, None, None]
+    if method == 'independent':
+        return P_dep
+    if method == 'covariance_intersection':
+        return P_m / w - P_ind
+    return P_dep / w
+
+
+def _view_dep(method, lin, R_ind, omega):
+    """Return the dependent part of the view's variance ``a`` as the method sees it."""
+    if method == 'independent':
+        return lin.R_dep
+    if method == 'covariance_intersection':
+        return lin.R_eff / (1.0 - omega) - R_ind
+    return lin.R_dep / (1.0 - omega)
+
+
+def _gain(H, A, a):
+    """Return the gain ``K = A H^T / (H A H^T + a)``, shape (N, 2)."""
+    return (A @ H[:, :, None])[:, :, 0] / (_quadratic(H, A) + a)[:, None]
+
+
+def _iterate(views, m0, m1, A, R_ind, a_of, max_iterations=MAX_ITERATIONS):
+    """
+    Iterate the update of rows whose EKF step ``m0 -> m1`` was not linear enough.
+
+    Gauss-Newton on the posterior cost ``(m - m0)^T A^-1 (m - m0) + (y - h(m))^2 / a``,
+    in the iterated EKF's form (Bell and Cathey, "The iterated Kalman filter update as
+    a Gauss-Newton method", IEEE T-AC 38(2), 1993): relinearise ``h`` at the iterate
+    ``m_i`` and take ``m_i+1 = m0 + K_i (y - h(m_i) - H_i (m0 - m_i))``. A step that
+    raises the cost is halved (up to 5 times); a step that lands within
+    ``sensors.MIN_RANGE`` of the sensor ends the row's iterations where it is.
+
+    Parameters
+    ----------
+    views : Views
+        ``N`` views.
+    m0, m1 : ndarray, shape (N, 2) [m]
+        Prior means and the EKF step's results (the first iterate).
+    A : ndarray, shape (N, 2, 2)
+        The prior covariances as the method sees them.
+    R_ind : ndarray, shape (N,)
+        Independent variances of the views.
+    a_of : callable
+        ``(Linearisation of rows k, k) -> a_dep`` of those rows, shape (len(k),): the
+        dependent part of the view's variance at an iterate.
+    max_iterations : int
+        Most linearisations, the EKF step's included.
+
+    Returns
+    -------
+    m : ndarray, shape (N, 2)
+        The last iterates.
+    iterations : ndarray of int, shape (N,)
+        Linearisations taken per row (at least 2).
+
+    """
+    A_inv = np.linalg.solve(A, np.broadcast_to(np.eye(2), A.shape))
+    everything = np.arange(len(m0))
+    m = m1.copy()
+    lin = linearise(views, m)
+    current = (np.einsum('ni,nij,nj->n', m - m0, A_inv, m - m0)
+               + lin.residual ** 2 / (R_ind + a_of(lin, everything)))
+    active = np.ones(len(m), bool)
+    iterations = np.ones(len(m), np.int64)
+    for _ in range(max_iterations - 1):
+        rows = np.flatnonzero(active)
+        if not len(rows):
+            break
+        sub = views[rows]
+        H = lin.J_h_m[rows, 0, :]
+        K = _gain(H, A[rows], R_ind[rows] + a_of(lin, everything)[rows])
+        target = m0[rows] + K * (lin.residual[rows] + np.einsum(
+            'ni,ni->n', H, m[rows] - m0[rows]))[:, None]
+        step = target - m[rows]
+        iterations[rows] += 1
+        accepted = np.zeros(len(rows), bool)
+        for _ in range(6):
+            trial = m[rows] + step
+            near = np.hypot(*(trial - sub.s[:, :2]).T) < sensors.MIN_RANGE
+            trial = np.where(near[:, None], m[rows], trial)
+            lin_trial = linearise(sub, trial)
+            c = np.einsum('ni,nij,nj->n', trial - m0[rows], A_inv[rows], trial - m0[rows]) + (
+                lin_trial.residual ** 2 / (R_ind[rows] + a_of(lin_trial, rows)))
+            good = ~accepted & ~near & (c <= current[rows])
+            m[rows[good]] = trial[good]
+            current[rows[good]] = c[good]
+            accepted |= good | near
+            if accepted.all():
+                break
+            step = np.where(accepted[:, None], step, 0.5 * step)
+        length = np.einsum('ni,nij,nj->n', step, A_inv[rows], step)
+        active[rows[~accepted | (length <= _CONVERGED)]] = False
+        lin = linearise(views, m)
+    return m, iterations
+
+
 def update(m: ArrayLike, P_m: ArrayLike, views: Views, P_m_dep: Optional[ArrayLike] = None,
            method: str = 'independent', gate_probability: float = 0.999,
-           omega: Optional[ArrayLike] = None) -> UpdateResult:
+           omega: Optional[ArrayLike] = None,
+           iterate_threshold: Optional[float] = ITERATE_THRESHOLD) -> UpdateResult:
     """
     Update landmarks with one view each: the EKF with a scalar measurement.
 
@@ -155,9 +297,13 @@ def update(m: ArrayLike, P_m: ArrayLike, views: Views, P_m_dep: Optional[ArrayLi
     ``split_covariance_intersection``
         ``A = P_ind + P_m_dep / omega``, ``a = R_ind + R_dep / (1 - omega)``.
 
-    omega minimises ``det P+`` (``view_omega``) unless given. Rows are independent
-    pairs: a landmark seen by several views is updated by calling again (or by a loop
-    over its views), not twice in one batch.
+    omega minimises ``det P+`` (``view_omega``) unless given. Where the EKF step's
+    linearisation error exceeds ``iterate_threshold`` standard deviations of the
+    predicted view's posterior (``ITERATE_THRESHOLD``), the update iterates (``_iterate``: the
+    iterated EKF, Gauss-Newton on the posterior, with the same ``A``, omega and the
+    gate of the first linearisation) and the covariance is the Joseph form at the last
+    iterate. Rows are independent pairs: a landmark seen by several views is updated
+    by calling again (or by a loop over its views), not twice in one batch.
 
     Parameters
     ----------
@@ -175,6 +321,10 @@ def update(m: ArrayLike, P_m: ArrayLike, views: Views, P_m_dep: Optional[ArrayLi
         In (0, 1): innovations beyond the chi-square quantile are ``GATED``.
     omega : float or array_like, shape () or (N,), optional
         Weight in (0, 1) for the intersections instead of the optimal one.
+    iterate_threshold : float or None
+        Linearisation error, in posterior standard deviations of the predicted view,
+        above which the update iterates; 0 iterates every row, None never (the plain
+        EKF).
 
     Returns
     -------
@@ -204,35 +354,54 @@ def update(m: ArrayLike, P_m: ArrayLike, views: Views, P_m_dep: Optional[ArrayLi
     status = np.where(too_close, TOO_CLOSE, np.where(d2 <= threshold, UPDATED, GATED))
     P_ind = P_m - P_dep
     R_ind = views.R
-    if method == 'independent':
-        omega = np.full(n, np.nan)
-        A_dep, a_dep = P_dep, lin.R_dep
-    else:
-        if omega is None:
-            if method == 'covariance_intersection':
-                omega = view_omega(H, np.zeros_like(P_m), P_m, np.zeros(n), lin.R_eff)
-            else:
-                omega = view_omega(H, P_ind, P_dep, R_ind, lin.R_dep)
-        omega = np.broadcast_to(np.asarray(omega, dtype=np.float64), (n,)).copy()
-        if not np.all((omega > 0.0) & (omega < 1.0)):
-            raise ValueError(f'omega must lie strictly between 0 and 1, got {omega}')
-        w = omega[:, None, None]
-        if method == 'covariance_intersection':
-            A_dep = P_m / w - P_ind
-            a_dep = lin.R_eff / (1.0 - omega) - R_ind
-        else:
-            A_dep = P_dep / w
-            a_dep = lin.R_dep / (1.0 - omega)
+    omega, A_dep, a_dep = _method_terms(method, H, P_m, P_ind, P_dep, lin, R_ind, omega)
     A = P_ind + A_dep
-    K = (A @ H[:, :, None])[:, :, 0] / (_quadratic(H, A) + R_ind + a_dep)[:, None]
+    K = _gain(H, A, R_ind + a_dep)
+    keep = status == UPDATED
+    m_new = np.where(keep[:, None], m + K * np.where(keep, innovation, 0.0)[:, None], m)
+    iterations = keep.astype(np.int64)
+    if iterate_threshold is not None and keep.any():
+        b, a = _quadratic(H, A), R_ind + a_dep
+        spread = np.sqrt(b * a / (b + a))      # posterior standard deviation of h
+
+        def a_of(lin_i, rows):
+            return _view_dep(method, lin_i, R_ind[rows], omega[rows])
+
+        rows = _nonlinear_rows(views, m, m_new, H, spread, iterate_threshold, keep)
+        if len(rows):
+            m_it, taken = _iterate(views[rows], m[rows], m_new[rows], A[rows], R_ind[rows],
+                                   lambda lin_i, local: a_of(lin_i, rows[local]))
+            lin_it = linearise(views[rows], m_it)
+            H[rows] = lin_it.J_h_m[:, 0, :]
+            a_dep[rows] = a_of(lin_it, rows)
+            K[rows] = _gain(H[rows], A[rows], R_ind[rows] + a_dep[rows])
+            m_new[rows], iterations[rows] = m_it, taken
     L = np.eye(2) - K[:, :, None] * H[:, None, :]
     KK = K[:, :, None] * K[:, None, :]
     new_ind = L @ P_ind @ np.swapaxes(L, -1, -2) + KK * R_ind[:, None, None]
     new_dep = L @ A_dep @ np.swapaxes(L, -1, -2) + KK * a_dep[:, None, None]
     new_ind = 0.5 * (new_ind + np.swapaxes(new_ind, -1, -2))
     new_dep = 0.5 * (new_dep + np.swapaxes(new_dep, -1, -2))
-    keep = status == UPDATED
-    m_new = np.where(keep[:, None], m + K * np.where(keep, innovation, 0.0)[:, None], m)
     P_new = np.where(keep[:, None, None], new_ind + new_dep, P_m)
     dep_new = np.where(keep[:, None, None], new_dep, P_dep)
-    return UpdateResult(m_new, P_new, dep_new, innovation, S, d2, omega, status)
+    return UpdateResult(m_new, P_new, dep_new, innovation, S, d2, omega, status, iterations)
+
+
+def _nonlinear_rows(views, m, m_new, H, spread, threshold, updated):
+    """
+    Return the rows whose EKF step ``m -> m_new`` was not linear enough (``update``).
+
+    The linearisation error ``|h(m_new) - h(m) - H (m_new - m)|`` (bearings wrapped)
+    against ``threshold`` times ``spread``, the posterior standard deviation of the
+    predicted view; rows not ``updated``, or whose step lands on the sensor, are not
+    returned.
+    """
+    rows = np.flatnonzero(updated)
+    sub = views[rows]
+    step = m_new[rows] - m[rows]
+    far = np.hypot(*(m_new[rows] - sub.s[:, :2]).T) >= sensors.MIN_RANGE
+    moved = observe_view(sub.kind, sub.s, np.where(far[:, None], m_new[rows], m[rows]))[:, 0]
+    change = moved - observe_view(sub.kind, sub.s, m[rows])[:, 0]
+    change = np.where(sub.kind == BEARING, wrap_angle(change), change)
+    error = np.abs(change - np.einsum('ni,ni->n', H[rows], step))
+    return rows[far & (error > threshold * spread[rows])]

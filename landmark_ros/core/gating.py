@@ -122,3 +122,47 @@ def chi2_threshold(dof: int, probability: float) -> float:
     if not 0.0 < probability < 1.0:
         raise ValueError(f'probability must lie in (0, 1), got {probability!r}')
     return float(special.chdtri(int(dof), 1.0 - probability))
+
+
+_OMEGAS = np.linspace(0.0, 1.0, 101)[1:-1]
+"""Weights over which ``difference_mahalanobis_sq`` maximises (0.01 to 0.99)."""
+
+
+def difference_mahalanobis_sq(d: NDArray[np.float64], P_ind_a: NDArray[np.float64],
+                              P_dep_a: NDArray[np.float64], P_ind_b: NDArray[np.float64],
+                              P_dep_b: NDArray[np.float64]) -> NDArray[np.float64]:
+    """
+    Return a lower bound of the squared Mahalanobis distance of ``a - b``, any correlation.
+
+    ``max over omega of d^T S(omega)^-1 d`` with ``S(omega) = P_ind_a + P_ind_b +
+    P_dep_a / omega + P_dep_b / (1 - omega)``: each ``S(omega)`` bounds the covariance
+    of the difference when the independent parts are uncorrelated and the dependent
+    parts correlated in any way (covariance intersection, Julier and Uhlmann 1997),
+    so each gives a lower bound of the true distance and the largest is the tightest
+    (the merge test of ``fuser.tracks``). Maximised over ``omega`` in 0.01 .. 0.99;
+    where one of the two has no dependent part they cannot correlate and the distance
+    on ``P_a + P_b`` is exact.
+
+    Parameters
+    ----------
+    d : ndarray, shape (N, 2) [m]
+        Differences of the means.
+    P_ind_a, P_dep_a, P_ind_b, P_dep_b : ndarray, shape (N, 2, 2) [m^2]
+        Independent and dependent parts of the two covariances.
+
+    Returns
+    -------
+    ndarray, shape (N,)
+
+    """
+    total = P_ind_a + P_ind_b + P_dep_a + P_dep_b
+    plain = np.einsum('ni,ni->n', d, np.linalg.solve(total, d[..., None])[..., 0])
+    # Without a dependent part on one side the two cannot correlate: the sum is exact.
+    exact = ~np.any(P_dep_a, axis=(1, 2)) | ~np.any(P_dep_b, axis=(1, 2))
+    if exact.all():
+        return plain
+    w = _OMEGAS[:, None, None, None]
+    S = P_ind_a + P_ind_b + P_dep_a / w + P_dep_b / (1.0 - w)        # (W, N, 2, 2)
+    d_w = np.broadcast_to(d, S.shape[:-1])
+    bound = np.einsum('wni,wni->wn', d_w, np.linalg.solve(S, d_w[..., None])[..., 0])
+    return np.where(exact, plain, bound.max(axis=0))

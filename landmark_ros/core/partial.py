@@ -33,7 +33,8 @@ A residual is ``y - h`` with bearings wrapped to [-pi, pi).
 The implementation is in four private modules, this one is the interface:
 ``_partial_model`` (kinds, ``Views``, the model ``h``, its Jacobians, residuals,
 effective variances), ``_partial_geometry`` (closed-form intersections),
-``_partial_init`` (delayed initialisation) and ``_partial_update`` (EKF updates).
+``_partial_init`` (delayed initialisation) and ``_partial_update`` (EKF updates, iterated
+where the model is not linear over the step).
 
 """
 
@@ -47,13 +48,15 @@ from landmark_ros.core._partial_model import (BEARING, effective_variances, GATE
                                               residuals, TOO_CLOSE, UPDATE_STATUS_NAMES,
                                               UPDATED, Views, views_from_robot, WAIT,
                                               WAIT_REASONS)
-from landmark_ros.core._partial_update import update, UpdateResult, view_omega
+from landmark_ros.core._partial_update import (ITERATE_THRESHOLD, MAX_ITERATIONS, update,
+                                               UpdateResult, view_omega)
 
 __all__ = [
     'BEARING', 'dependent_covariance', 'effective_variances', 'GATED', 'Geometry', 'geometry',
     'Initialisation', 'initialise', 'InitialiseParams', 'intersect_circles',
-    'intersect_ray_circle', 'intersect_rays', 'KIND_NAMES', 'Linearisation', 'linearise',
-    'METHODS', 'observe_view', 'observe_view_jacobians', 'OK', 'OMEGA_EDGE', 'RANGE',
-    'residuals', 'TOO_CLOSE', 'trilaterate', 'update', 'UPDATE_STATUS_NAMES', 'UPDATED',
-    'UpdateResult', 'view_omega', 'Views', 'views_from_robot', 'WAIT', 'WAIT_REASONS',
+    'intersect_ray_circle', 'intersect_rays', 'ITERATE_THRESHOLD', 'KIND_NAMES', 'Linearisation',
+    'linearise', 'MAX_ITERATIONS', 'METHODS', 'observe_view', 'observe_view_jacobians', 'OK',
+    'OMEGA_EDGE', 'RANGE', 'residuals', 'TOO_CLOSE', 'trilaterate', 'update',
+    'UPDATE_STATUS_NAMES', 'UPDATED', 'UpdateResult', 'view_omega', 'Views', 'views_from_robot',
+    'WAIT', 'WAIT_REASONS',
 ]

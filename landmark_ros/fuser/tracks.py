@@ -27,12 +27,12 @@ C_z : their joint covariance, shape (2N, 2N) [m^2] (``association.scan_covarianc
 """
 
 from collections import Counter
-from typing import Any, Dict, List, Optional, Set, Tuple
+from typing import Any, Dict, Iterable, List, Optional, Set, Tuple
 
 from landmark_ros.core.association import (Association, Candidates, candidates,
                                            global_nearest_neighbour, LandmarkIndex,
                                            nearest_neighbour, scan_covariance)
-from landmark_ros.core.gating import chi2_threshold
+from landmark_ros.core.gating import chi2_threshold, difference_mahalanobis_sq
 from landmark_ros.core.joint_compatibility import jcbb
 from landmark_ros.fuser import track_file
 from landmark_ros.fuser.track_file import Track
@@ -221,8 +221,10 @@ class Tracker(ScoredTracks):
         assigned = ids >= 0
         counts['associated'] += int(assigned.sum())
         stats = list(self.statistics.values())
+        born = []
         for i in np.flatnonzero(~assigned & ~skipped).tolist():
             landmark_id = self.allocate(landmark_map)
+            born.append(landmark_id)
             ids[i] = landmark_id
             landmark_class = int(classes[i])
             if landmark_class:
@@ -234,25 +236,35 @@ class Tracker(ScoredTracks):
                                                     sum(s.deleted for s in stats)))
             counts['new_tentative'] += 1
             self.dirty = True
-        self.note_sightings(ids)
+        self.note_sightings(ids, born)
         return ids
 
-    def note_sightings(self, ids: NDArray[np.int64]) -> None:
+    def note_sightings(self, ids: NDArray[np.int64], born: Iterable[int] = ()) -> None:
         """
         Count one message's sightings of owned IDs, alone and by pairs (the merge test).
+
+        A track started by a row of the message does not meet the message's other
+        tracks in it: a row starts a track because no track took it, so every
+        duplicate started by a clutter row beside its landmark meets the landmark's
+        track in the message that started it. One landmark gives one row per scan, and
+        that meeting says one of the two rows was not the landmark's; it is no evidence
+        of two landmarks. The meetings after it are (``one_landmark``).
 
         Parameters
         ----------
         ids : ndarray of int, shape (N,)
             The IDs the message's rows went to (others than owned ones are ignored;
             an ID given to several rows counts once).
+        born : iterable of int
+            The IDs the message's rows started (allocated for this message).
 
         """
         seen = sorted({i for i in np.asarray(ids).tolist() if i in self.owned})
+        new = set(born)
         for a in seen:
             self.sightings[a] = self.sightings.get(a, 0) + 1
             for b in seen:
-                if b != a:
+                if b != a and a not in new and b not in new:
                     partners = self.together.setdefault(a, {})
                     partners[b] = partners.get(b, 0) + 1
 
@@ -346,7 +358,21 @@ class Tracker(ScoredTracks):
                          changed: Optional[NDArray[np.int64]] = None
                          ) -> List[Tuple[int, int, float]]:
         """
-        Return the pairs of owned confirmed landmarks of one class inside each other's gate.
+        Return the pairs of owned confirmed landmarks of one class that may be one landmark.
+
+        The difference of two estimates of one landmark has the covariance
+        ``P_a + P_b - C - C^T``, with ``C`` the cross-covariance their dependent parts
+        (shared pose and bias errors) leave unknown. For every ``omega`` in (0, 1),
+        ``S(omega) = P_ind_a + P_ind_b + P_dep_a / omega + P_dep_b / (1 - omega)``
+        bounds it whatever that correlation (the covariance-intersection inequality;
+        ``P_ind = P - P_dep``), so the difference's squared Mahalanobis distance is at
+        least ``d2 = max over omega of d^T S(omega)^-1 d``
+        (``gating.difference_mahalanobis_sq``). A
+        pair is compatible when ``d2 <= chi2_threshold(2, association_gate_probability)``:
+        two estimates of one landmark fail it at most at the gate's rate, whatever
+        their correlation. Without dependent parts ``d2`` is the distance on
+        ``P_a + P_b``. Candidates are searched on ``P_a + P_b`` with the threshold
+        doubled (``S(1/2) <= 2 (P_a + P_b)``, so no compatible pair is missed).
 
         Parameters
         ----------
@@ -358,9 +384,8 @@ class Tracker(ScoredTracks):
         Returns
         -------
         list of (int, int, float)
-            ``(a, b, d2)``: rows ``a < b`` of ``snapshot`` and the squared Mahalanobis
-            distance of their means on ``P_a + P_b``, at most the gate
-            ``chi2_threshold(2, association_gate_probability)``; sorted by rows.
+            ``(a, b, d2)``: rows ``a < b`` of ``snapshot`` and ``d2``, at most the
+            gate; sorted by rows.
 
         """
         owned = np.fromiter(self.owned, np.int64, len(self.owned))
@@ -368,21 +393,27 @@ class Tracker(ScoredTracks):
         if len(mine) < 2:
             return []
         ids, m, P = snapshot.ids[mine], snapshot.m[mine], snapshot.P[mine]
+        P_dep = snapshot.P_dep[mine]
         queries = np.arange(len(ids))
         if changed is not None:
             queries = np.flatnonzero(np.isin(ids, np.asarray(changed, np.int64)))
             if not len(queries):
                 return []
         index = LandmarkIndex(m, P, self.class_of(ids))
-        cands = candidates(index, m[queries], P[queries], self.class_of(ids[queries]),
-                           self.config.association_gate_probability)
+        # chi2 with 2 dof: threshold -2 ln(1 - p), doubled at p' = 1 - (1 - p)^2.
+        wide = 1.0 - (1.0 - self.config.association_gate_probability) ** 2
+        cands = candidates(index, m[queries], P[queries], self.class_of(ids[queries]), wide)
         threshold = chi2_threshold(2, self.config.association_gate_probability)
+        rows, others = queries[cands.rows], cands.landmarks
+        distinct = rows != others
+        rows, others = rows[distinct], others[distinct]
+        d2 = difference_mahalanobis_sq(m[rows] - m[others], P[rows] - P_dep[rows],
+                                       P_dep[rows], P[others] - P_dep[others], P_dep[others])
         pairs: Dict[Tuple[int, int], float] = {}
-        for a, b, d2 in zip(queries[cands.rows].tolist(), cands.landmarks.tolist(),
-                            cands.d2.tolist()):
-            if a != b and d2 <= threshold:
+        for a, b, value in zip(rows.tolist(), others.tolist(), d2.tolist()):
+            if value <= threshold:
                 key = (min(a, b), max(a, b))
-                pairs[key] = min(d2, pairs.get(key, d2))
+                pairs[key] = min(value, pairs.get(key, value))
         return [(int(mine[a]), int(mine[b]), d2) for (a, b), d2 in sorted(pairs.items())]
 
     def one_landmark(self, a: int, b: int) -> bool:
