@@ -97,9 +97,9 @@ class SourceSums:
             return self.slots[at]
         new, first = unique_ints(keys[~found]), self.count
         self.count += len(new)      # the table's rows from count on hold zeros
-        if self.count > len(self.table):
-            grown = np.zeros((2 * self.count, compiled.COLUMNS))
-            grown[:len(self.table)] = self.table
+        if self.count > len(self.table):    # 4x: fewer copies; untouched zeros cost no RAM
+            grown = np.zeros((4 * self.count, compiled.COLUMNS))
+            grown[:first] = self.table[:first]
             self.table = grown
         slots = np.empty(len(keys), np.int64)
         slots[found] = self.slots[at[found]]
