@@ -21,7 +21,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = ROOT / 'docs'
 PAGES = ('nodes', 'parameters', 'sensors', 'association', 'bad-input', 'evaluation',
-         'architecture', 'benchmarks')
+         'architecture', 'benchmarks', 'localization', 'slam')
 
 
 def _load(path, name):

@@ -20,7 +20,7 @@ objects the nodes run: per robot a ``localizer.Localizer`` and an
 - a sighting of another robot updates the localizer with the other's estimate at that
   stamp (``Localizer.add_robot_sighting``).
 
-Why the loop stays consistent (docs/localization.md, "The team without motion
+Why the loop stays consistent (docs/slam.md, "The team without motion
 capture"): every pose the observer uses is the localizer's estimate *before* the
 sightings it places (the observer waits for the pose after their stamp, and the loop
 hands the sightings to the localizer only after the observer has placed them), so a

@@ -46,7 +46,7 @@ Live order (``live``, ``--live-order``). A robot whose localizer and observer sh
 ``observations`` topic gets the sightings to the localizer before the odometry that
 passes their stamp: the localizer applies them before it publishes that pose, and the
 observer places them with a pose that already holds them (their noise fed back once,
-docs/localization.md). The player then sends each step's sightings to the localizer
+docs/slam.md). The player then sends each step's sightings to the localizer
 one odometry message earlier; everything else as above. The difference to the offline
 loop is what that order costs.
 """
