@@ -56,16 +56,12 @@ from landmark_ros.core.association import (candidates, LandmarkIndex, nearest_ne
 from landmark_ros.core.joint_compatibility import jcbb
 from landmark_ros.core.landmarks import landmark_to_world
 from landmark_ros.core.sensors import MIN_RANGE
-from landmark_ros.localizer.config import ASSOCIATION_METHODS
 from landmark_ros.localizer.update import RANGE_BEARING
 import numpy as np
 from numpy.typing import NDArray
 
 UNKNOWN_ID = 0xFFFFFFFF
 """ID of a row without one (the observer's cloud schema; ``localizer.UNKNOWN_ID``)."""
-
-METHODS = ASSOCIATION_METHODS
-"""Values of the ``association`` parameter (``config.ASSOCIATION_METHODS``)."""
 
 
 @dataclass(frozen=True)

@@ -57,15 +57,11 @@ import math
 from typing import Optional, Sequence, Tuple
 
 from landmark_ros.core import range_scale, sensors
-from landmark_ros.localizer import config
 import numpy as np
 from numpy.typing import NDArray
 
 RANGE_BEARING, RANGE, BEARING = 0, 1, 2
 """Kinds of rows: which components of ``z`` count."""
-
-CORRELATIONS = config.CORRELATIONS
-"""How the map's errors relate to the pose's (module docstring)."""
 
 
 @dataclass
