@@ -55,10 +55,17 @@ $(ROS_TOOLS_STAMP): $(STAMP) $(ROS_TOOLS) $(wildcard ../shared/ros-tools/wheels/
 	@touch $@
 endif
 
+# Two pytest-xdist workers (test/conftest.py keeps the tests that join a ROS graph on one
+# of them, one at a time); TEST_WORKERS=0 runs serially.
+TEST_WORKERS ?= 2
+XDIST = $(if $(filter 0,$(TEST_WORKERS)),,-n $(TEST_WORKERS) --dist loadgroup)
+
 test: venv ros-tools
-	$(PYTEST) test $(PYTEST_ARGS)
-	@# again without numba: the numpy fold is the default path for anyone without it
-	LANDMARK_ROS_NUMBA=0 $(PYTEST) test/core test/fusion test/pipeline test/fuser test/observer \
+	$(PYTEST) $(XDIST) test $(PYTEST_ARGS)
+	@# again without numba, every test that can reach the split-CI fold (fusion and
+	@# above; core and the observer import nothing of fusion): the numpy fold is the
+	@# default path for anyone without numba
+	LANDMARK_ROS_NUMBA=0 $(PYTEST) $(XDIST) test/fusion test/pipeline test/fuser \
 		test/localizer $(PYTEST_ARGS)
 
 # The property-based fuzz tests of the cloud readers and the bag reader (test/*/test_fuzz_*.py),

@@ -1,5 +1,6 @@
 """Shared test helpers: a numerical Jacobian, a seeded RNG and random inputs."""
 
+import re
 import warnings
 import zlib
 
@@ -119,3 +120,33 @@ def no_warnings():
     with warnings.catch_warnings():
         warnings.simplefilter('error')
         yield
+
+
+ROS_GRAPH = re.compile(r'rclpy|rosutil|through_nodes|through-nodes|landmark_ros\.demo|'
+                       r'launch_rig|startup|colcon|ROS_DOMAIN_ID')
+"""What a test module says when its tests join a ROS graph (nodes, processes, domains)."""
+
+CHECKERS = frozenset({'test_flake8.py', 'test_pep257.py', 'test_layers.py',
+                      'test_codebase.py', 'test_types.py', 'test_docs.py'})
+"""Code checkers: they name ROS in their sources but start nothing."""
+
+
+def pytest_collection_modifyitems(config, items):
+    """
+    Under pytest-xdist, keep every test that joins a ROS graph on one worker.
+
+    ``make test`` runs ``-n 2 --dist loadgroup``: the tests whose module names ROS (or
+    that take the ``env`` / ``ros_env`` fixtures) form one group and run one at a time,
+    as in a serial run (their domain IDs, ports and deadlines assume it); the others
+    (maths, Monte Carlo, checkers) share both workers.
+    """
+    if not config.pluginmanager.hasplugin('xdist'):
+        return
+    joins = {}
+    for item in items:
+        path = item.path
+        if path not in joins:
+            joins[path] = path.name not in CHECKERS and bool(
+                ROS_GRAPH.search(path.read_text(encoding='utf-8')))
+        if joins[path] or {'env', 'ros_env'} & set(getattr(item, 'fixturenames', ())):
+            item.add_marker(pytest.mark.xdist_group('ros_graph'))

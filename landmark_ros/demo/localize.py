@@ -119,9 +119,16 @@ class LocalizationCollector:
             return
         self.estimates[robot][stamp_ns(msg.header.stamp)] = (x, P)
 
-    def ready(self):
-        """Return whether every localizer's pose output is matched."""
+    def ready(self, statuses):
+        """
+        Return whether every localizer runs and its pose output is matched.
+
+        ``statuses`` (the monitor's latest diagnostics by status name) must hold each
+        localizer's: a localizer publishes them once its filter is built (its imports
+        can take seconds under load while the simulator would already be running).
+        """
         return all(self.node.count_publishers(f'/robot{i + 1}/localized_pose')
+                   and f'/robot{i + 1}/landmark_localizer' in statuses
                    for i in range(self.robots))
 
     def complete(self):

@@ -281,7 +281,8 @@ def drive(config, launcher, monitor, params_path, progress, slam=False):
     localization = monitor.localization
     if localization is not None:  # --localize
         start_localizers(launcher, config, params_path)
-        wait_until(monitor, launcher, localization.ready, 60.0, 'the localizers to come up')
+        wait_until(monitor, launcher, lambda: localization.ready(monitor.latest), 60.0,
+                   'the localizers to come up')
     launcher.start_module('sim', 'landmark_ros.nodes.sim', [*ros_args, *sim_remaps])
     wall = config.duration_s / config.time_scale
     wait_until(monitor, launcher, lambda: monitor.sim_finished, 2.0 * wall + 60.0,
