@@ -11,12 +11,20 @@ from rclpy.executors import SingleThreadedExecutor
 
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 
-_domains = itertools.count(1 + os.getpid() % 100)
+_WORKERS = int(os.environ.get('PYTEST_XDIST_WORKER_COUNT', '1'))
+_WORKER = int(os.environ.get('PYTEST_XDIST_WORKER', 'gw0')[2:] or 0)
+_WIDTH = max(1, 100 // _WORKERS)
+_domains = itertools.count(os.getpid() % _WIDTH)
 
 
 def next_domain_id():
-    """Return a ROS_DOMAIN_ID for this test: distinct per test and per process."""
-    return 1 + next(_domains) % 200
+    """
+    Return a ROS_DOMAIN_ID for this test: distinct per test and per process.
+
+    The IDs 1 to 100, split evenly between pytest-xdist workers (each its own range);
+    100 to 199 are the MRCLAM replay's and the demo's.
+    """
+    return 1 + _WORKER * _WIDTH + next(_domains) % _WIDTH
 
 
 class RosEnv:
