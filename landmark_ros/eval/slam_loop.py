@@ -15,10 +15,8 @@ objects the nodes run: per robot a ``localizer.Localizer`` and an
   once (``fuse_queued``);
 - the same sightings update the localizer against the fused map as it was before
   that batch was fused (the map never holds the sighting that updates the pose);
-  without IDs the rows take the track IDs the fuser's association gave them, but for
-  the rows whose pairing it found ambiguous (``Tracker.ambiguous``: they name no
-  landmark for the pose) (``LoopConfig.association``; ``localizer``: the localizer
-  associates them itself);
+  without IDs the rows take the track IDs the fuser's association gave them
+  (``LoopConfig.association``; ``localizer``: the localizer associates them itself);
 - a sighting of another robot updates the localizer with the other's estimate at that
   stamp (``Localizer.add_robot_sighting``).
 
@@ -200,8 +198,6 @@ class TeamLoop:
                 return
             ids = np.array([self.fuser.tracker.resolve(i) if i >= 0 else UNKNOWN_ID
                             for i in self.fuser.association_log[-1][2].tolist()], np.int64)
-            # A row the fuser could pair with several landmarks names none for the pose.
-            ids[self.fuser.tracker.ambiguous] = UNKNOWN_ID
         loc = self.localizers[robot]
         if self._map_version[robot] != version:
             loc.set_map(before.ids, before.m, before.P)

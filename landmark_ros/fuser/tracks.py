@@ -98,10 +98,6 @@ class Tracker(ScoredTracks):
         self.deleted: List[Tuple[int, NDArray[np.float64], NDArray[np.float64],
                                  NDArray[np.float64]]] = []
         """Confirmed tracks deleted by their score: ``(ID, m, P, P_dep)``, last estimates."""
-        self.ambiguous: NDArray[np.bool_] = np.zeros(0, bool)
-        """Per row of the last ``associate``: whether its pairing was ambiguous (another
-        free candidate passed the joint gate), whatever ``ambiguous_rows`` did with it."""
-        self._open: NDArray[np.intp] = np.zeros(0, np.intp)
 
     def reset(self) -> None:
         """Forget the tracks and classes; the allocator goes on (IDs are never reused)."""
@@ -214,7 +210,6 @@ class Tracker(ScoredTracks):
             self._rebuild(landmark_map)
         ids = np.full(len(z), -1, np.int64)
         skipped = np.zeros(len(z), bool)
-        self.ambiguous = np.zeros(len(z), bool)
         for index, index_ids in self._indices:
             rows = np.flatnonzero((ids < 0) & ~skipped)
             if not len(rows) or not len(index):
@@ -223,7 +218,6 @@ class Tracker(ScoredTracks):
                                            counts)
             ids[rows[paired >= 0]] = index_ids[paired[paired >= 0]]
             skipped[rows[ambiguous]] = True
-            self.ambiguous[rows[self._open]] = True
         assigned = ids >= 0
         counts['associated'] += int(assigned.sum())
         stats = list(self.statistics.values())
@@ -516,7 +510,6 @@ class Tracker(ScoredTracks):
         paired = np.array(result.assignment, np.int64)
         ambiguous = np.zeros(len(z), bool)
         open_rows = _open_ambiguity(cands, result)
-        self._open = open_rows
         if len(open_rows):
             counts['ambiguous'] += len(open_rows)
             if self.config.ambiguous_rows == 'skip':

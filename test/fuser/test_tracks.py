@@ -159,21 +159,6 @@ def test_ambiguous_rows_are_skipped_on_request(rng):
     assert counts['ambiguous'] == 1 and counts['associated'] == 0
     assert counts['new_tentative'] == 0
     assert fuser.snapshot().observations.tolist() == [2, 2]
-    assert fuser.tracker.ambiguous.tolist() == [True]
-
-
-@pytest.mark.parametrize('x, ambiguous', [(0.1, True), (5.0, False)])
-def test_assigned_rows_say_whether_their_pairing_was_ambiguous(x, ambiguous):
-    fuser = Fuser(FuserConfig(association='nearest_neighbour'), SOURCES)
-    tight = np.broadcast_to(1e-2 * np.eye(2), (2, 2, 2)).copy()
-    for k in range(2):
-        fuser.add_landmarks(SOURCES[0], LandmarkMessage((k + 1) * S, [1, 2],
-                            np.array([[0.0, 0.0], [0.2, 0.0]]), tight, 0 * tight))
-    fuser.add_landmarks(SOURCES[1], LandmarkMessage(
-        3 * S, [UNKNOWN_ID], np.array([[x, 0.0]]), tight[:1], 0 * tight[:1]))
-    fuser.fuse_queued()
-    # 'assign' keeps the pairing (or a new track) but marks the row for the loop's localizer
-    assert fuser.tracker.ambiguous.tolist() == [ambiguous]
 
 
 def test_classes_keep_landmarks_apart_and_are_published(rng):
