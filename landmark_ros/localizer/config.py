@@ -12,6 +12,8 @@ ASSOCIATION_METHODS = ('none', 'nn', 'jcbb')
 
 CORRELATIONS = ('independent', 'split_ci')
 """Values of ``correlation``: how the map's errors relate to the pose's (``update``)."""
+CORRELATED_NOISE = ('count', 'dependent')
+"""Values of ``correlated_noise``: where the time-correlated noise and the bias go."""
 
 
 @dataclass(frozen=True)
@@ -81,6 +83,12 @@ class LocalizerConfig(ConfigBase):
     correlation: str = param(
         'split_ci', 'map-pose correlation: independent (plain EKF) or split_ci (consistent '
         'for any correlation of the map with the pose)')
+    correlated_noise: str = param(
+        'count', 'how the time-correlated noise and the bias enter an update: count (in the '
+        'independent noise, the correlated variance times the sightings of the landmark '
+        'within noise_correlation_time_s, the bias variance times those of any landmark) or '
+        'dependent (with split_ci: beside the map term, of unknown correlation with the '
+        'pose, once per sighting; the bias shared by the rows of one update)')
     gate_probability: float = param(0.99, 'chi-square gate per observation row',
                                     low=0.5, high=0.999999)
     iterate_threshold: float = param(
@@ -128,6 +136,9 @@ class LocalizerConfig(ConfigBase):
         if self.correlation not in CORRELATIONS:
             raise ValueError(f'correlation must be one of {CORRELATIONS}, '
                              f'got {self.correlation!r}')
+        if self.correlated_noise not in CORRELATED_NOISE:
+            raise ValueError(f'correlated_noise must be one of {CORRELATED_NOISE}, '
+                             f'got {self.correlated_noise!r}')
         if self.association not in ASSOCIATION_METHODS:
             raise ValueError(f'association must be one of {ASSOCIATION_METHODS}, '
                              f'got {self.association!r}')

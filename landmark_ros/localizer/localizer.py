@@ -52,7 +52,7 @@ from landmark_ros.core.gating import chi2_threshold
 from landmark_ros.localizer import motion
 from landmark_ros.localizer.association import label_rows, MapAssociation
 from landmark_ros.localizer.config import LocalizerConfig
-from landmark_ros.localizer.update import (correct_ranges, RANGE_BEARING, update,
+from landmark_ros.localizer.update import (correct_ranges, RANGE_BEARING, row_noise, update,
                                            UpdateResult, UpdateSettings)
 from landmark_ros.pipeline.counters import Counters, Status
 from landmark_ros.pipeline.rows import landmark_row_problems
@@ -542,10 +542,7 @@ class Localizer:
 
     def _update(self, x, P, batch):
         try:
-            shared = 1.0 if batch.shared is None else batch.shared[:, None, None]
-            R = batch.R * (self._white + self._correlated * shared)
-            if batch.shared_bias is not None and self._bias_R.any():
-                R = R + self._bias_R * batch.shared_bias[:, None, None]
+            R = self._noise(batch)
             settings = self.settings if not batch.correlation else replace(
                 self.settings, correlation=batch.correlation)
             result = update(x, P, batch.m, batch.P_m, batch.z, R, batch.kind, settings)
@@ -556,6 +553,13 @@ class Localizer:
             batch.result = result
             self._count(batch, result)
         return result.x, result.P
+
+    def _noise(self, batch):
+        """Return the noise of a batch's rows (``update.row_noise``)."""
+        cfg = self.config
+        return row_noise(batch.R, (self._white, self._correlated), self._bias_R, batch.shared,
+                         batch.shared_bias,
+                         cfg.correlated_noise == 'dependent' and cfg.correlation == 'split_ci')
 
     def _count(self, batch, result):
         used, gated = int(result.used.sum()), int(result.gated.sum())

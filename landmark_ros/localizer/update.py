@@ -54,7 +54,7 @@ iterate with the same ``P1``, ``P2``.
 
 from dataclasses import dataclass
 import math
-from typing import Optional, Sequence, Tuple
+from typing import NamedTuple, Optional, Sequence, Tuple, Union
 
 from landmark_ros.core import range_scale, sensors
 import numpy as np
@@ -62,6 +62,24 @@ from numpy.typing import NDArray
 
 RANGE_BEARING, RANGE, BEARING = 0, 1, 2
 """Kinds of rows: which components of ``z`` count."""
+
+
+class SensorNoise(NamedTuple):
+    """
+    Sensor noise split by how it relates to the pose (``update``'s ``R``).
+
+    ``R`` is independent of the pose and of the map; ``R_dep`` (per row) and
+    ``R_shared`` (one error shared by every row of the update, the sensor bias) may be
+    correlated with the pose in any way, through the sightings it was updated with
+    before: with ``split_ci`` they join the map term ``M``.
+    """
+
+    R: NDArray[np.float64]
+    """Independent noise, shape (N, 2, 2)."""
+    R_dep: NDArray[np.float64]
+    """Per-row noise of unknown correlation with the pose, shape (N, 2, 2)."""
+    R_shared: Optional[NDArray[np.float64]] = None
+    """Noise shared by all rows (fully correlated between them), shape (2, 2)."""
 
 
 @dataclass
@@ -146,6 +164,43 @@ def correct_ranges(z: NDArray[np.float64], kind: NDArray[np.int64],
     return z, R
 
 
+def row_noise(R: NDArray[np.float64], parts: Tuple[NDArray[np.float64], NDArray[np.float64]],
+              R_bias: NDArray[np.float64], shared: Optional[NDArray[np.float64]],
+              shared_bias: Optional[NDArray[np.float64]],
+              dependent: bool) -> Union[NDArray[np.float64], SensorNoise]:
+    """
+    Return the noise of a batch's rows with its time-correlated part and the bias.
+
+    ``count`` (``dependent`` False): one array, the correlated part times ``shared`` (the
+    sightings of the row's landmark sharing its error) and ``R_bias`` times
+    ``shared_bias`` (the sightings of any landmark), all taken as independent.
+    ``dependent``: a ``SensorNoise``, the white part independent, the correlated part
+    (once) and the bias (one error for every row) of unknown correlation with the pose.
+
+    Parameters
+    ----------
+    R : ndarray, shape (N, 2, 2)
+        Sensor noise of the rows.
+    parts : (ndarray, ndarray), each shape (2, 2)
+        Entry-wise factors of ``R``: its white and its time-correlated part.
+    R_bias : ndarray, shape (2, 2)
+        Covariance of the sensor bias (zero: none).
+    shared, shared_bias : ndarray, shape (N,), optional
+        The counts of ``count`` (None: 1, no bias term).
+    dependent : bool
+        Which of the two forms.
+
+    """
+    white, correlated = parts
+    if dependent:
+        return SensorNoise(R * white, R * correlated, R_bias if R_bias.any() else None)
+    n = 1.0 if shared is None else shared[:, None, None]
+    out = R * (white + correlated * n)
+    if shared_bias is not None and R_bias.any():
+        out = out + R_bias * shared_bias[:, None, None]
+    return out
+
+
 def _components(kind):
     """Return the row index and component (0 range, 1 bearing) of each scalar."""
     rows, comps = [], []
@@ -167,7 +222,7 @@ def _innovation(z, h, comp):
 
 
 def _row_gate(x, P, m, P_m, z, R, kind, settings):
-    """Return the per-row chi-square test: d2 (N,), passed (N,)."""
+    """Return the per-row chi-square test: d2 (N,), passed (N,); ``R`` the total noise."""
     h = sensors.observe(x, m)
     J_z_x, J_z_m = sensors.observe_jacobians(x, m)
     S = J_z_x @ P @ J_z_x.transpose(0, 2, 1) + J_z_m @ P_m @ J_z_m.transpose(0, 2, 1) + R
@@ -244,8 +299,9 @@ def split_ci_weight(P: NDArray[np.float64], H: NDArray[np.float64], R_s: NDArray
 
 
 def update(x: NDArray[np.float64], P: NDArray[np.float64], m: NDArray[np.float64],
-           P_m: NDArray[np.float64], z: NDArray[np.float64], R: NDArray[np.float64],
-           kind: NDArray[np.int64], settings: UpdateSettings) -> UpdateResult:
+           P_m: NDArray[np.float64], z: NDArray[np.float64],
+           R: Union[NDArray[np.float64], SensorNoise], kind: NDArray[np.int64],
+           settings: UpdateSettings) -> UpdateResult:
     """
     Update the pose from N landmark sightings: gate each row, then one (iterated) update.
 
@@ -262,8 +318,9 @@ def update(x: NDArray[np.float64], P: NDArray[np.float64], m: NDArray[np.float64
     z : ndarray, shape (N, 2)
         Observations (range [m], bearing [rad]); the unused component of a partial row
         is ignored (may be NaN).
-    R : ndarray, shape (N, 2, 2)
-        Sensor noise.
+    R : ndarray, shape (N, 2, 2), or SensorNoise
+        Sensor noise: an array is independent of the pose; a ``SensorNoise`` adds parts
+        of unknown correlation with it, which go with the map term.
     kind : ndarray of int, shape (N,)
         ``RANGE_BEARING``, ``RANGE`` or ``BEARING`` per row.
     settings : UpdateSettings
@@ -282,7 +339,9 @@ def update(x: NDArray[np.float64], P: NDArray[np.float64], m: NDArray[np.float64
 
     """
     z = np.where(np.isfinite(z), z, 0.0)
-    d2, passed = _row_gate(x, P, m, P_m, z, R, kind, settings)
+    noise = R if isinstance(R, SensorNoise) else SensorNoise(R, np.zeros_like(R))
+    R_total = noise.R + noise.R_dep + (0.0 if noise.R_shared is None else noise.R_shared)
+    d2, passed = _row_gate(x, P, m, P_m, z, R_total, kind, settings)
     used = passed.copy()
     if not used.any():
         return UpdateResult(x, P, used, ~passed, math.nan, 0, 1.0, 0)
@@ -290,8 +349,10 @@ def update(x: NDArray[np.float64], P: NDArray[np.float64], m: NDArray[np.float64
     rows, comps = _components(kind[idx])
     rows_g = idx[rows]
     _, J_z_m = sensors.observe_jacobians(x, m[idx])
-    M_rows = J_z_m @ P_m[idx] @ J_z_m.transpose(0, 2, 1)
-    R_s, M_s = _blocks(R[idx], rows, comps), _blocks(M_rows, rows, comps)
+    M_rows = J_z_m @ P_m[idx] @ J_z_m.transpose(0, 2, 1) + noise.R_dep[idx]
+    R_s, M_s = _blocks(noise.R[idx], rows, comps), _blocks(M_rows, rows, comps)
+    if noise.R_shared is not None:  # one error in every row: the full block
+        M_s = M_s + noise.R_shared[comps[:, None], comps[None, :]]
     z_s = z[rows_g, comps]
     h0, H0 = _stack(x, m, rows_g, comps)
     w = 1.0

@@ -24,10 +24,12 @@ odometry ``k`` (every odometry message gives one pose); after any batch, the nex
 odometry waits until the node's diagnostics count every batch sent in
 (``observation_messages_in``): DDS does not order the player's two writers.
 
-``slice_run`` cuts a run to its first seconds (``--duration``).
+``slice_run`` cuts a run to its first seconds (``--duration``) or to a later window
+(``--start``).
 """
 
 from dataclasses import dataclass, replace
+import math
 from typing import List
 
 from landmark_ros.mrclam.data import seconds_to_stamps_ns
@@ -117,23 +119,29 @@ def schedule(robot, extras, delay_s, strict=False):
     return Schedule(kind, index, end, stamp, after, barrier)
 
 
-def slice_run(dataset, extras, seconds):
+def slice_run(dataset, extras, seconds, start_s=0.0):
     """
-    Return the dataset and extras cut to the first ``seconds`` of the sightings.
+    Return the dataset and extras cut to ``seconds`` of the sightings from ``start_s``.
 
-    Every robot keeps the sightings, odometry and robot sightings stamped before
-    ``dataset.time_span[0] + seconds`` (the odometry by its own stamps, without delay);
-    the ground truth stays whole.
+    ``start_s`` [s] counts from the first sighting (``dataset.time_span[0]``); every
+    robot keeps the sightings, odometry and robot sightings stamped before
+    ``first + start_s + seconds`` (the odometry by its own stamps, without delay) and,
+    with ``start_s`` > 0, from ``first + start_s`` on; ``seconds`` None keeps
+    everything after the start. The ground truth stays whole (a replay starts each
+    robot at the truth at its first kept odometry).
     """
-    end = dataset.time_span[0] + float(seconds)
+    first = dataset.time_span[0]
+    begin = first + float(start_s) if start_s > 0 else -math.inf
+    end = math.inf if seconds is None else first + float(start_s) + float(seconds)
     robots: List = []
     for robot in dataset.robots:
-        keep = robot.times < end
+        keep = (robot.times >= begin) & (robot.times < end)
         robots.append(replace(robot, times=robot.times[keep], ids=robot.ids[keep],
                               z=robot.z[keep], poses=robot.poses[keep]))
     cut = {}
     for number, ex in extras.items():
-        k, s = ex.odom_times < end, ex.sighting_times < end
+        k = (ex.odom_times >= begin) & (ex.odom_times < end)
+        s = (ex.sighting_times >= begin) & (ex.sighting_times < end)
         cut[number] = replace(ex, odom_times=ex.odom_times[k], odom_twist=ex.odom_twist[k],
                               sighting_times=ex.sighting_times[s],
                               sighting_robot=ex.sighting_robot[s],

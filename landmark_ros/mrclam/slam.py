@@ -284,9 +284,13 @@ def loop_config(replay_config, localizer: LocalizerConfig,
 
     From ``replay_values`` (the ``landmark_mrclam`` section), the precision sources:
     ``slam_precision_sources`` (``LoopConfig.precision_sources``, default 1) and
-    ``slam_precision_base_m`` (``LoopConfig.precision_base_m``, default 0.02 m).
+    ``slam_precision_base_m`` (``LoopConfig.precision_base_m``, default 0.02 m); and
+    ``slam_correlated_noise``, the localizers' ``correlated_noise`` in the loop (default:
+    the localizer section's).
     """
     values = replay_values or {}
+    if 'slam_correlated_noise' in values:
+        localizer = replace(localizer, correlated_noise=str(values['slam_correlated_noise']))
     return LoopConfig(localizer, replay_config.observer, replay_config.fuser,
                       precision_sources=int(values.get('slam_precision_sources', 1)),
                       precision_base_m=float(values.get('slam_precision_base_m', 0.02)))

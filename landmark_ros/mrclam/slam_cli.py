@@ -12,7 +12,7 @@ picture per mode (``FILE`` stem + ``-ids|-noids`` + ``-anchors``).
 
 One mode in its own process (a whole run takes minutes; one mode per process keeps the
 runs apart): ``python -m landmark_ros.mrclam.slam_cli [--hide-ids] [--anchors]
-[--duration S] [--json OUT] [DATASET]`` prints the same table and the map's landmarks
+[--duration S] [--start S] [--json OUT] [DATASET]`` prints the same table and the map's landmarks
 one per line (error, NEES).
 """
 
@@ -49,8 +49,12 @@ def _plot(args, dataset, results):
         print(f'wrote {out}')
 
 
-def _setup(replay_config, dataset, duration):
-    """Return the loop config, odometry delay, anchor IDs, dataset and extras (sliced)."""
+def _setup(replay_config, dataset, duration, start_s=0.0):
+    """
+    Return the loop config, odometry delay, anchor IDs, dataset and extras (sliced).
+
+    ``duration`` [s] (None: to the end) from ``start_s`` [s] after the first sighting.
+    """
     localizer_values, replay_values = _sections(replay_config.path)
     config = slam.loop_config(replay_config, localizer_config(localizer_values),
                               replay_values)
@@ -58,8 +62,8 @@ def _setup(replay_config, dataset, duration):
     anchor_ids = tuple(int(i) for i in replay_values.get('slam_anchor_ids',
                                                          slam.DEFAULT_ANCHORS))
     extras = load_all_extras(dataset)
-    if duration is not None:
-        dataset, extras = slice_run(dataset, extras, duration)
+    if duration is not None or start_s:
+        dataset, extras = slice_run(dataset, extras, duration, start_s)
     return config, delay_s, anchor_ids, dataset, extras
 
 
@@ -123,12 +127,16 @@ def main(argv=None):
     parser.add_argument('--anchors', action='store_true',
                         help='anchor the frame with slam_anchor_ids of the config')
     parser.add_argument('--duration', type=float, default=None, metavar='SECONDS')
+    parser.add_argument('--start', type=float, default=0.0, metavar='SECONDS',
+                        help='start this long after the first sighting (the robots at '
+                        'their true pose then, an empty map): --start 443 is the second '
+                        'half of dataset 6')
     parser.add_argument('--json', type=Path, default=None)
     args = parser.parse_args(argv)
     replay_config = load_config(args.config)
     dataset = load_dataset(args.dataset or default_dataset_path(), replay_config.pose_stddev)
     config, delay_s, anchor_ids, dataset, extras = _setup(replay_config, dataset,
-                                                          args.duration)
+                                                          args.duration, args.start)
     mode = slam.SlamMode(args.hide_ids, args.anchors)
     result, = slam.run_all(dataset, extras, config, anchor_ids, delay_s, (mode,))
     print(slam.format_table([result], dataset.duration))

@@ -7,8 +7,8 @@ from landmark_ros.core import pose2, sensors
 from landmark_ros.localizer import motion
 from landmark_ros.localizer.config import LocalizerConfig
 from landmark_ros.localizer.localizer import Localizer, UNKNOWN_ID
-from landmark_ros.localizer.update import (BEARING, RANGE, RANGE_BEARING, split_ci_weight,
-                                           update, UpdateSettings)
+from landmark_ros.localizer.update import (BEARING, RANGE, RANGE_BEARING, SensorNoise,
+                                           split_ci_weight, update, UpdateSettings)
 import numpy as np
 import pytest
 
@@ -312,6 +312,51 @@ def test_correlated_noise_sharing_makes_repeated_biased_sightings_honest():
     # over-confident by that harmonic sum (documented in Localizer._shared).
     assert final_nees(0.0) > 8.0 * final_nees(8.0)
     assert final_nees(8.0) < 6.8 * 5.2 * 1.2
+
+
+def test_dependent_correlated_noise_keeps_repeated_biased_sightings_honest():
+    # The same 100 sightings of one error as above: in the part of unknown correlation
+    # with the pose (split CI), each counts once against any correlation, and the pose
+    # stays consistent from the first sighting on, with no count of sightings.
+    def final_nees(correlated_noise, correlation='split_ci'):
+        cfg = LocalizerConfig(range_stddev=0.1, range_stddev_per_m=0.0, bearing_stddev=0.01,
+                              range_correlated_fraction=0.9, bearing_correlated_fraction=0.0,
+                              noise_correlation_time_s=0.0, correlation=correlation,
+                              correlated_noise=correlated_noise,
+                              odometry_alphas=(0.0, 0.0, 0.0, 0.0))
+        loc = Localizer(cfg)
+        loc.set_map(np.array([1]), LANDMARKS[:1], np.eye(2)[None] * 1e-10)
+        loc.initialize(0, np.zeros(3), np.diag([0.25, 0.25, 1e-6]))
+        z = sensors.observe(np.zeros((1, 3)), LANDMARKS[:1]) + [[0.25, 0.0]]  # 2.6 sigma
+        for k in range(100):
+            loc.add_odometry(k * 20 * MS, twist=np.zeros(2))
+            loc.add_observations(k * 20 * MS, np.array([1]), z)
+        est = loc.estimate()
+        return est.x @ np.linalg.solve(est.P, est.x)
+    counted_alone = final_nees('count')     # no correlation time: each sighting alone
+    assert counted_alone > 30.0
+    assert final_nees('dependent') < 6.8    # 2.6 sigma along one direction, at most
+    # Without split CI there is no part of unknown correlation: the count form applies.
+    assert final_nees('dependent', 'independent') == final_nees('count', 'independent')
+
+
+def test_sensor_noise_without_dependent_parts_is_the_plain_update():
+    rng = np.random.default_rng(5)
+    x, P = np.array([0.1, -0.2, 0.3]), _random_spd(rng, scale=0.3)
+    m = LANDMARKS[:3]
+    z = sensors.observe(x[None], m) + rng.normal(0.0, [0.05, 0.02], (3, 2))
+    R = np.tile(np.diag([0.05, 0.02]) ** 2, (3, 1, 1))
+    P_m = np.tile(np.eye(2) * 0.01, (3, 1, 1))
+    kind = np.full(3, RANGE_BEARING)
+    settings = replace(SETTINGS, correlation='split_ci')
+    plain = update(x, P, m, P_m, z, R, kind, settings)
+    split = update(x, P, m, P_m, z, SensorNoise(R, np.zeros_like(R)), kind, settings)
+    np.testing.assert_array_equal(split.x, plain.x)
+    np.testing.assert_array_equal(split.P, plain.P)
+    # Part of the noise moved to the dependent side costs information, never gains it.
+    moved = update(x, P, m, P_m, z, SensorNoise(0.5 * R, 0.5 * R, np.diag([1e-4, 1e-5])),
+                   kind, settings)
+    assert np.linalg.det(moved.P) > np.linalg.det(plain.P)
 
 
 def test_simulated_wheel_odometry_follows_the_documented_model():

@@ -117,6 +117,13 @@ def test_slice_run_keeps_the_first_seconds():
     assert d2.robots[0].times.tolist() == [0.0, 1.0]
     assert ex2[1].odom_times.tolist() == [0.0, 0.5, 1.0, 1.5]
     assert ex2[1].sighting_robot.tolist() == [2] and len(d2.robots[0].gt_times) == 2
+    # a later window (--start): from the start on, to its end, the truth whole
+    d3, ex3 = slice_run(d, ex, 1.5, start_s=1.5)
+    assert d3.robots[0].times.tolist() == [2.0]
+    assert ex3[1].odom_times.tolist() == [1.5, 2.0, 2.5]
+    assert ex3[1].sighting_robot.tolist() == [3] and len(d3.robots[0].gt_times) == 2
+    d4, ex4 = slice_run(d, ex, None, start_s=2.5)
+    assert d4.robots[0].times.tolist() == [3.0] and ex4[1].odom_times.tolist() == [2.5, 3.0, 3.5]
 
 
 @pytest.mark.skipif(not DATASET.is_dir(), reason='needs ../shared MRCLAM dataset 6')

@@ -87,6 +87,10 @@ def test_the_replay_section_sets_the_precision_sources():
     config = slam.loop_config(replay, LocalizerConfig(), {'slam_precision_sources': 4,
                                                           'slam_precision_base_m': 0.1})
     assert (config.precision_sources, config.precision_base_m) == (4, 0.1)
+    assert config.localizer.correlated_noise == 'count'     # the localizer section's
+    dependent = slam.loop_config(replay, LocalizerConfig(),
+                                 {'slam_correlated_noise': 'dependent'})
+    assert dependent.localizer.correlated_noise == 'dependent'
     loop = TeamLoop(config, ['robot1'])
     # Doubling from 0.1 m: below 0.2 m, to 0.4 m, to 0.8 m, beyond.
     assert [loop.precision_source(np.eye(2)[None] * s ** 2) for s in
