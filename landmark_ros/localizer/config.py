@@ -64,6 +64,11 @@ class LocalizerConfig(ConfigBase):
     range_scale_per_m: float = param(
         0.0, 'range scale error per metre of the reading [1/m] (range_scale_coeffs)',
         low=-1.0, high=1.0)
+    range_scale_state_stddev: float = param(
+        0.0, 'prior standard deviation of the range scale error of this robot [1] (constant '
+        'over the run, its camera calibration; the spread of the scales of the robots): '
+        'estimated as a fourth state, range = distance x (1 + s); 0: no state',
+        low=0.0, high=0.5)
     bearing_stddev: float = param(0.02, 'bearing noise [rad]', low=0.0, high=1e6)
     range_bias_stddev: float = param(
         0.0, 'range error shared by all sightings of the robot [m] (camera calibration): '

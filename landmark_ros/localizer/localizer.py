@@ -44,7 +44,7 @@ after ``lost_after_s`` without an accepted row; else ``ok``.
 
 import bisect
 from collections import deque
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 import math
 from typing import Any, Callable, List, Optional, Tuple
 
@@ -52,8 +52,9 @@ from landmark_ros.core.gating import chi2_threshold
 from landmark_ros.localizer import motion
 from landmark_ros.localizer.association import label_rows, MapAssociation
 from landmark_ros.localizer.config import LocalizerConfig
+from landmark_ros.localizer.steps import Batch, Estimate, Step as _Step
 from landmark_ros.localizer.update import (correct_ranges, RANGE_BEARING, row_noise, update,
-                                           UpdateResult, UpdateSettings)
+                                           UpdateSettings)
 from landmark_ros.pipeline.counters import Counters, Status
 from landmark_ros.pipeline.rows import landmark_row_problems
 import numpy as np
@@ -65,56 +66,13 @@ UNKNOWN_ID = 0xFFFFFFFF
 _ZERO3 = np.zeros(3)
 
 
-@dataclass
-class Batch:
-    """Sightings at one stamp, with the landmarks they refer to."""
-
-    stamp_ns: int
-    m: NDArray[np.float64]
-    """Landmark (or other robot) positions, shape (N, 2)."""
-    P_m: NDArray[np.float64]
-    """Their covariances, shape (N, 2, 2)."""
-    z: NDArray[np.float64]
-    """Observations (range, bearing), shape (N, 2)."""
-    R: NDArray[np.float64]
-    """Sensor noise, shape (N, 2, 2)."""
-    kind: NDArray[np.int64]
-    """``update.RANGE_BEARING``, ``RANGE`` or ``BEARING`` per row, shape (N,)."""
-    correlation: Optional[str] = None
-    """Overrides the config's (``'split_ci'`` for other robots)."""
-    label: str = 'rows'
-    """Counter prefix: ``rows`` (landmarks) or ``robot_rows`` (other robots)."""
-    shared: Optional[NDArray[np.float64]] = None
-    """Per row, how many sightings share its time-correlated error (>= 1), shape (N,)."""
-    shared_bias: Optional[NDArray[np.float64]] = None
-    """Per row, how many sightings (any landmark) share the sensor bias, shape (N,)."""
-    result: Optional[UpdateResult] = None
-
-
-@dataclass
-class _Step:
-    stamp_ns: int
-    delta: NDArray[np.float64]
-    Q: NDArray[np.float64]
-    odom: NDArray[np.float64]
-    x_prior: NDArray[np.float64]
-    P_prior: NDArray[np.float64]
-    x: NDArray[np.float64]
-    P: NDArray[np.float64]
-    batches: List[Batch] = field(default_factory=list)
-
-
-@dataclass(frozen=True)
-class Estimate:
-    """The pose at one stamp."""
-
-    stamp_ns: int
-    x: NDArray[np.float64]
-    P: NDArray[np.float64]
-
-
 def _quiet(_text: str) -> None:
     return None
+
+
+def _pose(step: _Step) -> Estimate:
+    """Return the pose of a step (without the range scale state), copies."""
+    return Estimate(step.stamp_ns, step.x[:3].copy(), step.P[:3, :3].copy())
 
 
 class Localizer:
@@ -201,11 +159,22 @@ class Localizer:
 
     def initialize(self, stamp_ns: int, x: NDArray[np.float64],
                    P: NDArray[np.float64]) -> None:
-        """Restart the filter at pose ``x`` (3,) with covariance ``P`` (3, 3) at a stamp."""
+        """
+        Restart the filter at pose ``x`` (3,) with covariance ``P`` (3, 3) at a stamp.
+
+        With ``range_scale_state_stddev`` the state takes the range scale error
+        (``update``): the previous estimate, else 0 with that standard deviation.
+        """
         odom = self._steps[-1].odom if self._steps else _ZERO3
-        x = np.array(x, dtype=np.float64)
+        x = np.array(x, dtype=np.float64)[:3]
         x[2] = motion.wrap(x[2])
-        P = np.array(P, dtype=np.float64)
+        P = np.array(P, dtype=np.float64)[:3, :3]
+        sd = self.config.range_scale_state_stddev
+        if sd > 0.0:
+            last = self._steps[-1] if self._steps and len(self._steps[-1].x) == 4 else None
+            x = np.append(x, last.x[3] if last else 0.0)
+            P = np.pad(P, ((0, 1), (0, 1)))
+            P[3, 3] = last.P[3, 3] if last else sd * sd
         self._steps = [_Step(int(stamp_ns), _ZERO3, np.zeros((3, 3)), odom, x, P, x, P)]
         self._stamps = [int(stamp_ns)]
         self._pending = []
@@ -220,23 +189,28 @@ class Localizer:
         """Return the newest pose, or None before the first."""
         if not self._steps:
             return None
-        step = self._steps[-1]
-        return Estimate(step.stamp_ns, step.x.copy(), step.P.copy())
+        return _pose(self._steps[-1])
 
     def pose_at(self, stamp_ns: int) -> Optional[Estimate]:
         """Return the pose at the newest step at or before ``stamp_ns`` within the window."""
         k = bisect.bisect_right(self._stamps, stamp_ns) - 1
         if k < 0:
             return None
-        step = self._steps[k]
-        return Estimate(step.stamp_ns, step.x.copy(), step.P.copy())
+        return _pose(self._steps[k])
+
+    def range_scale(self) -> Optional[Tuple[float, float]]:
+        """Return the range scale error estimate and its standard deviation, or None."""
+        if not self._steps or len(self._steps[-1].x) < 4:
+            return None
+        step = self._steps[-1]
+        return float(step.x[3]), math.sqrt(step.P[3, 3])
 
     def odom_to_map(self) -> Optional[NDArray[np.float64]]:
         """Return the pose of the odometry frame in the map frame, shape (3,), or None."""
         if not self._steps:
             return None
         step = self._steps[-1]
-        return motion.compose(step.x, motion.inverse(step.odom))
+        return motion.compose(step.x[:3], motion.inverse(step.odom))
 
     # -------------------------------------------------------------------- odometry
     def add_odometry(self, stamp_ns: int, pose: Optional[NDArray[np.float64]] = None,
@@ -290,27 +264,29 @@ class Localizer:
             self._last_twist = np.asarray(twist, dtype=np.float64)
         if odom is None:
             odom = motion.compose(last.odom, delta)
-        x, P = motion.predict(last.x, last.P, delta, Q)
+        x, P = motion.predict_with(last.x, last.P, delta, Q)
         self._steps.append(_Step(stamp_ns, delta, Q, odom, x, P, x, P))
         self._stamps.append(stamp_ns)
         self._prune()
         self._apply_pending()
         step = self._steps[-1]
-        return Estimate(stamp_ns, step.x, step.P)
+        return _pose(step)
 
     def _restart_chain(self, stamp_ns, odom, twist, first):
         """Start the odometry chain (first message or reset) at the current estimate."""
         last = self._steps[-1]
         if not first:
             self.counters.add('odometry_reset', detail='odometry stamp went back: restarted')
-        P = last.P if first else last.P + self._jump_Q
+        P = last.P.copy()
+        if not first:
+            P[:3, :3] += self._jump_Q
         if first and stamp_ns < last.stamp_ns:
             stamp_ns = last.stamp_ns
         odom = odom if odom is not None else _ZERO3
         self._steps = [_Step(stamp_ns, _ZERO3, np.zeros((3, 3)), odom, last.x, P, last.x, P)]
         self._stamps = [stamp_ns]
         self._last_twist = None if twist is None else np.asarray(twist, dtype=np.float64)
-        return Estimate(stamp_ns, last.x, P)
+        return _pose(self._steps[0])
 
     def _motion(self, dt, last, odom, twist, Q):
         """Return the motion since ``last`` and its covariance, with the named events."""
@@ -534,7 +510,8 @@ class Localizer:
             step = self._steps[j]
             if j > 0:
                 prev = self._steps[j - 1]
-                step.x_prior, step.P_prior = motion.predict(prev.x, prev.P, step.delta, step.Q)
+                step.x_prior, step.P_prior = motion.predict_with(
+                    prev.x, prev.P, step.delta, step.Q)
             x, P = step.x_prior, step.P_prior
             for batch in step.batches:
                 x, P = self._update(x, P, batch)

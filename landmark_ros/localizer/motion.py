@@ -229,6 +229,45 @@ def predict(x: NDArray[np.float64], P: NDArray[np.float64], delta: Sequence[floa
     return x_next, np.array([[n00, n01, n02], [n01, n11, n12], [n02, n12, n22]])
 
 
+def predict_with(x: NDArray[np.float64], P: NDArray[np.float64], delta: Sequence[float],
+                 Q: NDArray[np.float64]) -> Tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """
+    Return ``predict`` of a state whose components after the pose are constant.
+
+    The pose block moves as in ``predict``; the other components (the range scale error
+    of ``localizer.update``) stay, their cross-covariance with the pose turns with the
+    motion: ``J_x P_xs``. A 3-component state is ``predict``.
+
+    Parameters
+    ----------
+    x : ndarray, shape (n,), n >= 3
+        Pose, then the constant components.
+    P : ndarray, shape (n, n)
+        Its covariance.
+    delta : sequence of 3 float
+        The motion in the frame of the pose.
+    Q : ndarray, shape (3, 3)
+        Covariance of ``delta``.
+
+    Returns
+    -------
+    x_next : ndarray, shape (n,)
+    P_next : ndarray, shape (n, n)
+
+    """
+    if len(x) == 3:
+        return predict(x, P, delta, Q)
+    pose, P_pose = predict(x[:3], P[:3, :3], delta, Q)
+    c, s = math.cos(x[2]), math.sin(x[2])
+    J_x = np.array([[1.0, 0.0, -s * delta[0] - c * delta[1]],
+                    [0.0, 1.0, c * delta[0] - s * delta[1]], [0.0, 0.0, 1.0]])
+    x_next, P_next = x.copy(), P.copy()
+    x_next[:3], P_next[:3, :3] = pose, P_pose
+    P_next[:3, 3:] = J_x @ P[:3, 3:]
+    P_next[3:, :3] = P_next[:3, 3:].T
+    return x_next, P_next
+
+
 def between(a: Sequence[float], b: Sequence[float]) -> NDArray[np.float64]:
     """Return ``(-) a (+) b``: the pose ``b`` in the frame of ``a``, shape (3,)."""
     c, s = math.cos(a[2]), math.sin(a[2])

@@ -4,7 +4,8 @@ The EKF measurement update of a planar pose from landmark sightings (ROS-free).
 Symbols
 -------
 x, P
-    Robot pose ``(x, y, theta)`` in the map frame and its covariance, (3,), (3, 3).
+    Robot pose ``(x, y, theta)`` in the map frame and its covariance, (3,), (3, 3); or
+    the pose and the range scale error ``s`` (below), (4,), (4, 4).
 m, P_m
     Landmark positions and covariances from the map (or another robot's position and
     the xy block of its published covariance), (N, 2), (N, 2, 2).
@@ -42,6 +43,16 @@ covariance. With a precise map (``M`` small against ``J P J^T``) the weight goes
 and the update to the plain EKF; it costs where the map is as uncertain as the pose.
 Cooperative updates (Carrillo-Arce et al., IROS 2013, used covariance intersection on
 MRCLAM) go through the same update with the other robot as the landmark.
+
+Range scale state
+-----------------
+A camera that reads range from apparent size misreads it by a scale that is its own and
+constant (``core.range_scale`` corrects the part all robots share; what is left differs
+from robot to robot and lasts the whole run). Filtered as white or time-correlated noise
+it is counted again at every sighting, and a forward-looking camera, whose landmarks are
+all ahead, turns it into a position error along the heading that no number of sightings
+removes. With ``x`` of 4 components the fourth is that relative error ``s``: a range reads
+``d (1 + s)`` (``observe``), ``s`` constant between updates (``motion.predict_with``).
 
 Iterated update
 ---------------
@@ -87,9 +98,9 @@ class UpdateResult:
     """What one update did."""
 
     x: NDArray[np.float64]
-    """Updated pose, shape (3,)."""
+    """Updated state, shape (3,) or (4,) (as ``x``)."""
     P: NDArray[np.float64]
-    """Updated covariance, shape (3, 3)."""
+    """Updated covariance, shape (3, 3) or (4, 4)."""
     used: NDArray[np.bool_]
     """Rows applied, shape (N,)."""
     gated: NDArray[np.bool_]
@@ -221,10 +232,51 @@ def _innovation(z, h, comp):
     return nu
 
 
+def observe(x: NDArray[np.float64], m: NDArray[np.float64]
+            ) -> Tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """
+    Return the predicted readings of landmarks and their Jacobians, with the range scale.
+
+    ``x`` is the pose ``(x, y, theta)``, or the pose and a range scale error ``s``
+    (module docstring, range scale state): the range reads ``d (1 + s)``, ``d`` the
+    distance (``sensors.observe``); the bearing does not depend on ``s``.
+
+    Parameters
+    ----------
+    x : ndarray, shape (3,) or (4,)
+        Pose [m, m, rad], optionally the scale error [1].
+    m : ndarray, shape (N, 2)
+        Landmark positions [m].
+
+    Returns
+    -------
+    h : ndarray, shape (N, 2)
+        Range [m] and bearing [rad].
+    J_z_x : ndarray, shape (N, 2, len(x))
+        Jacobian with respect to ``x``.
+    J_z_m : ndarray, shape (N, 2, 2)
+        Jacobian with respect to the landmark.
+
+    """
+    h = sensors.observe(x[:3], m)
+    J_z_p, J_z_m = sensors.observe_jacobians(x[:3], m)
+    if len(x) == 3:
+        return h, J_z_p, J_z_m
+    g = 1.0 + x[3]
+    J_z_x = np.zeros((len(m), 2, len(x)))
+    J_z_x[:, :, :3] = J_z_p
+    J_z_x[:, 0, :3] *= g
+    J_z_x[:, 0, 3] = h[:, 0]
+    J_z_m = J_z_m.copy()
+    J_z_m[:, 0] *= g
+    h = h.copy()
+    h[:, 0] *= g
+    return h, J_z_x, J_z_m
+
+
 def _row_gate(x, P, m, P_m, z, R, kind, settings):
     """Return the per-row chi-square test: d2 (N,), passed (N,); ``R`` the total noise."""
-    h = sensors.observe(x, m)
-    J_z_x, J_z_m = sensors.observe_jacobians(x, m)
+    h, J_z_x, J_z_m = observe(x, m)
     S = J_z_x @ P @ J_z_x.transpose(0, 2, 1) + J_z_m @ P_m @ J_z_m.transpose(0, 2, 1) + R
     nu = z - h
     nu[:, 1] = (nu[:, 1] + math.pi) % (2.0 * math.pi) - math.pi
@@ -242,9 +294,8 @@ def _row_gate(x, P, m, P_m, z, R, kind, settings):
 
 
 def _stack(x, m, rows, comps):
-    """Return ``h`` (k,) and ``J_z_x`` (k, 3) of the scalar components at pose ``x``."""
-    h = sensors.observe(x, m[rows])
-    J_z_x, _ = sensors.observe_jacobians(x, m[rows])
+    """Return ``h`` (k,) and ``J_z_x`` (k, n) of the scalar components at state ``x``."""
+    h, J_z_x, _ = observe(x, m[rows])
     k = np.arange(len(rows))
     return h[k, comps], J_z_x[k, comps]
 
@@ -276,9 +327,9 @@ def split_ci_weight(P: NDArray[np.float64], H: NDArray[np.float64], R_s: NDArray
 
     Parameters
     ----------
-    P : ndarray, shape (3, 3)
-        Pose covariance.
-    H : ndarray, shape (k, 3)
+    P : ndarray, shape (n, n)
+        State covariance.
+    H : ndarray, shape (k, n)
         ``J_z_x`` of the stacked components.
     R_s, M_s : ndarray, shape (k, k)
         Sensor noise and map term of the stacked components.
@@ -307,9 +358,9 @@ def update(x: NDArray[np.float64], P: NDArray[np.float64], m: NDArray[np.float64
 
     Parameters
     ----------
-    x : ndarray, shape (3,)
-        Prior pose.
-    P : ndarray, shape (3, 3)
+    x : ndarray, shape (3,) or (4,)
+        Prior pose, optionally with the range scale error (module docstring).
+    P : ndarray, shape (3, 3) or (4, 4)
         Its covariance.
     m : ndarray, shape (N, 2)
         Landmark positions [m].
@@ -348,7 +399,7 @@ def update(x: NDArray[np.float64], P: NDArray[np.float64], m: NDArray[np.float64
     idx = np.flatnonzero(used)
     rows, comps = _components(kind[idx])
     rows_g = idx[rows]
-    _, J_z_m = sensors.observe_jacobians(x, m[idx])
+    _, _, J_z_m = observe(x, m[idx])
     M_rows = J_z_m @ P_m[idx] @ J_z_m.transpose(0, 2, 1) + noise.R_dep[idx]
     R_s, M_s = _blocks(noise.R[idx], rows, comps), _blocks(M_rows, rows, comps)
     if noise.R_shared is not None:  # one error in every row: the full block
@@ -375,7 +426,7 @@ def update(x: NDArray[np.float64], P: NDArray[np.float64], m: NDArray[np.float64
                 or np.all(error <= settings.iterate_threshold * np.sqrt(np.diag(S)))):
             break
     K_f = np.linalg.solve(S, H_i_prev @ P1).T
-    A = np.eye(3) - K_f @ H_i_prev
+    A = np.eye(len(x)) - K_f @ H_i_prev
     P_new = A @ P1 @ A.T + K_f @ P2 @ K_f.T
     S0 = H0 @ P @ H0.T + R_s + M_s
     nu0 = _innovation(z_s, h0, comps)

@@ -106,6 +106,9 @@ class Calibration:
     scale: dict = None
     """``_scale_report``: relative error per bearing bin, and the short tail, raw and
     corrected."""
+    range_scale_state_stddev: float = 0.0
+    """Root mean square of the robots' median relative range errors after the correction
+    (the scale error each robot keeps), less the variance of a median (step 5)."""
 
     def to_dict(self):
         """Return plain values for JSON."""
@@ -122,12 +125,18 @@ class Calibration:
         """
         Return the ``LocalizerConfig`` fields this calibration sets, by name.
 
-        The same values as the observer's: the bias is shared by every sighting of
-        the robot within the correlation time (``Localizer``), the rest as in the
-        observer (range-only rows of the localizer are not corrected).
+        The same values as the observer's, but the robot's range error: the
+        localizer estimates its own range scale error (``range_scale_state_stddev``,
+        ``localizer.update``), which is what the robot medians of the range bias
+        measure, so ``range_bias_stddev`` is 0 there (counting it would count the same
+        error twice); the bearing bias is shared by every sighting of the robot within
+        the correlation time (``Localizer``). Range-only rows of the localizer are not
+        corrected.
         """
         values = {name: float(getattr(self, name)) for name in LOCALIZER_FIELDS}
         values['range_scale_coeffs'] = tuple(float(c) for c in self.range_scale_coeffs)
+        values['range_bias_stddev'] = 0.0
+        values['range_scale_state_stddev'] = float(self.range_scale_state_stddev)
         return values
 
     def suggested_yaml(self):
@@ -339,7 +348,9 @@ def calibrate(dataset, min_pair=10, bins=10, part=None):
        by sightings, less the variance of a median of ``n`` noisy errors,
        ``(pi / 2) sigma^2 / n`` with ``sigma`` from step 4: ``range_bias_stddev`` and
        ``bearing_bias_stddev``. The same over the pair medians is printed for
-       comparison.
+       comparison. The same over the robots' median relative range errors (range
+       error / true range) is ``range_scale_state_stddev``: the prior of the range
+       scale error the localizer estimates per robot.
     6. Tails: the fraction of residuals beyond 3 model standard deviations
        (``sigma_r(r)``, ``bearing_stddev``); well above 0.27 % means heavy tails,
        which the gate of the fuser (``gate_probability``) has to reject.
@@ -437,6 +448,7 @@ def calibrate(dataset, min_pair=10, bins=10, part=None):
     pair_bearing = _weighted_bias(pair_bearing_median[big], sizes[big],
                                   np.full(int(big.sum()), sigma_b ** 2))
     model_r = np.sqrt(a * a + (k * ranges) ** 2)
+    state_sd = _scale_spread(e, model_r)
     tails = {'range': float(np.mean(np.abs(res_r) > 3.0 * model_r)),
              'bearing': float(np.mean(np.abs(res_b) > 3.0 * sigma_b))}
     correlation = correlation_model(pair_key, e['time'], {'range': res_r / model_r,
@@ -445,7 +457,17 @@ def calibrate(dataset, min_pair=10, bins=10, part=None):
                        range_bias, bearing_bias, pair_range, pair_bearing, tails,
                        correlation['fraction']['range'], correlation['fraction']['bearing'],
                        correlation['tau_s'], correlation, scale_coeffs, scale_per_m,
-                       scale['no_bearing'], scale)
+                       scale['no_bearing'], scale, state_sd)
+
+
+def _scale_spread(e, model_r):
+    """Return the RMS of the robots' median relative range errors (``Calibration``)."""
+    rel = e['range_error'] / (e['range'] - e['range_error'])
+    noise = np.mean(np.square(model_r / e['range']))
+    index = e['robot'].astype(int)
+    robots = np.unique(index)
+    return _weighted_bias([float(np.median(rel[index == i])) for i in robots],
+                          [int(np.sum(index == i)) for i in robots], np.full(len(robots), noise))
 
 
 def format_calibration(cal):

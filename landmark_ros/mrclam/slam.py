@@ -286,11 +286,23 @@ def loop_config(replay_config, localizer: LocalizerConfig,
     ``slam_precision_sources`` (``LoopConfig.precision_sources``, default 1) and
     ``slam_precision_base_m`` (``LoopConfig.precision_base_m``, default 0.02 m); and
     ``slam_correlated_noise``, the localizers' ``correlated_noise`` in the loop (default:
-    the localizer section's).
+    the localizer section's);
+    ``slam_range_scale_state`` (default false): whether the localizers keep the range
+    scale state (``range_scale_state_stddev``) against the map the loop builds. Off,
+    they run without it and count the robot's range error as the observer does, a bias
+    (``range_bias_stddev`` of the observer section, the same calibration): a map built
+    from the team's own ranges holds each robot's scale error in the landmarks it placed
+    and the team's mean scale as its own, and its uncertainty (0.1 to 0.2 m) hides a
+    1 % scale (3 cm at 3 m); split CI discounts the state's prior at every update
+    against such a map (``docs/slam.md``), and the scale drifts to tens of per cent.
     """
     values = replay_values or {}
     if 'slam_correlated_noise' in values:
         localizer = replace(localizer, correlated_noise=str(values['slam_correlated_noise']))
+    if (not bool(values.get('slam_range_scale_state', False))
+            and localizer.range_scale_state_stddev > 0.0):
+        localizer = replace(localizer, range_scale_state_stddev=0.0,
+                            range_bias_stddev=replay_config.observer.range_bias_stddev)
     return LoopConfig(localizer, replay_config.observer, replay_config.fuser,
                       precision_sources=int(values.get('slam_precision_sources', 1)),
                       precision_base_m=float(values.get('slam_precision_base_m', 0.02)))

@@ -440,12 +440,20 @@ class SlamPlayer:
 
 
 def start_nodes(launcher, dataset, extras, setup):
-    """Start the localizers, observers and the fuser; ``setup``: (config, work, delay, fusion)."""
-    config_path, work, delay_s, fusion = setup
+    """
+    Start the localizers, observers and the fuser.
+
+    ``setup`` is ``(config_path, work, delay_s, loop_config)``; the localizers take the
+    loop's range scale state and range bias (``slam.loop_config``) over the file's.
+    """
+    config_path, work, delay_s, loop_config = setup
+    fusion, loc = loop_config.fuser.fusion, loop_config.localizer
     for robot in dataset.robots:
         params = work / f'localizer_{robot.name}.yaml'
         write_params_file(params, {f'/{robot.name}/landmark_localizer': {
             **LOCALIZER_TRANSPORT, 'map_file': '',
+            'range_scale_state_stddev': float(loc.range_scale_state_stddev),
+            'range_bias_stddev': float(loc.range_bias_stddev),
             'initial_pose': [float(v) for v in start_pose(robot, extras, delay_s)]}})
         launcher.start_module(f'localizer_{robot.name}', 'landmark_ros.nodes.localizer',
                               localizer_arguments(robot, config_path, params))
@@ -473,8 +481,7 @@ def run_through_nodes(dataset, extras, loop_config, paths, delay_s, domain_id,
     launcher = Launcher(work, domain_id=domain_id)
     node = executor = None
     try:
-        start_nodes(launcher, dataset, extras,
-                    (config_path, work, delay_s, loop_config.fuser.fusion))
+        start_nodes(launcher, dataset, extras, (config_path, work, delay_s, loop_config))
         node = rclpy.create_node('landmark_mrclam_slam', context=context,
                                  start_parameter_services=False)
         executor = SingleThreadedExecutor(context=context)

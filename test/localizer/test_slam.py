@@ -98,15 +98,36 @@ def test_the_replay_section_sets_the_precision_sources():
     assert len(loop.fuser.sources) == 4
 
 
+def test_the_loop_runs_without_the_range_scale_state_unless_the_section_says():
+    from types import SimpleNamespace
+    replay = SimpleNamespace(observer=ObserverConfig(range_bias_stddev=0.032),
+                             fuser=FuserConfig())
+    state = LocalizerConfig(range_scale_state_stddev=0.0099, range_bias_stddev=0.0)
+    off = slam.loop_config(replay, state).localizer
+    assert (off.range_scale_state_stddev, off.range_bias_stddev) == (0.0, 0.032)
+    on = slam.loop_config(replay, state, {'slam_range_scale_state': True}).localizer
+    assert (on.range_scale_state_stddev, on.range_bias_stddev) == (0.0099, 0.0)
+    plain = LocalizerConfig(range_scale_state_stddev=0.0, range_bias_stddev=0.01)
+    assert slam.loop_config(replay, plain).localizer == plain
+    loop = TeamLoop(slam.loop_config(replay, state), ['robot1'])
+    loop.start(0, 0, np.zeros(3), np.eye(3) * 1e-4)
+    assert loop.localizers[0].range_scale() is None
+
+
 @pytest.mark.skipif(not DATASET.is_dir(), reason='needs ../shared MRCLAM dataset 6')
 def test_the_mrclam_config_gives_the_loop_its_precision_sources():
     from landmark_ros.mrclam.config import load_config
     from landmark_ros.mrclam.localize_cli import _sections
     replay = load_config(None)
+    from landmark_ros.mrclam.localize import localizer_config
     localizer_values, replay_values = _sections(replay.path)
-    config = slam.loop_config(replay, LocalizerConfig(), replay_values)
+    assert localizer_config(localizer_values).range_scale_state_stddev > 0.0
+    config = slam.loop_config(replay, localizer_config(localizer_values), replay_values)
     assert config.precision_sources == int(replay_values['slam_precision_sources']) > 1
     assert config.precision_base_m == float(replay_values['slam_precision_base_m'])
+    assert replay_values['slam_range_scale_state'] is False
+    assert config.localizer.range_scale_state_stddev == 0.0
+    assert config.localizer.range_bias_stddev == replay.observer.range_bias_stddev > 0.0
 
 
 @pytest.mark.slow
