@@ -191,7 +191,7 @@ def test_counts_follow_merges_and_deletions_and_survive_a_restart(tmp_path):
     restarted.load()
     assert restarted.tracker.sightings == tracker.sightings
     assert restarted.tracker.together == tracker.together
-    assert restarted.tracker.apart == tracker.apart and tracker.apart[a][c] == 19
+    assert restarted.tracker.apart == tracker.apart and tracker.apart[a][c] == 22
     # An older file: pairs without counts count once, no sightings.
     document = json.loads((tmp_path / 'map.json').read_text())
     document['tracks']['together'] = [[a, c]]
