@@ -38,8 +38,9 @@ field of view ``phi`` [rad]
     Half its width: the largest ``|bearing|`` of those rows from the sensor heading
     (``Scan.heading``), over the messages that carry a heading. The view of a message
     is the sector of radius ``r`` and half-angle ``phi`` about its heading
-    (``SourceStatistics.in_view``); a message without a heading has the disc of radius
-    ``r`` (``phi = pi``). A landmark outside its message's view is not expected to be
+    (``SourceStatistics.in_view``); a message without a heading, or before a row of the
+    source went to a confirmed landmark, has the disc of radius ``r`` (``phi = pi``:
+    the largest bearing of a few unpaired rows says little about the field of view). A landmark outside its message's view is not expected to be
     seen: it neither hits nor misses. Both are maxima, so they only grow (a row of a
     wrong pairing at a larger range or bearing widens them for good).
 clutter density ``lambda`` [rows / m^2 / message]
@@ -217,8 +218,8 @@ class SourceStatistics:
                 paired)
 
     def view_area(self, heading: Optional[float]) -> float:
-        """Return the area of a message's view [m^2]: ``phi r^2`` (``pi r^2`` without heading)."""
-        half = np.pi if heading is None else self.half_view_rad
+        """Return the area of a message's view [m^2]: ``phi r^2`` (or the disc's, module doc)."""
+        half = self.half_view_rad if heading is not None and self.paired_view else np.pi
         return float(half * self.range_m ** 2)
 
     def in_view(self, xy: NDArray[np.float64], robot_xy: NDArray[np.float64],
@@ -233,7 +234,8 @@ class SourceStatistics:
         robot_xy : ndarray, shape (2,) [m]
             Where the message was observed from.
         heading : float or None
-            The sensor heading in the world [rad]; None: the disc of radius ``range_m``.
+            The sensor heading in the world [rad]; None: the disc of radius ``range_m``
+            (also before ``paired_view``).
 
         Returns
         -------
@@ -242,7 +244,7 @@ class SourceStatistics:
         """
         d = np.asarray(xy, np.float64).reshape(-1, 2) - np.asarray(robot_xy, np.float64)
         near = np.hypot(d[:, 0], d[:, 1]) <= self.range_m
-        if heading is None:
+        if heading is None or not self.paired_view:
             return near
         return near & (np.abs(bearings_from(d, heading)) <= self.half_view_rad)
 

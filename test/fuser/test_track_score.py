@@ -139,6 +139,9 @@ def test_view_membership_area_and_the_team_estimate():
     stats = SourceStatistics()
     stats.see(np.array([2.0, 4.0]), np.array([False, False]), np.array([0.3, -0.5]))
     assert (stats.range_m, stats.half_view_rad, stats.paired_view) == (4.0, 0.5, False)
+    # Before a row went to a confirmed landmark the view is the disc.
+    assert stats.view_area(0.0) == pytest.approx(np.pi * 16.0)
+    assert stats.in_view(np.array([[-3.0, 0.0]]), np.zeros(2), 0.0).tolist() == [True]
     # Rows paired with confirmed landmarks replace the bounds of unpaired rows, then widen.
     stats.see(np.array([3.0, 1.0]), np.array([True, False]), np.array([0.2, 1.0]))
     assert (stats.range_m, stats.half_view_rad, stats.paired_view) == (3.0, 0.2, True)
