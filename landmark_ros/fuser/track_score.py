@@ -40,8 +40,9 @@ field of view ``phi`` [rad]
     is the sector of radius ``r`` and half-angle ``phi`` about its heading
     (``SourceStatistics.in_view``); a message without a heading, or before a row of the
     source went to a confirmed landmark, has the disc of radius ``r`` (``phi = pi``:
-    the largest bearing of a few unpaired rows says little about the field of view). A landmark outside its message's view is not expected to be
-    seen: it neither hits nor misses. Both are maxima, so they only grow (a row of a
+    the largest bearing of a few unpaired rows says little about the field of view). A
+    landmark outside its message's view is not expected to be seen: it neither hits
+    nor misses. Both are maxima, so they only grow (a row of a
     wrong pairing at a larger range or bearing widens them for good).
 clutter density ``lambda`` [rows / m^2 / message]
     ``(c + PRIOR_CLUTTER_ROWS) / (A + PRIOR_CLUTTER_ROWS / PRIOR_CLUTTER_DENSITY)``:
