@@ -166,6 +166,7 @@ def schema_tables():
         return kind if spec.required else f'{kind}, optional'
     landmark = [(name, _type_name(dtype)) for name, dtype in schemas.LANDMARK_SCHEMA]
     scan = [(name, 'FLOAT64, optional group') for name in schemas.SCAN_FIELDS]
+    scan.append((schemas.HEADING_FIELD, 'FLOAT64, optional'))
     bias = [(name, 'FLOAT64, optional group') for name in schemas.BIAS_FIELDS]
     # The partial observations' schema, under its name or its 0.1.0 name.
     names = sorted((name for name in vars(schemas) if name.endswith('_SCHEMA')

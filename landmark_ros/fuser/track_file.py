@@ -64,6 +64,7 @@ class TrackSection(NamedTuple):
     owned: Set[int]
     sightings: Dict[int, int]
     together: Dict[int, Dict[int, int]]
+    apart: Dict[int, Dict[int, int]]
     merged_into: Dict[int, int]
     now_ns: Optional[int]
     tracks: Dict[int, Track]
@@ -81,7 +82,9 @@ def tracks_to_dict(tracker: 'Tracker') -> Dict[str, Any]:
     ``source``, ``stamp_ns``), ``owned`` (the IDs this tracker allocated that are
     still landmarks or tracks), ``sightings`` (``[id, messages]`` for each of them
     a message saw), ``together`` (``[a, b, messages]``, ``a < b``, for each pair of
-    them a message saw together), ``merged_into`` (``[retired, kept]`` pairs) and
+    them a message saw together), ``apart`` (``[a, b, messages]``, ``a < b``: the
+    messages after their first meeting that saw one of the two), ``merged_into``
+    (``[retired, kept]`` pairs) and
     ``now_ns`` (the expiry clock, or null); per track also its ``score``, whether it
     was ``released`` and its ``hits`` by source, and ``statistics``: per source, the
     estimates of ``fuser.track_score.SourceStatistics``.
@@ -101,6 +104,8 @@ def tracks_to_dict(tracker: 'Tracker') -> Dict[str, Any]:
         'sightings': sorted([int(a), int(n)] for a, n in tracker.sightings.items()),
         'together': sorted([int(a), int(b), int(k)] for a, partners in tracker.together.items()
                            for b, k in partners.items() if a < b),
+        'apart': sorted([int(a), int(b), int(n)] for a, partners in tracker.apart.items()
+                        for b, n in partners.items() if a < b),
         'merged_into': sorted([int(a), int(b)] for a, b in tracker.merged_into.items()),
         'now_ns': None if tracker.now_ns is None else int(tracker.now_ns),
         'statistics': {name: stats.to_dict()
@@ -143,6 +148,10 @@ def parse_tracks(document: Dict[str, Any]) -> TrackSection:
             a, b, k = (*entry, 1) if len(entry) == 2 else entry
             a, b, k = ident(a), ident(b), count(k)
             together.setdefault(a, {})[b] = together.setdefault(b, {})[a] = k
+        apart: Dict[int, Dict[int, int]] = {}
+        for a, b, n in document.get('apart', []):
+            a, b, n = ident(a), ident(b), count(n)
+            apart.setdefault(a, {})[b] = apart.setdefault(b, {})[a] = n
         merged = {ident(a): ident(b) for a, b in document.get('merged_into', [])}
         now_ns = document.get('now_ns')
         if now_ns is not None and (isinstance(now_ns, bool) or not isinstance(now_ns, int)):
@@ -171,7 +180,8 @@ def parse_tracks(document: Dict[str, Any]) -> TrackSection:
                       for name, values in document.get('statistics', {}).items()}
     except (AttributeError, KeyError, TypeError, ValueError) as error:
         raise ValueError(f'tracks section: {error}') from error
-    return TrackSection(owned, sightings, together, merged, now_ns, tracks, rows, statistics)
+    return TrackSection(owned, sightings, together, apart, merged, now_ns, tracks, rows,
+                        statistics)
 
 
 def checked_rows(tracks: Dict[int, Any], rows: List[Any]

@@ -32,31 +32,45 @@ confirming clutter and ``beta`` that of deleting a landmark): confirm when
 Estimators (``SourceStatistics``, per source, from the data, persisted in the map file):
 
 range ``r`` [m]
-    The view is the disc of radius ``r`` around the robot position the message was
-    observed from (``Scan.robot_xy``): the farthest row of the source paired with a
-    confirmed landmark (any row until one was). A landmark in the disc may lie outside a
-    narrow field of view: ``P_D`` is then the detection probability over the disc, lower
-    than the sensor's, and the score stays the ratio of that model.
+    The farthest row of the source paired with a confirmed landmark (any row until one
+    was), from the robot position the message was observed from (``Scan.robot_xy``).
+field of view ``phi`` [rad]
+    Half its width: the largest ``|bearing|`` of those rows from the sensor heading
+    (``Scan.heading``), over the messages that carry a heading. The view of a message
+    is the sector of radius ``r`` and half-angle ``phi`` about its heading
+    (``SourceStatistics.in_view``); a message without a heading, or before a row of the
+    source went to a confirmed landmark, has the disc of radius ``r`` (``phi = pi``:
+    the largest bearing of a few unpaired rows says little about the field of view). A
+    landmark outside its message's view is not expected to be seen: it neither hits
+    nor misses. Both are maxima, so they only grow (a row of a
+    wrong pairing at a larger range or bearing widens them for good).
 clutter density ``lambda`` [rows / m^2 / message]
     ``(c + PRIOR_CLUTTER_ROWS) / (A + PRIOR_CLUTTER_ROWS / PRIOR_CLUTTER_DENSITY)``:
-    ``c`` the rows not paired with a confirmed landmark, less the rows of the tracks that
+    ``c`` the rows not paired with a confirmed landmark, less the rows of tracks that
     were confirmed later (they were landmarks), ``A`` the sum over messages of the view's
-    area ``pi r^2``; the gamma-Poisson posterior mean with the prior as pseudo-counts;
+    area ``phi r^2``; the gamma-Poisson posterior mean with the prior as pseudo-counts;
     bounded to ``[DENSITY_MIN, DENSITY_MAX]``.
 detection probability ``P_D``
     ``(h + 1) / (e + 2)``: ``e`` the confirmed landmarks in the view of the source's
     messages, ``h`` how many of them got a row (the beta posterior mean from a uniform
-    prior); bounded to ``[P_D_MIN, P_D_MAX]``.
+    prior); bounded to ``[P_D_MIN, P_D_MAX]``. A landmark with a row in its gate that
+    another landmark took counts as expected and not detected (leaving it out would
+    drop exactly the scans that see one landmark of a close pair and not the other,
+    and push the estimate of such pairs to 1); only the score spares it the miss. It scores
+    the misses and hits here and is the ``P_D`` of the merge test
+    (``fuser.tracks.Tracker.one_landmark``, pooled over the sources:
+    ``team_detection_probability``).
 
 Messages without a ``Scan`` (no robot position) give no view: their rows score hits
 with the current estimates, and no misses.
 """
 
 from dataclasses import dataclass, fields
-from typing import Any, Dict, Tuple
+from typing import Any, Dict, Iterable, Optional, Tuple
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.stats import binom
 
 PRIOR_CLUTTER_DENSITY = 0.01
 """Prior clutter density [rows / m^2 / message]: one row per 100 m^2 of view."""
@@ -152,6 +166,10 @@ class SourceStatistics:
     """Radius of the view [m] (0: none seen yet)."""
     paired_range: bool = False
     """Whether ``range_m`` comes from rows paired with confirmed landmarks."""
+    half_view_rad: float = 0.0
+    """Half the width of the field of view [rad] (0: none seen yet)."""
+    paired_view: bool = False
+    """Whether ``half_view_rad`` comes from rows paired with confirmed landmarks."""
     clutter_rows: float = 0.0
     """Rows not paired with a confirmed landmark, less those of tracks confirmed later."""
     area: float = 0.0
@@ -178,9 +196,10 @@ class SourceStatistics:
         return float(np.clip((self.detected + 1.0) / (self.expected + 2.0),
                              P_D_MIN, P_D_MAX))
 
-    def see(self, ranges: NDArray[np.float64], paired: NDArray[np.bool_]) -> None:
+    def see(self, ranges: NDArray[np.float64], paired: NDArray[np.bool_],
+            bearings: Optional[NDArray[np.float64]] = None) -> None:
         """
-        Widen the view with the ranges of one message's rows.
+        Widen the view with the ranges (and bearings) of one message's rows.
 
         Parameters
         ----------
@@ -188,14 +207,47 @@ class SourceStatistics:
             Distances of the rows from the robot.
         paired : ndarray of bool, shape (N,)
             Which rows went to confirmed landmarks.
+        bearings : ndarray, shape (N,) [rad], optional
+            Their bearings from the sensor heading; None when the message has no heading.
 
         """
-        if paired.any():
-            farthest = float(np.max(ranges[paired]))
-            self.range_m = farthest if not self.paired_range else max(self.range_m, farthest)
-            self.paired_range = True
-        elif len(ranges) and not self.paired_range:
-            self.range_m = max(self.range_m, float(np.max(ranges)))
+        self.range_m, self.paired_range = _widen(self.range_m, self.paired_range,
+                                                 ranges, paired)
+        if bearings is not None:
+            self.half_view_rad, self.paired_view = _widen(
+                self.half_view_rad, self.paired_view, np.minimum(np.abs(bearings), np.pi),
+                paired)
+
+    def view_area(self, heading: Optional[float]) -> float:
+        """Return the area of a message's view [m^2]: ``phi r^2`` (or the disc's, module doc)."""
+        half = self.half_view_rad if heading is not None and self.paired_view else np.pi
+        return float(half * self.range_m ** 2)
+
+    def in_view(self, xy: NDArray[np.float64], robot_xy: NDArray[np.float64],
+                heading: Optional[float]) -> NDArray[np.bool_]:
+        """
+        Return which points lie in a message's view (module doc).
+
+        Parameters
+        ----------
+        xy : ndarray, shape (K, 2) [m]
+            Points in the world.
+        robot_xy : ndarray, shape (2,) [m]
+            Where the message was observed from.
+        heading : float or None
+            The sensor heading in the world [rad]; None: the disc of radius ``range_m``
+            (also before ``paired_view``).
+
+        Returns
+        -------
+        ndarray of bool, shape (K,)
+
+        """
+        d = np.asarray(xy, np.float64).reshape(-1, 2) - np.asarray(robot_xy, np.float64)
+        near = np.hypot(d[:, 0], d[:, 1]) <= self.range_m
+        if heading is None or not self.paired_view:
+            return near
+        return near & (np.abs(bearings_from(d, heading)) <= self.half_view_rad)
 
     def to_dict(self) -> Dict[str, Any]:
         """Return the fields as plain JSON data."""
@@ -225,6 +277,38 @@ class SourceStatistics:
                 raise ValueError(f'{f.name} {value!r} is not a count')
             values[f.name] = int(value) if f.type in (int, 'int') else value
         return cls(**values)
+
+
+def bearings_from(d: NDArray[np.float64], heading: float) -> NDArray[np.float64]:
+    """Return the bearings of offsets ``d`` (K, 2) [m] from a heading [rad], in [-pi, pi)."""
+    angle = np.arctan2(d[:, 1], d[:, 0]) - heading
+    return (angle + np.pi) % (2.0 * np.pi) - np.pi
+
+
+def _widen(value: float, from_paired: bool, values: NDArray[np.float64],
+           paired: NDArray[np.bool_]) -> Tuple[float, bool]:
+    """Return a view bound widened by one message: the paired rows' largest, else any row's."""
+    if paired.any():
+        largest = float(np.max(values[paired]))
+        return (max(value, largest) if from_paired else largest), True
+    if len(values) and not from_paired:
+        return max(value, float(np.max(values))), False
+    return value, from_paired
+
+
+def team_detection_probability(statistics: Iterable[SourceStatistics]) -> Optional[float]:
+    """
+    Return the detection probability pooled over sources, None when none saw a landmark.
+
+    ``(sum h + 1) / (sum e + 2)`` over the sources (``SourceStatistics``), bounded to
+    ``[P_D_MIN, P_D_MAX]``: each source's estimate weighted by its evidence.
+    """
+    statistics = list(statistics)
+    expected = sum(s.expected for s in statistics)
+    if not expected:
+        return None
+    detected = sum(s.detected for s in statistics)
+    return float(np.clip((detected + 1.0) / (expected + 2.0), P_D_MIN, P_D_MAX))
 
 
 def together_log_likelihood_ratio(k: int, n: int, same: float, distinct: float) -> float:
@@ -259,3 +343,48 @@ def together_log_likelihood_ratio(k: int, n: int, same: float, distinct: float) 
     """
     return float(k * np.log(same / distinct)
                  + (n - k) * (np.log1p(-same) - np.log1p(-distinct)))
+
+
+def one_landmark_by_sightings(k: int, n: int, p_D: Optional[float], same: float,
+                              tail_probability: float, threshold: float) -> bool:
+    """
+    Decide whether two compatible tracks are one landmark, from their co-occurrences.
+
+    Of ``n`` messages that gave a row to either (since the two first met), ``k`` gave
+    rows to both. One landmark when ``k = 0``; else when both hold:
+
+    - "one landmark" explains ``k``: ``P(K >= k)`` for ``K ~ Binomial(n, same)`` is at
+      least ``tail_probability`` (a second track that meets the first in a good share of
+      its messages is a second landmark, whatever ``p_D``; such a pair's one track may
+      have taken both landmarks' rows, which drives ``p_D`` towards 1);
+    - ``together_log_likelihood_ratio(k, n, same, p_D / (2 - p_D))`` reaches
+      ``threshold``.
+
+    Without ``p_D`` (None or 0), or with ``p_D / (2 - p_D)`` not above ``same``, tracks
+    that met are kept apart.
+
+    Parameters
+    ----------
+    k, n : int
+        Messages that saw both, messages that saw either, ``0 <= k <= n``.
+    p_D : float or None
+        Detection probability of a landmark in view.
+    same : float
+        Rate of meetings of two tracks of one landmark, in (0, 1).
+    tail_probability : float
+        Smallest probability of ``k`` or more meetings for "one landmark".
+    threshold : float
+        Smallest log-likelihood ratio that merges.
+
+    Returns
+    -------
+    bool
+
+    """
+    if k == 0:
+        return True
+    if not p_D or p_D / (2.0 - p_D) <= same:
+        return False
+    if binom.sf(k - 1, n, same) < tail_probability:
+        return False
+    return together_log_likelihood_ratio(k, n, same, p_D / (2.0 - p_D)) >= threshold

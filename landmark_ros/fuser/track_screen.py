@@ -11,8 +11,8 @@ way. Their score only grows while the landmark is there; the log-likelihood rati
 "the landmark has been gone since message j" against "it is there" is ``L_j - L``, so
 the largest of them is the drop of the score from its peak, ``peak - L`` (Page's test
 on the track score; Blackman and Popoli 1999, sec. 6.2 delete a confirmed track by
-its fall from the maximum). With ``delete_confirmed_tracks`` (off by default: the
-view is a disc, see docs/association.md) a confirmed track is deleted when the drop
+its fall from the maximum). With ``delete_confirmed_tracks`` (off by default:
+misses correlated in time, see docs/association.md) a confirmed track is deleted when the drop
 reaches the confirmation threshold ``ln((1 - beta) / alpha)``: taking a landmark out of the map
 needs as much evidence against it as putting it in needed for it. The landmark leaves the
 map (``LandmarkMap.retire``), ``deleted`` is counted on the message's source, and the
@@ -27,8 +27,8 @@ from typing import Any, Dict, List, Set, Tuple
 from landmark_ros.core.gating import chi2_threshold
 from landmark_ros.fuser.sources import Queued
 from landmark_ros.fuser.track_file import track_estimate
-from landmark_ros.fuser.track_score import (hit_increments, miss_increment, SourceStatistics,
-                                            sprt_thresholds)
+from landmark_ros.fuser.track_score import (bearings_from, hit_increments, miss_increment,
+                                            SourceStatistics, sprt_thresholds)
 from landmark_ros.fusion.landmark_map import LandmarkMap
 import numpy as np
 from numpy.typing import NDArray
@@ -134,27 +134,27 @@ class ScoredTracks:
         """
         assert item.scan is not None
         robot_xy = np.asarray(item.scan.robot_xy, np.float64)
+        heading = item.scan.heading
         z, R = item.m[unlabelled], item.P[unlabelled]
-        stats.see(np.linalg.norm(z - robot_xy, axis=1), paired[unlabelled])
-        radius = stats.range_m
+        stats.see(np.linalg.norm(z - robot_xy, axis=1), paired[unlabelled],
+                  None if heading is None else bearings_from(z - robot_xy, heading))
         threshold = chi2_threshold(2, self.config.association_gate_probability)
         if self._indices and len(self._indices[0][0]):
             index, index_ids = self._indices[0]
-            near = np.flatnonzero(np.linalg.norm(index.m_map - robot_xy, axis=1) <= radius)
+            near = np.flatnonzero(stats.in_view(index.m_map, robot_xy, heading))
             hit = np.isin(index_ids[near], item.ids[paired])
             gated = _gated(index.m_map[near], index.P_map[near], z, R, threshold)
-            stats.expected += int((hit | ~gated).sum())
+            stats.expected += len(near)
             stats.detected += int(hit.sum())
             self._score_confirmed(stats, item, paired, near, (hit, gated))
         stats.clutter_rows += int((unlabelled & ~paired).sum())
-        stats.area += float(np.pi * radius ** 2)
+        stats.area += stats.view_area(heading)
         ids = [i for i, t in self.tentative.items() if i not in touched and t.rows]
         if not ids:
             return
         m = np.array([self.tentative[i].m for i in ids])
         P = np.array([self.tentative[i].P for i in ids])
-        missed = (np.linalg.norm(m - robot_xy, axis=1) <= radius) & ~_gated(m, P, z, R,
-                                                                            threshold)
+        missed = stats.in_view(m, robot_xy, heading) & ~_gated(m, P, z, R, threshold)
         miss = miss_increment(stats.detection_probability)
         for k in np.flatnonzero(missed).tolist():
             self.tentative[ids[k]].score += miss

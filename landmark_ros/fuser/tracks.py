@@ -36,7 +36,9 @@ from landmark_ros.core.gating import chi2_threshold, difference_mahalanobis_sq
 from landmark_ros.core.joint_compatibility import jcbb
 from landmark_ros.fuser import track_file
 from landmark_ros.fuser.track_file import Track
-from landmark_ros.fuser.track_score import (SourceStatistics, start_score,
+from landmark_ros.fuser.track_score import (one_landmark_by_sightings, SourceStatistics,
+                                            sprt_thresholds, start_score,
+                                            team_detection_probability,
                                             together_log_likelihood_ratio)
 from landmark_ros.fuser.track_screen import ScoredTracks
 from landmark_ros.fusion.landmark_map import LandmarkMap, MapSnapshot, UpdateResult
@@ -84,6 +86,9 @@ class Tracker(ScoredTracks):
         self.together: Dict[int, Dict[int, int]] = {}
         """``together[a][b]``: messages with rows that went to both owned IDs ``a`` and
         ``b`` (symmetric; pairs never seen together are absent)."""
+        self.apart: Dict[int, Dict[int, int]] = {}
+        """``apart[a][b]``: messages, after ``a`` and ``b`` first met, that gave a row to
+        one of the two only (symmetric; kept for the pairs in ``together``)."""
         self.merged_into: Dict[int, int] = {}
         """A merged (retired) ID -> the ID it was merged into."""
         self.now_ns: Optional[int] = None
@@ -106,6 +111,7 @@ class Tracker(ScoredTracks):
         self.owned.clear()
         self.sightings.clear()
         self.together.clear()
+        self.apart.clear()
         self.merged_into.clear()
         self.statistics.clear()
         self.scores.clear()
@@ -260,9 +266,14 @@ class Tracker(ScoredTracks):
 
         """
         seen = sorted({i for i in np.asarray(ids).tolist() if i in self.owned})
-        new = set(born)
+        new, present = set(born), set(seen)
         for a in seen:
             self.sightings[a] = self.sightings.get(a, 0) + 1
+            for b in self.together.get(a, {}):
+                if b not in present:
+                    alone = self.apart.setdefault(a, {})
+                    alone[b] = alone.get(b, 0) + 1
+                    self.apart.setdefault(b, {})[a] = alone[b]
             for b in seen:
                 if b != a and a not in new and b not in new:
                     partners = self.together.setdefault(a, {})
@@ -271,10 +282,11 @@ class Tracker(ScoredTracks):
     def _forget_counts(self, landmark_id: int) -> None:
         """Drop the sighting counts of an ID that left (deleted or merged)."""
         self.sightings.pop(landmark_id, None)
-        for other in self.together.pop(landmark_id, {}):
-            self.together[other].pop(landmark_id, None)
-            if not self.together[other]:
-                del self.together[other]
+        for counts in (self.together, self.apart):
+            for other in counts.pop(landmark_id, {}):
+                counts[other].pop(landmark_id, None)
+                if not counts[other]:
+                    del counts[other]
 
     def _merge_counts(self, keep: int, drop: int) -> None:
         """
@@ -303,8 +315,8 @@ class Tracker(ScoredTracks):
         Two confirmed landmarks this tracker allocated, of the same class, whose means
         pass the gate ``d2 <= chi2_threshold(2, association_gate_probability)`` with
         ``S = P_a + P_b`` (``compatible_pairs``) and whose sightings favour one landmark
-        (``one_landmark``: never, or, with ``detection_probability`` given, seldom
-        both in one message for how often they were seen) are one landmark: the one
+        (``one_landmark``: never, or seldom for how often they were seen and the
+        detection probability, both in one message) are one landmark: the one
         with fewer observations is fused into the other and taken out of the map
         (``LandmarkMap.merge``: with split CI its per-source sums are added to the
         other's, as if its rows had gone there) and its ID recorded in
@@ -420,22 +432,21 @@ class Tracker(ScoredTracks):
         """
         Decide whether two compatible owned tracks are one landmark, from their sightings.
 
-        Of the ``n`` messages that gave a row to either, ``k`` gave rows to both. With
-        ``detection_probability`` unknown (0), one landmark when ``k = 0``; else when
-        ``together_log_likelihood_ratio(k, n, merge_together_same, p_D / (2 - p_D))``
-        is positive (two distinct landmarks in view are both seen in about
-        ``p_D^2 / (1 - (1 - p_D)^2)`` of the messages seeing either). The online
-        estimate of ``P_D`` (``fuser.track_score``) is not used here: for two landmarks
-        closer than the association resolves, one track takes the other's rows and the
-        estimate goes to 1, which would merge them.
+        ``k`` messages gave rows to both; since their first meeting ``n = k + apart``
+        gave a row to either. ``track_score.one_landmark_by_sightings`` decides, with
+        ``p_D`` = ``detection_probability`` when set, else the team's online estimate
+        (``track_score.team_detection_probability``), the rate ``merge_together_same``
+        and the confirmation threshold of the track score.
         """
         k = self.together.get(a, {}).get(b, 0)
-        p_D = self.config.detection_probability
-        if k == 0 or p_D <= 0.0:
-            return k == 0
-        n = max(self.sightings.get(a, 0) + self.sightings.get(b, 0) - k, k)
-        return together_log_likelihood_ratio(
-            k, n, self.config.merge_together_same, p_D / (2.0 - p_D)) > 0.0
+        p_D = self.config.detection_probability or team_detection_probability(
+            self.statistics.values())
+        confirm, _ = sprt_thresholds(self.config.false_track_probability,
+                                     self.config.lost_track_probability)
+        return one_landmark_by_sightings(k, k + self.apart.get(a, {}).get(b, 0), p_D,
+                                         self.config.merge_together_same,
+                                         1.0 - self.config.association_gate_probability,
+                                         confirm)
 
     def to_dict(self) -> Dict[str, Any]:
         """Return what a restart needs to resume the tracks (``track_file.tracks_to_dict``)."""
@@ -470,6 +481,7 @@ class Tracker(ScoredTracks):
                                 np.array([r[5] for r in rows], np.int64))
         self.owned, self.merged_into = section.owned | set(tracks), section.merged_into
         self.sightings, self.together = section.sightings, section.together
+        self.apart = section.apart
         self.tentative, self.now_ns = tracks, section.now_ns
         self.statistics = section.statistics
         for landmark_id, track in tracks.items():

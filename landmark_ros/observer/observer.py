@@ -534,16 +534,16 @@ class Observer:
         return out, found_by_item
 
     def _scan(self, pose: NDArray[np.float64], P_pose: NDArray[np.float64]) -> Scan:
-        """Return the pose (and bias) terms of a message's joint covariance."""
-        pose = np.asarray(pose, np.float64)
-        if self._R_bias is None:
-            return Scan(pose[:2].copy(), np.asarray(P_pose, np.float64).copy())
+        """Return the pose (and bias) terms of a message's joint covariance, its heading."""
+        pose, P_pose = np.asarray(pose, np.float64), np.array(P_pose, np.float64)
         sensor = np.zeros(3) if self._sensor_pose is None else self._sensor_pose
         c, s = np.cos(pose[2]), np.sin(pose[2])
         sensor_xy = pose[:2] + np.array([c * sensor[0] - s * sensor[1],
                                          s * sensor[0] + c * sensor[1]])
-        return Scan(pose[:2].copy(), np.asarray(P_pose, np.float64).copy(),
-                    self._R_bias.copy(), sensor_xy)
+        heading = float(pose[2] + sensor[2])
+        if self._R_bias is None:
+            return Scan(pose[:2].copy(), P_pose, heading=heading)
+        return Scan(pose[:2].copy(), P_pose, self._R_bias.copy(), sensor_xy, heading)
 
     # Status --------------------------------------------------------------------------
 

@@ -365,8 +365,9 @@ class FuserConfig(ConfigBase):
     detection_probability: float = param(
         0.0, 'Probability that a landmark in view gets a row in a message (p_D), for '
         'merging tracks seen in one message: two distinct landmarks are seen together in '
-        'about p_D / (2 - p_D) of the messages seeing either. 0: unknown, tracks once seen '
-        'together are never merged.', low=0.0, high=0.999)
+        'about p_D / (2 - p_D) of the messages seeing either. 0: estimated online per '
+        'source, over the field of view of its messages (fuser.track_score).',
+        low=0.0, high=0.999)
     merge_together_same: float = param(
         0.01, 'Fraction of the messages seeing either of two tracks of one landmark that '
         'give rows to both (a clutter or mis-associated row beside it), for merging.',
@@ -380,9 +381,9 @@ class FuserConfig(ConfigBase):
     delete_confirmed_tracks: bool = param(
         False, 'Also delete confirmed tracks of landmarks found without an ID when their '
         'track score falls from its peak by ln((1 - beta) / alpha) (fuser.track_screen). '
-        'Off by default: the misses are scored over a disc around the robot, and on MRCLAM '
-        'a narrow field of view makes real landmarks miss for seconds on end and deletes '
-        'them.')
+        'Off by default: misses are taken as independent per message, and on MRCLAM the '
+        'camera misses real landmarks in its field of view for seconds on end, which '
+        'deletes them.')
     ambiguous_rows: str = param(
         'assign', 'Rows without an ID that the association could pair with several '
         "landmarks: 'assign' uses the chosen pairing, 'skip' drops them.")

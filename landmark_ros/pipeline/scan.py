@@ -28,6 +28,10 @@ class Scan:
         Covariance of the sensor bias (range [m^2], bearing [rad^2]); None for none.
     sensor_xy : ndarray, shape (2,) [m], optional
         Sensor position in the world (with ``R_bias``).
+    heading : float, optional
+        Sensor heading in the world [rad] (the robot's plus the mount's): where the
+        field of view points (the fuser's view, ``fuser.track_score``; not wrapped);
+        None: unknown.
 
     """
 
@@ -35,3 +39,4 @@ class Scan:
     P_pose: NDArray[np.float64]
     R_bias: Optional[NDArray[np.float64]] = None
     sensor_xy: Optional[NDArray[np.float64]] = None
+    heading: Optional[float] = None

@@ -40,8 +40,10 @@ bias variances), ``sensor_x``, ``sensor_y``, ``sensor_theta`` (sensor pose in th
 ``view_group`` UINT32, little-endian, in this order.
 ``landmarks`` gains ``class`` UINT32 when the message had a ``class`` or a row without
 an ID, and the ``SCAN_FIELDS`` (per row, the same for all rows of the message: robot
-position and pose covariance) when it had a row without an ID, plus ``BIAS_FIELDS``
-when the observer models a sensor bias. Readers take each group all or none.
+position and pose covariance) when it had a row without an ID, then ``sensor_theta``
+(the sensor heading in the world; optional for readers, NaN: unknown), plus
+``BIAS_FIELDS`` when the observer models a sensor bias. Readers take each group all or
+none.
 
 ``fused_landmarks`` (fuser out): the landmark fields then ``observations`` UINT32 and
 ``class`` UINT32.
@@ -90,11 +92,15 @@ SCAN_FIELDS = ('robot_x', 'robot_y', 'pose_cov_xx', 'pose_cov_xy', 'pose_cov_xt'
 """Robot position [m] and (x, y, theta) pose covariance of a message with unlabelled rows."""
 BIAS_FIELDS = ('bias_cov_rr', 'bias_cov_rb', 'bias_cov_bb', 'sensor_x', 'sensor_y')
 """Sensor bias covariance (range [m^2], bearing [rad^2]) and sensor position [m]."""
+HEADING_FIELD = 'sensor_theta'
+"""Sensor heading in the world [rad] of a message with unlabelled rows (with
+``SCAN_FIELDS``; optional: a cloud without it, or NaN, has no heading)."""
 LANDMARK_FIELDS = tuple(
     FieldSpec(name, INTEGER_TYPES if name in ('id', 'observations', 'class') else REAL_TYPES,
               required=name not in MEAN_FIELDS + DEPENDENT_FIELDS + ('observations', 'class'))
     for name, _ in FUSED_SCHEMA if name != 'z') + tuple(
-    FieldSpec(name, REAL_TYPES, required=False) for name in SCAN_FIELDS + BIAS_FIELDS)
+    FieldSpec(name, REAL_TYPES, required=False)
+    for name in SCAN_FIELDS + BIAS_FIELDS + (HEADING_FIELD,))
 """What the readers take: ``z`` is not read, ``mean_*`` replace ``x``, ``y`` when there."""
 
 _OBSERVATION_WRITER = CloudWriter((('id', np.uint32), ('range', np.float64),
@@ -119,9 +125,9 @@ NOT_MERGED = 4294967295
 """``merged_into`` of a row that announces no removal (``UNKNOWN_ID``)."""
 _CLASS_WRITER = CloudWriter(LANDMARK_SCHEMA + (('class', np.uint32),))
 _SCAN_WRITER = CloudWriter(LANDMARK_SCHEMA + (('class', np.uint32),) + tuple(
-    (name, np.float64) for name in SCAN_FIELDS))
+    (name, np.float64) for name in SCAN_FIELDS + (HEADING_FIELD,)))
 _BIAS_WRITER = CloudWriter(LANDMARK_SCHEMA + (('class', np.uint32),) + tuple(
-    (name, np.float64) for name in SCAN_FIELDS + BIAS_FIELDS))
+    (name, np.float64) for name in SCAN_FIELDS + (HEADING_FIELD,) + BIAS_FIELDS))
 
 
 class Landmarks(NamedTuple):
@@ -254,6 +260,7 @@ def landmark_message(header, ids, m, P_m, P_dep=None, out=None, classes=None, sc
         P = scan.P_pose
         rows['pose_cov_xx'], rows['pose_cov_xy'], rows['pose_cov_xt'] = P[0]
         rows['pose_cov_yy'], rows['pose_cov_yt'], rows['pose_cov_tt'] = P[1, 1], P[1, 2], P[2, 2]
+        rows[HEADING_FIELD] = np.nan if scan.heading is None else scan.heading
         if scan.R_bias is not None:
             rows['bias_cov_rr'], rows['bias_cov_rb'] = scan.R_bias[0]
             rows['bias_cov_bb'] = scan.R_bias[1, 1]
@@ -500,8 +507,8 @@ def _scan(columns, index):
     """Return the ``Scan`` of a landmark cloud's row ``index``, None without the fields."""
     if SCAN_FIELDS[0] not in columns or index >= len(columns[SCAN_FIELDS[0]]):
         return None
-    v = {name: float(columns[name][index]) for name in SCAN_FIELDS + BIAS_FIELDS
-         if name in columns}
+    v = {name: float(columns[name][index])
+         for name in SCAN_FIELDS + BIAS_FIELDS + (HEADING_FIELD,) if name in columns}
     P_pose = np.array([[v['pose_cov_xx'], v['pose_cov_xy'], v['pose_cov_xt']],
                        [v['pose_cov_xy'], v['pose_cov_yy'], v['pose_cov_yt']],
                        [v['pose_cov_xt'], v['pose_cov_yt'], v['pose_cov_tt']]])
@@ -510,7 +517,9 @@ def _scan(columns, index):
         R_bias = np.array([[v['bias_cov_rr'], v['bias_cov_rb']],
                            [v['bias_cov_rb'], v['bias_cov_bb']]])
         sensor_xy = np.array([v['sensor_x'], v['sensor_y']])
-    return Scan(np.array([v['robot_x'], v['robot_y']]), P_pose, R_bias, sensor_xy)
+    heading = v.get(HEADING_FIELD, np.nan)
+    return Scan(np.array([v['robot_x'], v['robot_y']]), P_pose, R_bias, sensor_xy,
+                float(heading) if np.isfinite(heading) else None)
 
 
 def partial_observation_message(header, columns, out=None):

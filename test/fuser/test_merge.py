@@ -6,6 +6,8 @@ import json
 from landmark_ros.core.gating import chi2_threshold, difference_mahalanobis_sq
 from landmark_ros.fuser.fuser import Fuser
 from landmark_ros.fuser.sources import LandmarkMessage
+from landmark_ros.fuser.track_score import (one_landmark_by_sightings, SourceStatistics,
+                                            sprt_thresholds)
 from landmark_ros.fuser.tracks import together_log_likelihood_ratio
 from landmark_ros.pipeline.config import FuserConfig
 from landmark_ros.pipeline.rows import UNKNOWN_ID
@@ -40,26 +42,39 @@ def _two_confirmed_tracks(config):
 
 
 def _sightings(tracker, a, b, alone_a, alone_b, both):
-    for ids in [[a]] * alone_a + [[b]] * alone_b + [[a, b]] * both:
+    """Messages that see both, then ``alone_a`` that see a only, ``alone_b`` b only."""
+    for ids in [[a, b]] * both + [[a]] * alone_a + [[b]] * alone_b:
         tracker.note_sightings(np.array(ids, np.int64))
 
 
-@pytest.mark.parametrize('p_D, alone_a, alone_b, both, merged', [
+ESTIMATED = SourceStatistics(expected=200, detected=180)
+"""A source whose messages detected 90 % of the landmarks in their view."""
+
+
+@pytest.mark.parametrize('p_D, estimate, alone_a, alone_b, both, merged', [
     # A duplicate: once in one message with its landmark's first track (a clutter row
-    # beside it), 40 messages saw only one of the two. Merged when p_D is known.
-    (0.9, 30, 10, 1, True),
-    (0.0, 30, 10, 1, False),          # p_D unknown: once together, never merged
+    # beside it), 40 messages saw only one of the two. Merged when p_D is known or
+    # estimated.
+    (0.9, None, 30, 10, 1, True),
+    (0.0, ESTIMATED, 30, 10, 1, True),
+    (0.0, None, 30, 10, 1, False),    # no p_D, no estimate: once together, never merged
     # Two landmarks seen together as often as p_D says (0.82 of the messages): apart.
-    (0.9, 5, 4, 30, False),
-    # MRCLAM's worst real pair while compatible (19 and 20: 2 of 33 messages), with the
-    # package default: apart.
-    (0.0, 16, 15, 2, False),
+    (0.9, None, 5, 4, 30, False),
+    (0.0, ESTIMATED, 5, 4, 30, False),
+    # A second track that meets the first in a third of its messages (a close pair whose
+    # one track took both landmarks' rows, the other the rows of scans that saw both):
+    # "one landmark" does not explain it, whatever p_D says.
+    (0.99, None, 10, 0, 5, False),
+    # MRCLAM's worst real pair while compatible (19 and 20: 2 of 33 messages): apart.
+    (0.0, None, 16, 15, 2, False),
     # Never together: merged, whatever p_D (the rule without co-occurrence).
-    (0.0, 3, 2, 0, True), (0.9, 3, 2, 0, True)])
+    (0.0, None, 3, 2, 0, True), (0.9, None, 3, 2, 0, True)])
 def test_compatible_tracks_merge_when_their_co_occurrence_says_one_landmark(
-        p_D, alone_a, alone_b, both, merged):
+        p_D, estimate, alone_a, alone_b, both, merged):
     fuser, a, b = _two_confirmed_tracks(FuserConfig(detection_probability=p_D))
     tracker, counts = fuser.tracker, Counter()
+    if estimate is not None:
+        tracker.statistics['/robot2/landmarks'] = estimate
     _sightings(tracker, a, b, alone_a, alone_b, both)
     result = tracker.merge(fuser.map, counts)
     if merged:
@@ -72,12 +87,16 @@ def test_compatible_tracks_merge_when_their_co_occurrence_says_one_landmark(
         assert fuser.snapshot().ids.tolist() == [a, b]
 
 
-def test_the_test_needs_evidence_the_co_occurrence_is_rare():
-    # Once together, then messages that saw one of them: the ratio turns positive
-    # when (n - k) log((1 - same) / (1 - q)) outweighs k log(q / same).
-    config = FuserConfig(detection_probability=0.9, **EAGER)
+@pytest.mark.parametrize('extra', [{}, EAGER])
+def test_the_test_needs_evidence_the_co_occurrence_is_rare(extra):
+    # Once together, then messages that saw one of them: merged when the ratio
+    # (n - k) log((1 - same) / (1 - q)) - k log(q / same) reaches the confirmation
+    # threshold of the track score.
+    config = FuserConfig(detection_probability=0.9, **extra)
+    confirm, _ = sprt_thresholds(config.false_track_probability,
+                                 config.lost_track_probability)
     q = 0.9 / 1.1
-    needed = int(np.ceil(np.log(q / 0.01) / (np.log(0.99) - np.log(1 - q))))
+    needed = int(np.ceil((confirm + np.log(q / 0.01)) / (np.log(0.99) - np.log(1 - q))))
     fuser, a, b = _two_confirmed_tracks(config)
     _sightings(fuser.tracker, a, b, needed - 1, 0, 1)
     assert fuser.tracker.merge(fuser.map, Counter()) == []
@@ -106,7 +125,7 @@ def _duplicate_run(config):
     return fuser, fuser.sources[SOURCE].counts
 
 
-def test_a_duplicate_started_beside_its_landmark_is_merged_when_p_D_is_known():
+def test_a_duplicate_started_beside_its_landmark_is_merged_with_p_D_known_or_estimated():
     fuser, counts = _duplicate_run(FuserConfig(detection_probability=0.9, **EAGER))
     assert counts['confirmed'] == 2 and counts['merged'] == 1
     (kept,) = fuser.snapshot().ids.tolist()
@@ -114,10 +133,12 @@ def test_a_duplicate_started_beside_its_landmark_is_merged_when_p_D_is_known():
     # 34 messages; the one that started B is counted for either track and is not a
     # meeting, so the merged count holds it twice (an upper bound of n).
     assert fuser.tracker.sightings == {kept: 35} and fuser.tracker.together == {}
-    # The package default (p_D unknown): the two tracks were seen together, kept apart.
+    # The package default: p_D estimated from the messages (the landmark seen in every
+    # one of them), merged too.
     fuser, counts = _duplicate_run(FuserConfig(**EAGER))
-    assert counts['confirmed'] == 2 and counts['merged'] == 0
-    assert len(fuser.snapshot().ids) == 2
+    assert counts['confirmed'] == 2 and counts['merged'] == 1
+    assert fuser.tracker.statistics[SOURCE].detection_probability > 0.9
+    assert len(fuser.snapshot().ids) == 1
 
 
 def test_an_mrclam_like_close_pair_is_never_merged(rng):
@@ -170,6 +191,7 @@ def test_counts_follow_merges_and_deletions_and_survive_a_restart(tmp_path):
     restarted.load()
     assert restarted.tracker.sightings == tracker.sightings
     assert restarted.tracker.together == tracker.together
+    assert restarted.tracker.apart == tracker.apart and tracker.apart[a][c] == 22
     # An older file: pairs without counts count once, no sightings.
     document = json.loads((tmp_path / 'map.json').read_text())
     document['tracks']['together'] = [[a, c]]
@@ -223,6 +245,25 @@ def test_the_message_that_starts_a_track_is_no_meeting(met_again):
         assert tracker.merge(fuser.map, Counter()) == []
     else:
         assert tracker.merge(fuser.map, Counter()) == [(b, a)]
+
+
+@pytest.mark.parametrize('k, n, p_D, merged', [
+    (0, 0, None, True), (0, 5, 0.9, True),          # never together
+    (1, 40, None, False), (1, 40, 0.0, False),      # no p_D: kept apart
+    (1, 40, 0.9, True),                             # rare meetings, p_D high
+    (1, 40, 0.015, False),                          # q = 0.0076 <= same: no test
+    (1, 5, 0.9, False),                             # too few messages for the threshold
+    (12, 40, 0.99, False),                          # meets in 30 %: not "one landmark"
+    (30, 300, 0.2, False),                          # q = 0.11: a pair would do that
+    (3, 300, 0.9, True)])
+def test_one_landmark_by_sightings_needs_a_fit_and_enough_evidence(k, n, p_D, merged):
+    got = one_landmark_by_sightings(k, n, p_D, 0.01, 1e-3, 9.2)
+    assert got is merged
+    if k and p_D:
+        q = p_D / (2 - p_D)
+        plausible = stats.binom.sf(k - 1, n, 0.01) >= 1e-3
+        ratio = stats.binom.logpmf(k, n, 0.01) - stats.binom.logpmf(k, n, q)
+        assert got == (q > 0.01 and plausible and ratio >= 9.2)
 
 
 def test_the_difference_distance_without_dependent_parts_is_the_plain_one(rng):

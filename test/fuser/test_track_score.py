@@ -5,7 +5,8 @@ import json
 from landmark_ros.fuser.fuser import Fuser
 from landmark_ros.fuser.sources import LandmarkMessage
 from landmark_ros.fuser.track_score import (hit_increments, miss_increment, SourceStatistics,
-                                            sprt_thresholds, start_score)
+                                            sprt_thresholds, start_score,
+                                            team_detection_probability)
 from landmark_ros.pipeline.config import FuserConfig
 from landmark_ros.pipeline.rows import UNKNOWN_ID
 from landmark_ros.pipeline.scan import Scan
@@ -86,6 +87,85 @@ def test_online_estimates_converge_to_the_simulated_clutter_density_and_p_D():
     assert estimates.detection_probability == pytest.approx(0.7, abs=0.03)
     ids, m = fuser.snapshot()[:2]
     assert len(ids) == len(truth)     # the six landmarks, no clutter track
+
+
+def _run_field_of_view(rng, messages, P_D, clutter_rate, heading_known, half=0.6):
+    """
+    Run a robot at the origin turning at random, 12 landmarks 5 m around it.
+
+    The sensor sees those within ``half`` [rad] of its heading, each with ``P_D``, and a
+    Poisson number of clutter rows uniform over that sector; the messages carry the
+    heading when ``heading_known``.
+    """
+    angles = np.linspace(0.0, 2 * np.pi, 12, endpoint=False)
+    truth = 5.0 * np.column_stack([np.cos(angles), np.sin(angles)])
+    fuser = Fuser(FuserConfig(), [SOURCE])
+    R = 0.0025 * np.eye(2)
+    for k in range(messages):
+        heading = rng.uniform(-np.pi, np.pi)
+        bearing = (angles - heading + np.pi) % (2 * np.pi) - np.pi
+        seen = truth[(np.abs(bearing) <= half) & (rng.random(len(truth)) < P_D)]
+        seen = seen + rng.normal(0.0, 0.05, seen.shape)
+        count = rng.poisson(clutter_rate)
+        r, a = 5.0 * np.sqrt(rng.random(count)), heading + rng.uniform(-half, half, count)
+        z = np.concatenate([seen, np.column_stack([r * np.cos(a), r * np.sin(a)])])
+        if not len(z):
+            continue
+        P = np.broadcast_to(R, (len(z), 2, 2)).copy()
+        scan = Scan(np.zeros(2), np.zeros((3, 3)), heading=heading if heading_known else None)
+        fuser.add_landmarks(SOURCE, LandmarkMessage((k + 1) * S, [UNKNOWN_ID] * len(z), z, P,
+                                                    0.0 * P, scan=scan))
+        fuser.fuse_queued()
+    return fuser, truth
+
+
+def test_the_field_of_view_is_estimated_and_p_D_counts_only_landmarks_in_it():
+    fuser, truth = _run_field_of_view(np.random.default_rng(3), 1500, 0.8, 1.0, True)
+    estimates = fuser.tracker.statistics[SOURCE]
+    assert estimates.half_view_rad == pytest.approx(0.6, abs=0.05) and estimates.paired_view
+    assert estimates.detection_probability == pytest.approx(0.8, abs=0.03)
+    # One row per message over the sector of half-angle 0.6 rad and radius 5 m.
+    assert estimates.clutter_density == pytest.approx(1.0 / (0.6 * 25.0), rel=0.15)
+    assert len(fuser.snapshot().ids) == len(truth)
+    # Without the heading the view is the disc: the landmarks behind the robot count as
+    # missed and P_D is diluted to about the share of the circle the sector covers.
+    disc, _ = _run_field_of_view(np.random.default_rng(3), 1500, 0.8, 1.0, False)
+    diluted = disc.tracker.statistics[SOURCE]
+    assert diluted.half_view_rad == 0.0 and not diluted.paired_view
+    assert diluted.detection_probability < 0.3
+
+
+def test_view_membership_area_and_the_team_estimate():
+    stats = SourceStatistics()
+    stats.see(np.array([2.0, 4.0]), np.array([False, False]), np.array([0.3, -0.5]))
+    assert (stats.range_m, stats.half_view_rad, stats.paired_view) == (4.0, 0.5, False)
+    # Before a row went to a confirmed landmark the view is the disc.
+    assert stats.view_area(0.0) == pytest.approx(np.pi * 16.0)
+    assert stats.in_view(np.array([[-3.0, 0.0]]), np.zeros(2), 0.0).tolist() == [True]
+    # Rows paired with confirmed landmarks replace the bounds of unpaired rows, then widen.
+    stats.see(np.array([3.0, 1.0]), np.array([True, False]), np.array([0.2, 1.0]))
+    assert (stats.range_m, stats.half_view_rad, stats.paired_view) == (3.0, 0.2, True)
+    stats.see(np.array([3.5]), np.array([True]), np.array([-0.4]))
+    assert (stats.range_m, stats.half_view_rad) == (3.5, 0.4)
+    stats.see(np.array([9.0]), np.array([True]))        # no heading: the view's angle stays
+    assert (stats.range_m, stats.half_view_rad) == (9.0, 0.4)
+    assert stats.view_area(0.0) == pytest.approx(0.4 * 81.0)
+    assert stats.view_area(None) == pytest.approx(np.pi * 81.0)
+    robot, heading = np.array([1.0, 1.0]), np.pi - 0.1
+    xy = robot + np.array([[-5.0, 0.0], [-5.0, 5.0 * np.tan(0.6)], [5.0, 0.0], [-9.5, 0.0],
+                           [0.0, -1.0]])
+    np.testing.assert_array_equal(stats.in_view(xy, robot, heading),
+                                  [True, False, False, False, False])
+    np.testing.assert_array_equal(stats.in_view(xy, robot, None),
+                                  [True, True, True, False, True])
+    assert team_detection_probability([]) is None
+    assert team_detection_probability([SourceStatistics()]) is None
+    assert team_detection_probability([SourceStatistics(expected=8, detected=8),
+                                       SourceStatistics(expected=90, detected=9)]) == (
+        pytest.approx(18.0 / 100.0))
+    assert team_detection_probability([SourceStatistics(expected=1000, detected=1000)]) == 0.99
+    back = SourceStatistics.from_dict(json.loads(json.dumps(stats.to_dict())))
+    assert back == stats
 
 
 def test_statistics_and_scores_survive_a_restart_and_older_files_load(tmp_path):

@@ -130,6 +130,8 @@ def test_clouds_read_together_equal_each_read_alone(rng):
     # Runs of one layout are converted together, then cut back per message: the same
     # rows, classes and scans (each message's first row) as one at a time, and an
     # unreadable cloud among them is an error of its own.
+    sent = {}
+
     def cloud(kind, count):
         A = rng.normal(0.0, 0.3, (count, 2, 2))
         P = A @ np.swapaxes(A, 1, 2) + 0.01 * np.eye(2)
@@ -140,9 +142,14 @@ def test_clouds_read_together_equal_each_read_alone(rng):
         if kind == 'classes':
             return landmark_message(header, ids, m, P, classes=rng.integers(0, 4, count))
         if kind == 'scan':
-            scan = Scan(rng.normal(0, 3, 2), np.diag(rng.uniform(0.01, 0.1, 3)))
-            return landmark_message(header, ids, m, P, 0.5 * P,
-                                    classes=rng.integers(0, 4, count), scan=scan)
+            # The sensor heading, or none (written as NaN, read back as None).
+            heading = float(rng.uniform(-4.0, 4.0)) if rng.random() < 0.7 else None
+            scan = Scan(rng.normal(0, 3, 2), np.diag(rng.uniform(0.01, 0.1, 3)),
+                        heading=heading)
+            msg = landmark_message(header, ids, m, P, 0.5 * P,
+                                   classes=rng.integers(0, 4, count), scan=scan)
+            sent[id(msg)] = heading
+            return msg
         msg = landmark_message(header, ids, m, P)
         msg.data = msg.data[:-3]                    # data_length_mismatch
         return msg
@@ -170,4 +177,5 @@ def test_clouds_read_together_equal_each_read_alone(rng):
             for name in ('robot_xy', 'P_pose'):
                 np.testing.assert_array_equal(getattr(read[1].scan, name),
                                               getattr(extras.scan, name))
+            assert read[1].scan.heading == extras.scan.heading == sent[id(msg)]
     assert read_landmark_clouds([]) == []
