@@ -62,11 +62,12 @@ XDIST = $(if $(filter 0,$(TEST_WORKERS)),,-n $(TEST_WORKERS) --dist loadgroup)
 
 test: venv ros-tools
 	$(PYTEST) $(XDIST) test $(PYTEST_ARGS)
-	@# again without numba, every test that can reach the split-CI fold (fusion and
-	@# above; core and the observer import nothing of fusion): the numpy fold is the
+	@# again without numba, the ROS-free tests that can reach the split-CI fold (fusion
+	@# and above; core and the observer import nothing of fusion): the numpy fold is the
 	@# default path for anyone without numba
 	LANDMARK_ROS_NUMBA=0 $(PYTEST) $(XDIST) test/fusion test/pipeline test/fuser \
-		test/localizer $(PYTEST_ARGS)
+		test/localizer --ignore=test/localizer/test_slam_nodes.py \
+		--ignore=test/localizer/test_mrclam_localize_nodes.py $(PYTEST_ARGS)
 
 # The property-based fuzz tests of the cloud readers and the bag reader (test/*/test_fuzz_*.py),
 # each with FUZZ_EXAMPLES examples from a random seed (make test runs few, derandomized).

@@ -361,6 +361,8 @@ def execute(args, config, paths):
         parameters.update(localizer_parameters(config, Simulation(config)))
         # the localizers start from the first pose: they must get the first odometry
         parameters['/landmark_sim']['wait_for_odometry_subscribers'] = True
+        # and the monitor must get every true pose to pair with the localized ones
+        parameters['/landmark_sim']['wait_for_true_pose_subscribers'] = True
     write_params_file(paths.params_path, parameters)
     progress = progress_bar(config.duration_s, False if args.no_progress else None)
     removed_shm = []

@@ -114,9 +114,11 @@ class LandmarkSim(Node):
         wait = self.config.wait_for_subscribers_s
         if wait <= 0.0 or (now_ns - self._created_ns) * 1e-9 >= wait:
             return True
-        odometry = self.odometry_pubs if self.config.wait_for_odometry_subscribers else []
+        cfg = self.config
+        odometry = self.odometry_pubs if cfg.wait_for_odometry_subscribers else []
+        truth = self.true_pose_pubs if cfg.wait_for_true_pose_subscribers else []
         return all(pub.get_subscription_count() > 0
-                   for pub in self.pose_pubs + self.observation_pubs + odometry)
+                   for pub in self.pose_pubs + self.observation_pubs + odometry + truth)
 
     def step(self):
         """Publish every pose and observation whose stamp the simulated time reached."""

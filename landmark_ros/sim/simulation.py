@@ -136,6 +136,9 @@ class SimConfig(ConfigBase):
     wait_for_odometry_subscribers: bool = param(
         False, 'wait_for_subscribers_s also waits for a subscriber on every odometry topic '
         '(localizers that must see the first odometry message).', read_only=True)
+    wait_for_true_pose_subscribers: bool = param(
+        False, 'wait_for_subscribers_s also waits for a subscriber on every true_pose topic '
+        '(a tool that scores estimates against every true pose).', read_only=True)
     ground_truth_period_s: float = param(
         1.0, 'Ground truth (with the observation counts so far) is republished at most '
         'this often, when the counts changed [wall s].', read_only=True,
