@@ -126,36 +126,31 @@ ROS_GRAPH = re.compile(r'rclpy|rosutil|through_nodes|through-nodes|landmark_ros\
                        r'launch_rig|startup|colcon|ROS_DOMAIN_ID')
 """What a test module says when its tests join a ROS graph (nodes, processes, domains)."""
 
-TOOL_RUNS = re.compile(r'through_nodes|through-nodes|landmark_ros\.demo|launch_rig|colcon|'
-                       r'mrclam')
-"""What a ROS test module says when it runs a tool: the replay (its domains 100 to 149,
-from the process ID), the demo (150 to 199) or ``ros2 launch`` on a colcon tree."""
-
 CHECKERS = frozenset({'test_flake8.py', 'test_pep257.py', 'test_layers.py',
                       'test_codebase.py', 'test_types.py', 'test_docs.py'})
 """Code checkers: they name ROS in their sources but start nothing."""
 
 
 def _xdist_group(path):
-    """Return the xdist group of the tests in ``path``: None, 'ros_tools' or 'ros_nodes'."""
+    """Return the xdist group of the tests in ``path``: None or 'ros_graph'."""
     if path.name in CHECKERS:
         return None
     source = path.read_text(encoding='utf-8')
     if not ROS_GRAPH.search(source):
         return None
-    return 'ros_tools' if TOOL_RUNS.search(source) else 'ros_nodes'
+    return 'ros_graph'
 
 
 def pytest_collection_modifyitems(config, items):
     """
-    Under pytest-xdist, run the tests that join a ROS graph in two serial groups.
+    Under pytest-xdist, run the tests that join a ROS graph one at a time on one worker.
 
-    ``make test`` runs ``-n 2 --dist loadgroup``. The tests that run a tool (replay,
-    demo, launch) form one group and the other ROS tests (nodes, the ROS layer, and any
-    test taking the ``env`` / ``ros_env`` fixtures) another: each group runs one test at
-    a time, so the tools' domain choices never meet, and ``rosutil.next_domain_id``
-    gives each worker its own range. The others (maths, Monte Carlo, checkers) share
-    both workers.
+    ``make test`` runs ``-n 2 --dist loadgroup``. The tests whose module names ROS (or
+    that take the ``env`` / ``ros_env`` fixtures) form one group, as in a serial run:
+    the demo's and the launch tests' checks for leftover shared-memory files are global,
+    and with two such tests at once a demo localizer lost its poses (``rosutil`` still
+    gives each worker its own domain IDs). The others (maths, Monte Carlo, checkers)
+    share both workers.
     """
     if not config.pluginmanager.hasplugin('xdist'):
         return
@@ -166,6 +161,6 @@ def pytest_collection_modifyitems(config, items):
             groups[path] = _xdist_group(path)
         group = groups[path]
         if group is None and {'env', 'ros_env'} & set(getattr(item, 'fixturenames', ())):
-            group = 'ros_nodes'
+            group = 'ros_graph'
         if group is not None:
             item.add_marker(pytest.mark.xdist_group(group))

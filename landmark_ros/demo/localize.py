@@ -166,6 +166,8 @@ def evaluate(collector, statuses=None):
     entry = {'map': 'fused (live)', 'cooperative': False, **overall, 'robots': robots,
              'seconds': math.nan, 'cpu_seconds': math.nan}
     counts = ', '.join(f'robot {t.robot}: {len(t.times)}' for t in tracks)
+    counts += (f'; true poses {[len(t) for t in collector.truth]}, localized '
+               f'{[len(e) for e in collector.estimates]}')
     text = format_table([entry], math.nan).rsplit('\n', 1)[0]
     return entry, (f'Localization on wheel odometry against the fused map (poses {counts}):'
                    f'\n{text}')

@@ -12,7 +12,7 @@ def test_short_demo_run_localizes_every_robot_on_odometry(tmp_path):
         '--no-plot')
     assert code == 0, output
     match = re.search(r'Localization on wheel odometry against the fused map \(poses '
-                      r'robot 1: (\d+), robot 2: (\d+), robot 3: (\d+)\)', output)
+                      r'robot 1: (\d+), robot 2: (\d+), robot 3: (\d+)[;)]', output)
     assert match, output
     assert all(int(n) >= 100 for n in match.groups()), output  # 20 Hz for 8 s
     rows = re.findall(r'^fused \(live\)\s+False\s+(\S+)\s+(\d+\.\d+)\s+(\d+\.\d+)\s+'
