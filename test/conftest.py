@@ -131,14 +131,10 @@ CHECKERS = frozenset({'test_flake8.py', 'test_pep257.py', 'test_layers.py',
 """Code checkers: they name ROS in their sources but start nothing."""
 
 
-def _xdist_group(path):
-    """Return the xdist group of the tests in ``path``: None or 'ros_graph'."""
-    if path.name in CHECKERS:
-        return None
-    source = path.read_text(encoding='utf-8')
-    if not ROS_GRAPH.search(source):
-        return None
-    return 'ros_graph'
+def _joins_ros_graph(path):
+    """Return whether the tests of module ``path`` join a ROS graph (by its source)."""
+    return path.name not in CHECKERS and bool(
+        ROS_GRAPH.search(path.read_text(encoding='utf-8')))
 
 
 def pytest_collection_modifyitems(config, items):
@@ -154,13 +150,9 @@ def pytest_collection_modifyitems(config, items):
     """
     if not config.pluginmanager.hasplugin('xdist'):
         return
-    groups = {}
+    joins = {}
     for item in items:
-        path = item.path
-        if path not in groups:
-            groups[path] = _xdist_group(path)
-        group = groups[path]
-        if group is None and {'env', 'ros_env'} & set(getattr(item, 'fixturenames', ())):
-            group = 'ros_graph'
-        if group is not None:
-            item.add_marker(pytest.mark.xdist_group(group))
+        if item.path not in joins:
+            joins[item.path] = _joins_ros_graph(item.path)
+        if joins[item.path] or {'env', 'ros_env'} & set(getattr(item, 'fixturenames', ())):
+            item.add_marker(pytest.mark.xdist_group('ros_graph'))

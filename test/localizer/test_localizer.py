@@ -290,23 +290,29 @@ def test_sightings_within_the_correlation_time_share_the_correlated_noise():
     assert Localizer()._shared(0, np.array([7, 7]))[0] == 1
 
 
+def _nees_after_repeated_biased_sightings(**overrides):
+    """NEES of the pose after one landmark seen 100 times in 2 s with one 2.6-sigma error."""
+    settings = {'range_stddev': 0.1, 'range_stddev_per_m': 0.0, 'bearing_stddev': 0.01,
+                'range_correlated_fraction': 0.9, 'bearing_correlated_fraction': 0.0,
+                'odometry_alphas': (0.0, 0.0, 0.0, 0.0)}
+    cfg = LocalizerConfig(**{**settings, **overrides})
+    loc = Localizer(cfg)
+    loc.set_map(np.array([1]), LANDMARKS[:1], np.eye(2)[None] * 1e-10)
+    loc.initialize(0, np.zeros(3), np.diag([0.25, 0.25, 1e-6]))
+    z = sensors.observe(np.zeros((1, 3)), LANDMARKS[:1]) + [[0.25, 0.0]]  # 2.6 sigma
+    for k in range(100):
+        loc.add_odometry(k * 20 * MS, twist=np.zeros(2))
+        loc.add_observations(k * 20 * MS, np.array([1]), z)
+    est = loc.estimate()
+    return est.x @ np.linalg.solve(est.P, est.x)
+
+
 def test_correlated_noise_sharing_makes_repeated_biased_sightings_honest():
     # One landmark seen 100 times in 2 s with the same (correlated) range error: counted
     # as independent, the pose collapses on the bias; shared, its NEES stays small.
     def final_nees(tau):
-        cfg = LocalizerConfig(range_stddev=0.1, range_stddev_per_m=0.0, bearing_stddev=0.01,
-                              range_correlated_fraction=0.9, bearing_correlated_fraction=0.0,
-                              noise_correlation_time_s=tau, correlation='independent',
-                              odometry_alphas=(0.0, 0.0, 0.0, 0.0))
-        loc = Localizer(cfg)
-        loc.set_map(np.array([1]), LANDMARKS[:1], np.eye(2)[None] * 1e-10)
-        loc.initialize(0, np.zeros(3), np.diag([0.25, 0.25, 1e-6]))
-        z = sensors.observe(np.zeros((1, 3)), LANDMARKS[:1]) + [[0.25, 0.0]]  # 2.6 sigma
-        for k in range(100):
-            loc.add_odometry(k * 20 * MS, twist=np.zeros(2))
-            loc.add_observations(k * 20 * MS, np.array([1]), z)
-        est = loc.estimate()
-        return est.x @ np.linalg.solve(est.P, est.x)
+        return _nees_after_repeated_biased_sightings(noise_correlation_time_s=tau,
+                                                     correlation='independent')
     # Counted alone, 100 sightings of one error weigh 100; shared, the k-th weighs 1/k
     # (the trailing count), 5.2 in all: the transient of a first encounter stays
     # over-confident by that harmonic sum (documented in Localizer._shared).
@@ -319,20 +325,9 @@ def test_dependent_correlated_noise_keeps_repeated_biased_sightings_honest():
     # with the pose (split CI), each counts once against any correlation, and the pose
     # stays consistent from the first sighting on, with no count of sightings.
     def final_nees(correlated_noise, correlation='split_ci'):
-        cfg = LocalizerConfig(range_stddev=0.1, range_stddev_per_m=0.0, bearing_stddev=0.01,
-                              range_correlated_fraction=0.9, bearing_correlated_fraction=0.0,
-                              noise_correlation_time_s=0.0, correlation=correlation,
-                              correlated_noise=correlated_noise,
-                              odometry_alphas=(0.0, 0.0, 0.0, 0.0))
-        loc = Localizer(cfg)
-        loc.set_map(np.array([1]), LANDMARKS[:1], np.eye(2)[None] * 1e-10)
-        loc.initialize(0, np.zeros(3), np.diag([0.25, 0.25, 1e-6]))
-        z = sensors.observe(np.zeros((1, 3)), LANDMARKS[:1]) + [[0.25, 0.0]]  # 2.6 sigma
-        for k in range(100):
-            loc.add_odometry(k * 20 * MS, twist=np.zeros(2))
-            loc.add_observations(k * 20 * MS, np.array([1]), z)
-        est = loc.estimate()
-        return est.x @ np.linalg.solve(est.P, est.x)
+        return _nees_after_repeated_biased_sightings(
+            noise_correlation_time_s=0.0, correlation=correlation,
+            correlated_noise=correlated_noise)
     counted_alone = final_nees('count')     # no correlation time: each sighting alone
     assert counted_alone > 30.0
     assert final_nees('dependent') < 6.8    # 2.6 sigma along one direction, at most
