@@ -60,8 +60,8 @@ endif
 TEST_WORKERS ?= 2
 XDIST = $(if $(filter 0,$(TEST_WORKERS)),,-n $(TEST_WORKERS) --dist loadgroup)
 
-# test_demo_localize runs alone after the others: with the CPU contended, the demo's
-# monitor gets one message of the last robot's true and localized poses (not traced).
+# test_demo_localize runs alone after the others: it starts eight processes and
+# judges a filter's consistency on what they send, so it wants the cores to itself.
 ALONE := test/tools/test_demo_localize.py
 
 test: venv ros-tools

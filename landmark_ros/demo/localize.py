@@ -88,28 +88,27 @@ def slam_defaults(args):
 
 
 class LocalizationCollector:
-    """Every true and localized pose of every robot, by stamp (on the demo's node)."""
+    """
+    Every true and localized pose of every robot, by stamp (on the demo's node).
+
+    The true poses come from the monitor's own true-pose readers (``Monitor`` with
+    ``every_true_pose``, which fills ``truth``): one reader per topic, so that the
+    simulator's wait for subscribers covers it.
+    """
 
     def __init__(self, node, robots):
-        """Subscribe to every robot's true and localized pose on ``node``."""
-        from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
+        """Subscribe to every robot's localized pose on ``node``."""
+        from geometry_msgs.msg import PoseWithCovarianceStamped
         from landmark_ros.ros.qos import reliable_output
-        depth = reliable_output(1000)
         self.node, self.robots = node, robots
         self.truth = [{} for _ in range(robots)]
         self.estimates = [{} for _ in range(robots)]
         self.read_errors = 0
-        for i in range(robots):
-            node.create_subscription(PoseStamped, f'/robot{i + 1}/true_pose',
-                                     lambda msg, i=i: self._on_truth(i, msg), depth)
+        self.subscriptions = [
             node.create_subscription(PoseWithCovarianceStamped, f'/robot{i + 1}/localized_pose',
-                                     lambda msg, i=i: self._on_estimate(i, msg), depth)
-
-    def _on_truth(self, robot, msg):
-        q = msg.pose.orientation
-        yaw = math.atan2(2.0 * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * (q.y * q.y + q.z * q.z))
-        self.truth[robot][stamp_ns(msg.header.stamp)] = (msg.pose.position.x,
-                                                         msg.pose.position.y, yaw)
+                                     lambda msg, i=i: self._on_estimate(i, msg),
+                                     reliable_output(1000))
+            for i in range(robots)]
 
     def _on_estimate(self, robot, msg):
         try:
@@ -121,15 +120,17 @@ class LocalizationCollector:
 
     def ready(self, statuses):
         """
-        Return whether every localizer runs and its pose output is matched.
+        Return whether every localizer runs and this node's readers matched its pose.
 
         ``statuses`` (the monitor's latest diagnostics by status name) must hold each
         localizer's: a localizer publishes them once its filter is built (its imports
         can take seconds under load while the simulator would already be running).
+        The match is the reader's own (``get_publisher_count``): the ROS graph can list
+        a publisher before the DDS reader has matched it.
         """
-        return all(self.node.count_publishers(f'/robot{i + 1}/localized_pose')
+        return all(subscription.get_publisher_count() > 0
                    and f'/robot{i + 1}/landmark_localizer' in statuses
-                   for i in range(self.robots))
+                   for i, subscription in enumerate(self.subscriptions))
 
     def complete(self):
         """Return whether every robot has a localized pose at each true pose's stamp."""

@@ -30,11 +30,17 @@ class Monitor:
         The ROS_DOMAIN_ID; None probes ``DOMAIN_RANGE`` for one nobody uses.
     robots : int
         Number of robots.
+    partial : iterable of int
+        The robots whose sensors give range-only or bearing-only rows.
+    every_true_pose : bool
+        Take every true pose (reliable, deep queue: ``--localize`` pairs each with a
+        localized pose) instead of the newest one for the plot.
 
     """
 
-    def __init__(self, domain_id, robots, partial=()):
+    def __init__(self, domain_id, robots, partial=(), every_true_pose=False):
         self.robots = robots
+        self.every_true_pose = every_true_pose
         self.partial = set(partial)
         self.context = self.node = self.executor = None
         self.callbacks = 0
@@ -79,12 +85,15 @@ class Monitor:
     def _subscribe(self):
         from diagnostic_msgs.msg import DiagnosticArray
         from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
-        from landmark_ros.ros.qos import LATCHED
+        from landmark_ros.ros.qos import LATCHED, reliable_output
         from rclpy.qos import qos_profile_sensor_data, QoSProfile
         from sensor_msgs.msg import PointCloud2
         # Poses only for the plot: the newest one each time the demo looks is enough,
         # and a busy demo skips poses instead of falling behind.
         stream = QoSProfile(depth=1, reliability=qos_profile_sensor_data.reliability)
+        # One reader per true-pose topic: the simulator's wait for subscribers then
+        # waits for this very reader.
+        truth = reliable_output(1000) if self.every_true_pose else stream
         node = self.node
         self.fused = None
         self.fused_stamp_ns = None
@@ -105,7 +114,7 @@ class Monitor:
         for i in range(self.robots):
             node.create_subscription(
                 PoseStamped, f'/robot{i + 1}/true_pose',
-                lambda msg, i=i: self._on_true_pose(i, msg), stream)
+                lambda msg, i=i: self._on_true_pose(i, msg), truth)
             node.create_subscription(
                 PoseWithCovarianceStamped, f'/robot{i + 1}/pose',
                 lambda msg, i=i: self._on_pose(i, msg), stream)
@@ -133,6 +142,8 @@ class Monitor:
         yaw = math.atan2(2.0 * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * (q.y * q.y + q.z * q.z))
         self.true_paths[robot].append((msg.pose.position.x, msg.pose.position.y, yaw))
         self.last_true_stamp_ns = stamp_ns(msg.header.stamp)
+        if self.localization is not None:
+            self.localization.truth[robot][self.last_true_stamp_ns] = self.true_paths[robot][-1]
 
     def _on_pose(self, robot, msg):
         self.callbacks += 1

@@ -368,7 +368,8 @@ def execute(args, config, paths):
     removed_shm = []
     monitor = None
     try:
-        monitor = Monitor(args.domain_id, config.robots, partial_robots(config))
+        monitor = Monitor(args.domain_id, config.robots, partial_robots(config),
+                          every_true_pose=getattr(args, 'localize', False))
         if getattr(args, 'localize', False):
             monitor.localization = LocalizationCollector(monitor.node, config.robots)
         announce(args, config, monitor, paths.log_dir)

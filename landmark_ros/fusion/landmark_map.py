@@ -254,13 +254,18 @@ class LandmarkMap:
         rows = self._rows_of(ids)
         changed: List[NDArray[np.int64]] = []
         known = self.confirmed[rows]
-        # Rows of already confirmed landmarks first, in passes; then the others in order.
+        # Rows of already confirmed landmarks first, in passes; then the others in order,
+        # one by one until their landmark is confirmed; its later rows in passes after.
         self._update_confirmed(rows[known], batch, np.flatnonzero(known), result, changed)
+        later = []
         for i in np.flatnonzero(~known).tolist():
             if self.confirmed[rows[i]]:  # confirmed earlier in this batch
-                self._update_confirmed(rows[i:i + 1], batch, np.array([i]), result, changed)
+                later.append(i)
             else:
                 self._add_tentative(rows[i], batch.observation(i), result, changed)
+        if later:
+            positions = np.array(later, np.int64)
+            self._update_confirmed(rows[positions], batch, positions, result, changed)
         # By source once per update, not once per pass (60 sources: a loop over them).
         self._count_by_source(batch.codes[batch.taken], rows[batch.taken], result.accepted, True)
         if changed:

@@ -639,10 +639,9 @@ def test_sigkill_during_autosave_never_tears_the_file_and_restart_publishes_it(
         process = start_fuser(*overrides)
         kill_after = rng.uniform(0.0, 0.4)
         saved_at = None
-        # The first save of a fuser under this flood comes 3 to 7 s after its start,
-        # and now and then after 18 to 20 s (first process of the test only; cause not
-        # traced; over 60 s at load 16 on 2 cores): the deadline is on the save, not on
-        # the start, and grows with the run queue per core.
+        # The first save of a fuser under this flood comes some seconds after its start
+        # (the first process fuses 2000 new landmarks per message into an empty map):
+        # the deadline is on the save, not on the start, and grows with the run queue.
         load = max(1.0, os.getloadavg()[0] / (os.cpu_count() or 1))
         deadline = time.monotonic() + 3 * DEADLINE_S * load
         # Flood until this fuser has saved once, then for a random while more: a new
