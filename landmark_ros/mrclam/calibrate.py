@@ -5,16 +5,21 @@ The camera model of a MRCLAM dataset, estimated from its ground truth (ROS-free)
 sighting against the ground truth, per-robot median errors for the bias (the dependent
 part of the observer's covariance), and the Gaussian that holds the central 99 % of the
 residuals for the independent noise, with a range-dependent range noise
-``sigma_r(r)^2 = a^2 + (k r)^2``, all of the ranges corrected for the camera's range
-scale error first (``range_calibration``). ``landmark_mrclam --calibrate`` prints it with
-``format_calibration`` and suggests the ``config/mrclam.yaml`` values.
+``sigma_r(r)^2 = a^2 + (k r)^2 + (c r^2)^2``, all of the ranges corrected for the
+camera's range scale error first (``range_calibration``), and all of the sightings moved
+back by the camera's stamp delay before anything else (``camera_delay``).
+``landmark_mrclam --calibrate`` prints it with ``format_calibration`` and suggests the
+``config/mrclam.yaml`` values.
 """
 
 from dataclasses import asdict, dataclass
 import math
 
 from landmark_ros.core.pose2 import wrap_angle
-from landmark_ros.mrclam.range_calibration import (remove_range_scale, robust_sigma,
+from landmark_ros.mrclam.camera_delay import (CameraDelay, estimate_camera_delay,
+                                              format_camera_delay)
+from landmark_ros.mrclam.range_calibration import (fit_range_noise, range_noise_bins,
+                                                   remove_range_scale, robust_sigma,
                                                    SHORT_TAIL_M)
 import numpy as np
 from scipy import special
@@ -38,28 +43,8 @@ def central_sigma(values, mass=CENTRAL_MASS):
     return float(np.quantile(np.abs(values - np.median(values)), mass) / z)
 
 
-def _fit_range_model(r, sigma, counts):
-    """
-    Fit ``sigma^2 = a^2 + (k r)^2`` to binned spreads; return ``(a, k)``.
-
-    Weighted least squares on the variances, with ``a^2, k^2 >= 0``: a variance
-    estimated from ``n`` errors has a standard deviation proportional to
-    ``sigma^2 / sqrt(n)``, so the weights are ``n / sigma^4`` (relative errors count,
-    and the short ranges are not drowned by the long ones).
-    """
-    r2, s2 = np.asarray(r, dtype=float) ** 2, np.asarray(sigma, dtype=float) ** 2
-    w = np.asarray(counts, dtype=float) / np.maximum(s2, 1e-300) ** 2
-    sw = np.sqrt(w)
-    A = np.stack([np.ones_like(r2), r2], axis=1) * sw[:, None]
-    (a2, k2), *_ = np.linalg.lstsq(A, s2 * sw, rcond=None)
-    if a2 < 0.0:
-        a2, k2 = 0.0, float(np.sum(w * s2 * r2) / np.sum(w * r2 * r2))
-    if k2 < 0.0:
-        a2, k2 = float(np.sum(w * s2) / np.sum(w)), 0.0
-    return math.sqrt(max(a2, 0.0)), math.sqrt(max(k2, 0.0))
-
-
-OBSERVER_FIELDS = ('range_stddev', 'range_stddev_per_m', 'bearing_stddev', 'range_bias_stddev',
+OBSERVER_FIELDS = ('range_stddev', 'range_stddev_per_m', 'range_stddev_per_m2', 'bearing_stddev',
+                   'range_bias_stddev',
                    'bearing_bias_stddev', 'noise_correlation_time_s',
                    'range_correlated_fraction', 'bearing_correlated_fraction',
                    'range_scale_per_m')
@@ -109,6 +94,12 @@ class Calibration:
     range_scale_state_stddev: float = 0.0
     """Root mean square of the robots' median relative range errors after the correction
     (the scale error each robot keeps), less the variance of a median (step 5)."""
+    range_stddev_per_m2: float = 0.0
+    """Range noise per squared metre of range [m/m^2] (step 4)."""
+    camera_delay_s: float = 0.0
+    """Stamp delay of the sightings [s] (step 0), removed before every other step."""
+    camera_delay: dict = None
+    """``camera_delay.CameraDelay.to_dict`` of step 0 (None when not estimated)."""
 
     def to_dict(self):
         """Return plain values for JSON."""
@@ -144,6 +135,7 @@ class Calibration:
         return ('/**/landmark_observer:\n  ros__parameters:\n'
                 f'    range_stddev: {self.range_stddev:.4f}\n'
                 f'    range_stddev_per_m: {self.range_stddev_per_m:.4f}\n'
+                f'    range_stddev_per_m2: {self.range_stddev_per_m2:.5f}\n'
                 f'    bearing_stddev: {self.bearing_stddev:.4f}\n'
                 f'    range_bias_stddev: {self.range_bias_stddev:.4f}\n'
                 f'    bearing_bias_stddev: {self.bearing_bias_stddev:.4f}\n'
@@ -156,7 +148,9 @@ class Calibration:
                 f'{self.range_scale_no_bearing[1]:.4f}]\n'
                 '/**/landmark_localizer:\n  ros__parameters:\n'
                 + '\n'.join(f'    {k}: {_yaml_value(v)}'
-                            for k, v in self.localizer_values().items()))
+                            for k, v in self.localizer_values().items())
+                + '\nlandmark_mrclam:\n  ros__parameters:\n'
+                f'    camera_delay_s: {self.camera_delay_s:.3f}')
 
 
 def _yaml_value(value):
@@ -305,12 +299,16 @@ def _robot_medians(dataset, e):
     return robots, robot_medians
 
 
-def calibrate(dataset, min_pair=10, bins=10, part=None):
+def calibrate(dataset, min_pair=10, bins=10, part=None, delay=True):
     """
     Estimate the observer's sensor model from ground truth.
 
     Procedure:
 
+    0. Camera delay (``camera_delay.estimate_camera_delay``, with ``delay``): the shift
+       of the sighting stamps that minimises the robust loss of the bearing residuals;
+       every later step works on the sightings moved back by it
+       (``Dataset.with_camera_delay``), as the replay does with ``camera_delay_s``.
     1. Errors. For every landmark sighting kept by the reader (barcode of a landmark,
        stamp within the robot's ground truth), the true range and bearing follow from
        the ground-truth pose interpolated at the measurement stamp (``mrclam_data``:
@@ -338,11 +336,13 @@ def calibrate(dataset, min_pair=10, bins=10, part=None):
        ``CENTRAL_MASS`` (99 %) of the residuals, ``quantile(|res|, 0.99) / 2.576``
        (``central_sigma``): a fit to the core alone (the MAD) would make the moderate
        tail look like outliers to the fuser's gate; the far 1 % is left to the gate.
-       Range residuals are split into ``bins`` bins of equal counts by range; per bin
-       that standard deviation at the median range of the bin; then a least-squares
-       fit of ``sigma_r(r)^2 = a^2 + (k r)^2`` over the bins (weights ``n / sigma^4``:
-       relative errors of the bin variances; ``a^2, k^2 >= 0``) gives
-       ``range_stddev = a`` and ``range_stddev_per_m = k``. ``bearing_stddev`` is the
+       Range residuals are split into ``bins`` bins of equal counts by range
+       (``range_calibration.range_noise_bins``); per bin that standard deviation at
+       the median range of the bin; then a least-squares fit of
+       ``sigma_r(r)^2 = a^2 + (k r)^2 + (c r^2)^2`` over the bins (weights
+       ``n / sigma^4``: relative errors of the bin variances; ``a^2, k^2, c^2 >= 0``;
+       ``range_calibration.fit_range_noise``) gives ``range_stddev = a``,
+       ``range_stddev_per_m = k`` and ``range_stddev_per_m2 = c``. ``bearing_stddev`` is the
        same standard deviation of all bearing residuals.
     5. Bias standard deviations: the root mean square of the robot medians, weighted
        by sightings, less the variance of a median of ``n`` noisy errors,
@@ -373,6 +373,9 @@ def calibrate(dataset, min_pair=10, bins=10, part=None):
     part : mrclam_data.Part, optional
         Calibrate on this time slice and robot subset only (``Dataset.part``); None
         uses every sighting.
+    delay : bool
+        Estimate and remove the camera delay first (step 0); False takes the stamps
+        as they are (a dataset already moved by ``with_camera_delay``).
 
     Returns
     -------
@@ -386,6 +389,9 @@ def calibrate(dataset, min_pair=10, bins=10, part=None):
     """
     if part is not None:
         dataset = dataset.part(part)
+    camera_delay = estimate_camera_delay(dataset) if delay else None
+    if camera_delay is not None:
+        dataset = dataset.with_camera_delay(camera_delay.delay_s)
     e = measurement_errors(dataset)
     count = len(e['range'])
     if count < max(2 * bins, min_pair):
@@ -420,34 +426,28 @@ def calibrate(dataset, min_pair=10, bins=10, part=None):
     res_b = e['bearing_error'] - robot_median_b[robot_index]
     ranges = e['range']
     # Range noise against range: central spread per bin of equal counts, then the fit.
-    order = np.argsort(ranges, kind='stable')
-    range_bins = []
-    for chunk in np.array_split(order, min(bins, max(1, len(order) // 10))):
-        if not len(chunk):
-            continue
-        range_bins.append({'low': float(ranges[chunk].min()), 'high': float(ranges[chunk].max()),
-                           'range': float(np.median(ranges[chunk])), 'n': int(len(chunk)),
-                           'robust_sd': central_sigma(res_r[chunk])})
-    a, k = _fit_range_model([b['range'] for b in range_bins],
-                            [b['robust_sd'] for b in range_bins], [b['n'] for b in range_bins])
+    range_bins = range_noise_bins(ranges, res_r, central_sigma, bins)
+    a, k, c = fit_range_noise([b['range'] for b in range_bins],
+                              [b['robust_sd'] for b in range_bins],
+                              [b['n'] for b in range_bins])
     for b in range_bins:
-        b['model_sd'] = math.sqrt(a * a + (k * b['range']) ** 2)
+        b['model_sd'] = math.sqrt(a * a + (k * b['range']) ** 2 + (c * b['range'] ** 2) ** 2)
     sigma_b = central_sigma(res_b)
     # Biases: robot medians (the model) and pair medians (for comparison), less the
     # variance of a median of noisy errors.
-    mean_noise_r = float(np.mean(a * a + (k * e['range']) ** 2))
+    noise_r = a * a + (k * ranges) ** 2 + (c * ranges ** 2) ** 2
+    mean_noise_r = float(np.mean(noise_r))
     range_bias = _weighted_bias([m[0] for m, _ in robot_medians],
                                 [n for _, n in robot_medians],
                                 np.full(len(robot_medians), mean_noise_r))
     bearing_bias = _weighted_bias([m[1] for m, _ in robot_medians],
                                   [n for _, n in robot_medians],
                                   np.full(len(robot_medians), sigma_b ** 2))
-    pair_noise_r = np.array([np.mean(a * a + (k * e['range'][inverse == p]) ** 2)
-                             for p in np.flatnonzero(big)])
+    pair_noise_r = np.array([np.mean(noise_r[inverse == p]) for p in np.flatnonzero(big)])
     pair_range = _weighted_bias(pair_range_median[big], sizes[big], pair_noise_r)
     pair_bearing = _weighted_bias(pair_bearing_median[big], sizes[big],
                                   np.full(int(big.sum()), sigma_b ** 2))
-    model_r = np.sqrt(a * a + (k * ranges) ** 2)
+    model_r = np.sqrt(noise_r)
     state_sd = _scale_spread(e, model_r)
     tails = {'range': float(np.mean(np.abs(res_r) > 3.0 * model_r)),
              'bearing': float(np.mean(np.abs(res_b) > 3.0 * sigma_b))}
@@ -457,7 +457,9 @@ def calibrate(dataset, min_pair=10, bins=10, part=None):
                        range_bias, bearing_bias, pair_range, pair_bearing, tails,
                        correlation['fraction']['range'], correlation['fraction']['bearing'],
                        correlation['tau_s'], correlation, scale_coeffs, scale_per_m,
-                       scale['no_bearing'], scale, state_sd)
+                       scale['no_bearing'], scale, state_sd, c,
+                       0.0 if camera_delay is None else camera_delay.delay_s,
+                       None if camera_delay is None else camera_delay.to_dict())
 
 
 def _scale_spread(e, model_r):
@@ -472,9 +474,12 @@ def _scale_spread(e, model_r):
 
 def format_calibration(cal):
     """Return the calibration printout."""
-    lines = [f'== calibration from {cal.count} landmark sightings against ground truth',
-             f"{'error':<8} {'mean':>9} {'std':>9} {'median':>9} {'robust sd':>10} "
-             f"{'> 3 rsd':>8}"]
+    lines = [f'== calibration from {cal.count} landmark sightings against ground truth']
+    if cal.camera_delay:
+        lines.append(format_camera_delay(CameraDelay(**cal.camera_delay)) + '; every figure '
+                     'below is of the sightings moved back by it')
+    lines += [f"{'error':<8} {'mean':>9} {'std':>9} {'median':>9} {'robust sd':>10} "
+              f"{'> 3 rsd':>8}"]
     for name, unit in (('range', 'm'), ('bearing', 'rad')):
         o = cal.overall[name]
         lines.append(f'{name:<8} {o["mean"]:9.4f} {o["std"]:9.4f} {o["median"]:9.4f} '
@@ -505,9 +510,10 @@ def format_calibration(cal):
     for b in cal.range_bins:
         lines.append(f'  {b["low"]:6.2f} - {b["high"]:6.2f} {b["range"]:7.2f} {b["n"]:6d} '
                      f'{b["robust_sd"]:10.4f} {b["model_sd"]:8.4f}')
-    lines.append(f'fit sigma_r(r)^2 = a^2 + (k r)^2: a = {cal.range_stddev:.4f} m, '
-                 f'k = {cal.range_stddev_per_m:.4f} m/m; bearing sd {cal.bearing_stddev:.4f} '
-                 'rad')
+    lines.append('fit sigma_r(r)^2 = a^2 + (k r)^2 + (c r^2)^2: '
+                 f'a = {cal.range_stddev:.4f} m, k = {cal.range_stddev_per_m:.4f} m/m, '
+                 f'c = {cal.range_stddev_per_m2:.5f} m/m^2; bearing sd '
+                 f'{cal.bearing_stddev:.4f} rad')
     lines.append(f'bias (RMS of robot medians, less their noise): range '
                  f'{cal.range_bias_stddev:.4f} m, bearing {cal.bearing_bias_stddev:.4f} rad; '
                  f'of the {cal.pairs} robot-landmark pair medians, for comparison: range '

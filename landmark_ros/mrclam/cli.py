@@ -13,7 +13,11 @@ the same code as the nodes, then the fused maps against the true landmark positi
 ``DATASET`` is a MRCLAM directory (default: ``shared/data/mrclam/dataset6`` beside the
 repository). Sightings, poses and ground truth come from ``landmark_ros.mrclam.data``:
 landmark sightings only, each with the ground-truth pose interpolated at its stamp and
-the covariance ``pose_stddev_*`` of the ``landmark_mrclam`` section of the config.
+the covariance ``pose_stddev_*`` of the ``landmark_mrclam`` section of the config. The
+fusion replays (offline, ``--through-nodes``, ``--sensor``, ``--hide-ids``) move the
+sightings back by the config's ``camera_delay_s`` (``Dataset.with_camera_delay``);
+``--calibrate`` and ``--cross-validate`` estimate the delay themselves (``camera_delay``)
+from the raw stamps, ``--localize`` and ``--slam`` take the stamps as they are.
 
 The replay's modules, by role: ``config`` (the params file), ``data`` (the reader),
 ``offline``, ``player`` (through the nodes), ``calibrate``, ``report`` (tables, JSON,
@@ -96,20 +100,23 @@ offline (default)
 ``--cross-validate [--folds halves|robots] [--modes MODE ...]``
     ``landmark_ros.mrclam.crossval``: per fold, the sensor model calibrated on one
     part of the run goes into the observer's configuration and the other part is
-    replayed, in every mode (``ids``, ``hide_ids``, ``range``, ``bearing``), split CI
-    unless ``--fusion``; ``--modes localize localize_fused`` cross-validate
+    replayed, moved back by the camera delay estimated on the first part, in every
+    mode (``ids``, ``hide_ids``, ``range``, ``bearing``), split CI unless
+    ``--fusion``; ``--modes localize localize_fused`` cross-validate
     ``--localize`` the same way (surveyed and fused map). Folds: the two halves of
     the run, both ways (default), or leave one robot out. ``--json`` writes
     ``{"mode": "cross_validation", "scheme", "dataset", "cross_validation": [{"fold",
-    "calibrated_on", "evaluated_on", "mode", "fusion", "calibration", "rmse_m",
+    "calibrated_on", "evaluated_on", "mode", "fusion", "calibration",
+    "camera_delay_s", "rmse_m",
     "anees", "anees_interval", "consistent", ..., and with hide_ids
     "association_accuracy", "oracle_accuracy", "tracks_confirmed", "true_landmarks",
     "gospa_m"}, ...]}``; a localization entry has "map", the localization keys
     ("position_rmse_m", "heading_rmse_rad", "anees", "inside_95_fraction"),
     "consistent" (every robot) and "robots".
 ``--calibrate``
-    Estimate the sensor model from ground truth and print suggested YAML values
-    (``landmark_ros.mrclam.calibrate.calibrate`` documents the procedure).
+    Estimate the camera delay and the sensor model from ground truth and print
+    suggested YAML values (``landmark_ros.mrclam.calibrate.calibrate`` documents the
+    procedure; ``camera_delay_s`` goes in the ``landmark_mrclam`` section).
 ``--export-bag OUT`` (deprecated, removed in the next release)
     Runs ``landmark_bag --from-mrclam DATASET -o OUT --config CONFIG`` (the bag tool
     owns the export; this replay does not import it) after a deprecation warning on
@@ -377,6 +384,10 @@ def main(argv=None):
     code = other_command(args, dataset, config)
     if code is not None:
         return code
+    if config.camera_delay_s:
+        dataset = dataset.with_camera_delay(config.camera_delay_s)
+        print(f'sightings moved back by camera_delay_s = {config.camera_delay_s} s '
+              f'({dataset.counts["kept"]} kept)')
     methods = [args.fusion] if args.fusion else list(FUSION_METHODS)
     if args.through_nodes and args.sensor != 'rb' and args.hide_ids:
         print('landmark_mrclam: --hide-ids needs --sensor rb through the nodes',

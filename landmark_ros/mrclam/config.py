@@ -3,7 +3,8 @@ The replay's configuration: one ROS params file for the nodes and the replay (RO
 
 ``config/mrclam.yaml`` holds the ``landmark_observer`` and ``landmark_fuser`` sections
 the nodes read with ``--params-file`` and a ``landmark_mrclam`` section of the replay's
-own settings (the pose standard deviations). ``load_config`` reads all three into one
+own settings (the pose standard deviations, the camera delay). ``load_config`` reads all
+three into one
 ``ReplayConfig``: the node sections through ``ObserverConfig.from_values`` and
 ``FuserConfig.from_values``, so the offline replay and the nodes validate the very same
 values.
@@ -32,6 +33,9 @@ class ReplayConfig:
     pose_stddev: tuple = (0.002, 0.002, 0.002)
     """Standard deviations of the reported poses: x [m], y [m], yaw [rad]."""
     path: Path = None
+    camera_delay_s: float = 0.0
+    """How long before its stamp a sighting was taken [s] (``mrclam.camera_delay``); the
+    replay moves the stamps back by it (``Dataset.with_camera_delay``). 0: none."""
 
     @property
     def P_pose(self):
@@ -137,7 +141,12 @@ def load_config(path=None):
                    for axis, default in zip(('x', 'y', 'yaw'), (0.002, 0.002, 0.002)))
     if not all(math.isfinite(s) and s >= 0.0 for s in stddev):
         raise ValueError(f'{path}: pose_stddev_* must be finite and >= 0, got {stddev}')
-    return ReplayConfig(observer, fuser, stddev, path)
+    delay = replay.get('camera_delay_s', 0.0)
+    if isinstance(delay, bool) or not isinstance(delay, (int, float)) or not (
+            math.isfinite(delay) and abs(delay) <= 1.0):
+        raise ValueError(f'{path}: camera_delay_s must be a number of seconds in [-1, 1], '
+                         f'got {delay!r}')
+    return ReplayConfig(observer, fuser, stddev, path, float(delay))
 
 
 def config_values(config):

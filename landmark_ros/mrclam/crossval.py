@@ -6,7 +6,9 @@ not. ``cross_validate`` splits a dataset into folds (``folds``), and for each fo
 estimates the observer's sensor model from the ground truth of one part
 (``calibrate.calibrate`` with its ``Part``), puts every estimated value into the
 observer's configuration (``calibrated_config``: the rest of the params file is kept),
-and replays the other part through the pipeline objects (``offline.run_offline``), in
+moves the sightings back by the camera delay estimated on the same part
+(``Dataset.with_camera_delay``; the params file's ``camera_delay_s`` is not used) and
+replays the other part through the pipeline objects (``offline.run_offline``), in
 every mode asked for (``MODES``). Nothing of the evaluated part reaches the
 configuration.
 
@@ -20,9 +22,10 @@ Schemes (``folds``):
     (one fold per robot; each evaluated map comes from one robot's sightings).
 
 Localization (``LOCALIZE_MODES``, ``cross_validate_localize``): the calibration of the
-fold goes into the localizer's configuration as well (``Calibration.localizer_values``:
-range scale, noise, correlated shares; the odometry model of the params file is kept)
-and every robot of the evaluated part localizes (``localize.run``: from its
+fold (at the raw stamps, as ``--localize`` replays them: no camera delay) goes into
+the localizer's configuration as well (``Calibration.localizer_values``: range scale,
+noise, correlated shares; the odometry model of the params file is kept) and every robot
+of the evaluated part localizes (``localize.run``: from its
 ground-truth pose at the start of its odometry, landmark sightings only) against the
 surveyed map (``localize``) or the split-CI map the fuser builds from the evaluated part
 with the fold's observer calibration (``localize_fused``). With ``halves`` the robots
@@ -125,17 +128,19 @@ def cross_validate(dataset, config, modes: Sequence[str], methods: Sequence[str]
     list of dict
         One entry per fold, mode and method: ``fold``, ``calibrated_on``,
         ``evaluated_on``, ``mode``, ``fusion``, ``calibration`` (the observer values
-        used), ``rmse_m``, ``anees``, ``anees_interval``, ``consistent``,
-        ``landmarks_fused``, ``observations_used``, ``observations_rejected``, and
-        with ``hide_ids`` the association scores (``association_accuracy``,
-        ``oracle_accuracy``, ``tracks_confirmed``, ``true_landmarks``, ``gospa_m``).
+        used), ``camera_delay_s`` (the delay applied) [s], ``rmse_m``, ``anees``,
+        ``anees_interval``, ``consistent``, ``landmarks_fused``, ``observations_used``,
+        ``observations_rejected``, and with ``hide_ids`` the association scores
+        (``association_accuracy``, ``oracle_accuracy``, ``tracks_confirmed``,
+        ``true_landmarks``, ``gospa_m``).
 
     """
     entries = []
     for fold in folds(dataset, scheme):
         calibration = calibrate(dataset, part=fold.calibrate_on)
         fold_config = calibrated_config(config, calibration)
-        evaluated = dataset.part(fold.evaluate_on)
+        delay_s = calibration.camera_delay_s
+        evaluated = dataset.with_camera_delay(delay_s).part(fold.evaluate_on)
         for mode in modes:
             sensor, hide_ids = MODES[mode]
             run = run_offline(evaluated, fold_config, methods, sensor=sensor,
@@ -145,7 +150,8 @@ def cross_validate(dataset, config, modes: Sequence[str], methods: Sequence[str]
                 del summary['landmarks']
                 entry = {'fold': fold.name, 'calibrated_on': fold.calibrate_on.label(),
                          'evaluated_on': fold.evaluate_on.label(), 'mode': mode,
-                         'calibration': calibration.observer_values(), **summary}
+                         'calibration': calibration.observer_values(),
+                         'camera_delay_s': delay_s, **summary}
                 entries.append(entry)
                 if progress is not None:
                     progress(entry)
@@ -212,7 +218,7 @@ def cross_validate_localize(dataset, extras, config, localizer, modes: Sequence[
     entries = []
     origin = dataset.time_span[0]
     for fold in folds(dataset, scheme):
-        calibration = calibrate(dataset, part=fold.calibrate_on)
+        calibration = calibrate(dataset, part=fold.calibrate_on, delay=False)
         values = calibration.localizer_values()
         fold_config = replace(base, **values)
         evaluated = dataset.part(fold.evaluate_on)

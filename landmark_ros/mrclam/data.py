@@ -258,6 +258,50 @@ class Dataset:
                                   z=robot.z[keep], poses=robot.poses[keep]))
         return replace(self, robots=robots)
 
+    def with_camera_delay(self, seconds):
+        """
+        Return the dataset with every sighting stamped ``seconds`` earlier.
+
+        A camera that stamps its sightings ``seconds`` after they were taken
+        (``mrclam.camera_delay``) gets its stamps moved back: each robot's sightings at
+        ``times - seconds``, with the ground-truth pose interpolated there. Sightings
+        that fall outside the robot's ground truth are dropped and counted in
+        ``outside_groundtruth`` (``kept`` less them), per robot and in total.
+
+        Parameters
+        ----------
+        seconds : float
+            The delay [s], finite; 0 returns the dataset itself.
+
+        Returns
+        -------
+        Dataset
+
+        Raises
+        ------
+        ValueError
+            If ``seconds`` is not finite.
+
+        """
+        seconds = float(seconds)
+        if not math.isfinite(seconds):
+            raise ValueError(f'camera delay must be finite, got {seconds}')
+        if seconds == 0.0:
+            return self
+        robots, counts = [], Counter(self.counts)
+        for robot in self.robots:
+            times = robot.times - seconds
+            poses, inside = interpolate_poses(robot.gt_times, robot.gt_poses, times)
+            dropped = int((~inside).sum())
+            robot_counts = Counter(robot.counts)
+            for tally in (robot_counts, counts):
+                tally['outside_groundtruth'] += dropped
+                tally['kept'] -= dropped
+            robots.append(replace(robot, times=times[inside], ids=robot.ids[inside],
+                                  z=robot.z[inside], poses=poses[inside],
+                                  counts=robot_counts))
+        return replace(self, robots=robots, counts=counts)
+
     def rows(self):
         """
         Return every kept sighting of every robot in global time order.

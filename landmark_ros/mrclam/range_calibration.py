@@ -6,11 +6,15 @@ apparent size off the optical axis, so the range error depends on where the barc
 in the image (the bearing), and slightly on the range (``core.range_scale`` has the
 model). ``fit_range_scale`` estimates the model from readings and true ranges;
 ``remove_range_scale`` applies it to the errors ``mrclam.calibrate`` starts from, and
-reports what it removes.
+reports what it removes. On the corrected ranges, ``range_noise_bins`` and
+``fit_range_noise`` estimate the range noise against range.
 """
+
+import math
 
 from landmark_ros.core import range_scale
 import numpy as np
+from scipy.optimize import nnls
 
 MAD_TO_SIGMA = 1.4826
 """Median absolute deviation to standard deviation, for Gaussian data."""
@@ -143,3 +147,84 @@ def remove_range_scale(e):
     return out, coeffs, per_m, {'bearing_bins': bins, 'short_tail': short,
                                 'relative_sd': sigma,
                                 'no_bearing': (float(np.mean(s_b)), float(np.std(s_b)))}
+
+
+def range_noise_bins(ranges, residuals, spread, bins=10):
+    """
+    Split range residuals into bins of equal counts by range and measure their spread.
+
+    Parameters
+    ----------
+    ranges : ndarray, shape (N,)
+        Ranges of the residuals [m].
+    residuals : ndarray, shape (N,)
+        Range residuals [m].
+    spread : callable
+        Standard deviation of an array of residuals (``calibrate.central_sigma``).
+    bins : int
+        Bins, at most one per 10 residuals.
+
+    Returns
+    -------
+    list of dict
+        Per bin, by increasing range: ``low``, ``high`` [m], ``range`` (median) [m],
+        ``n`` and ``robust_sd`` (``spread`` of its residuals) [m].
+
+    """
+    ranges, residuals = np.asarray(ranges, dtype=float), np.asarray(residuals, dtype=float)
+    order = np.argsort(ranges, kind='stable')
+    out = []
+    for chunk in np.array_split(order, min(bins, max(1, len(order) // 10))):
+        if len(chunk):
+            out.append({'low': float(ranges[chunk].min()), 'high': float(ranges[chunk].max()),
+                        'range': float(np.median(ranges[chunk])), 'n': int(len(chunk)),
+                        'robust_sd': float(spread(residuals[chunk]))})
+    return out
+
+
+def fit_range_noise(r, sigma, counts):
+    """
+    Fit ``sigma_r(r)^2 = a^2 + (k r)^2 + (c r^2)^2`` to binned spreads.
+
+    Weighted non-negative least squares on the variances in ``(a^2, k^2, c^2)``: a
+    variance estimated from ``n`` errors has a standard deviation proportional to
+    ``sigma^2 / sqrt(n)``, so the weights are ``n / sigma^4`` (relative errors count,
+    and the short ranges are not drowned by the long ones). The constant term is the
+    noise of reading the barcode's edges, the linear one an error of its apparent size
+    in pixels (the range goes as 1 / size), the quadratic one what grows faster at
+    long range (a barcode a few pixels wide, blur). With fewer than 3 bins only ``a``
+    and ``k`` are fitted.
+
+    Parameters
+    ----------
+    r : array_like, shape (B,)
+        Range of each bin [m].
+    sigma : array_like, shape (B,)
+        Standard deviation of the bin's residuals [m].
+    counts : array_like, shape (B,)
+        Residuals per bin.
+
+    Returns
+    -------
+    a : float
+        Constant part [m] (``range_stddev``).
+    k : float
+        Part per metre [m/m] (``range_stddev_per_m``).
+    c : float
+        Part per squared metre [m/m^2] (``range_stddev_per_m2``).
+
+    Raises
+    ------
+    ValueError
+        Without any bin.
+
+    """
+    r2 = np.asarray(r, dtype=float) ** 2
+    s2 = np.asarray(sigma, dtype=float) ** 2
+    if not len(r2):
+        raise ValueError('no range bin to fit the range noise to')
+    sw = np.sqrt(np.asarray(counts, dtype=float) / np.maximum(s2, 1e-300) ** 2)
+    columns = [np.ones_like(r2), r2, r2 * r2][:3 if len(r2) >= 3 else 2]
+    solution, _ = nnls(np.stack(columns, axis=1) * sw[:, None], s2 * sw)
+    a2, k2, c2 = (list(solution) + [0.0])[:3]
+    return math.sqrt(a2), math.sqrt(k2), math.sqrt(c2)

@@ -366,9 +366,9 @@ class Observer:
 
     def noise(self, columns: Dict[str, NDArray[Any]]) -> NDArray[np.float64]:
         """Return the noise covariance ``R``, shape (2, 2) or (N, 2, 2), of one message."""
-        return observation_noise(columns, self.config.range_stddev ** 2,
-                                 self.config.bearing_stddev ** 2,
-                                 self.config.range_stddev_per_m ** 2)
+        cfg = self.config
+        return observation_noise(columns, cfg.range_stddev ** 2, cfg.bearing_stddev ** 2,
+                                 cfg.range_stddev_per_m ** 2, cfg.range_stddev_per_m2 ** 2)
 
     def place(self, ready: Sequence[MessageWithPose]) -> List[LandmarkBatch]:
         """

@@ -24,14 +24,17 @@ NOISE_FIELDS = ('range_variance', 'bearing_variance', 'range_bearing_covariance'
 
 def observation_noise(columns: Mapping[str, NDArray[Any]], range_variance: float,
                       bearing_variance: float,
-                      range_variance_per_m2: float = 0.0) -> NDArray[np.float64]:
+                      range_variance_per_m2: float = 0.0,
+                      range_variance_per_m4: float = 0.0) -> NDArray[np.float64]:
     """
     Return the noise covariance ``R`` of range-bearing observations.
 
     Rows take ``range_variance``, ``bearing_variance`` and ``range_bearing_covariance``
     from their columns when present and not NaN, else the defaults (no correlation).
-    The default range variance is ``range_variance + range_variance_per_m2 * range^2``:
-    a constant part and one proportional to the range.
+    The default range variance is ``range_variance + range_variance_per_m2 * range^2
+    + range_variance_per_m4 * range^4``: a constant part, one whose standard deviation
+    is proportional to the range and one whose standard deviation is proportional to
+    its square.
 
     Parameters
     ----------
@@ -43,6 +46,8 @@ def observation_noise(columns: Mapping[str, NDArray[Any]], range_variance: float
         Default bearing variance.
     range_variance_per_m2 : float
         Default range variance per squared metre of range [m^2 / m^2].
+    range_variance_per_m4 : float
+        Default range variance per fourth power of the range [m^2 / m^4].
 
     Returns
     -------
@@ -52,12 +57,13 @@ def observation_noise(columns: Mapping[str, NDArray[Any]], range_variance: float
 
     """
     per_row = any(name in columns for name in NOISE_FIELDS)
-    if not per_row and not range_variance_per_m2:
+    if not per_row and not (range_variance_per_m2 or range_variance_per_m4):
         return np.array([[range_variance, 0.0], [0.0, bearing_variance]])
     count = len(columns['range'])
     default_rr = range_variance
-    if range_variance_per_m2:
-        default_rr = range_variance + range_variance_per_m2 * columns['range'] ** 2
+    if range_variance_per_m2 or range_variance_per_m4:
+        r2 = np.asarray(columns['range'], dtype=np.float64) ** 2
+        default_rr = range_variance + r2 * (range_variance_per_m2 + range_variance_per_m4 * r2)
 
     def column(name, default):
         values = columns.get(name)

@@ -143,6 +143,10 @@ class ObserverConfig(ConfigBase):
     range_stddev_per_m: float = param(
         0.0, 'Range noise growing with the range: standard deviation per metre of range '
         '[m/m], added in quadrature to range_stddev.', low=0.0, high=10.0)
+    range_stddev_per_m2: float = param(
+        0.0, 'Range noise growing with the square of the range: standard deviation per '
+        'squared metre of range [m/m^2], added in quadrature to range_stddev and '
+        'range_stddev_per_m r.', low=0.0, high=10.0)
     range_scale_coeffs: Tuple[float, float, float] = param(
         (0.0, 0.0, 0.0), 'Range scale error of the sensor (core.range_scale): the reading '
         'is the true range times 1 + c0 + c1 b + c2 b^2 + range_scale_per_m r (b the '

@@ -40,10 +40,12 @@ def synthetic_config(directory):
     Write ``config/mrclam.yaml`` with the sensor model of ``noisy_dataset`` into ``directory``.
 
     The synthetic datasets have no range scale error (the MRCLAM camera's calibrated
-    correction would put one in) and the noise of ``noisy_dataset``. Returns the path.
+    correction would put one in), no camera delay and the noise of ``noisy_dataset``.
+    Returns the path.
     """
     text = CONFIG.read_text()
     for name, value in (('range_stddev', 0.02), ('range_stddev_per_m', 0.03),
+                        ('range_stddev_per_m2', 0.0), ('camera_delay_s', 0.0),
                         ('bearing_stddev', 0.01), ('range_bias_stddev', 0.02),
                         ('bearing_bias_stddev', 0.004)):
         text, count = re.subn(rf'\b{name}: [0-9.e-]+', f'{name}: {value}', text)
@@ -92,7 +94,7 @@ def true_pose(number, t):
 
 
 def make_dataset(directory, robots=2, landmarks=LANDMARKS, duration=30.0, rate_hz=4.0,
-                 noise=(0.0, 0.0, 0.0), bias=(0.0, 0.0), rng=None, extras=True):
+                 noise=(0.0, 0.0, 0.0), bias=(0.0, 0.0), rng=None, extras=True, delay_s=0.0):
     """
     Write a synthetic MRCLAM dataset.
 
@@ -117,6 +119,8 @@ def make_dataset(directory, robots=2, landmarks=LANDMARKS, duration=30.0, rate_h
     extras : bool
         Add the rows the reader must drop: robot sightings, an unknown barcode and a
         sighting before the ground truth.
+    delay_s : float
+        Camera delay [s]: each sighting is taken this long before its stamp.
 
     Returns
     -------
@@ -150,7 +154,7 @@ def make_dataset(directory, robots=2, landmarks=LANDMARKS, duration=30.0, rate_h
                       rng.normal(0.0, bias[1]) if bias[1] else 0.0)
         biases.append(robot_bias)
         stamps = np.round(T0 + 0.011 * number + np.arange(0.0, duration, 1.0 / rate_hz), 3)
-        poses = true_pose(number, stamps)
+        poses = true_pose(number, stamps - delay_s)
         rows = []
         for t, pose in zip(stamps, poses):
             for s in subjects:
@@ -260,13 +264,15 @@ def test_rows_are_in_global_time_order_and_split_into_clouds(clean_dataset):
 def test_config_file_sections():
     config = load_config(CONFIG)
     # The calibrated MRCLAM camera model (landmark_mrclam --calibrate on dataset 6).
-    assert config.observer.range_scale_coeffs == (0.0469, -0.0050, -0.4656)
-    assert config.observer.range_scale_per_m == -0.00344
-    assert config.observer.range_stddev == 0.0114
-    assert config.observer.range_stddev_per_m == 0.0110
-    assert config.observer.bearing_stddev == 0.0160
-    assert config.observer.range_bias_stddev == 0.0320
+    assert config.observer.range_scale_coeffs == (0.0455, -0.0050, -0.4646)
+    assert config.observer.range_scale_per_m == -0.00325
+    assert config.observer.range_stddev == 0.0215
+    assert config.observer.range_stddev_per_m == 0.0053
+    assert config.observer.range_stddev_per_m2 == 0.00195
+    assert config.observer.bearing_stddev == 0.0146
+    assert config.observer.range_bias_stddev == 0.0321
     assert config.observer.bearing_bias_stddev == 0.0054
+    assert config.camera_delay_s == 0.036
     assert config.fuser.gate_probability == 0.999
     assert config.fuser.min_observations == 2
     assert config.pose_stddev == (0.002, 0.002, 0.002)
@@ -277,6 +283,12 @@ def test_config_rejects_invalid_values(tmp_path):
     path.write_text('/**/landmark_observer:\n  ros__parameters:\n    range_stddev: -1.0\n')
     with pytest.raises(ValueError, match='range_stddev'):
         load_config(path)
+    for value in ('.nan', '2.0', 'late', 'true'):
+        path.write_text(f'landmark_mrclam:\n  ros__parameters:\n    camera_delay_s: {value}\n')
+        with pytest.raises(ValueError, match='camera_delay_s'):
+            load_config(path)
+    path.write_text('landmark_mrclam:\n  ros__parameters:\n    pose_stddev_x: 0.002\n')
+    assert load_config(path).camera_delay_s == 0.0  # none unless the file says so
 
 
 # Offline ---------------------------------------------------------------------------------
@@ -375,11 +387,34 @@ def test_offline_noise_free_recovers_the_truth_and_writes_json(
             assert landmark['error_m'] < 1e-6
 
 
+def test_the_replay_moves_the_sightings_back_by_camera_delay_s(tmp_path, capsys):
+    # Noise-free sightings taken 50 ms before their stamps: at the raw stamps the poses
+    # are off (the robots turn at about 1 rad/s); moved back, the truth comes out.
+    directory = tmp_path / 'late'
+    make_dataset(directory, delay_s=0.05, extras=False)
+    config = synthetic_config(tmp_path)
+    late = tmp_path / 'late.yaml'
+    late.write_text(config.read_text().replace('camera_delay_s: 0.0', 'camera_delay_s: 0.05'))
+    rmse = {}
+    for path in (config, late):
+        out = tmp_path / f'{path.stem}.json'
+        assert main([str(directory), '--config', str(path), '--fusion', 'independent',
+                     '--json', str(out)]) == 0
+        rmse[path.stem] = json.loads(out.read_text())['summary'][0]['rmse_m']
+    assert 'moved back by camera_delay_s = 0.05 s' in capsys.readouterr().out
+    assert rmse['late'] < 1e-6 < 0.01 < rmse['synthetic_mrclam']
+    # --calibrate estimates it from the raw stamps (whatever the config says).
+    assert main([str(directory), '--config', str(config), '--calibrate']) == 0
+    printed = capsys.readouterr().out
+    assert re.search(r'camera delay \(.*\): \+(49\.[5-9]|50\.[0-4]) ms', printed), printed
+    assert 'camera_delay_s: 0.050' in printed
+
+
 def test_one_method_and_plot(noisy_dataset, tmp_path):
     pytest.importorskip('matplotlib')
     out, image = tmp_path / 'one.json', tmp_path / 'map.png'
-    assert main([str(noisy_dataset[0]), '--fusion', 'independent',
-                 '--json', str(out), '--plot', str(image)]) == 0
+    assert main([str(noisy_dataset[0]), '--fusion', 'independent', '--config',
+                 str(synthetic_config(tmp_path)), '--json', str(out), '--plot', str(image)]) == 0
     document = json.loads(out.read_text())
     assert [entry['fusion'] for entry in document['summary']] == ['independent']
     assert document['summary'][0]['rmse_m'] < 0.1
@@ -389,7 +424,12 @@ def test_one_method_and_plot(noisy_dataset, tmp_path):
 def test_export_bag_then_landmark_bag_gives_the_replay_map(noisy_dataset, tmp_path, capsys):
     # landmark_bag --from-mrclam, then landmark_bag on the bag.
     from landmark_ros.bag import cli as bag_cli
+    # The export writes the raw stamps (no camera_delay_s): the replay it is compared
+    # with takes a config without the delay.
     directory = noisy_dataset[0]
+    config = tmp_path / 'no_delay.yaml'
+    config.write_text(re.sub(r'camera_delay_s: [0-9.]+', 'camera_delay_s: 0.0',
+                             CONFIG.read_text()))
     bag, fused = tmp_path / 'dataset_bag', tmp_path / 'fused'
     assert bag_cli.main(['--from-mrclam', str(directory), '-o', str(bag),
                          '--config', str(CONFIG)]) == 0
@@ -399,7 +439,7 @@ def test_export_bag_then_landmark_bag_gives_the_replay_map(noisy_dataset, tmp_pa
     assert list(bag.glob('*.mcap'))
     replay, processed = tmp_path / 'replay.json', tmp_path / 'bag.json'
     assert main([str(directory), '--fusion', 'split_covariance_intersection',
-                 '--json', str(replay)]) == 0
+                 '--config', str(config), '--json', str(replay)]) == 0
     assert bag_cli.main([str(bag), '-o', str(fused), '--config', str(CONFIG), '--json',
                          str(processed), '--no-progress']) == 0
     expected = json.loads(replay.read_text())['summary'][0]
@@ -458,6 +498,7 @@ def test_calibration_recovers_the_synthetic_sensor_model(tmp_path, capsys):
     assert cal['bearing_bias_stddev'] == pytest.approx(drawn_b, rel=0.25)
     assert cal['residual_tails']['range'] < 0.01
     assert cal['pairs'] == 5 * 8
+    assert abs(cal['camera_delay_s']) < 0.003  # the synthetic camera has none
 
 
 def test_calibration_without_bias_finds_none(tmp_path):

@@ -80,3 +80,40 @@ def test_dataset6_range_error_depends_on_the_bearing_and_carries_over():
     assert values['range_scale_state_stddev'] == halves[0].range_scale_state_stddev
     states = [cal.range_scale_state_stddev for cal in halves]
     assert 0.005 < min(states) and max(states) < 0.02 and abs(states[0] - states[1]) < 0.003
+
+
+def test_range_noise_fit_is_exact_on_model_spreads():
+    from landmark_ros.mrclam.range_calibration import fit_range_noise
+    r = np.linspace(0.5, 6.0, 10)
+    a, k, c = 0.012, 0.008, 0.0015
+    sigma = np.sqrt(a * a + (k * r) ** 2 + (c * r * r) ** 2)
+    fitted = fit_range_noise(r, sigma, np.full(10, 1000))
+    np.testing.assert_allclose(fitted, (a, k, c), rtol=1e-8)
+    # Without a quadratic part in the data, none is fitted (non-negative least squares).
+    fitted = fit_range_noise(r, np.sqrt(a * a + (k * r) ** 2), np.full(10, 1000))
+    np.testing.assert_allclose(fitted, (a, k, 0.0), rtol=1e-8, atol=1e-9)
+    # Two bins: only a and k.
+    assert fit_range_noise(r[:2], sigma[:2], [10, 10])[2] == 0.0
+    with pytest.raises(ValueError, match='no range bin'):
+        fit_range_noise([], [], [])
+
+
+@pytest.mark.parametrize('seed', range(3))
+def test_range_noise_calibration_recovers_known_coefficients(seed):
+    # Residuals drawn from the model, binned by range and fitted as calibrate does.
+    from landmark_ros.mrclam.calibrate import central_sigma
+    from landmark_ros.mrclam.range_calibration import fit_range_noise, range_noise_bins
+    rng = np.random.default_rng(seed)
+    a, k, c = 0.012, 0.008, 0.0015
+    r = rng.uniform(0.5, 6.0, 40000)
+    residuals = rng.normal(0.0, np.sqrt(a * a + (k * r) ** 2 + (c * r * r) ** 2))
+    bins = range_noise_bins(r, residuals, central_sigma, bins=12)
+    assert [b['n'] for b in bins] == [40000 // 12 + (i < 40000 % 12) for i in range(12)]
+    assert all(b['low'] <= b['range'] <= b['high'] for b in bins)
+    fa, fk, fc = fit_range_noise([b['range'] for b in bins], [b['robust_sd'] for b in bins],
+                                 [b['n'] for b in bins])
+    model = np.sqrt(fa ** 2 + (fk * r) ** 2 + (fc * r * r) ** 2)
+    truth = np.sqrt(a * a + (k * r) ** 2 + (c * r * r) ** 2)
+    assert np.max(np.abs(model / truth - 1.0)) < 0.06
+    assert fc == pytest.approx(c, rel=0.3)
+    assert fa == pytest.approx(a, rel=0.2)
