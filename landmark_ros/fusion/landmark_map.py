@@ -4,20 +4,17 @@ A map of landmark estimates fused by ID, with gating and confirmation.
 Symbols: ``ids`` landmark IDs (N,); ``z`` observed positions in the world (N, 2) [m];
 ``R`` their covariances (N, 2, 2) [m^2], ``R_dep`` the dependent part (pose error,
 sensor bias: correlated across observations), ``R_ind = R - R_dep`` the independent
-part (noise); ``update`` takes ``R`` and ``R_dep`` and works with ``R_ind`` and
-``R_dep``. An estimate ``m, P`` is held as ``P_ind`` and ``P_dep``; ``stamp_ns``
+part (noise). An estimate ``m, P`` is held as ``P_ind`` and ``P_dep``; ``stamp_ns`` is
 integer nanoseconds. The fusion method (``fusion.methods``) is chosen once.
 
-An observation of a confirmed landmark is gated by its squared Mahalanobis distance
-to the landmark's gate reference ``gate`` (innovation covariance ``P_ref + R``): the
-estimate after the landmark's last refresh (``records.gate_due``), rebuild, merge,
-``set_estimate`` or ``load_records``. A new ID becomes a landmark once
-``min_observations`` of its observations agree with each other; a landmark rejected
-``max_consecutive_rejections`` times in a row is rebuilt from those recent
-observations when they agree (it moved). Rows of one batch are applied in order, so a
-batch gives the same map as its rows one by one: since a landmark's gate reference
-changes only at refreshes and rebuilds, the rows of confirmed landmarks go in passes,
-each taking every landmark's rows up to its next refresh or rebuild (``_pass``).
+An observation of a confirmed landmark is gated by its squared Mahalanobis distance to
+the landmark's gate reference (innovation covariance ``P_ref + R``): the estimate after
+its last refresh (``records.gate_due``), rebuild, merge, ``set_estimate`` or
+``load_records``. A new ID becomes a landmark once ``min_observations`` of its
+observations agree; a landmark rejected ``max_consecutive_rejections`` times in a row is
+rebuilt from them when they agree (it moved). A batch gives the same map as its rows one
+by one: the rows of confirmed landmarks go in passes, each taking every landmark's rows
+up to its next refresh or rebuild (``_pass``), when its gate reference changes.
 """
 
 from collections import deque
@@ -254,18 +251,16 @@ class LandmarkMap:
         rows = self._rows_of(ids)
         changed: List[NDArray[np.int64]] = []
         known = self.confirmed[rows]
-        # Rows of already confirmed landmarks first, in passes; then the others in order,
-        # one by one until their landmark is confirmed; its later rows in passes after.
+        # Confirmed landmarks' rows in passes; the others one by one until confirmed.
         self._update_confirmed(rows[known], batch, np.flatnonzero(known), result, changed)
-        later = []
+        later = []      # rows of landmarks confirmed earlier in this batch
         for i in np.flatnonzero(~known).tolist():
-            if self.confirmed[rows[i]]:  # confirmed earlier in this batch
+            if self.confirmed[rows[i]]:
                 later.append(i)
             else:
                 self._add_tentative(rows[i], batch.observation(i), result, changed)
-        if later:
-            positions = np.array(later, np.int64)
-            self._update_confirmed(rows[positions], batch, positions, result, changed)
+        at = np.array(later, np.int64)
+        self._update_confirmed(rows[at], batch, at, result, changed)
         # By source once per update, not once per pass (60 sources: a loop over them).
         self._count_by_source(batch.codes[batch.taken], rows[batch.taken], result.accepted, True)
         if changed:
