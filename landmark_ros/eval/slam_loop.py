@@ -108,6 +108,8 @@ class TeamLoop:
         self.fuser.load()
         self.fuser.association_log = [] if config.hide_ids else None
         self.tracks = [PoseTrack() for _ in names]
+        # dependent_stddev of every placed message with rows, in order [m]
+        self.dependent_stddevs: List[float] = []
         self.counts: Dict[str, int] = dict.fromkeys(
             ('messages', 'batches', 'rows_to_localizer', 'partly_rejected'), 0)
         self._tokens = itertools.count()
@@ -182,6 +184,7 @@ class TeamLoop:
         if self.fuser.association_log is not None:
             self.fuser.association_log.clear()
         if len(batch.ids):
+            self.dependent_stddevs.append(dependent_stddev(batch.P_dep))
             source = self.sources[robot][self.precision_source(batch.P_dep)]
             self.fuser.add_landmarks(source, LandmarkMessage(
                 batch.stamp_ns, batch.ids, batch.m, batch.P, batch.P_dep,
@@ -208,16 +211,26 @@ class TeamLoop:
         """
         Return the precision source of a message with dependent parts ``P_dep`` (K, 2, 2).
 
-        ``floor(log2(s / precision_base_m))`` clipped to the sources, with ``s`` the
-        square root of the median of the rows' largest dependent variance.
+        ``floor(log2(s / precision_base_m))`` clipped to the sources, with ``s`` =
+        ``dependent_stddev(P_dep)``.
         """
         levels = max(1, int(self.config.precision_sources))
         if levels == 1 or not len(P_dep):
             return 0
-        s = float(np.sqrt(np.median(np.linalg.eigvalsh(P_dep)[:, -1])))
+        s = dependent_stddev(P_dep)
         level = int(np.floor(np.log2(max(s, 1e-12) / self.config.precision_base_m)))
         return min(max(level, 0), levels - 1)
 
     def map_records(self) -> List[dict]:
         """Return the fused map's confirmed landmarks (``LandmarkMap.to_records``)."""
         return self.fuser.map.to_records()
+
+
+def dependent_stddev(P_dep: NDArray[np.float64]) -> float:
+    """
+    Return a message's dependent standard deviation [m] from its rows' ``P_dep`` (K, 2, 2).
+
+    The square root of the median over the rows of the largest eigenvalue of the
+    dependent part (the pose error at the sighting, placed at the landmark); K >= 1.
+    """
+    return float(np.sqrt(np.median(np.linalg.eigvalsh(P_dep)[:, -1])))

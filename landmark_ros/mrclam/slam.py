@@ -24,6 +24,7 @@ interval); without IDs the confirmed tracks are matched to the true landmarks
 """
 
 from dataclasses import dataclass, replace
+import math
 import os
 import tempfile
 import time
@@ -194,6 +195,14 @@ def map_entry(dataset, records, hide_ids, max_distance_m=1.0):
                      'true_landmarks': len(dataset.landmarks)}
 
 
+def _percentiles(values):
+    """Return min, median and 95th percentile of ``values`` [m] (NaN when empty)."""
+    if not len(values):
+        return {'min': math.nan, 'median': math.nan, 'p95': math.nan}
+    low, median, p95 = np.percentile(values, [0.0, 50.0, 95.0])
+    return {'min': float(low), 'median': float(median), 'p95': float(p95)}
+
+
 def run_mode(dataset, extras, loop_config, mode: SlamMode, delay_s=0.0,
              anchor_path: Optional[str] = None, progress=None) -> SlamResult:
     """Run one mode; return its tracks, map records and JSON entry."""
@@ -211,6 +220,7 @@ def run_mode(dataset, extras, loop_config, mode: SlamMode, delay_s=0.0,
              'rows_used': overall['rows_used'], 'rows_gated': overall['rows_gated'],
              'robot_rows_used': overall['robot_rows_used'],
              'loop_counts': dict(loop.counts),
+             'dependent_stddev_m': _percentiles(loop.dependent_stddevs),
              'seconds': time.monotonic() - t0, 'cpu_seconds': time.process_time() - cpu0,
              'robots': robots}
     return SlamResult(mode, tracks, records, entry)
@@ -255,6 +265,9 @@ def format_table(results: Sequence[SlamResult], duration_s: float) -> str:
                      f'confirmed of {entry["true_landmarks"]} true landmarks; '
                      f'{entry["seconds"]:.0f} s wall, {entry["cpu_seconds"]:.0f} s CPU '
                      f'({duration_s / entry["cpu_seconds"]:.0f}x real time by CPU time)')
+        dep = entry['dependent_stddev_m']
+        lines.append(f'  messages\' dependent standard deviation [m]: min {dep["min"]:.3f}, '
+                     f'median {dep["median"]:.3f}, 95th percentile {dep["p95"]:.3f}')
     return '\n'.join(lines)
 
 

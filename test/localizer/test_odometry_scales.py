@@ -36,9 +36,9 @@ def test_odometry_scales_recover_the_true_scales(scales):
     # 0.2 % at 0.4 rad/s over 0.5 s), which leans a little on the speed loss in turns
     assert per_yaw_rate == pytest.approx(scales[2], abs=1e-2)
     # with the scales applied the windows of integrated odometry match the truth
-    errors, _ = window_samples(dataset, extras, [1, 2, 3], 2.0, 0.0,
-                               (speed, yaw, per_yaw_rate))
-    raw, _ = window_samples(dataset, extras, [1, 2, 3], 2.0, 0.0)
+    errors = window_samples(dataset, extras, [1, 2, 3], 2.0, 0.0,
+                            (speed, yaw, per_yaw_rate)).errors
+    raw = window_samples(dataset, extras, [1, 2, 3], 2.0, 0.0).errors
     assert np.sqrt(np.mean(errors ** 2)) < max(0.05 * np.sqrt(np.mean(raw ** 2)), 1e-3)
 
 

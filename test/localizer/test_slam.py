@@ -5,7 +5,7 @@ import json
 from pathlib import Path
 
 from landmark_ros.eval import slam_montecarlo
-from landmark_ros.eval.slam_loop import LoopConfig, TeamLoop
+from landmark_ros.eval.slam_loop import dependent_stddev, LoopConfig, TeamLoop
 from landmark_ros.localizer.config import LocalizerConfig
 from landmark_ros.mrclam import slam
 from landmark_ros.mrclam.data import load_dataset
@@ -77,6 +77,18 @@ def test_precision_sources_split_a_robot_by_its_dependent_part():
             (0.001, 0.03, 0.05, 0.1, 10.0)] == [0, 0, 1, 2, 3]
     assert len(loop.fuser.sources) == 4
     assert _loop().precision_source(np.eye(2)[None]) == 0
+
+
+def test_the_loop_records_each_message_dependent_stddev():
+    # rows of largest dependent variance 0.01, 0.04 and 0.09 m^2: median 0.04, 0.2 m
+    P_dep = np.array([np.diag([0.01, 0.002]), np.diag([0.001, 0.04]), np.diag([0.09, 0.0])])
+    assert dependent_stddev(P_dep) == pytest.approx(0.2, rel=1e-12)
+    loop = _loop()
+    for k in range(3):
+        _see(loop, k)
+    # one value per placed message with rows: the pose's uncertainty at the sighting
+    assert len(loop.dependent_stddevs) == loop.counts['batches'] == 3
+    assert all(0.0 < s < 0.1 for s in loop.dependent_stddevs)
 
 
 def test_the_replay_section_sets_the_precision_sources():
@@ -163,6 +175,8 @@ def test_mrclam_slam_on_the_first_minute_reports_the_issue_keys(tmp_path):
         assert [r['robot'] for r in entry['robots']] == [3, 5]
         assert entry['rows_used'] > 0 and entry['tracks_confirmed'] > 0
         assert entry['position_rmse_m'] < 1.0
+        dep = entry['dependent_stddev_m']
+        assert 0.0 < dep['min'] <= dep['median'] <= dep['p95']
         json.dumps(entry)
     hidden, anchored = (r.entry for r in results)
     assert hidden['ids_hidden'] and not hidden['anchors']
