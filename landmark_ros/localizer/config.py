@@ -55,6 +55,9 @@ class LocalizerConfig(ConfigBase):
                                 high=1e6)
     range_stddev_per_m: float = param(0.05, 'range noise growing with range [m/m]',
                                       low=0.0, high=1e6)
+    range_stddev_per_m2: float = param(
+        0.0, 'range noise growing with the square of the range [m/m^2], in quadrature '
+        "(the observer's model)", low=0.0, high=1e6)
     range_scale_coeffs: Tuple[float, float, float] = param(
         (0.0, 0.0, 0.0), 'range scale error of the sensor (core.range_scale): the reading is '
         'the true range times 1 + c0 + c1 b + c2 b^2 + range_scale_per_m r (b the bearing '

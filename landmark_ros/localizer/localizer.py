@@ -456,7 +456,8 @@ class Localizer:
         cfg = self.config
         r = np.nan_to_num(z[:, 0])
         R = np.zeros((len(z), 2, 2))
-        R[:, 0, 0] = cfg.range_stddev ** 2 + (cfg.range_stddev_per_m * r) ** 2
+        R[:, 0, 0] = (cfg.range_stddev ** 2 + (cfg.range_stddev_per_m * r) ** 2
+                      + (cfg.range_stddev_per_m2 * r * r) ** 2)
         R[:, 1, 1] = cfg.bearing_stddev ** 2
         return R
 

@@ -50,7 +50,8 @@ OBSERVER_FIELDS = ('range_stddev', 'range_stddev_per_m', 'range_stddev_per_m2', 
                    'range_scale_per_m')
 """The observer parameters ``calibrate`` estimates (``Calibration.observer_values``)."""
 
-LOCALIZER_FIELDS = ('range_stddev', 'range_stddev_per_m', 'bearing_stddev', 'range_bias_stddev',
+LOCALIZER_FIELDS = ('range_stddev', 'range_stddev_per_m', 'range_stddev_per_m2',
+                    'bearing_stddev', 'range_bias_stddev',
                     'bearing_bias_stddev', 'noise_correlation_time_s',
                     'range_correlated_fraction', 'bearing_correlated_fraction',
                     'range_scale_per_m')

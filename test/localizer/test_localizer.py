@@ -441,3 +441,17 @@ def test_speed_scale_per_yaw_rate_slows_the_motion_in_turns():
         loc.add_odometry(0, pose=np.zeros(3))
         loc.add_odometry(100 * MS, pose=motion.delta_from_twist(0.1, w, 0.1))
         np.testing.assert_allclose(loc.estimate().x, expected, atol=1e-12)
+
+
+def test_sensor_noise_has_the_observers_three_range_terms():
+    config = LocalizerConfig(range_stddev=0.02, range_stddev_per_m=0.005,
+                             range_stddev_per_m2=0.002, bearing_stddev=0.015)
+    z = np.array([[4.0, 0.1], [0.5, -1.0], [np.nan, 0.3]])
+    R = Localizer(config).sensor_noise(z)
+    # By hand at r = 4: 0.02^2 + 0.02^2 + 0.032^2 = 0.001824 m^2.
+    np.testing.assert_allclose(R[0, 0, 0], 0.001824, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(R[1, 0, 0], 0.02 ** 2 + 0.0025 ** 2 + 0.0005 ** 2,
+                               rtol=0, atol=1e-15)
+    assert R[2, 0, 0] == 0.02 ** 2     # a bearing-only row: no range, its range term unused
+    np.testing.assert_array_equal(R[:, 1, 1], 0.015 ** 2)
+    np.testing.assert_array_equal(R[:, 0, 1], 0.0)
