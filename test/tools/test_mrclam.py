@@ -532,8 +532,11 @@ def test_dataset6_offline_fuses_all_15_landmarks():
 
 def test_through_nodes_agrees_with_offline(noisy_dataset, tmp_path):
     out = tmp_path / 'nodes.json'
-    code = main([str(noisy_dataset[0]), '--through-nodes', '--no-progress',
-                 '--json', str(out)])
+    # The sensor model of the data (no camera delay, no range scale): with MRCLAM's,
+    # over half the rows sit at the gate, where CI's result depends on the order in
+    # which two robots' messages of one step reach the fuser.
+    code = main([str(noisy_dataset[0]), '--through-nodes', '--no-progress', '--config',
+                 str(synthetic_config(tmp_path)), '--json', str(out)])
     document = json.loads(out.read_text())
     assert code == 0, document.get('agreement')
     assert document['mode'] == 'through_nodes'
