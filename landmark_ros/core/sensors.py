@@ -53,6 +53,19 @@ def check_range(r: ArrayLike, name: str = 'range') -> None:
             f'{bad[0]}: {value!r}')
 
 
+def range_noise_variance(r: ArrayLike, variance: float, variance_per_m2: float = 0.0,
+                         variance_per_m4: float = 0.0) -> NDArray[np.float64]:
+    """
+    Return the range noise variance at range ``r``, shape of ``r`` [m^2].
+
+    ``variance + variance_per_m2 r^2 + variance_per_m4 r^4``: standard deviations ``a``,
+    ``k r`` and ``c r^2`` added in quadrature, given as ``a^2``, ``k^2`` and ``c^2`` (the
+    range model of ``observer`` and ``localizer``; ``mrclam.range_calibration`` fits it).
+    """
+    r2 = np.square(np.asarray(r, dtype=np.float64))
+    return variance + r2 * (variance_per_m2 + variance_per_m4 * r2)
+
+
 def polar_to_cartesian(z: ArrayLike) -> NDArray[np.float64]:
     """
     Convert ``(range, bearing)`` to ``(x, y)``.

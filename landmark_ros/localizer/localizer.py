@@ -49,6 +49,7 @@ import math
 from typing import Any, Callable, List, Optional, Tuple
 
 from landmark_ros.core.gating import chi2_threshold
+from landmark_ros.core.sensors import range_noise_variance
 from landmark_ros.localizer import motion
 from landmark_ros.localizer.association import label_rows, MapAssociation
 from landmark_ros.localizer.config import LocalizerConfig
@@ -456,8 +457,8 @@ class Localizer:
         cfg = self.config
         r = np.nan_to_num(z[:, 0])
         R = np.zeros((len(z), 2, 2))
-        R[:, 0, 0] = (cfg.range_stddev ** 2 + (cfg.range_stddev_per_m * r) ** 2
-                      + (cfg.range_stddev_per_m2 * r * r) ** 2)
+        R[:, 0, 0] = range_noise_variance(r, cfg.range_stddev ** 2, cfg.range_stddev_per_m ** 2,
+                                          cfg.range_stddev_per_m2 ** 2)
         R[:, 1, 1] = cfg.bearing_stddev ** 2
         return R
 

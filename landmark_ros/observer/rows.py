@@ -13,7 +13,7 @@ from typing import Any, Mapping, Optional, Tuple
 from landmark_ros.core.covariance import (COVARIANCE_PROBLEMS, COVARIANCE_RANGE_PROBLEMS,
                                           covariance_status)
 from landmark_ros.core.landmarks import landmark_to_world_dependent
-from landmark_ros.core.sensors import MIN_RANGE
+from landmark_ros.core.sensors import MIN_RANGE, range_noise_variance
 from landmark_ros.pipeline.limits import landmark_problems, MAX_COORDINATE
 from landmark_ros.pipeline.rows import first_problems, in_range_fast, MAX_ID, range_status
 import numpy as np
@@ -62,8 +62,8 @@ def observation_noise(columns: Mapping[str, NDArray[Any]], range_variance: float
     count = len(columns['range'])
     default_rr = range_variance
     if range_variance_per_m2 or range_variance_per_m4:
-        r2 = np.asarray(columns['range'], dtype=np.float64) ** 2
-        default_rr = range_variance + r2 * (range_variance_per_m2 + range_variance_per_m4 * r2)
+        default_rr = range_noise_variance(columns['range'], range_variance,
+                                          range_variance_per_m2, range_variance_per_m4)
 
     def column(name, default):
         values = columns.get(name)

@@ -314,3 +314,14 @@ def test_wrong_shapes_raise_one_argument(fn):
     for bad in ([1.0], [1.0, 2.0, 3.0], np.ones((2, 2, 2)), 1.0):
         with pytest.raises(ValueError, match='must have shape'):
             fn(bad)
+
+
+def test_range_noise_variance_adds_three_stddevs_in_quadrature():
+    a, k, c = 0.02, 0.005, 0.002
+    r = np.array([0.0, 0.5, 4.0, 10.0])
+    var = sensors.range_noise_variance(r, a ** 2, k ** 2, c ** 2)
+    np.testing.assert_allclose(var, a ** 2 + (k * r) ** 2 + (c * r ** 2) ** 2,
+                               rtol=1e-15, atol=0)
+    assert var[2] == pytest.approx(0.001824, rel=1e-12)
+    assert sensors.range_noise_variance(7.0, a ** 2) == a ** 2
+    assert var.shape == r.shape
