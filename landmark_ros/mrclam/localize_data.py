@@ -47,7 +47,7 @@ fits on all robots but one and reports, on it, the average NEES of the window er
 (3 is right) for each window length.
 """
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 import math
 
 from landmark_ros.localizer import motion
@@ -91,6 +91,29 @@ def load_all_extras(dataset):
     """Return ``RobotExtras`` per robot of ``dataset``, by robot number."""
     return {r.number: load_extras(dataset.path, r.number, dataset.barcodes)
             for r in dataset.robots}
+
+
+def with_camera_delay(dataset, extras, seconds):
+    """
+    Return the dataset and extras with every sighting stamped ``seconds`` earlier.
+
+    The camera stamps its sightings late (``mrclam.camera_delay``): the landmark
+    sightings move back by ``Dataset.with_camera_delay`` (those that leave the ground
+    truth are dropped and counted), the robot-to-robot sightings (same camera) by the
+    same ``seconds`` [s]; the odometry keeps its stamps. 0 returns both unchanged.
+
+    Raises
+    ------
+    ValueError
+        If ``seconds`` is not finite.
+
+    """
+    seconds = float(seconds)
+    dataset = dataset.with_camera_delay(seconds)
+    if seconds == 0.0:
+        return dataset, extras
+    return dataset, {number: replace(ex, sighting_times=ex.sighting_times - seconds)
+                     for number, ex in extras.items()}
 
 
 def reference_floor(start, end, stddev):
