@@ -16,8 +16,9 @@ landmark sightings only, each with the ground-truth pose interpolated at its sta
 the covariance ``pose_stddev_*`` of the ``landmark_mrclam`` section of the config. The
 fusion replays (offline, ``--through-nodes``, ``--sensor``, ``--hide-ids``) move the
 sightings back by the config's ``camera_delay_s`` (``Dataset.with_camera_delay``);
-``--calibrate`` and ``--cross-validate`` estimate the delay themselves (``camera_delay``)
-from the raw stamps, ``--localize`` and ``--slam`` take the stamps as they are.
+``--localize`` and ``--slam`` too, with the robots' sightings of each other
+(``localize_data.with_camera_delay``); ``--calibrate`` and ``--cross-validate`` estimate
+the delay themselves (``camera_delay``) from the raw stamps.
 
 The replay's modules, by role: ``config`` (the params file), ``data`` (the reader),
 ``offline``, ``player`` (through the nodes), ``calibrate``, ``report`` (tables, JSON,

@@ -22,8 +22,10 @@ Schemes (``folds``):
     (one fold per robot; each evaluated map comes from one robot's sightings).
 
 Localization (``LOCALIZE_MODES``, ``cross_validate_localize``): the calibration of the
-fold (at the raw stamps, as ``--localize`` replays them: no camera delay) goes into
-the localizer's configuration as well (``Calibration.localizer_values``: range scale,
+fold (with the camera delay estimated on the same part, by which the sightings of
+landmarks and robots are moved back, ``localize_data.with_camera_delay``, as
+``--localize`` does with ``camera_delay_s``) goes into the localizer's configuration as
+well (``Calibration.localizer_values``: range scale,
 noise, correlated shares; the odometry model of the params file is kept) and every robot
 of the evaluated part localizes (``localize.run``: from its
 ground-truth pose at the start of its odometry, landmark sightings only) against the
@@ -40,6 +42,7 @@ from typing import List, Sequence
 from landmark_ros.mrclam import localize
 from landmark_ros.mrclam.calibrate import calibrate
 from landmark_ros.mrclam.data import Part
+from landmark_ros.mrclam.localize_data import with_camera_delay
 from landmark_ros.mrclam.offline import run_offline
 import numpy as np
 
@@ -218,11 +221,13 @@ def cross_validate_localize(dataset, extras, config, localizer, modes: Sequence[
     entries = []
     origin = dataset.time_span[0]
     for fold in folds(dataset, scheme):
-        calibration = calibrate(dataset, part=fold.calibrate_on, delay=False)
+        calibration = calibrate(dataset, part=fold.calibrate_on)
         values = calibration.localizer_values()
         fold_config = replace(base, **values)
-        evaluated = dataset.part(fold.evaluate_on)
-        runner = dataset if scheme == 'halves' else evaluated
+        delayed, delayed_extras = with_camera_delay(dataset, extras,
+                                                    calibration.camera_delay_s)
+        evaluated = delayed.part(fold.evaluate_on)
+        runner = delayed if scheme == 'halves' else evaluated
         window = (origin + fold.evaluate_on.start_s, origin + fold.evaluate_on.end_s)
         for mode in modes:
             name = LOCALIZE_MODES[mode]
@@ -230,12 +235,14 @@ def cross_validate_localize(dataset, extras, config, localizer, modes: Sequence[
                 the_map = localize.surveyed_map(dataset)
             else:
                 the_map = _fused_map(evaluated, calibrated_config(config, calibration))
-            tracks = localize.run(runner, extras, fold_config, the_map, False, delay_s)
+            tracks = localize.run(runner, delayed_extras, fold_config, the_map, False,
+                                  delay_s)
             robots, overall = localize.metrics([_in_window(t, window) for t in tracks])
             entry = {'fold': fold.name, 'calibrated_on': fold.calibrate_on.label(),
                      'evaluated_on': fold.evaluate_on.label(), 'mode': mode, 'map': name,
                      'calibration': {k: (list(v) if isinstance(v, tuple) else v)
                                      for k, v in values.items()},
+                     'camera_delay_s': calibration.camera_delay_s,
                      **overall, 'consistent': all(map(localize.consistent, robots)),
                      'robots': robots}
             entries.append(entry)

@@ -2,11 +2,13 @@
 The ``--localize`` and ``--calibrate-odometry`` modes of ``landmark_mrclam``.
 
 ``--localize``: ``mrclam.localize.run_all`` with the ``landmark_localizer`` section of the
-params file (``config/mrclam.yaml``: the calibrated sensor and odometry models) and the
-odometry delay of its ``landmark_mrclam`` section; prints the per-robot table and which
-of the issue's targets hold; ``--json`` gains ``localization`` (one entry per map and
-mode), ``--plot FILE`` draws one picture per run
-(``FILE`` stem + ``-MAP[-robots]``). Dead reckoning is the JSON's ``dead_reckoning``
+params file (``config/mrclam.yaml``: the calibrated sensor and odometry models), the
+odometry delay and the camera delay of its ``landmark_mrclam`` section (the sightings,
+of landmarks and of robots, moved back by ``camera_delay_s``,
+``localize_data.with_camera_delay``: the fused map is built from them too); prints the
+per-robot table and which of the issue's targets hold; ``--json`` gains
+``localization`` (one entry per map and mode), ``--plot FILE`` draws one picture per
+run (``FILE`` stem + ``-MAP[-robots]``). Dead reckoning is the JSON's ``dead_reckoning``
 entry (same keys), beside the ``localization`` list.
 
 ``--calibrate-odometry``: the odometry delay and alphas from the ground truth with the
@@ -21,7 +23,8 @@ from landmark_ros.mrclam.config import node_section
 from landmark_ros.mrclam.localize import (format_table, fused_map, localizer_config,
                                           run_all, surveyed_map, targets)
 from landmark_ros.mrclam.localize_data import (calibrate_odometry,
-                                               format_odometry_calibration, load_all_extras)
+                                               format_odometry_calibration, load_all_extras,
+                                               with_camera_delay)
 from landmark_ros.mrclam.localize_plan import hide_ids, slice_run
 from landmark_ros.mrclam.report import write_json
 
@@ -64,7 +67,9 @@ def localize(args, dataset, replay_config, document):
     localizer_values, replay_values = _sections(replay_config.path)
     config = localizer_config(localizer_values)
     delay_s = float(replay_values.get('odometry_delay_s', 0.0))
-    extras = load_all_extras(dataset)
+    dataset, extras = with_camera_delay(dataset, load_all_extras(dataset),
+                                        replay_config.camera_delay_s)
+    document['camera_delay_s'] = replay_config.camera_delay_s
     if args.duration is not None:
         dataset, extras = slice_run(dataset, extras, args.duration)
         document['dataset']['duration_s'] = dataset.duration

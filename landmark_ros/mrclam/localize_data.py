@@ -44,10 +44,12 @@ ten to one against 20 s. Adjacent windows share an end, so their reference error
 are correlated; the likelihood takes the windows as independent (a composite
 likelihood: the estimate is unbiased, only its spread is misstated). The cross-check
 fits on all robots but one and reports, on it, the average NEES of the window errors
-(3 is right) for each window length.
+(3 is right) for each window length; ``robot_halves`` checks whether a model per robot
+(each robot's wheels its own sensor) holds from one half of the run to the other.
 """
 
-from dataclasses import dataclass
+import copy
+from dataclasses import dataclass, replace
 import math
 
 from landmark_ros.localizer import motion
@@ -91,6 +93,29 @@ def load_all_extras(dataset):
     """Return ``RobotExtras`` per robot of ``dataset``, by robot number."""
     return {r.number: load_extras(dataset.path, r.number, dataset.barcodes)
             for r in dataset.robots}
+
+
+def with_camera_delay(dataset, extras, seconds):
+    """
+    Return the dataset and extras with every sighting stamped ``seconds`` earlier.
+
+    The camera stamps its sightings late (``mrclam.camera_delay``): the landmark
+    sightings move back by ``Dataset.with_camera_delay`` (those that leave the ground
+    truth are dropped and counted), the robot-to-robot sightings (same camera) by the
+    same ``seconds`` [s]; the odometry keeps its stamps. 0 returns both unchanged.
+
+    Raises
+    ------
+    ValueError
+        If ``seconds`` is not finite.
+
+    """
+    seconds = float(seconds)
+    dataset = dataset.with_camera_delay(seconds)
+    if seconds == 0.0:
+        return dataset, extras
+    return dataset, {number: replace(ex, sighting_times=ex.sighting_times - seconds)
+                     for number, ex in extras.items()}
 
 
 def reference_floor(start, end, stddev):
@@ -351,7 +376,7 @@ def calibrate_odometry(dataset, extras, windows_s=(2.0, 5.0, 10.0, 20.0),
         ``alphas`` (all robots), ``windows_s``, ``reference_stddev``, ``windows`` (their
         number), ``window_nees`` (all robots, per window length) and ``cross_check``:
         per held-out robot, the alphas fitted without it and the window NEES on it per
-        window length.
+        window length; ``halves``: ``robot_halves``, per robot and fold.
 
     """
     numbers = [r.number for r in dataset.robots]
@@ -377,7 +402,63 @@ def calibrate_odometry(dataset, extras, windows_s=(2.0, 5.0, 10.0, 20.0),
                       'own_scales': own, 'window_nees': nees})
     return {'alphas': alphas.tolist(), 'scales': scales, 'windows_s': list(windows_s),
             'reference_stddev': list(stddev), 'delay_s': delay,
-            'windows': len(samples.errors), 'window_nees': own_nees, 'cross_check': check}
+            'windows': len(samples.errors), 'window_nees': own_nees, 'cross_check': check,
+            'halves': robot_halves(dataset, extras, delay, windows_s, stddev)}
+
+
+def _half(dataset, second, middle):
+    """Return ``dataset`` with each robot's ground truth cut before or from ``middle``."""
+    robots = []
+    for robot in dataset.robots:
+        keep = robot.gt_times >= middle if second else robot.gt_times < middle
+        cut = copy.copy(robot)
+        cut.gt_times, cut.gt_poses = robot.gt_times[keep], robot.gt_poses[keep]
+        robots.append(cut)
+    out = copy.copy(dataset)
+    out.robots = robots
+    return out
+
+
+def robot_halves(dataset, extras, delay_s, windows_s=(2.0, 5.0, 10.0, 20.0),
+                 stddev=(0.0, 0.0, 0.0)):
+    """
+    Check a per-robot odometry model across the halves of the run, both folds.
+
+    The run is cut at the middle of its ground truth (earliest start to latest end). On
+    one half the scales and alphas are fitted per robot (that robot's windows) and
+    pooled (all robots), as ``calibrate_odometry`` does; each robot's windows of the
+    other half are scored under both: window NEES (3 is right) per window length. A
+    per-robot model is worth its parameters only where its NEES on the other half is
+    nearer 3 than the pooled model's, for every robot and both folds.
+
+    Returns
+    -------
+    list of dict
+        Per fold and robot: ``fitted_on`` (``first`` or ``second``), ``robot``,
+        ``alphas`` and ``scales`` (its own fit), ``nees_own`` and ``nees_pooled`` (per
+        window length [s] as a string).
+
+    """
+    numbers = [r.number for r in dataset.robots]
+    middle = 0.5 * (min(r.gt_times[0] for r in dataset.robots)
+                    + max(r.gt_times[-1] for r in dataset.robots))
+    halves = [_half(dataset, False, middle), _half(dataset, True, middle)]
+    out = []
+    for k, name in enumerate(('first', 'second')):
+        fit_on, score_on = halves[k], halves[1 - k]
+        scales = odometry_scales(fit_on, extras, numbers, delay_s)
+        alphas = fit_alphas(window_samples(fit_on, extras, numbers, windows_s, delay_s,
+                                           scales, stddev))
+        for n in numbers:
+            own_scales = odometry_scales(fit_on, extras, [n], delay_s)
+            own = fit_alphas(window_samples(fit_on, extras, [n], windows_s, delay_s,
+                                            own_scales, stddev))
+            nees = [{str(w): window_nees(a, window_samples(score_on, extras, [n], w, delay_s,
+                                                           sc, stddev))
+                     for w in windows_s} for a, sc in ((own, own_scales), (alphas, scales))]
+            out.append({'fitted_on': name, 'robot': n, 'alphas': own.tolist(),
+                        'scales': own_scales, 'nees_own': nees[0], 'nees_pooled': nees[1]})
+    return out
 
 
 def format_odometry_calibration(result):
@@ -400,6 +481,14 @@ def format_odometry_calibration(result):
                      + ', '.join(f'{v:.3g}' for v in entry['alphas'])
                      + ', scales {:.4f}, {:.4f}, {:.4f} (its own {:.4f}, {:.4f}, {:.4f})'.format(
                          *entry['scales'], *entry['own_scales']) + f'; NEES {nees}')
+    lines.append('per robot across halves (own scales and alphas from one half, window '
+                 'NEES on the other; pooled: all robots fitted on that half; 3 is right):')
+    for entry in result.get('halves', ()):
+        lines.append(f'  fitted on the {entry["fitted_on"]:6s} robot {entry["robot"]}: alphas '
+                     + ', '.join(f'{v:.3g}' for v in entry['alphas'])
+                     + '; NEES own ' + ', '.join(f'{v:.2f}' for v in entry['nees_own'].values())
+                     + ', pooled '
+                     + ', '.join(f'{v:.2f}' for v in entry['nees_pooled'].values()))
     lines.append('landmark_localizer:\n  ros__parameters:\n    odometry_alphas: ['
                  + ', '.join(f'{v:.4g}' for v in a) + ']\n'
                  f'    odometry_speed_scale: {result["scales"][0]:.4f}\n'

@@ -3,10 +3,11 @@ The ``--slam`` mode of ``landmark_mrclam``: the team without motion capture.
 
 ``mrclam.slam.run_all`` with the params file's observer, fuser and localizer sections
 (``config/mrclam.yaml``) and, from its ``landmark_mrclam`` section, the odometry delay
-(``odometry_delay_s``) and the anchors (``slam_anchor_ids``: surveyed landmarks written
-as a fuser map file; ``--anchors FILE`` takes a map file instead). Runs the four modes
-(IDs shown or hidden, without or with anchors); with ``--hide-ids`` only the two
-without IDs. Prints the per-robot table, the map figures and which of the issue's
+(``odometry_delay_s``), the camera delay (``camera_delay_s``: every sighting moved back,
+``localize_data.with_camera_delay``) and the anchors (``slam_anchor_ids``: surveyed
+landmarks written as a fuser map file; ``--anchors FILE`` takes a map file instead).
+Runs the four modes (IDs shown or hidden, without or with anchors); with ``--hide-ids``
+only the two without IDs. Prints the per-robot table, the map figures and which of the issue's
 targets hold; ``--json`` gains ``slam`` (one entry per mode), ``--plot FILE`` draws one
 picture per mode (``FILE`` stem + ``-ids|-noids`` + ``-anchors``).
 
@@ -25,7 +26,7 @@ from landmark_ros.mrclam.config import default_dataset_path, load_config
 from landmark_ros.mrclam.data import load_dataset
 from landmark_ros.mrclam.localize import localizer_config
 from landmark_ros.mrclam.localize_cli import _Bar, _sections
-from landmark_ros.mrclam.localize_data import load_all_extras
+from landmark_ros.mrclam.localize_data import load_all_extras, with_camera_delay
 from landmark_ros.mrclam.localize_plan import slice_run
 from landmark_ros.mrclam.report import write_json
 import numpy as np
@@ -61,7 +62,8 @@ def _setup(replay_config, dataset, duration, start_s=0.0):
     delay_s = float(replay_values.get('odometry_delay_s', 0.0))
     anchor_ids = tuple(int(i) for i in replay_values.get('slam_anchor_ids',
                                                          slam.DEFAULT_ANCHORS))
-    extras = load_all_extras(dataset)
+    dataset, extras = with_camera_delay(dataset, load_all_extras(dataset),
+                                        replay_config.camera_delay_s)
     if duration is not None or start_s:
         dataset, extras = slice_run(dataset, extras, duration, start_s)
     return config, delay_s, anchor_ids, dataset, extras

@@ -4,8 +4,8 @@ import math
 from types import SimpleNamespace
 
 from landmark_ros.localizer import motion
-from landmark_ros.mrclam.localize_data import (fit_alphas, reference_floor, window_nees,
-                                               window_samples)
+from landmark_ros.mrclam.localize_data import (fit_alphas, reference_floor, robot_halves,
+                                               window_nees, window_samples)
 import numpy as np
 import pytest
 
@@ -116,3 +116,24 @@ def test_ignoring_the_reference_noise_inflates_the_alphas(team):
     fitted = fit_alphas(samples)
     # the 2 s windows' reference noise is taken up by the odometry's alphas
     assert fitted[1] > 1.5 * alphas[1] or fitted[2] > 1.5 * alphas[2]
+
+
+def test_robot_halves_prefers_the_own_model_of_a_robot_that_keeps_it():
+    # robot 1's odometry is four times as noisy as the others' over the whole run: its
+    # own model, fitted on one half, scores nearer 3 on the other than the pooled one.
+    robots, extras = [], {}
+    for number, alphas in ((1, 4.0 * ALPHAS), (2, ALPHAS), (3, ALPHAS)):
+        robot, odom = _sample_robot(number, alphas, STDDEV, 30 + number, duration_s=600.0)
+        robots.append(robot)
+        extras[number] = odom
+    entries = robot_halves(SimpleNamespace(robots=robots), extras, 0.0, (5.0, 20.0), STDDEV)
+    assert [(e['fitted_on'], e['robot']) for e in entries] == [
+        ('first', 1), ('first', 2), ('first', 3), ('second', 1), ('second', 2), ('second', 3)]
+    for entry in entries:
+        own = np.mean(list(entry['nees_own'].values()))
+        pooled = np.mean(list(entry['nees_pooled'].values()))
+        assert abs(own - 3.0) < abs(pooled - 3.0)
+        if entry['robot'] == 1:  # the pooled model is too narrow for robot 1
+            assert pooled > 4.0 and entry['alphas'][0] > 2.0 * ALPHAS[0]
+        else:  # and too wide for the others
+            assert pooled < 2.5

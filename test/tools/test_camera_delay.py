@@ -123,3 +123,23 @@ def test_with_camera_delay_zero_is_a_no_op_and_drops_what_leaves_the_ground_trut
     assert moved.counts['kept'] == sum(len(r.times) for r in moved.robots)
     with pytest.raises(ValueError, match='finite'):
         dataset.with_camera_delay(float('nan'))
+
+
+def test_the_localization_replay_moves_robot_sightings_back_too():
+    from landmark_ros.mrclam.localize_data import RobotExtras, with_camera_delay
+    dataset = delayed_dataset(0.04, robots=2)
+    extras = {r.number: RobotExtras(r.number, np.arange(0.0, 10.0, 0.015),
+                                    np.ones((667, 2)), np.array([1.0, 2.5]),
+                                    np.array([3 - r.number] * 2), np.ones((2, 2)))
+              for r in dataset.robots}
+    moved, moved_extras = with_camera_delay(dataset, extras, 0.04)
+    for before, after in zip(dataset.robots, moved.robots):
+        np.testing.assert_allclose(after.times, before.times - 0.04)
+        e, f = extras[before.number], moved_extras[before.number]
+        np.testing.assert_allclose(f.sighting_times, e.sighting_times - 0.04)
+        np.testing.assert_array_equal(f.odom_times, e.odom_times)  # the odometry stays
+        np.testing.assert_array_equal(f.sighting_z, e.sighting_z)
+    same, same_extras = with_camera_delay(dataset, extras, 0.0)
+    assert same is dataset and same_extras is extras
+    with pytest.raises(ValueError):
+        with_camera_delay(dataset, extras, math.nan)
