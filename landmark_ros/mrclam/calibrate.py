@@ -106,11 +106,22 @@ class Calibration:
         """Return plain values for JSON."""
         return asdict(self)
 
-    def observer_values(self):
-        """Return the ``ObserverConfig`` fields this calibration sets, by name."""
+    def observer_values(self, scale_bias=False):
+        """
+        Return the ``ObserverConfig`` fields this calibration sets, by name.
+
+        With ``scale_bias`` the robot's shared range error is a scale error ``s r``:
+        ``range_scale_bias_stddev`` is ``range_scale_state_stddev`` (the RMS of the
+        robots' median relative errors) and ``range_bias_stddev`` is 0 (the same error,
+        not to be counted twice); without, an offset only (step 5).
+        """
         values = {name: float(getattr(self, name)) for name in OBSERVER_FIELDS}
         values['range_scale_coeffs'] = tuple(float(c) for c in self.range_scale_coeffs)
         values['range_scale_no_bearing'] = tuple(float(c) for c in self.range_scale_no_bearing)
+        values['range_scale_bias_stddev'] = 0.0
+        if scale_bias:
+            values['range_scale_bias_stddev'] = float(self.range_scale_state_stddev)
+            values['range_bias_stddev'] = 0.0
         return values
 
     def localizer_values(self):
@@ -139,6 +150,8 @@ class Calibration:
                 f'    range_stddev_per_m2: {self.range_stddev_per_m2:.5f}\n'
                 f'    bearing_stddev: {self.bearing_stddev:.4f}\n'
                 f'    range_bias_stddev: {self.range_bias_stddev:.4f}\n'
+                f'    # or as a scale error: range_bias_stddev: 0.0, '
+                f'range_scale_bias_stddev: {self.range_scale_state_stddev:.4f}\n'
                 f'    bearing_bias_stddev: {self.bearing_bias_stddev:.4f}\n'
                 f'    noise_correlation_time_s: {self.noise_correlation_time_s:.1f}\n'
                 f'    range_correlated_fraction: {self.range_correlated_fraction:.2f}\n'
@@ -351,7 +364,11 @@ def calibrate(dataset, min_pair=10, bins=10, part=None, delay=True):
        ``bearing_bias_stddev``. The same over the pair medians is printed for
        comparison. The same over the robots' median relative range errors (range
        error / true range) is ``range_scale_state_stddev``: the prior of the range
-       scale error the localizer estimates per robot.
+       scale error the localizer estimates per robot, and the observer's
+       ``range_scale_bias_stddev`` when a robot's shared range error is modelled as a
+       scale error (``Calibration.observer_values``; ``range_bias_stddev`` is then 0:
+       what an offset would leave after each robot's median relative error is zero
+       by construction, the median of ``b - b r / median(r)``).
     6. Tails: the fraction of residuals beyond 3 model standard deviations
        (``sigma_r(r)``, ``bearing_stddev``); well above 0.27 % means heavy tails,
        which the gate of the fuser (``gate_probability``) has to reject.

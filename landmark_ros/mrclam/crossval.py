@@ -100,7 +100,9 @@ def folds(dataset, scheme='halves') -> List[Fold]:
 
 def calibrated_config(config, calibration):
     """Return ``config`` with every observer value the calibration estimates replaced."""
-    return replace(config, observer=replace(config.observer, **calibration.observer_values()))
+    scale_bias = config.observer.range_scale_bias_stddev > 0.0  # the params file's model
+    return replace(config, observer=replace(config.observer,
+                                            **calibration.observer_values(scale_bias)))
 
 
 def cross_validate(dataset, config, modes: Sequence[str], methods: Sequence[str],
