@@ -66,7 +66,9 @@ class Calibration:
     overall: dict
     """Raw errors: per quantity (range, bearing) n, mean, std, median, robust_sd, tail."""
     robots: list
-    """Per robot: name, n, range and bearing median error."""
+    """Per robot: name, n, range and bearing median error, and the median range error
+    per bin of true range (``range_by_range``: ``low``, ``high`` [m], ``n``, ``median``
+    [m], None without sightings; an offset is flat, a scale error grows with the range)."""
     pairs: int
     """Robot-landmark pairs with enough sightings for the bias and residuals."""
     range_bins: list
@@ -298,17 +300,28 @@ def _weighted_bias(medians, counts, noise_variance):
     return math.sqrt(max(0.0, float(np.sum(counts * excess) / np.sum(counts))))
 
 
+ROBOT_RANGE_EDGES = (0.0, 1.5, 2.5, 3.5, 4.5, 1000.0)
+"""True-range bins [m] of each robot's median range error (``Calibration.robots``)."""
+
+
 def _robot_medians(dataset, e):
     """Return each robot's median errors: report entries and ``((range, bearing), n)``."""
     robots, robot_medians = [], []
+    true = e['range'] - e['range_error']
     for index, robot in enumerate(dataset.robots):
         mine = e['robot'] == index
         if not mine.any():
             continue
         medians = (float(np.median(e['range_error'][mine])),
                    float(np.median(e['bearing_error'][mine])))
+        by_range = []
+        for low, high in zip(ROBOT_RANGE_EDGES[:-1], ROBOT_RANGE_EDGES[1:]):
+            sel = mine & (true >= low) & (true < high)
+            by_range.append({'low': low, 'high': high, 'n': int(sel.sum()), 'median': (
+                float(np.median(e['range_error'][sel])) if sel.any() else None)})
         robots.append({'robot': robot.name, 'n': int(mine.sum()),
-                       'range_median': medians[0], 'bearing_median': medians[1]})
+                       'range_median': medians[0], 'bearing_median': medians[1],
+                       'range_by_range': by_range})
         robot_medians.append((medians, int(mine.sum())))
     return robots, robot_medians
 
@@ -490,6 +503,11 @@ def _scale_spread(e, model_r):
                           [int(np.sum(index == i)) for i in robots], np.full(len(robots), noise))
 
 
+def _bin_label(b):
+    return f'>{b["low"]:g} m' if b['high'] >= ROBOT_RANGE_EDGES[-1] else \
+        f'{b["low"]:g}-{b["high"]:g} m'
+
+
 def format_calibration(cal):
     """Return the calibration printout."""
     lines = [f'== calibration from {cal.count} landmark sightings against ground truth']
@@ -521,7 +539,9 @@ def format_calibration(cal):
     lines.append('per robot median error:')
     for r in cal.robots:
         lines.append(f'  {r["robot"]:<8} n {r["n"]:6d}  range {r["range_median"]:+8.4f} m  '
-                     f'bearing {r["bearing_median"]:+8.4f} rad')
+                     f'bearing {r["bearing_median"]:+8.4f} rad; range by true range: '
+                     + ', '.join(f'{_bin_label(b)} {100 * b["median"]:+.1f} cm'
+                                 for b in r.get('range_by_range', ()) if b['n']))
     lines.append('range residual spread (error minus its robot median; sd of the Gaussian '
                  f'holding the central {100 * CENTRAL_MASS:.0f} %) against range:')
     lines.append(f"  {'range [m]':>15} {'median':>7} {'n':>6} {'central sd':>10} {'model':>8}")
