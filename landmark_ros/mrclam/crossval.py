@@ -152,7 +152,8 @@ def cross_validate(dataset, config, modes: Sequence[str], methods: Sequence[str]
                 del summary['landmarks']
                 entry = {'fold': fold.name, 'calibrated_on': fold.calibrate_on.label(),
                          'evaluated_on': fold.evaluate_on.label(), 'mode': mode,
-                         'calibration': calibration.observer_values(),
+                         'calibration': calibration.observer_values(
+                             config.observer.range_scale_bias_stddev > 0.0),
                          'camera_delay_s': delay_s, **summary}
                 entries.append(entry)
                 if progress is not None:
