@@ -118,6 +118,7 @@ FIELD_MEANINGS = {
     'bias_cov_bb': 'sensor bias covariance, bearing [rad^2]',
     'sensor_x': 'sensor position in `world_frame` [m]', 'sensor_y': 'sensor position [m]',
     'sensor_theta': 'sensor heading in `world_frame` [rad]',
+    'bias_cov_ss': 'variance of a range scale error (relative; absent or NaN: 0)',
     'kind': '0 range, 1 bearing',
     'value': 'measured range [m] or bearing [rad]',
     'variance': 'independent noise variance [m^2 or rad^2]',
@@ -168,6 +169,7 @@ def schema_tables():
     scan = [(name, 'FLOAT64, optional group') for name in schemas.SCAN_FIELDS]
     scan.append((schemas.HEADING_FIELD, 'FLOAT64, optional'))
     bias = [(name, 'FLOAT64, optional group') for name in schemas.BIAS_FIELDS]
+    bias.append((schemas.SCALE_FIELD, 'FLOAT64, optional'))
     # The partial observations' schema, under its name or its 0.1.0 name.
     names = sorted((name for name in vars(schemas) if name.endswith('_SCHEMA')
                     and ('PARTIAL' in name or 'CONSTRAINT' in name)),

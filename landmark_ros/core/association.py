@@ -109,7 +109,8 @@ def _joint_thresholds(n, probability):
 
 def scan_covariance(z: ArrayLike, R: ArrayLike, robot_xy: ArrayLike, P_pose: ArrayLike,
                     R_bias: Optional[ArrayLike] = None,
-                    sensor_xy: Optional[ArrayLike] = None) -> NDArray[np.float64]:
+                    sensor_xy: Optional[ArrayLike] = None,
+                    range_scale_variance: float = 0.0) -> NDArray[np.float64]:
     """
     Return the joint covariance of the rows of one message, shared pose error included.
 
@@ -118,9 +119,12 @@ def scan_covariance(z: ArrayLike, R: ArrayLike, robot_xy: ArrayLike, P_pose: Arr
     with ``(x, y)`` the robot position: every row moves with the same pose error.
     With a sensor bias ``beta`` shared by the message (a range and bearing offset of
     covariance ``R_bias``), ``J_m_beta = [[e_x / r, -e_y], [e_y / r, e_x]]`` with
-    ``e = m - sensor_xy`` and ``r = |e|``. Block ``(i, j != i)`` is
+    ``e = m - sensor_xy`` and ``r = |e|``. A range scale error ``s`` shared by the
+    message (variance ``range_scale_variance``) moves a row by ``s e``, so
+    ``J_m_s = e``. Block ``(i, j != i)`` is
 
-        ``J_i_pose P_pose J_j_pose^T + J_i_beta R_bias J_j_beta^T``
+        ``J_i_pose P_pose J_j_pose^T + J_i_beta R_bias J_j_beta^T
+        + range_scale_variance e_i e_j^T``
 
     and block ``(i, i)`` is ``R[i]``, which must already hold these terms (it does
     when the observer computes it with ``landmarks.landmark_to_world_dependent``:
@@ -146,6 +150,9 @@ def scan_covariance(z: ArrayLike, R: ArrayLike, robot_xy: ArrayLike, P_pose: Arr
         bearing [rad^2]); ``None`` for none.
     sensor_xy : array_like, shape (2,) [m], optional
         Sensor position in the world, for the bias term; default ``robot_xy``.
+    range_scale_variance : float
+        Variance of a relative range error shared by the message (with ``R_bias``;
+        ``R[i]`` must contain its term too); 0 for none.
 
     Returns
     -------
@@ -185,6 +192,9 @@ def scan_covariance(z: ArrayLike, R: ArrayLike, robot_xy: ArrayLike, P_pose: Arr
         B = np.stack([np.stack([e[:, 0] / r, -e[:, 1]], -1),
                       np.stack([e[:, 1] / r, e[:, 0]], -1)], axis=1).reshape(2 * n, 2)
         C_z += B @ R_bias @ B.T
+        if range_scale_variance:
+            flat = e.reshape(2 * n)
+            C_z += range_scale_variance * np.outer(flat, flat)
     C_z = 0.5 * (C_z + C_z.T)
     blocks = C_z.reshape(n, 2, n, 2)
     diagonal = np.arange(n)

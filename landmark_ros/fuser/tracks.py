@@ -511,7 +511,7 @@ class Tracker(ScoredTracks):
             if scan is not None:
                 try:
                     C_z = scan_covariance(z, R, scan.robot_xy, scan.P_pose, scan.R_bias,
-                                          scan.sensor_xy)
+                                          scan.sensor_xy, scan.range_scale_variance)
                 except ValueError:
                     C_z = None
             if C_z is None:

@@ -66,7 +66,9 @@ class Calibration:
     overall: dict
     """Raw errors: per quantity (range, bearing) n, mean, std, median, robust_sd, tail."""
     robots: list
-    """Per robot: name, n, range and bearing median error."""
+    """Per robot: name, n, range and bearing median error, and the median range error
+    per bin of true range (``range_by_range``: ``low``, ``high`` [m], ``n``, ``median``
+    [m], None without sightings; an offset is flat, a scale error grows with the range)."""
     pairs: int
     """Robot-landmark pairs with enough sightings for the bias and residuals."""
     range_bins: list
@@ -106,11 +108,22 @@ class Calibration:
         """Return plain values for JSON."""
         return asdict(self)
 
-    def observer_values(self):
-        """Return the ``ObserverConfig`` fields this calibration sets, by name."""
+    def observer_values(self, scale_bias=False):
+        """
+        Return the ``ObserverConfig`` fields this calibration sets, by name.
+
+        With ``scale_bias`` the robot's shared range error is a scale error ``s r``:
+        ``range_scale_bias_stddev`` is ``range_scale_state_stddev`` (the RMS of the
+        robots' median relative errors) and ``range_bias_stddev`` is 0 (the same error,
+        not to be counted twice); without, an offset only (step 5).
+        """
         values = {name: float(getattr(self, name)) for name in OBSERVER_FIELDS}
         values['range_scale_coeffs'] = tuple(float(c) for c in self.range_scale_coeffs)
         values['range_scale_no_bearing'] = tuple(float(c) for c in self.range_scale_no_bearing)
+        values['range_scale_bias_stddev'] = 0.0
+        if scale_bias:
+            values['range_scale_bias_stddev'] = float(self.range_scale_state_stddev)
+            values['range_bias_stddev'] = 0.0
         return values
 
     def localizer_values(self):
@@ -139,6 +152,8 @@ class Calibration:
                 f'    range_stddev_per_m2: {self.range_stddev_per_m2:.5f}\n'
                 f'    bearing_stddev: {self.bearing_stddev:.4f}\n'
                 f'    range_bias_stddev: {self.range_bias_stddev:.4f}\n'
+                f'    # or as a scale error: range_bias_stddev: 0.0, '
+                f'range_scale_bias_stddev: {self.range_scale_state_stddev:.4f}\n'
                 f'    bearing_bias_stddev: {self.bearing_bias_stddev:.4f}\n'
                 f'    noise_correlation_time_s: {self.noise_correlation_time_s:.1f}\n'
                 f'    range_correlated_fraction: {self.range_correlated_fraction:.2f}\n'
@@ -285,17 +300,28 @@ def _weighted_bias(medians, counts, noise_variance):
     return math.sqrt(max(0.0, float(np.sum(counts * excess) / np.sum(counts))))
 
 
+ROBOT_RANGE_EDGES = (0.0, 1.5, 2.5, 3.5, 4.5, 1000.0)
+"""True-range bins [m] of each robot's median range error (``Calibration.robots``)."""
+
+
 def _robot_medians(dataset, e):
     """Return each robot's median errors: report entries and ``((range, bearing), n)``."""
     robots, robot_medians = [], []
+    true = e['range'] - e['range_error']
     for index, robot in enumerate(dataset.robots):
         mine = e['robot'] == index
         if not mine.any():
             continue
         medians = (float(np.median(e['range_error'][mine])),
                    float(np.median(e['bearing_error'][mine])))
+        by_range = []
+        for low, high in zip(ROBOT_RANGE_EDGES[:-1], ROBOT_RANGE_EDGES[1:]):
+            sel = mine & (true >= low) & (true < high)
+            by_range.append({'low': low, 'high': high, 'n': int(sel.sum()), 'median': (
+                float(np.median(e['range_error'][sel])) if sel.any() else None)})
         robots.append({'robot': robot.name, 'n': int(mine.sum()),
-                       'range_median': medians[0], 'bearing_median': medians[1]})
+                       'range_median': medians[0], 'bearing_median': medians[1],
+                       'range_by_range': by_range})
         robot_medians.append((medians, int(mine.sum())))
     return robots, robot_medians
 
@@ -351,7 +377,11 @@ def calibrate(dataset, min_pair=10, bins=10, part=None, delay=True):
        ``bearing_bias_stddev``. The same over the pair medians is printed for
        comparison. The same over the robots' median relative range errors (range
        error / true range) is ``range_scale_state_stddev``: the prior of the range
-       scale error the localizer estimates per robot.
+       scale error the localizer estimates per robot, and the observer's
+       ``range_scale_bias_stddev`` when a robot's shared range error is modelled as a
+       scale error (``Calibration.observer_values``; ``range_bias_stddev`` is then 0:
+       what an offset would leave after each robot's median relative error is zero
+       by construction, the median of ``b - b r / median(r)``).
     6. Tails: the fraction of residuals beyond 3 model standard deviations
        (``sigma_r(r)``, ``bearing_stddev``); well above 0.27 % means heavy tails,
        which the gate of the fuser (``gate_probability``) has to reject.
@@ -473,6 +503,11 @@ def _scale_spread(e, model_r):
                           [int(np.sum(index == i)) for i in robots], np.full(len(robots), noise))
 
 
+def _bin_label(b):
+    return f'>{b["low"]:g} m' if b['high'] >= ROBOT_RANGE_EDGES[-1] else \
+        f'{b["low"]:g}-{b["high"]:g} m'
+
+
 def format_calibration(cal):
     """Return the calibration printout."""
     lines = [f'== calibration from {cal.count} landmark sightings against ground truth']
@@ -504,7 +539,9 @@ def format_calibration(cal):
     lines.append('per robot median error:')
     for r in cal.robots:
         lines.append(f'  {r["robot"]:<8} n {r["n"]:6d}  range {r["range_median"]:+8.4f} m  '
-                     f'bearing {r["bearing_median"]:+8.4f} rad')
+                     f'bearing {r["bearing_median"]:+8.4f} rad; range by true range: '
+                     + ', '.join(f'{_bin_label(b)} {100 * b["median"]:+.1f} cm'
+                                 for b in r.get('range_by_range', ()) if b['n']))
     lines.append('range residual spread (error minus its robot median; sd of the Gaussian '
                  f'holding the central {100 * CENTRAL_MASS:.0f} %) against range:')
     lines.append(f"  {'range [m]':>15} {'median':>7} {'n':>6} {'central sd':>10} {'model':>8}")

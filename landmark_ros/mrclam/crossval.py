@@ -103,7 +103,9 @@ def folds(dataset, scheme='halves') -> List[Fold]:
 
 def calibrated_config(config, calibration):
     """Return ``config`` with every observer value the calibration estimates replaced."""
-    return replace(config, observer=replace(config.observer, **calibration.observer_values()))
+    scale_bias = config.observer.range_scale_bias_stddev > 0.0  # the params file's model
+    return replace(config, observer=replace(config.observer,
+                                            **calibration.observer_values(scale_bias)))
 
 
 def cross_validate(dataset, config, modes: Sequence[str], methods: Sequence[str],
@@ -153,7 +155,8 @@ def cross_validate(dataset, config, modes: Sequence[str], methods: Sequence[str]
                 del summary['landmarks']
                 entry = {'fold': fold.name, 'calibrated_on': fold.calibrate_on.label(),
                          'evaluated_on': fold.evaluate_on.label(), 'mode': mode,
-                         'calibration': calibration.observer_values(),
+                         'calibration': calibration.observer_values(
+                             config.observer.range_scale_bias_stddev > 0.0),
                          'camera_delay_s': delay_s, **summary}
                 entries.append(entry)
                 if progress is not None:

@@ -4,11 +4,11 @@ The observer of one robot: poses and observation columns in, world-frame landmar
 ROS-free: the ``landmark_observer`` node, the MRCLAM replay, the Monte Carlo study and
 the benchmarks all drive this one object. Time is integer nanoseconds throughout.
 
-Each observation message is matched to the robot pose at its stamp (interpolated
-between the two poses that bracket it, see ``pose_buffer``) and its valid rows are
-placed in the world with ``core.landmarks.landmark_to_world_dependent``: the total
-covariance and its dependent part (pose and sensor-bias terms). An observation newer
-than every pose waits for the next pose, up to ``max_wait_s``, in arrival order.
+Each observation message is matched to the robot pose at its stamp (interpolated between the two
+poses that bracket it, see ``pose_buffer``) and its valid rows are placed in the world with
+``core.landmarks.landmark_to_world_dependent``: the total covariance and its dependent part (pose
+and sensor-bias terms). An observation newer than every pose waits for the next pose, up to
+``max_wait_s``, in arrival order.
 """
 
 from collections import deque
@@ -156,8 +156,8 @@ class Observer:
         self.counters.throttle_s = config.log_throttle_s
         pose = np.array(config.sensor_pose, dtype=np.float64)
         self._sensor_pose = pose if pose.any() else None
-        self._R_bias = None
-        if config.range_bias_stddev or config.bearing_bias_stddev:
+        self._R_bias, self._scale_var = None, config.range_scale_bias_stddev ** 2
+        if config.range_bias_stddev or config.bearing_bias_stddev or self._scale_var:
             self._R_bias = np.diag([config.range_bias_stddev ** 2,
                                     config.bearing_bias_stddev ** 2])
         correlated = CorrelatedNoise(config.range_correlated_fraction,
@@ -405,7 +405,7 @@ class Observer:
             pose = np.repeat([p for _, p, _ in ready], counts, axis=0)
             P_pose = np.repeat([P for _, _, P in ready], counts, axis=0)
         kept, m, P_m, P_dep, reasons = landmarks_from_rows(
-            ids, z, R, pose, P_pose, self._sensor_pose, self._R_bias)
+            ids, z, R, pose, P_pose, self._sensor_pose, self._R_bias, self._scale_var)
         for reason, count in reasons.items():
             self.counters.add(reason, count, f'{count} of {len(z)} rows rejected in '
                               f'{len(ready)} observation message(s) at '
@@ -515,10 +515,10 @@ class Observer:
             if np.count_nonzero(partial):
                 rows = {name: np.asarray(values)[partial] for name, values in columns.items()}
                 rows, R = self._range_only_corrected(rows)
+                mount = SensorMount(self._sensor_pose, self._R_bias, self._scale_var)
                 found, reasons = partial_observations_from_rows(
-                    rows, R, pose, P_pose,
-                    SensorMount(self._sensor_pose, self._R_bias), self._view_group,
-                    item.stamp_ns, self._correlated)
+                    rows, R, pose, P_pose, mount, self._view_group, item.stamp_ns,
+                    self._correlated)
                 self.counters.add('partial_rows', int(partial.sum()))
                 for reason, count in reasons.items():
                     self.counters.add(reason, count, f'{count} of {int(partial.sum())} '
@@ -543,7 +543,7 @@ class Observer:
         heading = float(pose[2] + sensor[2])
         if self._R_bias is None:
             return Scan(pose[:2].copy(), P_pose, heading=heading)
-        return Scan(pose[:2].copy(), P_pose, self._R_bias.copy(), sensor_xy, heading)
+        return Scan(pose[:2].copy(), P_pose, self._R_bias, sensor_xy, heading, self._scale_var)
 
     # Status --------------------------------------------------------------------------
 

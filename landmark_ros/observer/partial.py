@@ -140,6 +140,8 @@ class SensorMount:
     """Sensor pose in the robot frame, shape (3,); None means the robot origin."""
     R_bias: Optional[NDArray[np.float64]] = None
     """Covariance of the sensor bias, shape (2, 2); None means no bias."""
+    range_scale_variance: float = 0.0
+    """Variance of a shared range scale error (``rows.bias_covariance``)."""
 
 
 def partial_observations_from_rows(columns: Dict[str, NDArray[Any]], R: NDArray[np.float64],
@@ -162,8 +164,8 @@ def partial_observations_from_rows(columns: Dict[str, NDArray[Any]], R: NDArray[
     P_pose : ndarray, shape (3, 3)
         Its covariance.
     mount : SensorMount
-        Sensor pose in the robot frame and covariance of the sensor bias (its diagonal
-        gives ``R_bias`` of the views).
+        Sensor pose in the robot frame and covariance of the sensor bias (its diagonal,
+        plus ``range_scale_variance r^2`` for a range, gives ``R_bias`` of the views).
     view_group : int
         In [0, 2^32 - 1]: the number every view of this pose gets.
     stamp_ns : int
@@ -191,6 +193,8 @@ def partial_observations_from_rows(columns: Dict[str, NDArray[Any]], R: NDArray[
     variance = np.where(kind == RANGE, R[:, 0, 0], R[:, 1, 1])
     bias = np.zeros(count) if R_bias is None else np.where(kind == RANGE, R_bias[0, 0],
                                                            R_bias[1, 1])
+    if mount.range_scale_variance:
+        bias = bias + np.where(kind == RANGE, mount.range_scale_variance * r * r, 0.0)
     with np.errstate(invalid='ignore'):
         valid, reasons = first_problems(count, [
             ('observation_nonfinite', ~np.isfinite(y)),

@@ -119,11 +119,47 @@ def row_problems(ids: NDArray[np.integer[Any]], z: NDArray[np.float64],
     return first_problems(len(ids), checks)
 
 
+def bias_covariance(R_bias: Optional[NDArray[np.float64]], range_scale_variance: float,
+                    r: NDArray[np.float64]) -> Optional[NDArray[np.float64]]:
+    """
+    Return the covariance of the sensor bias of each row: an offset and a scale error.
+
+    The shared range error of a row at range ``r`` is ``b + s r`` (an offset ``b`` of
+    variance ``R_bias[0, 0]`` and a scale error ``s`` of variance
+    ``range_scale_variance``, independent), so its variance is
+    ``R_bias[0, 0] + range_scale_variance r^2``; the bearing terms are ``R_bias``'s.
+
+    Parameters
+    ----------
+    R_bias : ndarray, shape (2, 2), optional
+        Covariance of the offsets (range [m^2], bearing [rad^2]); None: zero.
+    range_scale_variance : float
+        Variance of the relative range error ``s`` (dimensionless).
+    r : ndarray, shape (N,)
+        Range of each row [m].
+
+    Returns
+    -------
+    ndarray, shape (2, 2) or (N, 2, 2), or None
+        ``R_bias`` itself without a scale error (None if it is None), else one
+        matrix per row.
+
+    """
+    if not range_scale_variance:
+        return R_bias
+    out = np.zeros((len(r), 2, 2))
+    if R_bias is not None:
+        out[:] = R_bias
+    out[:, 0, 0] += range_scale_variance * np.square(r)
+    return out
+
+
 def landmarks_from_rows(
         ids: NDArray[np.integer[Any]], z: NDArray[np.float64], R: NDArray[np.float64],
         pose: NDArray[np.float64], P_pose: NDArray[np.float64],
         sensor_pose: Optional[NDArray[np.float64]] = None,
         R_bias: Optional[NDArray[np.float64]] = None,
+        range_scale_variance: float = 0.0,
 ) -> Tuple[NDArray[np.bool_], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64],
            Counter[str]]:
     """
@@ -145,6 +181,9 @@ def landmarks_from_rows(
         Sensor pose in the robot frame; ``None`` means the robot origin.
     R_bias : ndarray, shape (2, 2), optional
         Covariance of the sensor bias, shared by all observations.
+    range_scale_variance : float
+        Variance of a range scale error shared by all observations (``bias_covariance``:
+        the dependent range variance of a row grows by it times the range squared).
 
     Returns
     -------
@@ -165,6 +204,7 @@ def landmarks_from_rows(
         R = R.compress(kept, axis=0) if R.ndim == 3 else R
         pose = pose.compress(kept, axis=0) if pose.ndim == 2 else pose
         P_pose = P_pose.compress(kept, axis=0) if P_pose.ndim == 3 else P_pose
+    R_bias = bias_covariance(R_bias, range_scale_variance, z[:, 0])
     with np.errstate(over='ignore', invalid='ignore'):  # huge ranges: caught below
         m, P_m, P_dep = landmark_to_world_dependent(pose, P_pose, z, R, R_bias, sensor_pose)
         if _all_pass(m, P_m, P_dep):

@@ -166,6 +166,12 @@ class ObserverConfig(ConfigBase):
     range_bias_stddev: float = param(
         0.0, 'Standard deviation of a range bias shared by all observations [m]; it is '
         'added to the covariance and to its dependent part.', low=0.0, high=1000.0)
+    range_scale_bias_stddev: float = param(
+        0.0, 'Standard deviation of a relative range error (a scale error, 0.01 = 1 %) '
+        'shared by all observations: the shared range error is b + s r, so the dependent '
+        'range variance of a row at range r [m] is range_bias_stddev^2 + '
+        '(range_scale_bias_stddev r)^2; it is added to the covariance too.',
+        low=0.0, high=1.0)
     bearing_bias_stddev: float = param(
         0.0, 'Standard deviation of a bearing bias shared by all observations [rad].',
         low=0.0, high=math.pi)

@@ -32,6 +32,9 @@ class Scan:
         Sensor heading in the world [rad] (the robot's plus the mount's): where the
         field of view points (the fuser's view, ``fuser.track_score``; not wrapped);
         None: unknown.
+    range_scale_variance : float
+        Variance of a range scale error shared by the message (dimensionless; with
+        ``R_bias``): a row at range ``r`` is off by ``s r`` along its line of sight.
 
     """
 
@@ -40,3 +43,4 @@ class Scan:
     R_bias: Optional[NDArray[np.float64]] = None
     sensor_xy: Optional[NDArray[np.float64]] = None
     heading: Optional[float] = None
+    range_scale_variance: float = 0.0

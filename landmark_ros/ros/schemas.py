@@ -42,8 +42,9 @@ bias variances), ``sensor_x``, ``sensor_y``, ``sensor_theta`` (sensor pose in th
 an ID, and the ``SCAN_FIELDS`` (per row, the same for all rows of the message: robot
 position and pose covariance) when it had a row without an ID, then ``sensor_theta``
 (the sensor heading in the world; optional for readers, NaN: unknown), plus
-``BIAS_FIELDS`` when the observer models a sensor bias. Readers take each group all or
-none.
+``BIAS_FIELDS`` when the observer models a sensor bias, then ``bias_cov_ss`` (the
+variance of a range scale error; optional for readers, absent or NaN: 0). Readers take
+each group all or none.
 
 ``fused_landmarks`` (fuser out): the landmark fields then ``observations`` UINT32 and
 ``class`` UINT32.
@@ -92,6 +93,9 @@ SCAN_FIELDS = ('robot_x', 'robot_y', 'pose_cov_xx', 'pose_cov_xy', 'pose_cov_xt'
 """Robot position [m] and (x, y, theta) pose covariance of a message with unlabelled rows."""
 BIAS_FIELDS = ('bias_cov_rr', 'bias_cov_rb', 'bias_cov_bb', 'sensor_x', 'sensor_y')
 """Sensor bias covariance (range [m^2], bearing [rad^2]) and sensor position [m]."""
+SCALE_FIELD = 'bias_cov_ss'
+"""Variance of a range scale error shared by the message (with ``BIAS_FIELDS``; optional:
+a cloud without it, or NaN, has none)."""
 HEADING_FIELD = 'sensor_theta'
 """Sensor heading in the world [rad] of a message with unlabelled rows (with
 ``SCAN_FIELDS``; optional: a cloud without it, or NaN, has no heading)."""
@@ -100,7 +104,7 @@ LANDMARK_FIELDS = tuple(
               required=name not in MEAN_FIELDS + DEPENDENT_FIELDS + ('observations', 'class'))
     for name, _ in FUSED_SCHEMA if name != 'z') + tuple(
     FieldSpec(name, REAL_TYPES, required=False)
-    for name in SCAN_FIELDS + BIAS_FIELDS + (HEADING_FIELD,))
+    for name in SCAN_FIELDS + BIAS_FIELDS + (HEADING_FIELD, SCALE_FIELD))
 """What the readers take: ``z`` is not read, ``mean_*`` replace ``x``, ``y`` when there."""
 
 _OBSERVATION_WRITER = CloudWriter((('id', np.uint32), ('range', np.float64),
@@ -127,7 +131,8 @@ _CLASS_WRITER = CloudWriter(LANDMARK_SCHEMA + (('class', np.uint32),))
 _SCAN_WRITER = CloudWriter(LANDMARK_SCHEMA + (('class', np.uint32),) + tuple(
     (name, np.float64) for name in SCAN_FIELDS + (HEADING_FIELD,)))
 _BIAS_WRITER = CloudWriter(LANDMARK_SCHEMA + (('class', np.uint32),) + tuple(
-    (name, np.float64) for name in SCAN_FIELDS + (HEADING_FIELD,) + BIAS_FIELDS))
+    (name, np.float64) for name in SCAN_FIELDS + (HEADING_FIELD,) + BIAS_FIELDS
+    + (SCALE_FIELD,)))
 
 
 class Landmarks(NamedTuple):
@@ -265,6 +270,7 @@ def landmark_message(header, ids, m, P_m, P_dep=None, out=None, classes=None, sc
             rows['bias_cov_rr'], rows['bias_cov_rb'] = scan.R_bias[0]
             rows['bias_cov_bb'] = scan.R_bias[1, 1]
             rows['sensor_x'], rows['sensor_y'] = scan.sensor_xy
+            rows[SCALE_FIELD] = scan.range_scale_variance
     return writer.message(header, rows, out)
 
 
@@ -508,7 +514,8 @@ def _scan(columns, index):
     if SCAN_FIELDS[0] not in columns or index >= len(columns[SCAN_FIELDS[0]]):
         return None
     v = {name: float(columns[name][index])
-         for name in SCAN_FIELDS + BIAS_FIELDS + (HEADING_FIELD,) if name in columns}
+         for name in SCAN_FIELDS + BIAS_FIELDS + (HEADING_FIELD, SCALE_FIELD)
+         if name in columns}
     P_pose = np.array([[v['pose_cov_xx'], v['pose_cov_xy'], v['pose_cov_xt']],
                        [v['pose_cov_xy'], v['pose_cov_yy'], v['pose_cov_yt']],
                        [v['pose_cov_xt'], v['pose_cov_yt'], v['pose_cov_tt']]])
@@ -517,9 +524,10 @@ def _scan(columns, index):
         R_bias = np.array([[v['bias_cov_rr'], v['bias_cov_rb']],
                            [v['bias_cov_rb'], v['bias_cov_bb']]])
         sensor_xy = np.array([v['sensor_x'], v['sensor_y']])
-    heading = v.get(HEADING_FIELD, np.nan)
+    heading, scale = v.get(HEADING_FIELD, np.nan), v.get(SCALE_FIELD, np.nan)
     return Scan(np.array([v['robot_x'], v['robot_y']]), P_pose, R_bias, sensor_xy,
-                float(heading) if np.isfinite(heading) else None)
+                float(heading) if np.isfinite(heading) else None,
+                float(scale) if np.isfinite(scale) and R_bias is not None else 0.0)
 
 
 def partial_observation_message(header, columns, out=None):

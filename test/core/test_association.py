@@ -406,6 +406,38 @@ def test_scan_covariance_matches_monte_carlo_with_a_shared_bias():
     assert np.max(np.abs(empirical - C_no_bias) / scale) > 0.1
 
 
+def test_scan_covariance_matches_monte_carlo_with_a_shared_scale_error():
+    rng = np.random.default_rng(12)
+    pose = np.array([1.0, 2.0, 0.3])
+    obs = np.column_stack([rng.uniform(1.0, 8.0, 4), rng.uniform(-np.pi, np.pi, 4)])
+    P_pose = np.diag([0.01, 0.01, 0.005]) ** 2
+    R_obs = np.diag([0.02, 0.004]) ** 2
+    R_bias = np.diag([0.01, 0.003]) ** 2
+    scale_var = 0.02 ** 2
+    R_rows = np.repeat(R_bias[None], len(obs), axis=0)
+    R_rows[:, 0, 0] += scale_var * obs[:, 0] ** 2
+    z, R, _ = landmark_to_world_dependent(pose, P_pose, obs, R_obs, R_rows)
+    C_z = scan_covariance(z, R, pose[:2], P_pose, R_bias, None, scale_var)
+
+    draws = 200_000
+    poses = pose + rng.multivariate_normal(np.zeros(3), P_pose, draws)
+    bias = rng.multivariate_normal(np.zeros(2), R_bias, draws)
+    scale = rng.normal(0.0, np.sqrt(scale_var), draws)
+    samples = np.empty((draws, 2 * len(obs)))
+    for i, o in enumerate(obs):
+        noisy = o + bias + rng.multivariate_normal(np.zeros(2), R_obs, draws)
+        noisy[:, 0] += scale * o[0]
+        point = np.column_stack([noisy[:, 0] * np.cos(noisy[:, 1]),
+                                 noisy[:, 0] * np.sin(noisy[:, 1]), np.zeros(draws)])
+        samples[:, 2 * i:2 * i + 2] = compose(poses, point)[:, :2]
+    empirical = np.cov(samples, rowvar=False)
+    norm = np.sqrt(np.outer(np.diag(C_z), np.diag(C_z)))
+    assert np.max(np.abs(empirical - C_z) / norm) < 0.02
+    # Without the scale term the off-diagonal blocks are visibly wrong.
+    C_offset = scan_covariance(z, R, pose[:2], P_pose, R_bias)
+    assert np.max(np.abs(empirical - C_offset) / norm) > 0.1
+
+
 def test_scan_covariance_rejects_rows_smaller_than_the_shared_part():
     z = np.array([[10.0, 0.0], [0.0, 10.0]])
     P_pose = np.diag([0.1, 0.1, 0.1]) ** 2

@@ -4,6 +4,7 @@ from landmark_ros.core.landmarks import landmark_to_world_dependent
 from landmark_ros.observer.observer import ObservationMessage, Observer
 from landmark_ros.pipeline.config import ObserverConfig
 from landmark_ros.pipeline.pose_buffer import interpolate
+from landmark_ros.pipeline.rows import UNKNOWN_ID
 import numpy as np
 import pytest
 
@@ -223,3 +224,29 @@ def test_range_noise_grows_with_the_square_of_the_range():
     plain = Observer(ObserverConfig(range_stddev=a, range_stddev_per_m=k,
                                     bearing_stddev=sigma_b))
     assert plain.noise({'range': np.array([r])})[0, 0, 0] == pytest.approx(0.0065, rel=1e-12)
+
+
+def test_range_scale_bias_reaches_rows_views_and_scan():
+    # A shared scale error s: the dependent range variance of a row at range r grows by
+    # (s r)^2, in the full rows, the range-only views and the association's Scan alike.
+    s, b = 0.01, 0.02
+    config = ObserverConfig(range_stddev=0.05, bearing_stddev=0.01, range_bias_stddev=b,
+                            range_scale_bias_stddev=s)
+    observer = Observer(config)
+    observer.add_pose(10 * S, np.zeros(3), np.zeros((3, 3)))
+    z = np.array([[2.0, 0.0], [5.0, 0.0]])
+    batch, = observer.add_observations([message(10 * S, [UNKNOWN_ID, UNKNOWN_ID], z)])
+    np.testing.assert_allclose(batch.P_dep[:, 0, 0], b ** 2 + (s * z[:, 0]) ** 2, rtol=1e-9)
+    assert batch.scan is not None and batch.scan.range_scale_variance == pytest.approx(s * s)
+    ranges = np.array([2.0, 5.0])
+    columns = {'id': np.array([1, 2]), 'range': ranges, 'bearing': np.full(2, np.nan)}
+    batch, = observer.add_observations([ObservationMessage(10 * S, columns)])
+    views = batch.partial_observations.views
+    np.testing.assert_allclose(views.R_bias, b ** 2 + (s * ranges) ** 2, rtol=1e-9)
+    # Without it: the offset alone.
+    plain = Observer(ObserverConfig(range_stddev=0.05, bearing_stddev=0.01,
+                                    range_bias_stddev=b))
+    plain.add_pose(10 * S, np.zeros(3), np.zeros((3, 3)))
+    batch, = plain.add_observations([message(10 * S, [UNKNOWN_ID, UNKNOWN_ID], z)])
+    np.testing.assert_allclose(batch.P_dep[:, 0, 0], b ** 2, rtol=1e-9)
+    assert batch.scan.range_scale_variance == 0.0

@@ -6,7 +6,8 @@ from conftest import random_observations, random_poses, random_spd
 from landmark_ros.core.covariance import COVARIANCE_RANGE_PROBLEMS, covariance_range_status
 from landmark_ros.core.landmarks import landmark_to_world_dependent
 from landmark_ros.core.sensors import MIN_RANGE
-from landmark_ros.observer.rows import landmarks_from_rows, observation_noise, row_problems
+from landmark_ros.observer.rows import (bias_covariance, landmarks_from_rows, observation_noise,
+                                        row_problems)
 from landmark_ros.pipeline.limits import MAX_COORDINATE
 from landmark_ros.pipeline.rows import MAX_ID
 import numpy as np
@@ -249,3 +250,32 @@ def test_landmarks_from_rows_dependent_part_is_the_pose_and_bias(rng, no_warning
     _, _, P_m3, P_dep3, _ = landmarks_from_rows(ids, z, R, pose, P_pose, R_bias=R_bias)
     np.testing.assert_allclose(P_m3 - P_m2, P_dep3 - P_dep2, rtol=0, atol=1e-12)
     assert np.all(np.linalg.eigvalsh(P_dep3 - P_dep2)[:, -1] > 0)
+
+
+def test_bias_covariance_adds_the_scale_term_per_row():
+    R_bias = np.diag([0.0004, 1e-5])
+    r = np.array([1.0, 2.0, 4.0])
+    assert bias_covariance(R_bias, 0.0, r) is R_bias
+    assert bias_covariance(None, 0.0, r) is None
+    out = bias_covariance(R_bias, 1e-4, r)
+    assert out.shape == (3, 2, 2)
+    np.testing.assert_allclose(out[:, 0, 0], 0.0004 + 1e-4 * r ** 2, rtol=1e-12)
+    np.testing.assert_array_equal(out[:, 1, 1], 1e-5)
+    np.testing.assert_array_equal(out[:, 0, 1], 0.0)
+    np.testing.assert_allclose(bias_covariance(None, 1e-4, r)[:, 0, 0], 1e-4 * r ** 2)
+
+
+def test_landmarks_from_rows_scale_bias_grows_with_the_range(rng, no_warnings):
+    count = 30
+    ids = np.arange(count)
+    z = random_observations(rng, count)
+    R = np.diag([0.01, 0.0004])
+    pose, P_pose = random_poses(rng), random_spd(rng, 3, scale=0.01)
+    R_bias = np.diag([0.0009, 1e-5])
+    _, _, P_m, P_dep, _ = landmarks_from_rows(ids, z, R, pose, P_pose, None, R_bias)
+    _, _, P_m2, P_dep2, _ = landmarks_from_rows(ids, z, R, pose, P_pose, None, R_bias, 1e-4)
+    # Added to both, along the line of sight, with variance s^2 r^2.
+    np.testing.assert_allclose(P_m2 - P_m, P_dep2 - P_dep, rtol=0, atol=1e-12)
+    e = landmark_to_world_dependent(pose, P_pose, z, R)[0] - pose[:2]
+    added = 1e-4 * np.einsum('ni,nj->nij', e, e)
+    np.testing.assert_allclose(P_dep2 - P_dep, added, rtol=1e-9, atol=1e-15)

@@ -16,7 +16,7 @@ from landmark_ros.pipeline.scan import Scan
 from landmark_ros.ros.cloud import CloudError, CloudWriter
 from landmark_ros.ros.cloud_bytes import read_cloud_bytes
 from landmark_ros.ros.schemas import fused_landmark_message, landmark_message, make_header
-from landmark_ros.ros.schemas import read_landmark_clouds
+from landmark_ros.ros.schemas import read_landmark_cloud, read_landmark_clouds
 from landmark_ros.ros.schemas import read_landmarks, read_removed
 import numpy as np
 import pytest
@@ -171,3 +171,21 @@ def test_every_cloud_rviz_is_configured_to_show_is_a_drawable_one():
              if d['Class'] == 'rviz_default_plugins/PointCloud2'}
     assert shown == {'/fused_landmarks'}     # add a check below for any new cloud display
     rviz_xyz(clouds(M)['fused_landmarks'])
+
+
+def test_the_range_scale_variance_of_a_scan_survives_the_cloud():
+    m = M[:2]
+    P = np.broadcast_to(C, (2, 2, 2))
+    header = make_header(12.5, 'map')
+    for scale in (0.0, 1e-4):
+        scan = Scan(np.array([1.0, 2.0]), np.diag([0.01, 0.01, 0.001]),
+                    np.diag([0.01, 1e-4]), np.array([1.5, 2.0]), 0.3, scale)
+        msg = landmark_message(header, np.arange(2), m, P, 0.5 * P, scan=scan)
+        for read in (read_landmark_cloud(msg),
+                     read_landmark_clouds([read_cloud_bytes(serialize_message(msg))])[0]):
+            assert read[1].scan.range_scale_variance == scale
+            np.testing.assert_array_equal(read[1].scan.R_bias, scan.R_bias)
+    # A cloud of the earlier layout (no bias_cov_ss) reads as no scale error.
+    plain = Scan(np.array([1.0, 2.0]), np.diag([0.01, 0.01, 0.001]))
+    msg = landmark_message(header, np.arange(2), m, P, 0.5 * P, scan=plain)
+    assert read_landmark_cloud(msg)[1].scan.range_scale_variance == 0.0

@@ -499,6 +499,13 @@ def test_calibration_recovers_the_synthetic_sensor_model(tmp_path, capsys):
     assert cal['residual_tails']['range'] < 0.01
     assert cal['pairs'] == 5 * 8
     assert abs(cal['camera_delay_s']) < 0.003  # the synthetic camera has none
+    # Each robot's range error by true range: the synthetic bias is an offset, flat.
+    for robot in cal['robots']:
+        medians = [b['median'] for b in robot['range_by_range'] if b['n'] >= 100]
+        assert len(medians) >= 2 and np.ptp(medians) < 0.04  # noise 0.025 r: ~1 cm
+        assert np.median(medians) == pytest.approx(robot['range_median'], abs=0.01)
+        assert sum(b['n'] for b in robot['range_by_range']) == robot['n']
+    assert 'range by true range:' in printed
 
 
 def test_calibration_without_bias_finds_none(tmp_path):

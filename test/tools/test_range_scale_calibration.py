@@ -117,3 +117,33 @@ def test_range_noise_calibration_recovers_known_coefficients(seed):
     assert np.max(np.abs(model / truth - 1.0)) < 0.06
     assert fc == pytest.approx(c, rel=0.3)
     assert fa == pytest.approx(a, rel=0.2)
+
+
+def test_scale_spread_is_the_rms_of_the_robots_relative_errors():
+    from landmark_ros.mrclam.calibrate import _scale_spread
+    rng = np.random.default_rng(3)
+    scales = np.array([-0.012, 0.013, -0.01, 0.002])
+    robot = np.repeat(np.arange(4), 4000)
+    true = rng.uniform(1.0, 6.0, len(robot))
+    error = np.take(scales, robot) * true + 0.01 * rng.standard_normal(len(robot))
+    e = {'robot': robot, 'range': true + error, 'range_error': error}
+    spread = _scale_spread(e, np.full(len(robot), 0.01))
+    assert spread == pytest.approx(np.sqrt(np.mean(scales ** 2)), rel=0.05)
+
+
+def test_a_scale_error_model_in_the_params_file_is_kept_by_the_folds():
+    from dataclasses import replace
+    from landmark_ros.mrclam.calibrate import Calibration
+    from landmark_ros.mrclam.config import load_config
+    from landmark_ros.mrclam.crossval import calibrated_config
+    cal = Calibration(100, {}, [], 1, [], 0.02, 0.001, 0.01, 0.03, 0.005, 0.04, 0.006, {},
+                      range_scale_state_stddev=0.009)
+    config = load_config()
+    assert config.observer.range_scale_bias_stddev == 0.0
+    offset = calibrated_config(config, cal).observer
+    assert (offset.range_bias_stddev, offset.range_scale_bias_stddev) == (0.03, 0.0)
+    scale_config = replace(config, observer=replace(config.observer,
+                                                    range_scale_bias_stddev=0.01))
+    scale = calibrated_config(scale_config, cal).observer
+    assert (scale.range_bias_stddev, scale.range_scale_bias_stddev) == (0.0, 0.009)
+    assert scale.bearing_bias_stddev == offset.bearing_bias_stddev == 0.005
