@@ -2,7 +2,8 @@
 Where the ``--slam`` map's error comes from, on MRCLAM (docs/slam.md).
 
 ``python -m landmark_ros.mrclam.slam_attribution [--hide-ids] [--duration S] [--start S]
-[--camera-delay S] [--json OUT] [DATASET]`` runs one mode of ``landmark_mrclam --slam``
+[--camera-delay S] [--known-map] [--yaw K C] [--no-robot-sightings]
+[--odometry-delay S] [--json OUT] [DATASET]`` runs one mode of ``landmark_mrclam --slam``
 (no anchors) with a ``RecordingLoop``, which keeps every row the observers placed (the
 robot, the stamp, the pose it was placed with, the track the fuser gave it), and prints,
 against the ground truth (read only here, to score):
@@ -16,7 +17,13 @@ against the ground truth (read only here, to score):
    error beside the mean of its rows';
 3. per robot and period: the mean pose error (position, heading) at its sightings;
 4. the sensor's part as range scale and bearing bias (with and without the delay);
-5. with ``--hide-ids``: the confirmed tracks no true landmark matches, with their rows.
+5. with ``--hide-ids``: the confirmed tracks no true landmark matches, with their rows;
+6. the odometry's turn against the truth (``fit_yaw``: a factor on the model's turn
+   and a turn per metre driven, a veer); ``--yaw K C`` corrects the twists by them
+   before the run (``corrected_twists``);
+7. with ``--known-map``: the same localizers against the surveyed map, and the pose
+   part their rows would have (``known_map_pose_parts``): the poses' own bias, without
+   the loop's map.
 
 ``--camera-delay S`` moves the sightings back by ``S`` before the run (the loop's poses
 are then taken at the capture times, ``Dataset.with_camera_delay``); the default 0 is
@@ -31,11 +38,12 @@ from typing import Dict, List
 
 from landmark_ros.eval.slam_attribution import rigid_fit, row_parts, shift_nees
 from landmark_ros.eval.slam_loop import TeamLoop
-from landmark_ros.mrclam import slam
+from landmark_ros.mrclam import localize, slam
 from landmark_ros.mrclam.config import default_dataset_path, load_config
 from landmark_ros.mrclam.data import interpolate_poses, load_dataset
 from landmark_ros.mrclam.localize import metrics
 from landmark_ros.mrclam.slam_cli import _setup
+from landmark_ros.mrclam.slam_plan import without_robot_sightings
 import numpy as np
 
 PERIOD_S = 150.0
@@ -147,6 +155,7 @@ def map_study(records, landmarks, center):
             'residual_error': rigid.residual.tolist(),
             'shift_nees': shift_nees(shift_only.shift, P),
             'sd_m': np.sqrt(np.trace(P, axis1=1, axis2=2) / 2).tolist(),
+            'covariance_rmse_m': float(np.sqrt(np.mean(np.trace(P, axis1=1, axis2=2)))),
             'dependent_sd_m': np.sqrt(np.trace(P_dep, axis1=1, axis2=2) / 2).tolist()}
 
 
@@ -265,6 +274,8 @@ def report(dataset, loop, records, map_part, camera_delay_s):
              f'{map_part["rigid_angle_rad"]:+.4f} rad about the start centroid '
              f'{_vec(map_part["center"])}: shift {_vec(map_part["rigid_shift_m"])} m, leaves '
              f'{map_part["rigid_residual_rmse_m"]:.3f} m',
+             'the RMSE the covariance predicts (sqrt of the mean trace): '
+             f'{map_part["covariance_rmse_m"]:.3f} m; '
              f'shift NEES (2 dof, 95 % below 5.99): errors shared '
              f'{map_part["shift_nees"]["shared"]:.2f}, independent '
              f'{map_part["shift_nees"]["independent"]:.2f}; landmark sd '
@@ -295,6 +306,78 @@ def report(dataset, loop, records, map_part, camera_delay_s):
     return lines, document
 
 
+def known_map_pose_parts(dataset, extras, localizer, delay_s):
+    """
+    Return the localizer's figures against the surveyed map and its rows' pose parts.
+
+    The loop's localizer config, robot sightings on (``localize.run``); the pose part of
+    each sighting row of a known landmark to first order: the position error plus the
+    heading error times the sight vector turned by 90 degrees, at the sighting stamp
+    (the track interpolated). Returns ``(overall figures, per robot mean (2,), all
+    rows' mean (2,))`` [m].
+    """
+    tracks = localize.run(dataset, extras, localizer, localize.surveyed_map(dataset),
+                          cooperative=True, delay_s=delay_s)
+    _, overall = metrics(tracks)
+    per_robot, parts = [], []
+    for robot, track in zip(dataset.robots, tracks):
+        e = track.x - track.truth
+        e[:, 2] = _wrap(e[:, 2])
+        known = np.isin(robot.ids, list(dataset.landmarks))
+        t = robot.times[known]
+        err = np.stack([np.interp(t, track.times, e[:, c]) for c in range(3)], 1)
+        xy = np.stack([np.interp(t, track.times, track.truth[:, c]) for c in range(2)], 1)
+        sight = np.array([dataset.landmarks[i] for i in robot.ids[known]]).reshape(-1, 2) - xy
+        part = err[:, :2] + err[:, 2:] * np.stack([-sight[:, 1], sight[:, 0]], 1)
+        per_robot.append(part.mean(axis=0))
+        parts.append(part)
+    return overall, per_robot, np.concatenate(parts).mean(axis=0)
+
+
+def corrected_twists(extras, yaw_factor, yaw_per_m, yaw_rate_scale):
+    """
+    Return ``extras`` with each yaw rate ``w`` replaced by ``k w + c |v| / s``.
+
+    ``k`` = ``yaw_factor`` (on top of the localizer's ``yaw_rate_scale`` ``s``), ``c`` =
+    ``yaw_per_m`` [rad/m]: the model turns ``s k w + c |v|``, a veer while driving.
+    """
+    out = {}
+    for number, ex in extras.items():
+        v, w = ex.odom_twist[:, 0], ex.odom_twist[:, 1]
+        out[number] = replace(ex, odom_twist=np.column_stack(
+            [v, yaw_factor * w + yaw_per_m * np.abs(v) / yaw_rate_scale]))
+    return out
+
+
+def fit_yaw(dataset, extras, delay_s, yaw_rate_scale, window_s=2.0):
+    """
+    Return ``(k, c)``: true turn = ``k`` x model turn + ``c`` x distance, pooled robots.
+
+    Least squares over windows of ``window_s`` [s] inside each robot's ground truth and
+    odometry: the true heading change against the odometry's turn (its yaw rates times
+    ``yaw_rate_scale``) and distance [m] (``corrected_twists`` takes them).
+    """
+    X, y = [], []
+    for robot in dataset.robots:
+        ex = extras[robot.number]
+        t = ex.odom_times + delay_s
+        if len(t) < 2:
+            continue
+        dt = np.diff(t, append=t[-1])
+        turn = np.concatenate([[0.0], np.cumsum(ex.odom_twist[:, 1] * dt)])[:-1]
+        dist = np.concatenate([[0.0], np.cumsum(np.abs(ex.odom_twist[:, 0]) * dt)])[:-1]
+        grid = np.arange(max(t[0], robot.gt_times[0]) + window_s,
+                         min(t[-1], robot.gt_times[-1]) - window_s, window_s)
+        if len(grid) < 2:
+            continue
+        gt, _ = interpolate_poses(robot.gt_times, robot.gt_poses, grid)
+        X.append(np.column_stack([np.diff(np.interp(grid, t, turn)) * yaw_rate_scale,
+                                  np.diff(np.interp(grid, t, dist))]))
+        y.append(np.diff(np.unwrap(gt[:, 2])))
+    (k, c), *_ = np.linalg.lstsq(np.concatenate(X), np.concatenate(y), rcond=None)
+    return float(k), float(c)
+
+
 def main(argv=None):
     """Run the study (module docstring); return the exit code."""
     parser = argparse.ArgumentParser(description='Where the --slam map error comes from.')
@@ -305,6 +388,15 @@ def main(argv=None):
     parser.add_argument('--start', type=float, default=0.0, metavar='SECONDS')
     parser.add_argument('--camera-delay', type=float, default=0.0, metavar='SECONDS',
                         help='move the sightings back by this before the run')
+    parser.add_argument('--known-map', action='store_true',
+                        help='also localize against the surveyed map (the loop '
+                        'localizer config) and print the pose part of its rows')
+    parser.add_argument('--yaw', nargs=2, type=float, default=None, metavar=('K', 'C'),
+                        help='correct the yaw rates (corrected_twists) before the run')
+    parser.add_argument('--no-robot-sightings', action='store_true',
+                        help='leave out the robot-to-robot sightings')
+    parser.add_argument('--odometry-delay', type=float, default=None, metavar='SECONDS',
+                        help='instead of odometry_delay_s of the config')
     parser.add_argument('--json', type=Path, default=None)
     args = parser.parse_args(argv)
     replay_config = load_config(args.config)
@@ -314,6 +406,22 @@ def main(argv=None):
     config, delay_s, _, dataset, extras = _setup(replay_config, dataset, args.duration,
                                                  args.start)
     config = replace(config, hide_ids=args.hide_ids)
+    if args.no_robot_sightings:
+        extras = without_robot_sightings(extras)
+    if args.odometry_delay is not None:
+        delay_s = args.odometry_delay
+    scale = config.localizer.odometry_yaw_rate_scale
+    k, c = fit_yaw(dataset, extras, delay_s, scale)
+    print(f'odometry turn against the truth (2 s windows, pooled): true = {k:.4f} x model '
+          f'turn {c:+.4f} rad/m x distance')
+    if args.yaw:
+        extras = corrected_twists(extras, args.yaw[0], args.yaw[1], scale)
+    if args.known_map:
+        known, per_robot, mean = known_map_pose_parts(dataset, extras, config.localizer,
+                                                      delay_s)
+        print(f'against the surveyed map: position RMSE {known["position_rmse_m"]:.3f} m, '
+              f'pose ANEES {known["anees"]:.2f}; rows\' pose part (first order) '
+              f'{_vec(mean)} m, per robot ' + ', '.join(_vec(p) for p in per_robot))
     loop = slam.run(dataset, extras, config, delay_s, loop_class=RecordingLoop)
     tracks = slam.pose_tracks(dataset, loop)
     _, overall = metrics(tracks)

@@ -116,3 +116,31 @@ def test_the_study_on_twenty_seconds_of_dataset_6(tmp_path, capsys):
     for entry in landmarks:
         rows = np.add(entry['pose_part'], entry['sensor_part'])
         np.testing.assert_allclose(rows, entry['rows_mean_error'], atol=1e-9)
+
+
+def _turning_robot(k, c, scale, seed=0):
+    """Return a robot whose true turn is ``k scale w + c |v|`` for random commanded twists."""
+    from types import SimpleNamespace
+    from landmark_ros.mrclam.localize_data import RobotExtras
+    rng = np.random.default_rng(seed)
+    t = np.arange(0.0, 200.0, 0.1)
+    v = rng.choice([0.0, 0.07, 0.1], len(t))
+    w = rng.choice([-0.4, 0.0, 0.4], len(t))
+    rate = k * scale * w + c * np.abs(v)
+    heading = np.concatenate([[0.0], np.cumsum(rate[:-1] * 0.1)])
+    gt = np.column_stack([np.zeros(len(t)), np.zeros(len(t)), np.angle(np.exp(1j * heading))])
+    robot = SimpleNamespace(number=1, gt_times=t, gt_poses=gt)
+    empty = np.zeros(0)
+    extras = {1: RobotExtras(1, t, np.column_stack([v, w]), empty, empty.astype(np.int64),
+                             np.zeros((0, 2)))}
+    return SimpleNamespace(robots=[robot]), extras
+
+
+def test_fit_yaw_finds_the_turn_factor_and_the_veer_and_the_correction_removes_them():
+    scale = 0.9
+    dataset, extras = _turning_robot(1.05, -0.04, scale)
+    k, c = slam_attribution.fit_yaw(dataset, extras, 0.0, scale)
+    assert k == pytest.approx(1.05, abs=1e-3) and c == pytest.approx(-0.04, abs=1e-3)
+    fixed = slam_attribution.corrected_twists(extras, k, c, scale)
+    k, c = slam_attribution.fit_yaw(dataset, fixed, 0.0, scale)
+    assert k == pytest.approx(1.0, abs=1e-3) and c == pytest.approx(0.0, abs=1e-3)
