@@ -393,6 +393,8 @@ def main(argv=None):
                         'localizer config) and print the pose part of its rows')
     parser.add_argument('--yaw', nargs=2, type=float, default=None, metavar=('K', 'C'),
                         help='correct the yaw rates (corrected_twists) before the run')
+    parser.add_argument('--association', choices=('fuser', 'localizer'), default='fuser',
+                        help='with --hide-ids, who names the rows for the localizers')
     parser.add_argument('--no-robot-sightings', action='store_true',
                         help='leave out the robot-to-robot sightings')
     parser.add_argument('--odometry-delay', type=float, default=None, metavar='SECONDS',
@@ -405,7 +407,7 @@ def main(argv=None):
         dataset = dataset.with_camera_delay(args.camera_delay)
     config, delay_s, _, dataset, extras = _setup(replay_config, dataset, args.duration,
                                                  args.start)
-    config = replace(config, hide_ids=args.hide_ids)
+    config = replace(config, hide_ids=args.hide_ids, association=args.association)
     if args.no_robot_sightings:
         extras = without_robot_sightings(extras)
     if args.odometry_delay is not None:
