@@ -25,9 +25,12 @@ against the ground truth (read only here, to score):
    part their rows would have (``known_map_pose_parts``): the poses' own bias, without
    the loop's map.
 
-``--camera-delay S`` moves the sightings back by ``S`` before the run (the loop's poses
-are then taken at the capture times, ``Dataset.with_camera_delay``); the default 0 is
-what ``--slam`` does.
+``--camera-delay S`` moves the landmark sightings back by ``S`` before the run (the
+loop's poses are then taken at the capture times, ``Dataset.with_camera_delay``; the
+robot-to-robot sightings keep their stamps); the default 0 is what ``--slam`` does.
+``--association localizer`` lets the localizers name the rows themselves with the IDs
+hidden (``LoopConfig.association``); ``--no-robot-sightings`` and ``--odometry-delay``
+are ablations.
 """
 
 import argparse
