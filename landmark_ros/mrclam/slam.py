@@ -116,7 +116,8 @@ def _start(loop, dataset, extras, config, delay_s):
                    np.diag(np.square(config.initial_stddev)))
 
 
-def run(dataset, extras, loop_config: LoopConfig, delay_s=0.0, progress=None) -> TeamLoop:
+def run(dataset, extras, loop_config: LoopConfig, delay_s=0.0, progress=None,
+        loop_class=TeamLoop) -> TeamLoop:
     """
     Run the closed loop over the whole dataset; return the loop (tracks, fuser).
 
@@ -132,11 +133,13 @@ def run(dataset, extras, loop_config: LoopConfig, delay_s=0.0, progress=None) ->
         Added to the odometry stamps [s].
     progress : callable, optional
         ``progress(fraction)`` now and then.
+    loop_class : type
+        ``TeamLoop`` or a subclass (``slam_attribution.RecordingLoop``).
 
     """
     rows = dataset.rows()
     starts, ends = rows.messages()
-    loop = TeamLoop(loop_config, [r.name for r in dataset.robots])
+    loop = loop_class(loop_config, [r.name for r in dataset.robots])
     _start(loop, dataset, extras, loop_config.localizer, delay_s)
     number_to_index = {r.number: i for i, r in enumerate(dataset.robots)}
     t, kind, who, index = _events(dataset, extras, delay_s, starts, ends)
