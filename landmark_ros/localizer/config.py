@@ -48,6 +48,9 @@ class LocalizerConfig(ConfigBase):
         'odometry distance x max(0, odometry_speed_scale + this x |yaw rate|) (a drive that '
         'slows down in turns, as a controller that keeps the turn rate and gives up speed '
         'does); 0: none', low=-100.0, high=100.0)
+    odometry_yaw_per_m: float = param(
+        0.0, 'turn per metre of odometry distance [rad/m] added to the odometry turn: a '
+        'veer while driving (unequal wheels); 0: none', low=-10.0, high=10.0)
     min_step_variance: float = param(
         1e-10, 'variance floor added to each motion component per odometry step', low=0.0,
         high=1e6)

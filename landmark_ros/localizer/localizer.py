@@ -304,7 +304,8 @@ class Localizer:
             delta = _ZERO3
         delta = motion.scale_motion(delta, dt, cfg.odometry_speed_scale,
                                     cfg.odometry_yaw_rate_scale,
-                                    cfg.odometry_speed_scale_per_yaw_rate)
+                                    cfg.odometry_speed_scale_per_yaw_rate,
+                                    cfg.odometry_yaw_per_m)
         trans, rot = math.hypot(delta[0], delta[1]), abs(delta[2])
         if trans > cfg.max_speed_mps * dt or rot > cfg.max_yaw_rate * dt:
             self.counters.add('odometry_jump', detail=f'odometry moved {trans:.2f} m, '

@@ -124,8 +124,8 @@ def odometry_noise(delta: Sequence[float], alphas: Sequence[float]) -> NDArray[n
 
 
 def scale_motion(delta: Sequence[float], dt: float, speed_scale: float = 1.0,
-                 yaw_rate_scale: float = 1.0, speed_scale_per_yaw_rate: float = 0.0
-                 ) -> NDArray[np.float64]:
+                 yaw_rate_scale: float = 1.0, speed_scale_per_yaw_rate: float = 0.0,
+                 yaw_per_m: float = 0.0) -> NDArray[np.float64]:
     """
     Return the true motion of an odometry motion: its systematic error removed.
 
@@ -143,34 +143,42 @@ def scale_motion(delta: Sequence[float], dt: float, speed_scale: float = 1.0,
         Change of the speed scale per rad/s of the odometry's yaw rate ``|dtheta| / dt``
         [s/rad]: a drive that keeps the commanded turn rate and gives up forward speed.
         The speed scale is held at zero or above.
+    yaw_per_m : float
+        Turn per metre of odometry distance [rad/m], a veer while driving (unequal
+        wheels; Borenstein and Feng's systematic odometry errors, 1996).
 
     Returns
     -------
     ndarray, shape (3,)
-        ``(s dx, s dy, yaw_rate_scale dtheta)``, ``s = max(0, speed_scale +
-        speed_scale_per_yaw_rate |dtheta| / dt)``.
+        ``(s dx, s dy, yaw_rate_scale dtheta + yaw_per_m hypot(dx, dy))``, ``s =
+        max(0, speed_scale + speed_scale_per_yaw_rate |dtheta| / dt)``.
 
     """
     s = speed_scale
     if speed_scale_per_yaw_rate and dt > 0.0:
         s = max(0.0, s + speed_scale_per_yaw_rate * abs(float(delta[2])) / dt)
-    if s == 1.0 and yaw_rate_scale == 1.0:
+    if s == 1.0 and yaw_rate_scale == 1.0 and not yaw_per_m:
         return np.asarray(delta, dtype=np.float64)
-    return np.asarray(delta, dtype=np.float64) * np.array([s, s, yaw_rate_scale])
+    out = np.asarray(delta, dtype=np.float64) * np.array([s, s, yaw_rate_scale])
+    if yaw_per_m:
+        out[2] += yaw_per_m * math.hypot(float(delta[0]), float(delta[1]))
+    return out
 
 
 def scale_twists(twists: NDArray[np.float64], scales: Sequence[float]) -> NDArray[np.float64]:
     """
     Return odometry twists (K, 2) with the systematic error of ``scale_motion`` removed.
 
-    ``scales``: ``(speed_scale, yaw_rate_scale)`` or ``(speed_scale, yaw_rate_scale,
-    speed_scale_per_yaw_rate)``; the batch form for twists (speed [m/s], yaw rate [rad/s]).
+    ``scales``: ``(speed_scale, yaw_rate_scale[, speed_scale_per_yaw_rate[,
+    yaw_per_m]])``; the batch form for twists (speed [m/s], yaw rate [rad/s]).
     """
     twists = np.asarray(twists, dtype=np.float64).reshape(-1, 2)
     speed, yaw = float(scales[0]), float(scales[1])
     per = float(scales[2]) if len(scales) > 2 else 0.0
+    veer = float(scales[3]) if len(scales) > 3 else 0.0
     s = np.maximum(0.0, speed + per * np.abs(twists[:, 1])) if per else speed
-    return np.stack([twists[:, 0] * s, twists[:, 1] * yaw], axis=1)
+    return np.stack([twists[:, 0] * s, twists[:, 1] * yaw + veer * np.abs(twists[:, 0])],
+                    axis=1)
 
 
 def scale_delta(delta: Sequence[float], fraction: float) -> NDArray[np.float64]:

@@ -328,14 +328,17 @@ def _motion_pairs(robot, extras, delay_s, window_s):
     return odo, true
 
 
-def odometry_scales(dataset, extras, numbers, delay_s, window_s=0.5, min_distance=0.02):
+def odometry_scales(dataset, extras, numbers, delay_s, window_s=0.5, min_distance=0.02,
+                    turn_window_s=2.0):
     """
     Return the systematic error of the odometry: true motion per odometry motion.
 
     Least squares over windows of ``window_s`` of the robots ``numbers`` pooled: the
     true distance (ground truth) against the odometry's distance and its integral of
-    speed x |yaw rate| (windows where the odometry moves at least ``min_distance``), the
-    true turn against the odometry's through the origin. A systematic error of the wheel
+    speed x |yaw rate| (windows where the odometry moves at least ``min_distance``).
+    Over windows of ``turn_window_s``: the true turn against the odometry's turn and
+    distance (a veer while driving); shorter windows bias the turn's factor towards 0,
+    as the odometry's timing jitter is noise in the regressor. A systematic error of the wheel
     odometry (wheel radius, wheel base, a drive that slows down in turns; on MRCLAM the
     odometry is the commanded twist: straight at 0.067 m/s the robots make 0.068 m/s,
     turning at 0.4 rad/s and 0.086 m/s they make 0.05 m/s) that the alphas, zero-mean
@@ -343,23 +346,21 @@ def odometry_scales(dataset, extras, numbers, delay_s, window_s=0.5, min_distanc
 
     Returns
     -------
-    tuple of 3 float
-        ``(speed_scale, yaw_rate_scale, speed_scale_per_yaw_rate [s/rad])``, the
-        parameters of ``motion.scale_motion``.
+    tuple of 4 float
+        ``(speed_scale, yaw_rate_scale, speed_scale_per_yaw_rate [s/rad], yaw_per_m
+        [rad/m])``, the parameters of ``motion.scale_motion``.
 
     """
-    odo, true = [], []
-    for robot in dataset.robots:
-        if robot.number in numbers:
-            o, t = _motion_pairs(robot, extras, delay_s, window_s)
-            odo.append(o)
-            true.append(t)
-    odo, true = np.concatenate(odo), np.concatenate(true)
+    robots = [r for r in dataset.robots if r.number in numbers]
+    odo, true = (np.concatenate(a) for a in zip(
+        *(_motion_pairs(r, extras, delay_s, window_s) for r in robots)))
     moving = odo[:, 0] >= min_distance
     (speed, per_yaw_rate), *_ = np.linalg.lstsq(odo[moving][:, [0, 2]], true[moving, 0],
                                                 rcond=None)
-    turn = np.sum(odo[:, 1] * true[:, 1]) / np.sum(odo[:, 1] ** 2)
-    return float(speed), float(turn), float(per_yaw_rate)
+    odo, true = (np.concatenate(a) for a in zip(
+        *(_motion_pairs(r, extras, delay_s, turn_window_s) for r in robots)))
+    (turn, veer), *_ = np.linalg.lstsq(odo[:, [1, 0]], true[:, 1], rcond=None)
+    return float(speed), float(turn), float(per_yaw_rate), float(veer)
 
 
 def calibrate_odometry(dataset, extras, windows_s=(2.0, 5.0, 10.0, 20.0),
@@ -469,8 +470,8 @@ def format_odometry_calibration(result):
              f'(all robots, reference noise '
              + ', '.join(f'{v:g}' for v in result['reference_stddev'])
              + f', odometry delay {result["delay_s"]:.3f} s, speed and yaw-rate '
-             'scales {:.4f}, {:.4f}, speed scale per yaw rate {:.4f} s/rad): '.format(
-                 *result['scales'])
+             'scales {:.4f}, {:.4f}, speed scale per yaw rate {:.4f} s/rad, veer {:.4f} '
+             'rad/m): '.format(*result['scales'])
              + ', '.join(f'{v:.4g}' for v in a),
              'window NEES, all robots (3 is right): '
              + ', '.join(f'{w} s: {v:.2f}' for w, v in result['window_nees'].items()),
@@ -479,8 +480,9 @@ def format_odometry_calibration(result):
         nees = ', '.join(f'{w} s: {v:.2f}' for w, v in entry['window_nees'].items())
         lines.append(f'  robot {entry["held_out"]}: alphas '
                      + ', '.join(f'{v:.3g}' for v in entry['alphas'])
-                     + ', scales {:.4f}, {:.4f}, {:.4f} (its own {:.4f}, {:.4f}, {:.4f})'.format(
-                         *entry['scales'], *entry['own_scales']) + f'; NEES {nees}')
+                     + ', scales {:.4f}, {:.4f}, {:.4f}, {:.4f} (its own {:.4f}, {:.4f}, '
+                     '{:.4f}, {:.4f})'.format(*entry['scales'], *entry['own_scales'])
+                     + f'; NEES {nees}')
     lines.append('per robot across halves (own scales and alphas from one half, window '
                  'NEES on the other; pooled: all robots fitted on that half; 3 is right):')
     for entry in result.get('halves', ()):
@@ -494,6 +496,7 @@ def format_odometry_calibration(result):
                  f'    odometry_speed_scale: {result["scales"][0]:.4f}\n'
                  f'    odometry_yaw_rate_scale: {result["scales"][1]:.4f}\n'
                  f'    odometry_speed_scale_per_yaw_rate: {result["scales"][2]:.4f}\n'
+                 f'    odometry_yaw_per_m: {result["scales"][3]:.4f}\n'
                  'landmark_mrclam:\n  ros__parameters:\n'
                  f'    odometry_delay_s: {result["delay_s"]:.3f}')
     return '\n'.join(lines)

@@ -455,3 +455,17 @@ def test_sensor_noise_has_the_observers_three_range_terms():
     assert R[2, 0, 0] == 0.02 ** 2     # a bearing-only row: no range, its range term unused
     np.testing.assert_array_equal(R[:, 1, 1], 0.015 ** 2)
     np.testing.assert_array_equal(R[:, 0, 1], 0.0)
+
+
+def test_yaw_per_m_turns_the_robot_by_the_distance_driven():
+    # -0.04 rad per metre of odometry distance, forwards and backwards alike
+    config = LocalizerConfig(odometry_yaw_rate_scale=0.9, odometry_yaw_per_m=-0.04)
+    for v, w in ((0.5, 0.0), (-0.5, 0.0), (0.3, 0.4)):
+        loc = Localizer(config)
+        loc.initialize(0, np.zeros(3), np.eye(3) * 0.01)
+        loc.add_odometry(0, twist=np.array([v, w]))
+        loc.add_odometry(100 * MS, twist=np.array([v, w]))
+        delta = motion.delta_from_twist(v, w, 0.1)
+        expected = delta * [1.0, 1.0, 0.9] + [0.0, 0.0, -0.04 * math.hypot(*delta[:2])]
+        np.testing.assert_allclose(loc.estimate().x, expected, atol=1e-12)
+        assert loc.estimate().x[2] < 0.9 * delta[2]

@@ -20,8 +20,9 @@ def _robot_and_odometry(number, scales, seed):
     return robot, SimpleNamespace(odom_times=t, odom_twist=odometry)
 
 
-@pytest.mark.parametrize('scales', [(0.93, 0.9, 0.0), (1.0, 1.0, 0.0), (1.08, 0.95, 0.0),
-                                    (1.04, 0.9, -1.1), (0.97, 1.05, 0.3)])
+@pytest.mark.parametrize('scales', [(0.93, 0.9, 0.0, 0.0), (1.0, 1.0, 0.0, 0.0),
+                                    (1.08, 0.95, 0.0, 0.0), (1.04, 0.9, -1.1, -0.04),
+                                    (0.97, 1.05, 0.3, 0.03)])
 def test_odometry_scales_recover_the_true_scales(scales):
     robots, extras = [], {}
     for number in (1, 2, 3):
@@ -29,15 +30,16 @@ def test_odometry_scales_recover_the_true_scales(scales):
         robots.append(robot)
         extras[number] = odom
     dataset = SimpleNamespace(robots=robots)
-    speed, yaw, per_yaw_rate = odometry_scales(dataset, extras, [1, 2, 3], 0.0)
+    speed, yaw, per_yaw_rate, veer = odometry_scales(dataset, extras, [1, 2, 3], 0.0)
     assert speed == pytest.approx(scales[0], rel=2e-3)
     assert yaw == pytest.approx(scales[1], rel=2e-3)
+    assert veer == pytest.approx(scales[3], abs=1e-3)
     # the true distance of a window is its chord: shorter than the arc in turns (about
     # 0.2 % at 0.4 rad/s over 0.5 s), which leans a little on the speed loss in turns
     assert per_yaw_rate == pytest.approx(scales[2], abs=1e-2)
     # with the scales applied the windows of integrated odometry match the truth
     errors = window_samples(dataset, extras, [1, 2, 3], 2.0, 0.0,
-                            (speed, yaw, per_yaw_rate)).errors
+                            (speed, yaw, per_yaw_rate, veer)).errors
     raw = window_samples(dataset, extras, [1, 2, 3], 2.0, 0.0).errors
     assert np.sqrt(np.mean(errors ** 2)) < max(0.05 * np.sqrt(np.mean(raw ** 2)), 1e-3)
 
@@ -45,7 +47,7 @@ def test_odometry_scales_recover_the_true_scales(scales):
 def test_scale_twists_is_scale_motion_of_each_twist():
     rng = np.random.default_rng(3)
     twists = np.column_stack([rng.uniform(-0.2, 0.3, 50), rng.uniform(-1.0, 1.0, 50)])
-    scales = (1.04, 0.9, -1.1)
+    scales = (1.04, 0.9, -1.1, -0.04)
     batch = motion.scale_twists(twists, scales)
     for (v, w), (v_true, w_true) in zip(twists, batch):
         delta = motion.delta_from_twist(v, w, 0.02)
