@@ -45,6 +45,7 @@ from landmark_ros.mrclam import localize, slam
 from landmark_ros.mrclam.config import default_dataset_path, load_config
 from landmark_ros.mrclam.data import interpolate_poses, load_dataset
 from landmark_ros.mrclam.localize import metrics
+from landmark_ros.mrclam.localize_data import odometry_scales
 from landmark_ros.mrclam.slam_cli import _setup
 from landmark_ros.mrclam.slam_plan import without_robot_sightings
 import numpy as np
@@ -356,29 +357,14 @@ def fit_yaw(dataset, extras, delay_s, yaw_rate_scale, window_s=2.0):
     """
     Return ``(k, c)``: true turn = ``k`` x model turn + ``c`` x distance, pooled robots.
 
-    Least squares over windows of ``window_s`` [s] inside each robot's ground truth and
-    odometry: the true heading change against the odometry's turn (its yaw rates times
-    ``yaw_rate_scale``) and distance [m] (``corrected_twists`` takes them).
+    The turn factor and veer of ``localize_data.odometry_scales`` over windows of
+    ``window_s`` [s], the factor taken relative to ``yaw_rate_scale`` (the model turn is
+    the odometry's turn times it; ``corrected_twists`` takes them).
     """
-    X, y = [], []
-    for robot in dataset.robots:
-        ex = extras[robot.number]
-        t = ex.odom_times + delay_s
-        if len(t) < 2:
-            continue
-        dt = np.diff(t, append=t[-1])
-        turn = np.concatenate([[0.0], np.cumsum(ex.odom_twist[:, 1] * dt)])[:-1]
-        dist = np.concatenate([[0.0], np.cumsum(np.abs(ex.odom_twist[:, 0]) * dt)])[:-1]
-        grid = np.arange(max(t[0], robot.gt_times[0]) + window_s,
-                         min(t[-1], robot.gt_times[-1]) - window_s, window_s)
-        if len(grid) < 2:
-            continue
-        gt, _ = interpolate_poses(robot.gt_times, robot.gt_poses, grid)
-        X.append(np.column_stack([np.diff(np.interp(grid, t, turn)) * yaw_rate_scale,
-                                  np.diff(np.interp(grid, t, dist))]))
-        y.append(np.diff(np.unwrap(gt[:, 2])))
-    (k, c), *_ = np.linalg.lstsq(np.concatenate(X), np.concatenate(y), rcond=None)
-    return float(k), float(c)
+    numbers = [robot.number for robot in dataset.robots]
+    _, turn, _, veer = odometry_scales(dataset, extras, numbers, delay_s,
+                                       turn_window_s=window_s)
+    return turn / yaw_rate_scale, veer
 
 
 def main(argv=None):
