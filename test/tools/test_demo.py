@@ -164,6 +164,29 @@ def test_leftover_shared_memory_of_dead_processes_is_removed(tmp_path):
                 os.unlink(file)
 
 
+def test_a_port_semaphore_is_left_over_only_when_its_port_is_unused():
+    # Fast DDS maps a port's semaphore only while it holds it: a semaphore the demo was
+    # seen to map belongs to whoever still maps the port file, in any domain.
+    port = f'{SHM_DIR}/fastrtps_port{90000 + os.getpid() % 9000}'
+    semaphore = f'{SHM_DIR}/sem.{os.path.basename(port)}_mutex'
+    assert semaphore_owner(semaphore) == port and semaphore_owner(port) is None
+    for file in (port, semaphore):
+        Path(file).write_bytes(b'\0' * 64)
+    try:
+        with open(port, 'r+b') as stream:
+            mapped = mmap.mmap(stream.fileno(), 64)  # another user of the port
+            try:
+                assert_nothing_left({}, {semaphore}, 0, set())
+            finally:
+                mapped.close()
+        with pytest.raises(AssertionError, match='left behind'):
+            assert_nothing_left({}, {semaphore}, 0, set())
+    finally:
+        for file in (port, semaphore):
+            if os.path.exists(file):
+                os.unlink(file)
+
+
 # The demo ---------------------------------------------------------------------------
 
 def descendants(pid):
@@ -258,12 +281,23 @@ def run_demo(tmp_path, *args):
     return demo.returncode, log.read_text(), children, shm
 
 
+def semaphore_owner(path):
+    """Return the port file a ``sem.fastrtps_port<n>_mutex`` belongs to, else None."""
+    match = re.fullmatch(r'sem\.(fastrtps_port\d+)_mutex', os.path.basename(path))
+    return os.path.join(os.path.dirname(path), match.group(1)) if match else None
+
+
 def assert_nothing_left(children, shm, domain_id, ports_before):
     """Assert no process the demo started lives on and no shared memory leaked."""
     still = {pid: cmd for pid, cmd in children.items() if alive(pid, cmd.split()[0])}
     assert not still, f'processes left running: {still}'
     leaked = {f for f in shm if os.path.exists(f)}
     leaked -= mapped_by_anyone(leaked)  # files other programs still use are theirs too
+    # A port's semaphore is mapped only while it is taken; it belongs to its port file,
+    # which other processes (any domain: ports 7000+ are shared) may still map.
+    owners = {sem: semaphore_owner(sem) for sem in leaked if semaphore_owner(sem)}
+    used_ports = mapped_by_anyone(set(owners.values()))
+    leaked -= {sem for sem, port in owners.items() if port in used_ports}
     assert not leaked, f'shared-memory files left behind: {sorted(leaked)}'
     new_ports = port_files(domain_id) - ports_before
     new_ports -= mapped_by_anyone(new_ports)
