@@ -611,6 +611,35 @@ def persistence_params(path, *more):
             'input_topics:=[landmarks]') + more
 
 
+def file_version(path):
+    """
+    Return what tells one save of ``path`` from another, None if it does not exist.
+
+    The inode alone does not: ext4 hands a replaced file's inode to the next new file,
+    so two saves in a row alternate between two inodes.
+    """
+    try:
+        status = path.stat()
+    except FileNotFoundError:
+        return None
+    return status.st_ino, status.st_mtime_ns, status.st_size
+
+
+def wait_for_new_reader(env, node, pub, topic, known, process):
+    """
+    Spin until a subscription not in ``known`` (gids) reads ``topic``.
+
+    Discovering it is what matches it with ``pub``; a killed fuser's reader may stay
+    in the graph until its lease ends, so a count alone would not tell.
+    """
+    def matched():
+        readers = node.get_subscriptions_info_by_topic(topic)
+        fresh = [r for r in readers if bytes(r.endpoint_gid) not in known]
+        return bool(fresh) and pub.get_subscription_count() >= 1
+    assert env.spin_until(matched, DEADLINE_S), \
+        'the fuser never subscribed: ' + process.stderr_path.read_text()[-3000:]
+
+
 KILL_STATS = []
 """Sizes of the temporary files each SIGKILL left (none or one), for reports."""
 
@@ -633,10 +662,13 @@ def test_sigkill_during_autosave_never_tears_the_file_and_restart_publishes_it(
     cov = np.broadcast_to(C, (count, 2, 2))
     observations = np.zeros(count, np.int64)
     stamp = 0.0
+    topic = f'{start_fuser.namespace}/landmarks'
     for _ in range(3):
         before = set(temporary_files(directory))
-        inode = path.stat().st_ino if path.exists() else None
+        version = file_version(path)
+        readers = {bytes(i.endpoint_gid) for i in tester.get_subscriptions_info_by_topic(topic)}
         process = start_fuser(*overrides)
+        wait_for_new_reader(env, tester, pub, topic, readers, process)
         kill_after = rng.uniform(0.0, 0.4)
         saved_at = None
         # The first save of a fuser under this flood comes some seconds after its start
@@ -645,11 +677,12 @@ def test_sigkill_during_autosave_never_tears_the_file_and_restart_publishes_it(
         load = max(1.0, os.getloadavg()[0] / (os.cpu_count() or 1))
         deadline = time.monotonic() + 3 * DEADLINE_S * load
         # Flood until this fuser has saved once, then for a random while more: a new
-        # inode is a new save (os.replace), and it only saves after fusing new rows.
+        # file version is a new save (os.replace), and it only saves after fusing new rows.
         while saved_at is None or time.monotonic() - saved_at < kill_after:
             assert process.poll() is None, process.stderr_path.read_text()
-            assert time.monotonic() < deadline, 'the fuser never saved'
-            if saved_at is None and path.exists() and path.stat().st_ino != inode:
+            assert time.monotonic() < deadline, \
+                'the fuser never saved: ' + process.stderr_path.read_text()[-3000:]
+            if saved_at is None and file_version(path) != version:
                 saved_at = time.monotonic()
             stamp += 0.01
             pub.publish(landmark_message(header(stamp, 'map'), ids,
