@@ -366,7 +366,7 @@ def execute(args, config, paths):
     write_params_file(paths.params_path, parameters)
     progress = progress_bar(config.duration_s, False if args.no_progress else None)
     removed_shm = []
-    monitor = None
+    monitor = launcher = None
     try:
         monitor = Monitor(args.domain_id, config.robots, partial_robots(config),
                           every_true_pose=getattr(args, 'localize', False))
@@ -396,6 +396,8 @@ def execute(args, config, paths):
     finally:
         if monitor is not None:
             removed_shm += monitor.close()
+        if launcher is not None:    # what the monitor's node still mapped at the stop
+            removed_shm += launcher.remove_shm_in_use()
     if removed_shm:
         print('note: removed Fast DDS shared-memory files left unused by the run: '
               f"{' '.join(os.path.basename(f) for f in removed_shm)}")

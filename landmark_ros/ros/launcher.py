@@ -287,6 +287,9 @@ class Launcher:
         self.processes = {}
         self.removed_shm = []
         """Leftover shared-memory files of killed processes the launcher removed."""
+        self.shm_in_use = set()
+        """Files of dead processes that another process still mapped at the cleanup
+        (``remove_shm_in_use`` retries them)."""
 
     # Starting ---------------------------------------------------------------------
 
@@ -433,6 +436,25 @@ class Launcher:
             if not process.running:
                 candidates |= process.shm_files
         removed = remove_unused_shm(candidates)
+        self.removed_shm += removed
+        self.shm_in_use |= {p for p in candidates if os.path.exists(p)} - set(removed)
+        return removed
+
+    def remove_shm_in_use(self):
+        """
+        Remove the files ``cleanup_shm`` left because another process still mapped them.
+
+        A killed node's segment stays mapped by the processes that wrote to it (the
+        caller's own node, say) until they let it go: call this after they did.
+
+        Returns
+        -------
+        list of str
+            Files removed.
+
+        """
+        removed = remove_unused_shm(self.shm_in_use)
+        self.shm_in_use = {p for p in self.shm_in_use if os.path.exists(p)}
         self.removed_shm += removed
         return removed
 

@@ -158,6 +158,10 @@ def test_leftover_shared_memory_of_dead_processes_is_removed(tmp_path):
         assert removed == [name, name + '_el']
         assert not os.path.exists(name) and not os.path.exists(name + '_el')
         assert os.path.exists(f'{name}_inuse')
+        # Mapped no more (the caller's node let the dead one's segment go): retried.
+        assert launcher.shm_in_use == {f'{name}_inuse'}
+        assert launcher.remove_shm_in_use() == [f'{name}_inuse', f'{name}_inuse_el']
+        assert not os.path.exists(f'{name}_inuse') and not launcher.shm_in_use
     finally:
         for file in files:
             if os.path.exists(file):
