@@ -18,6 +18,7 @@ when no living process maps them any more.
 import ctypes
 import os
 from pathlib import Path
+import re
 import signal
 import subprocess
 import sys
@@ -151,12 +152,32 @@ def companions(path):
     return result
 
 
+def orphan_semaphores(paths):
+    """
+    Return the port semaphores of ``paths`` whose port file is gone.
+
+    A port file ``fastrtps_port<n>`` in ``paths`` (existing or not) stands for its
+    semaphore ``sem.fastrtps_port<n>_mutex``; a semaphore in ``paths`` for itself. The
+    last user of a port may remove the port file and leave its semaphore.
+    """
+    found = set()
+    for path in paths:
+        directory, name = os.path.split(path)
+        if re.fullmatch(r'fastrtps_port\d+', name):
+            found.add(os.path.join(directory, f'sem.{name}_mutex'))
+        elif re.fullmatch(r'sem\.fastrtps_port\d+_mutex', name):
+            found.add(path)
+    return {sem for sem in found if os.path.exists(sem) and not os.path.exists(
+        os.path.join(os.path.dirname(sem), os.path.basename(sem)[4:-6]))}
+
+
 def remove_unused_shm(paths):
     """
     Remove the Fast DDS shared-memory files of ``paths`` that no living process maps.
 
     Segments and port files are candidates; their lock files and semaphores go with
-    them. A file in use is mapped by its users, so an unmapped one is left over.
+    them. A file in use is mapped by its users, so an unmapped one is left over; so is
+    the semaphore of a port whose file is gone (``orphan_semaphores``).
 
     Parameters
     ----------
@@ -169,8 +190,9 @@ def remove_unused_shm(paths):
         Files removed.
 
     """
+    paths = set(paths)
     candidates = {p for p in paths if os.path.exists(p)
-                  and not os.path.basename(p).startswith('sem.')}
+                  and not os.path.basename(p).startswith('sem.')} | orphan_semaphores(paths)
     removed = []
     for path in sorted(candidates - mapped_by_anyone(candidates)):
         for file in companions(path):
