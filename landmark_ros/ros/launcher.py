@@ -152,6 +152,13 @@ def companions(path):
     return result
 
 
+def semaphore_port(path):
+    """Return the port file a ``sem.fastrtps_port<n>_mutex`` belongs to, else None."""
+    directory, name = os.path.split(path)
+    match = re.fullmatch(r'sem\.(fastrtps_port\d+)_mutex', name)
+    return os.path.join(directory, match.group(1)) if match else None
+
+
 def orphan_semaphores(paths):
     """
     Return the port semaphores of ``paths`` whose port file is gone.
@@ -165,10 +172,10 @@ def orphan_semaphores(paths):
         directory, name = os.path.split(path)
         if re.fullmatch(r'fastrtps_port\d+', name):
             found.add(os.path.join(directory, f'sem.{name}_mutex'))
-        elif re.fullmatch(r'sem\.fastrtps_port\d+_mutex', name):
+        elif semaphore_port(path):
             found.add(path)
-    return {sem for sem in found if os.path.exists(sem) and not os.path.exists(
-        os.path.join(os.path.dirname(sem), os.path.basename(sem)[4:-6]))}
+    return {sem for sem in found
+            if os.path.exists(sem) and not os.path.exists(semaphore_port(sem))}
 
 
 def remove_unused_shm(paths):

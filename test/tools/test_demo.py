@@ -19,8 +19,9 @@ import time
 
 from landmark_ros.ros.launcher import (Launcher, ManagedProcess, mapped_by_anyone,
                                        orphan_semaphores, ProcessExitedError,
-                                       remove_unused_shm, ros_module_command, SHM_DIR,
-                                       shm_files_of, write_params_file)
+                                       remove_unused_shm, ros_module_command,
+                                       semaphore_port, SHM_DIR, shm_files_of,
+                                       write_params_file)
 import numpy as np
 import pytest
 import yaml
@@ -198,7 +199,7 @@ def test_a_port_semaphore_is_left_over_only_when_its_port_is_unused():
     # seen to map belongs to whoever still maps the port file, in any domain.
     port = f'{SHM_DIR}/fastrtps_port{90000 + os.getpid() % 9000}'
     semaphore = f'{SHM_DIR}/sem.{os.path.basename(port)}_mutex'
-    assert semaphore_owner(semaphore) == port and semaphore_owner(port) is None
+    assert semaphore_port(semaphore) == port and semaphore_port(port) is None
     for file in (port, semaphore):
         Path(file).write_bytes(b'\0' * 64)
     try:
@@ -310,12 +311,6 @@ def run_demo(tmp_path, *args):
     return demo.returncode, log.read_text(), children, shm
 
 
-def semaphore_owner(path):
-    """Return the port file a ``sem.fastrtps_port<n>_mutex`` belongs to, else None."""
-    match = re.fullmatch(r'sem\.(fastrtps_port\d+)_mutex', os.path.basename(path))
-    return os.path.join(os.path.dirname(path), match.group(1)) if match else None
-
-
 def assert_nothing_left(children, shm, domain_id, ports_before):
     """Assert no process the demo started lives on and no shared memory leaked."""
     still = {pid: cmd for pid, cmd in children.items() if alive(pid, cmd.split()[0])}
@@ -324,7 +319,7 @@ def assert_nothing_left(children, shm, domain_id, ports_before):
     leaked -= mapped_by_anyone(leaked)  # files other programs still use are theirs too
     # A port's semaphore is mapped only while it is taken; it belongs to its port file,
     # which other processes (any domain: ports 7000+ are shared) may still map.
-    owners = {sem: semaphore_owner(sem) for sem in leaked if semaphore_owner(sem)}
+    owners = {sem: semaphore_port(sem) for sem in leaked if semaphore_port(sem)}
     used_ports = mapped_by_anyone(set(owners.values()))
     leaked -= {sem for sem, port in owners.items() if port in used_ports}
     # The last user of a port may leave its semaphore: the demo removes those of the
