@@ -218,6 +218,28 @@ class Monitor:
         """Observations the fuser gated out so far."""
         return sum(int(v.get('gated_out', 0)) for v in self.source_statuses().values())
 
+    def lost(self):
+        """
+        Return ``hop -> observations`` that went in at one end and not out at the other.
+
+        Per robot: those the simulator measured and the observer never took in
+        (``robotN -> observer``), and those the observer put out and the fuser never took
+        in (``robotN observer -> fuser``); only the hops that lost some.
+        """
+        lost = {}
+        for i in range(self.robots):
+            robot = f'robot{i + 1}'
+            observer = self.latest.get(f'/{robot}/landmark_observer', {})
+            source = self.latest.get(f'/landmark_fuser: /{robot}/landmarks', {})
+            hops = ((f'{robot} -> observer', self.sim.get(f'{robot}_observations'),
+                     observer.get('observations_in')),
+                    (f'{robot} observer -> fuser', observer.get('landmarks_out'),
+                     source.get('observations_in')))
+            for hop, sent, received in hops:
+                if sent is not None and received is not None and int(sent) > int(received):
+                    lost[hop] = int(sent) - int(received)
+        return lost
+
     def _settled(self, name, complete, idle, counter):
         """Whether a node's reports since the finish show it done with the run."""
         reports = self.statuses.get(name, [])

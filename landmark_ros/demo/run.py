@@ -170,7 +170,7 @@ def node_parameters(config, fusion, map_path):
     # Deep input queues and a long wait for the pose after an observation: on a loaded
     # machine a starved observer must catch up, not drop poses or observations.
     observer.update(world_frame=config.frame, diagnostics_period_s=0.5, marker_rate_hz=0.0,
-                    input_depth=200, max_wait_s=2.0)
+                    input_depth=200, output_depth=200, max_wait_s=2.0)
     fuser = {
         'world_frame': config.frame,
         'input_topics': [f'/robot{i + 1}/landmarks' for i in range(config.robots)],
@@ -409,6 +409,10 @@ def execute(args, config, paths):
     if not drained:
         print('warning: the pipeline did not settle in time; the last observations may '
               'be missing from the map')
+    lost = monitor.lost()
+    if lost:
+        print('warning: observations lost on the way (a starved machine?): '
+              + ', '.join(f'{hop} {count}' for hop, count in sorted(lost.items())))
     return None, monitor
 
 

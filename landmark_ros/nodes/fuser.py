@@ -50,11 +50,12 @@ class LandmarkFuser(Node):
             PointCloud2, landmark_topics, qos.reliable_input(config.input_depth),
             lambda: self.config.max_batch_messages,
             lambda: 0.25 * self.config.update_period_s, across=True, raw_clouds=True,
-            qos_overriding_options=overrides), self.on_landmarks, self._guard, fast)
+            qos_overriding_options=overrides, on_lost=self.on_lost),
+            self.on_landmarks, self._guard, fast)
         self.partial_inputs = fast_io.Inputs(self, fast_io.InputSpec(
             PointCloud2, partial_topics, qos.reliable_input(config.input_depth),
-            lambda: self.config.max_batch_messages, qos_overriding_options=overrides),
-            self.on_partial, self._guard, fast)
+            lambda: self.config.max_batch_messages, qos_overriding_options=overrides,
+            on_lost=self.on_lost), self.on_partial, self._guard, fast)
         self.outputs = MapOutputs(self, config)
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics',
                                                      qos.DIAGNOSTICS)
@@ -98,6 +99,13 @@ class LandmarkFuser(Node):
         self.outputs.markers_stale = True
 
     # Input ---------------------------------------------------------------------
+
+    def on_lost(self, topic, count):
+        """Count ``count`` messages of ``topic`` that went missing on the way."""
+        self.fuser.reject(self._source_of[topic], 'messages_lost', count,
+                          f'{count} messages lost on the way (a queue overflowed while '
+                          'this node was busy: raise input_depth here or the '
+                          "publisher's output_depth)")
 
     def on_landmarks(self, bursts):
         """

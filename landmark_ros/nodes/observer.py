@@ -22,6 +22,7 @@ from landmark_ros.ros import diagnostics, fast_io, guard, qos, runner
 from landmark_ros.ros.cloud import CloudError, read_columns
 from landmark_ros.ros.conversions import (InputError, pose_from_msg, pose_from_odometry,
                                           stamp_ns)
+from landmark_ros.ros.lost import SequenceGaps
 from landmark_ros.ros.params import declare_config, keep_in_sync
 from nav_msgs.msg import Odometry
 import numpy as np
@@ -52,13 +53,13 @@ class LandmarkObserver(Node):
         pose_type, pose_topic, on_pose = (
             (Odometry, 'odometry', self.on_odometry) if config.pose_type == 'odometry'
             else (PoseWithCovarianceStamped, 'pose', self.on_pose))
-        self.create_subscription(pose_type, pose_topic, self._guard(on_pose),
-                                 qos.sensor_input(config.input_depth),
-                                 qos_overriding_options=overrides)
+        self.pose_subscription = self.create_subscription(
+            pose_type, pose_topic, self._guard(self._counting_gaps(on_pose, pose_topic)),
+            qos.sensor_input(config.input_depth), qos_overriding_options=overrides)
         self.observation_inputs = fast_io.Inputs(self, fast_io.InputSpec(
             PointCloud2, ['observations'], qos.sensor_input(config.input_depth),
-            lambda: self.config.max_batch_messages, qos_overriding_options=overrides),
-            self.on_observations, self._guard, self._fast)
+            lambda: self.config.max_batch_messages, qos_overriding_options=overrides,
+            on_lost=self.on_lost), self.on_observations, self._guard, self._fast)
         self.landmark_pub = self.create_publisher(
             PointCloud2, 'landmarks', qos.reliable_output(config.output_depth),
             qos_overriding_options=overrides)
@@ -84,6 +85,24 @@ class LandmarkObserver(Node):
         self._latest_markers = {}
         self._periodic = None
         self._reset_timers()
+
+    def on_lost(self, topic, count):
+        """Count ``count`` messages of ``topic`` that went missing on the way."""
+        self.observer.counters.add('messages_lost', int(count),
+                                   f'{count} {topic} messages lost on the way (best-effort '
+                                   'data: a full queue or a starved node)')
+
+    def _counting_gaps(self, on_message, topic):
+        """Return ``on_message`` taking ``(msg, info)``: the sequence gaps go to ``on_lost``."""
+        gaps = SequenceGaps(lambda _: self.pose_subscription.get_publisher_count())
+
+        def callback(msg, info):
+            lost = gaps.lost(topic, [info])
+            if lost:
+                self.on_lost(topic, lost)
+            on_message(msg)
+        callback.__name__ = on_message.__name__
+        return callback
 
     def _guard(self, callback):
         # Callbacks created before the observer exists count into it once it does.

@@ -209,7 +209,9 @@ class ObserverConfig(ConfigBase):
         10, 'Queue depth of the input subscriptions (sensor-data QoS).',
         read_only=True, low=1, high=10000)
     output_depth: int = param(
-        10, 'Queue depth of the output publishers (reliable QoS).',
+        100, 'Queue depth of the output publishers (reliable QoS): what a busy '
+        'subscriber may fall behind before the oldest are overwritten (the fuser counts '
+        'them as messages_lost).',
         read_only=True, low=1, high=10000)
     marker_sigma: float = param(
         2.0, 'Size of the marker ellipses in standard deviations.', low=0.1, high=10.0)

@@ -32,6 +32,7 @@ import time
 from typing import Any, Callable, Optional, Sequence, Tuple
 
 from landmark_ros.ros.cloud import CloudError
+from landmark_ros.ros.lost import SequenceGaps
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.callback_groups import CallbackGroup, ReentrantCallbackGroup
 from rclpy.event_handler import SubscriptionEventCallbacks
@@ -113,7 +114,7 @@ def declare_switch(node):
     return True
 
 
-def take_waiting(subscription, msg_type, limit, raw=False):
+def take_waiting(subscription, msg_type, limit, raw=False, infos=None):
     """
     Take up to ``limit`` messages already queued on ``subscription``, without waiting.
 
@@ -127,6 +128,8 @@ def take_waiting(subscription, msg_type, limit, raw=False):
         Most messages to take.
     raw : bool
         Take the serialized bytes (as a ``raw=True`` subscription delivers them).
+    infos : list, optional
+        Gets each taken message's ``MessageInfo`` dict appended.
 
     Returns
     -------
@@ -144,6 +147,8 @@ def take_waiting(subscription, msg_type, limit, raw=False):
             if message_and_info is None:
                 break
             taken.append(message_and_info[0])
+            if infos is not None:
+                infos.append(message_and_info[1])
     return taken
 
 
@@ -158,6 +163,8 @@ class InputSpec:
     ``across``: a callback also takes what waits on the set's other topics
     (``BurstGroup``). ``raw_clouds``: PointCloud2 taken as bytes and read by
     ``cloud_bytes``; a cloud it cannot read is handed on as its ``CloudError``.
+    ``on_lost(topic, count)``: called with the ``count`` messages of ``topic`` that went
+    missing before those just taken (``lost.SequenceGaps``); None: not watched.
     """
 
     msg_type: type
@@ -168,6 +175,7 @@ class InputSpec:
     across: bool = False
     raw_clouds: bool = False
     qos_overriding_options: Any = None
+    on_lost: Optional[Callable[[str, int], None]] = None
 
 
 class Inputs:
@@ -188,21 +196,27 @@ class Inputs:
         wrap = wrap or (lambda callback: callback)
         events = SubscriptionEventCallbacks(use_default_callbacks=False) if fast else None
         self.subscriptions = {}
+        self._gaps = None if spec.on_lost is None else SequenceGaps(
+            lambda topic: self.subscriptions[topic].get_publisher_count())
         for topic in spec.topics:
             self.subscriptions[topic] = node.create_subscription(
-                spec.msg_type, topic, wrap(lambda msg, topic=topic: self.receive(msg, topic)),
+                spec.msg_type, topic,
+                wrap(lambda msg, info, topic=topic: self.receive(msg, topic, info)),
                 copy.copy(spec.qos_profile),    # qos_overrides.<topic>.* apply to each alone
                 qos_overriding_options=spec.qos_overriding_options,
                 raw=self._raw, event_callbacks=events, callback_group=self._group)
 
-    def receive(self, msg, topic):
+    def receive(self, msg, topic, info=None):
         """Hand on ``msg`` of ``topic`` with what waits (fast) or alone (plain)."""
         if not self.fast:
+            self._count_lost(topic, [info])
             self._deliver([(topic, [msg])])
             return
         limit = self.spec.limit()
+        infos = [info]
         bursts = [(topic, [msg] + take_waiting(self.subscriptions[topic], self.spec.msg_type,
-                                               limit - 1, self._raw))]
+                                               limit - 1, self._raw, infos))]
+        self._count_lost(topic, infos)
         if self._group is None:
             self._deliver(bursts)
             return
@@ -227,11 +241,19 @@ class Inputs:
                 break
 
     def _take_into(self, bursts, topic, limit):
+        infos = []
         waiting = self._group.take(self.subscriptions[topic], self.spec.msg_type, limit,
-                                   self._raw)
+                                   self._raw, infos)
         if waiting:
+            self._count_lost(topic, infos)
             bursts.append((topic, waiting))
         return bool(waiting)
+
+    def _count_lost(self, topic, infos):
+        if self._gaps is not None:
+            lost = self._gaps.lost(topic, infos)
+            if lost:
+                self.spec.on_lost(topic, lost)
 
     def _deliver(self, bursts):
         if self._raw:
@@ -284,13 +306,13 @@ class BurstGroup(CallbackGroup):
         if isinstance(entity, Subscription):     # not its QoS event handlers
             self._pointers[entity] = entity.handle.pointer
 
-    def take(self, subscription, msg_type, limit, raw=False):
+    def take(self, subscription, msg_type, limit, raw=False, infos=None):
         """
         Take what waits on another ``subscription`` of the group (``take_waiting``).
 
         Call it from the callback of a subscription of the group, not on that one.
         """
-        taken = take_waiting(subscription, msg_type, limit, raw)
+        taken = take_waiting(subscription, msg_type, limit, raw, infos)
         if taken and self._pointers.get(subscription) in self._ready:
             self._emptied.add(subscription)
         return taken

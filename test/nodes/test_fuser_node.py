@@ -884,7 +884,7 @@ def test_one_callback_takes_the_clouds_waiting_on_every_input_topic(env, monkeyp
                subscription[b]: [cloud(1.5, 12), cloud(2.5, 13)]}
     taken = []
 
-    def take_waiting(sub, msg_type, limit, raw=False):
+    def take_waiting(sub, msg_type, limit, raw=False, infos=None):
         taken.append((sub, limit))
         queue = waiting.get(sub, [])
         out, waiting[sub] = queue[:limit], queue[limit:]
@@ -914,7 +914,7 @@ class _Arrivals:
     def __init__(self, queues, arrivals):
         self.queues, self.arrivals, self.taken = queues, list(arrivals), []
 
-    def take_waiting(self, sub, msg_type, limit, raw=False):
+    def take_waiting(self, sub, msg_type, limit, raw=False, infos=None):
         self.taken.append((sub, limit))
         queue = self.queues.get(sub, [])
         out, self.queues[sub] = queue[:limit], queue[limit:]
