@@ -29,6 +29,7 @@ from landmark_ros.ros.conversions import InputError, stamp_ns
 from landmark_ros.ros.localizer_messages import (initial_pose, observation_rows,
                                                  odometry_motion, pose_message,
                                                  transform_message)
+from landmark_ros.ros.lost import counting_gaps
 from landmark_ros.ros.params import declare_config, keep_in_sync
 from nav_msgs.msg import Odometry
 import numpy as np
@@ -53,11 +54,12 @@ class LandmarkLocalizer(Node):
         self._map_stamp_ns = 0
         depth = config.input_depth
         overrides = QoSOverridingOptions.with_default_policies()
-        self.create_subscription(Odometry, 'odometry', self._guard(self.on_odometry),
+        self.create_subscription(Odometry, 'odometry',
+                                 self._guard(self._gaps(self.on_odometry, 'odometry')),
                                  qos.sensor_input(depth), qos_overriding_options=overrides)
         self.create_subscription(PointCloud2, 'observations',
-                                 self._guard(self.on_observations), qos.sensor_input(depth),
-                                 qos_overriding_options=overrides)
+                                 self._guard(self._gaps(self.on_observations, 'observations')),
+                                 qos.sensor_input(depth), qos_overriding_options=overrides)
         self.create_subscription(PointCloud2, 'fused_landmarks', self._guard(self.on_map),
                                  qos.LATCHED)
         self.create_subscription(PoseWithCovarianceStamped, 'initialpose',
@@ -69,9 +71,10 @@ class LandmarkLocalizer(Node):
                 self._guard(lambda msg, i=index: self._others.__setitem__(i, msg)),
                 qos.sensor_input(depth))
         if any(config.other_robots):
-            self.create_subscription(PointCloud2, 'robot_observations',
-                                     self._guard(self.on_robot_observations),
-                                     qos.sensor_input(depth))
+            self.create_subscription(
+                PointCloud2, 'robot_observations',
+                self._guard(self._gaps(self.on_robot_observations, 'robot_observations')),
+                qos.sensor_input(depth))
         self.pose_pub = self.create_publisher(PoseWithCovarianceStamped, 'pose',
                                               qos.reliable_output(depth))
         self.correction_pub = self.create_publisher(TransformStamped, 'odom_to_map',
@@ -88,6 +91,15 @@ class LandmarkLocalizer(Node):
         if config.map_file:
             self.load_map_file(config.map_file)
         self.create_timer(config.diagnostics_period_s, self._guard(self.publish_diagnostics))
+
+    def _gaps(self, on_message, topic):
+        return counting_gaps(on_message, topic, self.count_publishers, self.on_lost)
+
+    def on_lost(self, topic, count):
+        """Count ``count`` messages of ``topic`` that went missing on the way."""
+        self.localizer.counters.add('messages_lost', int(count),
+                                    f'{count} {topic} messages lost on the way (best-effort '
+                                    'data: a full queue or a starved node)')
 
     def _guard(self, callback):
         # Callbacks created before the localizer exists count into it once it does.

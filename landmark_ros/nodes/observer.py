@@ -22,7 +22,7 @@ from landmark_ros.ros import diagnostics, fast_io, guard, qos, runner
 from landmark_ros.ros.cloud import CloudError, read_columns
 from landmark_ros.ros.conversions import (InputError, pose_from_msg, pose_from_odometry,
                                           stamp_ns)
-from landmark_ros.ros.lost import SequenceGaps
+from landmark_ros.ros.lost import counting_gaps
 from landmark_ros.ros.params import declare_config, keep_in_sync
 from nav_msgs.msg import Odometry
 import numpy as np
@@ -54,7 +54,8 @@ class LandmarkObserver(Node):
             (Odometry, 'odometry', self.on_odometry) if config.pose_type == 'odometry'
             else (PoseWithCovarianceStamped, 'pose', self.on_pose))
         self.pose_subscription = self.create_subscription(
-            pose_type, pose_topic, self._guard(self._counting_gaps(on_pose, pose_topic)),
+            pose_type, pose_topic,
+            self._guard(counting_gaps(on_pose, pose_topic, self.count_publishers, self.on_lost)),
             qos.sensor_input(config.input_depth), qos_overriding_options=overrides)
         self.observation_inputs = fast_io.Inputs(self, fast_io.InputSpec(
             PointCloud2, ['observations'], qos.sensor_input(config.input_depth),
@@ -91,18 +92,6 @@ class LandmarkObserver(Node):
         self.observer.counters.add('messages_lost', int(count),
                                    f'{count} {topic} messages lost on the way (best-effort '
                                    'data: a full queue or a starved node)')
-
-    def _counting_gaps(self, on_message, topic):
-        """Return ``on_message`` taking ``(msg, info)``: the sequence gaps go to ``on_lost``."""
-        gaps = SequenceGaps(lambda _: self.pose_subscription.get_publisher_count())
-
-        def callback(msg, info):
-            lost = gaps.lost(topic, [info])
-            if lost:
-                self.on_lost(topic, lost)
-            on_message(msg)
-        callback.__name__ = on_message.__name__
-        return callback
 
     def _guard(self, callback):
         # Callbacks created before the observer exists count into it once it does.

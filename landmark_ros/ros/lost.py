@@ -65,3 +65,33 @@ class SequenceGaps:
         if gap and self._publisher_count(topic) == 1:
             return gap
         return 0
+
+
+def counting_gaps(on_message: Callable[[Any], None], topic: str,
+                  publisher_count: Callable[[str], int],
+                  on_lost: Callable[[str, int], None]) -> Callable[[Any, Any], None]:
+    """
+    Return a ``(msg, info)`` subscription callback that counts the gaps, then calls on.
+
+    Parameters
+    ----------
+    on_message : callable
+        ``on_message(msg)``: the subscription's own callback (its ``__name__`` is kept).
+    topic : str
+        The subscription's topic.
+    publisher_count : callable
+        ``publisher_count(topic) -> int`` (``Node.count_publishers``).
+    on_lost : callable
+        ``on_lost(topic, count)``, called before ``on_message`` when ``count`` messages
+        went missing.
+
+    """
+    gaps = SequenceGaps(publisher_count)
+
+    def callback(msg: Any, info: Any) -> None:
+        lost = gaps.lost(topic, [info])
+        if lost:
+            on_lost(topic, lost)
+        on_message(msg)
+    callback.__name__ = getattr(on_message, '__name__', 'callback')
+    return callback

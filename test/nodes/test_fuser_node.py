@@ -945,7 +945,10 @@ def _queued_ids(node, topics):
 def test_clouds_arriving_during_a_burst_are_taken_in_further_rounds_up_to_the_cap(
         env, monkeypatch):
     a, b, c = 'a/landmarks', 'b/landmarks', 'c/landmarks'
-    rig = FuserRig(env, topics=(a, b, c), min_observations=1, max_batch_messages=4)
+    # A long update period: the rounds' time budget (a quarter of it) never ends them,
+    # however loaded the machine, and no update empties the queues meanwhile.
+    rig = FuserRig(env, topics=(a, b, c), min_observations=1, max_batch_messages=4,
+                   update_period_s=10.0)
     sub = rig.node.landmark_inputs.subscriptions
     # Round 1 takes a: 1 + 2, b: 1. Meanwhile 3 arrive on a, 1 on b, 2 on c; round 2
     # takes a: 1 (its cap of 4), b: 1, c: 2; meanwhile 2 more on b and 1 on c; round 3

@@ -15,8 +15,10 @@ import sys
 
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseWithCovarianceStamped
+from landmark_ros.nodes.localizer import LandmarkLocalizer
 from landmark_ros.ros.qos import DIAGNOSTICS
 from landmark_ros.ros.schemas import landmark_message
+from nav_msgs.msg import Odometry
 import numpy as np
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rigs import DEADLINE_S, ObserverRig, unique_namespace, values_of
@@ -106,3 +108,13 @@ def test_the_observer_counts_the_gaps_of_its_pose_and_observation_inputs(env):
     inputs.receive(PointCloud2(), 'observations', {'publication_sequence_number': 10})
     inputs.receive(PointCloud2(), 'observations', {'publication_sequence_number': 12})
     assert rig.counts['messages_lost'] == 3 + 1
+
+
+def test_the_localizer_counts_the_gaps_of_its_odometry(env):
+    node = env.add(LandmarkLocalizer(context=env.context))
+    env.node('wheels').create_publisher(Odometry, '/odometry', 10)
+    assert env.spin_until(lambda: node.count_publishers('odometry') == 1, DEADLINE_S)
+    on_odometry = next(s for s in node.subscriptions if s.topic_name == '/odometry')
+    for number in (3, 4, 9):
+        on_odometry.callback(Odometry(), {'publication_sequence_number': number})
+    assert node.localizer.counters['messages_lost'] == 4
