@@ -22,6 +22,7 @@ poses whose true position lies inside the 95 % ellipse
 import math
 
 from landmark_ros.mrclam.localize import format_table, metrics, Track
+from landmark_ros.ros import qos
 from landmark_ros.ros.conversions import InputError, pose_from_msg, stamp_ns
 import numpy as np
 
@@ -60,8 +61,7 @@ def start_localizers(launcher, config, params_path, slam=False):
             remaps += ['-r', f'robot{robot + 1}/pose:={ns}/sim_pose']
         else:
             args[2:2] = ['-r', 'pose:=localized_pose']
-        for topic in ('odometry', 'observations'):
-            args += ['-p', f'qos_overrides.{ns}/{topic}.subscription.reliability:=reliable']
+        args += qos.replayed_input_arguments(ns, ('odometry', 'observations'))
         launcher.start_module(f'localizer_robot{robot + 1}', 'landmark_ros.nodes.localizer',
                               args)
     return remaps

@@ -56,6 +56,7 @@ from landmark_ros.demo.report import (evaluate_run, MIN_OBSERVATIONS_NO_IDS, NEE
 from landmark_ros.eval.metrics import format_table
 from landmark_ros.eval.plotting import PlotUnavailableError
 from landmark_ros.fusion.landmark_map import FUSION_METHODS
+from landmark_ros.ros import qos
 from landmark_ros.ros.launcher import Launcher, ProcessExitedError, write_params_file
 from landmark_ros.sim.simulation import SENSOR_KINDS, SimConfig, Simulation
 from tqdm import tqdm
@@ -273,8 +274,10 @@ def drive(config, launcher, monitor, params_path, progress, slam=False):
     ros_args = ['--params-file', str(params_path)]
     sim_remaps = start_localizers(launcher, config, params_path, slam) if slam else []
     for i in range(config.robots):
+        ns = f'/robot{i + 1}'
         launcher.start_module(f'observer_robot{i + 1}', 'landmark_ros.nodes.observer',
-                              ['-r', f'__ns:=/robot{i + 1}', *ros_args])
+                              ['-r', f'__ns:={ns}', *ros_args,
+                               *qos.replayed_input_arguments(ns, ('observations', 'pose'))])
     launcher.start_module('fuser', 'landmark_ros.nodes.fuser', ros_args)
     wait_until(monitor, launcher, monitor.pipeline_ready, 60.0,
                'the observers and the fuser to come up')

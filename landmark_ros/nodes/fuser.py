@@ -25,7 +25,6 @@ from landmark_ros.ros.conversions import stamp_ns
 from landmark_ros.ros.params import declare_config, keep_in_sync
 from landmark_ros.ros.subscriptions import IncompatiblePublishers
 from rclpy.node import Node
-from rclpy.qos_overriding_options import QoSOverridingOptions
 from sensor_msgs.msg import PointCloud2
 from std_srvs.srv import Trigger
 
@@ -45,7 +44,7 @@ class LandmarkFuser(Node):
         partial_topics = [topic for topic in config.partial_observation_topics if topic]
         self._source_of = {topic: self.resolve_topic_name(topic)
                            for topic in landmark_topics + partial_topics}
-        overrides = QoSOverridingOptions.with_default_policies()
+        overrides = qos.input_overrides()
         self.landmark_inputs = fast_io.Inputs(self, fast_io.InputSpec(
             PointCloud2, landmark_topics, qos.reliable_input(config.input_depth),
             lambda: self.config.max_batch_messages,

@@ -34,7 +34,6 @@ from landmark_ros.ros.params import declare_config, keep_in_sync
 from nav_msgs.msg import Odometry
 import numpy as np
 from rclpy.node import Node
-from rclpy.qos_overriding_options import QoSOverridingOptions
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header
 
@@ -53,7 +52,7 @@ class LandmarkLocalizer(Node):
         self._previous = None
         self._map_stamp_ns = 0
         depth = config.input_depth
-        overrides = QoSOverridingOptions.with_default_policies()
+        overrides = qos.input_overrides()
         self.create_subscription(Odometry, 'odometry',
                                  self._guard(self._gaps(self.on_odometry, 'odometry')),
                                  qos.sensor_input(depth), qos_overriding_options=overrides)

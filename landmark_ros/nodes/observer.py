@@ -28,7 +28,6 @@ from nav_msgs.msg import Odometry
 import numpy as np
 from rclpy.event_handler import PublisherEventCallbacks
 from rclpy.node import Node
-from rclpy.qos_overriding_options import QoSOverridingOptions
 from sensor_msgs.msg import PointCloud2
 from visualization_msgs.msg import MarkerArray
 
@@ -49,7 +48,7 @@ class LandmarkObserver(Node):
         # best-effort sensor data with a short queue, whose publishers start sending as
         # soon as they see a subscriber; the node takes them from its first message.
         self.observer = pipeline.Observer(config, self.get_logger().warning)
-        overrides = QoSOverridingOptions.with_default_policies()
+        overrides = qos.input_overrides()
         pose_type, pose_topic, on_pose = (
             (Odometry, 'odometry', self.on_odometry) if config.pose_type == 'odometry'
             else (PoseWithCovarianceStamped, 'pose', self.on_pose))

@@ -42,8 +42,10 @@ from std_msgs.msg import Header
 # Imported when first used, after the endpoints exist (scipy: seconds on a cold start).
 schemas = lazy('landmark_ros.ros.schemas')
 
-STREAM_QOS = qos.reliable_output(100)
-"""Poses and observations: reliable, which best-effort (sensor-data) readers accept too."""
+STREAM_QOS = qos.replayable_output(100)
+"""Poses and observations: reliable and transient local, which best-effort and volatile
+(sensor-data) readers accept too; a reader that asks for transient local gets the last 100
+messages sent before it matched (the simulation starts once each stream has a subscriber)."""
 
 
 def robot_name(index):

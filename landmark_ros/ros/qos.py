@@ -1,7 +1,8 @@
 """The QoS profiles of the package, defined once."""
 
-from rclpy.qos import (DurabilityPolicy, HistoryPolicy, qos_profile_sensor_data, QoSProfile,
-                       ReliabilityPolicy)
+from rclpy.qos import (DurabilityPolicy, HistoryPolicy, qos_profile_sensor_data, QoSPolicyKind,
+                       QoSProfile, ReliabilityPolicy)
+from rclpy.qos_overriding_options import QoSOverridingOptions
 
 DIAGNOSTICS = 10
 """Depth of the /diagnostics publishers (default reliable, volatile QoS)."""
@@ -23,6 +24,44 @@ def reliable_output(depth):
     """Return a reliable, volatile QoS profile with the given depth."""
     return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth,
                       reliability=ReliabilityPolicy.RELIABLE)
+
+
+def replayable_output(depth):
+    """
+    Return a reliable, transient-local profile: a late subscriber may get the last ``depth``.
+
+    For streams that start as soon as a first subscriber is seen (the simulator): a
+    subscriber that matches the writer a moment later and asks for transient local
+    (``input_overrides``) still gets what was sent meanwhile; volatile ones match too.
+    """
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth,
+                      reliability=ReliabilityPolicy.RELIABLE,
+                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+def input_overrides():
+    """
+    Return the QoS overrides an input subscription accepts from parameters.
+
+    ``qos_overrides.<topic>.subscription.{history,depth,reliability,durability}``: the
+    ROS 2 defaults and durability (transient local, to get what a ``replayable_output``
+    publisher sent before the match).
+    """
+    return QoSOverridingOptions(policy_kinds=(
+        QoSPolicyKind.HISTORY, QoSPolicyKind.DEPTH, QoSPolicyKind.RELIABILITY,
+        QoSPolicyKind.DURABILITY))
+
+
+def replayed_input_arguments(ns, topics):
+    """
+    Return node arguments that make the inputs ``ns/topic`` reliable and transient local.
+
+    ``['-p', 'qos_overrides.<ns>/<topic>.subscription.reliability:=reliable', ...]``, for
+    the subscriptions to a ``replayable_output`` stream that may start before they match.
+    """
+    return [arg for topic in topics for policy, value in (
+        ('reliability', 'reliable'), ('durability', 'transient_local')) for arg in (
+        '-p', f'qos_overrides.{ns}/{topic}.subscription.{policy}:={value}')]
 
 
 def reliable_input(depth):
