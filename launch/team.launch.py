@@ -276,15 +276,18 @@ def team_nodes(robots, arguments):
     """
     common = {'package': PACKAGE, 'output': 'screen', 'on_exit': on_failure,
               'sigterm_timeout': STOP_TIMEOUT_S}
+    sim = arguments['sim'].strip().lower() == 'true'
+    localize = arguments['localize'].strip().lower() == 'true'
+    from_sim = ('observations',) if localize else ('observations', 'pose')  # else localizers'
     nodes = [Node(executable='landmark_observer', name='landmark_observer', namespace=robot,
-                  parameters=[arguments['observer_params']], **common) for robot in robots]
+                  parameters=[arguments['observer_params'],
+                              replayed_inputs(robot, from_sim, sim)],
+                  **common) for robot in robots]
     overrides = fuser_topics(robots)
     if arguments['fusion']:
         overrides['fusion'] = arguments['fusion']
     nodes.append(Node(executable='landmark_fuser', name='landmark_fuser',
                       parameters=[arguments['fuser_params'], overrides], **common))
-    sim = arguments['sim'].strip().lower() == 'true'
-    localize = arguments['localize'].strip().lower() == 'true'
     if localize:
         nodes += localizer_nodes(robots, arguments, sim, common)
     if sim:
@@ -301,12 +304,28 @@ def team_nodes(robots, arguments):
     return nodes
 
 
+def replayed_inputs(robot, topics, sim):
+    """
+    Return the QoS overrides of a robot's inputs from the simulator (none without it).
+
+    The simulator starts once each stream has one subscriber; with the localizers a
+    robot's observations have two, and the one that matches a moment later gets what
+    was sent meanwhile only as a reliable, transient-local reader
+    (``landmark_ros.ros.qos.replayed_input_overrides``).
+    """
+    if not sim:
+        return {}
+    from landmark_ros.ros.qos import replayed_input_overrides
+    return replayed_input_overrides(f'/{robot}', topics)
+
+
 def localizer_nodes(robots, arguments, sim, common):
     """Return one ``landmark_localizer`` per robot, on the fuser's map (``localize:=true``)."""
     files = [arguments['localizer_params']] if arguments['localizer_params'] else []
     overrides = localizer_overrides(robots, arguments['sim_params'] if sim else None)
     return [Node(executable='landmark_localizer', name='landmark_localizer', namespace=robot,
-                 parameters=files + [extra],
+                 parameters=files + [extra, replayed_inputs(robot, ('odometry', 'observations'),
+                                                            sim)],
                  remappings=[('fused_landmarks', '/fused_landmarks')], **common)
             for robot, extra in zip(robots, overrides)]
 

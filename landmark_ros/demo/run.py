@@ -273,11 +273,12 @@ def drive(config, launcher, monitor, params_path, progress, slam=False):
     """Start the processes, follow the run and wait for the pipeline to drain."""
     ros_args = ['--params-file', str(params_path)]
     sim_remaps = start_localizers(launcher, config, params_path, slam) if slam else []
+    from_sim = ('observations',) if slam else ('observations', 'pose')  # else localizers'
     for i in range(config.robots):
         ns = f'/robot{i + 1}'
         launcher.start_module(f'observer_robot{i + 1}', 'landmark_ros.nodes.observer',
                               ['-r', f'__ns:={ns}', *ros_args,
-                               *qos.replayed_input_arguments(ns, ('observations', 'pose'))])
+                               *qos.replayed_input_arguments(ns, from_sim)])
     launcher.start_module('fuser', 'landmark_ros.nodes.fuser', ros_args)
     wait_until(monitor, launcher, monitor.pipeline_ready, 60.0,
                'the observers and the fuser to come up')

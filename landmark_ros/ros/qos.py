@@ -52,16 +52,22 @@ def input_overrides():
         QoSPolicyKind.DURABILITY))
 
 
-def replayed_input_arguments(ns, topics):
+def replayed_input_overrides(ns, topics):
     """
-    Return node arguments that make the inputs ``ns/topic`` reliable and transient local.
+    Return the parameters that make the inputs ``ns/topic`` reliable and transient local.
 
-    ``['-p', 'qos_overrides.<ns>/<topic>.subscription.reliability:=reliable', ...]``, for
+    ``{'qos_overrides.<ns>/<topic>.subscription.reliability': 'reliable', ...}``, for
     the subscriptions to a ``replayable_output`` stream that may start before they match.
     """
-    return [arg for topic in topics for policy, value in (
-        ('reliability', 'reliable'), ('durability', 'transient_local')) for arg in (
-        '-p', f'qos_overrides.{ns}/{topic}.subscription.{policy}:={value}')]
+    return {f'qos_overrides.{ns}/{topic}.subscription.{policy}': value
+            for topic in topics
+            for policy, value in (('reliability', 'reliable'), ('durability', 'transient_local'))}
+
+
+def replayed_input_arguments(ns, topics):
+    """Return ``replayed_input_overrides`` as node arguments (``-p name:=value`` pairs)."""
+    return [arg for name, value in replayed_input_overrides(ns, topics).items()
+            for arg in ('-p', f'{name}:={value}')]
 
 
 def reliable_input(depth):

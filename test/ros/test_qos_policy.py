@@ -31,3 +31,28 @@ def profile(reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.
 def test_a_publisher_must_offer_at_least_what_the_subscription_requests(
         requested, offered, expected):
     assert qos.incompatible_policy(requested, offered) == expected
+
+
+def test_the_simulator_streams_serve_default_and_replayed_inputs():
+    from landmark_ros.nodes.sim import STREAM_QOS
+    assert STREAM_QOS.durability == DurabilityPolicy.TRANSIENT_LOCAL
+    replayed = qos.sensor_input(10)
+    replayed.reliability = ReliabilityPolicy.RELIABLE
+    replayed.durability = DurabilityPolicy.TRANSIENT_LOCAL
+    for requested in (qos.sensor_input(10), qos.reliable_input(10), replayed):
+        assert qos.incompatible_policy(requested, STREAM_QOS) is None
+    # A replayed input cannot take a volatile publisher (the localizers' pose).
+    assert qos.incompatible_policy(replayed, qos.reliable_output(10)) == 'DURABILITY'
+
+
+def test_replayed_input_overrides_name_each_topic_of_the_namespace():
+    overrides = qos.replayed_input_overrides('/robot2', ('observations', 'pose'))
+    assert overrides == {
+        'qos_overrides./robot2/observations.subscription.reliability': 'reliable',
+        'qos_overrides./robot2/observations.subscription.durability': 'transient_local',
+        'qos_overrides./robot2/pose.subscription.reliability': 'reliable',
+        'qos_overrides./robot2/pose.subscription.durability': 'transient_local'}
+    arguments = qos.replayed_input_arguments('/robot2', ('pose',))
+    assert arguments == ['-p', 'qos_overrides./robot2/pose.subscription.reliability:=reliable',
+                         '-p', 'qos_overrides./robot2/pose.subscription.durability:='
+                         'transient_local']
