@@ -281,7 +281,7 @@ def team_nodes(robots, arguments):
     from_sim = ('observations',) if localize else ('observations', 'pose')  # else localizers'
     nodes = [Node(executable='landmark_observer', name='landmark_observer', namespace=robot,
                   parameters=[arguments['observer_params'],
-                              replayed_inputs(robot, from_sim, sim)],
+                              *replayed_inputs(robot, from_sim, sim)],
                   **common) for robot in robots]
     overrides = fuser_topics(robots)
     if arguments['fusion']:
@@ -306,7 +306,7 @@ def team_nodes(robots, arguments):
 
 def replayed_inputs(robot, topics, sim):
     """
-    Return the QoS overrides of a robot's inputs from the simulator (none without it).
+    Return the QoS overrides of a robot's inputs from the simulator: ``[dict]``, or ``[]``.
 
     The simulator starts once each stream has one subscriber; with the localizers a
     robot's observations have two, and the one that matches a moment later gets what
@@ -314,9 +314,9 @@ def replayed_inputs(robot, topics, sim):
     (``landmark_ros.ros.qos.replayed_input_overrides``).
     """
     if not sim:
-        return {}
+        return []
     from landmark_ros.ros.qos import replayed_input_overrides
-    return replayed_input_overrides(f'/{robot}', topics)
+    return [replayed_input_overrides(f'/{robot}', topics)]
 
 
 def localizer_nodes(robots, arguments, sim, common):
@@ -324,8 +324,8 @@ def localizer_nodes(robots, arguments, sim, common):
     files = [arguments['localizer_params']] if arguments['localizer_params'] else []
     overrides = localizer_overrides(robots, arguments['sim_params'] if sim else None)
     return [Node(executable='landmark_localizer', name='landmark_localizer', namespace=robot,
-                 parameters=files + [extra, replayed_inputs(robot, ('odometry', 'observations'),
-                                                            sim)],
+                 parameters=[*files, extra,
+                             *replayed_inputs(robot, ('odometry', 'observations'), sim)],
                  remappings=[('fused_landmarks', '/fused_landmarks')], **common)
             for robot, extra in zip(robots, overrides)]
 

@@ -183,6 +183,12 @@ def test_sim_starts_the_named_robots(fake_launch, context):
     topics = ('pose', 'true_pose', 'observations', 'odometry')
     assert sorted(sim.kwargs['remappings']) == sorted(
         (f'robot2/{t}', f'/scout/{t}') for t in topics)
+    # The observers take the simulator's streams as reliable, transient-local inputs.
+    scout = start(fake_launch, context)[1]
+    assert scout.kwargs['parameters'] == [context['observer_params'], {
+        f'qos_overrides./scout/{topic}.subscription.{policy}': value
+        for topic in ('observations', 'pose')
+        for policy, value in (('reliability', 'reliable'), ('durability', 'transient_local'))}]
 
 
 def test_localize_starts_a_localizer_per_robot_and_moves_the_sim_pose(fake_launch, context):
@@ -193,6 +199,15 @@ def test_localize_starts_a_localizer_per_robot_and_moves_the_sim_pose(fake_launc
     sim = nodes[-1] if nodes[-1].kwargs['executable'] == 'landmark_sim' else [
         n for n in nodes if n.kwargs.get('executable') == 'landmark_sim'][0]
     assert ('robot1/pose', '/alpha/sim_pose') in sim.kwargs['remappings']
+    # The observer's pose is the localizer's (volatile): only its observations are replayed.
+    observer = nodes[0]
+    assert observer.kwargs['parameters'][1] == {
+        'qos_overrides./alpha/observations.subscription.reliability': 'reliable',
+        'qos_overrides./alpha/observations.subscription.durability': 'transient_local'}
+    replayed = localizers[0].kwargs['parameters'][-1]
+    assert sorted(replayed) == sorted(
+        f'qos_overrides./{localizers[0].kwargs["namespace"]}/{topic}.subscription.{policy}'
+        for topic in ('odometry', 'observations') for policy in ('reliability', 'durability'))
 
 
 def test_fusion_argument_overrides_the_file(fake_launch, context):
