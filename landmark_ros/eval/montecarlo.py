@@ -1,7 +1,8 @@
 """
 Monte Carlo consistency of the three fusion methods in the simulator (ROS-free).
 
-``python -m landmark_ros.eval.montecarlo [--seeds 50] [--duration 20]`` runs the simulator
+``python -m landmark_ros.eval.montecarlo [--seeds 50] [--duration 20] [--scenario NAME]
+[--fusion METHOD]`` runs the simulator
 (``landmark_ros.sim.simulation``) for many seeds and drives the pipeline the nodes run
 with it: one ``observer.Observer`` per robot (its noise parameters are the
 simulator's), fed with the poses and observation messages in the order and with the
@@ -328,7 +329,7 @@ def verdict(mean, half_width, expectation):
 
 
 def run(seeds=50, duration_s=20.0, scenarios=tuple(SCENARIOS), methods=FUSION_METHODS,
-        out=sys.stdout):
+        out=None):
     """
     Run the Monte Carlo and print one table row per scenario and method.
 
@@ -342,8 +343,8 @@ def run(seeds=50, duration_s=20.0, scenarios=tuple(SCENARIOS), methods=FUSION_ME
         Keys of ``SCENARIOS``.
     methods : sequence of str
         Fusion methods.
-    out : file
-        Where the table goes.
+    out : file, optional
+        Where the table goes (``sys.stdout`` at the call).
 
     Returns
     -------
@@ -357,6 +358,7 @@ def run(seeds=50, duration_s=20.0, scenarios=tuple(SCENARIOS), methods=FUSION_ME
 
     """
     rows = []
+    out = sys.stdout if out is None else out
     print(f"{'scenario':<12} {'fusion':<30} {'landmarks':>9} {'ANEES':>6} {'chi2 95 %':>14} "
           f"{'seed mean':>9} {'95 % CI':>14}  expected     verdict  frame-averaged, 95 % CI",
           file=out)
@@ -414,11 +416,14 @@ def main(argv=None):
                         help='simulated seconds per seed')
     parser.add_argument('--scenario', choices=sorted(SCENARIOS), action='append',
                         help='scenario (repeatable; default all)')
+    parser.add_argument('--fusion', choices=FUSION_METHODS, action='append',
+                        help='fusion method (repeatable; default all three)')
     args = parser.parse_args(argv)
     started = time.monotonic()
     print(f'Monte Carlo: {args.seeds} seeds x {args.duration:g} s simulated per scenario, '
           'three robots, 20 landmarks (simulator defaults)')
-    rows = run(args.seeds, args.duration, tuple(args.scenario or SCENARIOS))
+    rows = run(args.seeds, args.duration, tuple(args.scenario or SCENARIOS),
+               tuple(args.fusion or FUSION_METHODS))
     print(f'{time.monotonic() - started:.1f} s')
     return 0 if all(row['ok'] for row in rows) else 1
 

@@ -92,3 +92,12 @@ def test_frame_averaged_nees_has_the_expectation_of_the_nees():
     # The bound can fail: without the frame term the same samples are far off.
     without_frame = np.einsum('ki,ki->k', n, np.linalg.solve(P, n[..., None])[..., 0])
     assert np.all(np.abs(plain.mean(axis=0) - without_frame) > 5.0 * standard_error)
+
+
+def test_the_command_line_runs_only_the_methods_asked_for(capsys):
+    code = montecarlo.main(['--seeds', '2', '--duration', '3', '--scenario', 'range',
+                            '--fusion', 'independent'])
+    rows = [line.split() for line in capsys.readouterr().out.splitlines()
+            if line.startswith('range ')]
+    assert [row[1] for row in rows] == ['independent']
+    assert code in (0, 1)
