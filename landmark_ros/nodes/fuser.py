@@ -22,6 +22,7 @@ from landmark_ros.pipeline.config import FuserConfig
 from landmark_ros.ros import diagnostics, fast_io, guard, qos, runner
 from landmark_ros.ros.cloud import CloudError
 from landmark_ros.ros.conversions import stamp_ns
+from landmark_ros.ros.lost import describe
 from landmark_ros.ros.params import declare_config, keep_in_sync
 from landmark_ros.ros.subscriptions import IncompatiblePublishers
 from rclpy.node import Node
@@ -102,9 +103,7 @@ class LandmarkFuser(Node):
     def on_lost(self, topic, count):
         """Count ``count`` messages of ``topic`` that went missing on the way."""
         self.fuser.reject(self._source_of[topic], 'messages_lost', count,
-                          f'{count} messages lost on the way (a queue overflowed while '
-                          'this node was busy: raise input_depth here or the '
-                          "publisher's output_depth)")
+                          describe(topic, count))
 
     def on_landmarks(self, bursts):
         """

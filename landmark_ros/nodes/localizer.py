@@ -29,7 +29,7 @@ from landmark_ros.ros.conversions import InputError, stamp_ns
 from landmark_ros.ros.localizer_messages import (initial_pose, observation_rows,
                                                  odometry_motion, pose_message,
                                                  transform_message)
-from landmark_ros.ros.lost import counting_gaps
+from landmark_ros.ros.lost import counting_gaps, describe
 from landmark_ros.ros.params import declare_config, keep_in_sync
 from nav_msgs.msg import Odometry
 import numpy as np
@@ -96,9 +96,7 @@ class LandmarkLocalizer(Node):
 
     def on_lost(self, topic, count):
         """Count ``count`` messages of ``topic`` that went missing on the way."""
-        self.localizer.counters.add('messages_lost', int(count),
-                                    f'{count} {topic} messages lost on the way (best-effort '
-                                    'data: a full queue or a starved node)')
+        self.localizer.counters.add('messages_lost', int(count), describe(topic, count))
 
     def _guard(self, callback):
         # Callbacks created before the localizer exists count into it once it does.

@@ -22,7 +22,7 @@ from landmark_ros.ros import diagnostics, fast_io, guard, qos, runner
 from landmark_ros.ros.cloud import CloudError, read_columns
 from landmark_ros.ros.conversions import (InputError, pose_from_msg, pose_from_odometry,
                                           stamp_ns)
-from landmark_ros.ros.lost import counting_gaps
+from landmark_ros.ros.lost import counting_gaps, describe
 from landmark_ros.ros.params import declare_config, keep_in_sync
 from nav_msgs.msg import Odometry
 import numpy as np
@@ -88,9 +88,7 @@ class LandmarkObserver(Node):
 
     def on_lost(self, topic, count):
         """Count ``count`` messages of ``topic`` that went missing on the way."""
-        self.observer.counters.add('messages_lost', int(count),
-                                   f'{count} {topic} messages lost on the way (best-effort '
-                                   'data: a full queue or a starved node)')
+        self.observer.counters.add('messages_lost', int(count), describe(topic, count))
 
     def _guard(self, callback):
         # Callbacks created before the observer exists count into it once it does.

@@ -67,6 +67,13 @@ class SequenceGaps:
         return 0
 
 
+def describe(topic: str, count: int) -> str:
+    """Return the log detail of ``count`` messages of ``topic`` lost on the way."""
+    return (f'{count} {topic} messages lost on the way (a queue overflowed or a '
+            "best-effort sample was dropped while a node was busy: raise this input's "
+            "input_depth or the publisher's queue depth)")
+
+
 def counting_gaps(on_message: Callable[[Any], None], topic: str,
                   publisher_count: Callable[[str], int],
                   on_lost: Callable[[str, int], None]) -> Callable[[Any, Any], None]:
