@@ -324,7 +324,7 @@ def _split_ci_2x2(m1, P1i, P1d, m2, P2i, P2d, omega):
 def split_ci_2x2_entries(
         m1: Tuple[NDArray[np.float64], NDArray[np.float64]], P1i: Entries2x2, P1d: Entries2x2,
         m2: Tuple[NDArray[np.float64], NDArray[np.float64]], P2i: Entries2x2, P2d: Entries2x2,
-        omega: NDArray[np.float64]
+        omega: Optional[NDArray[np.float64]]
 ) -> Tuple[Tuple[NDArray[np.float64], NDArray[np.float64]], Entries2x2, Entries2x2]:
     """
     Return split CI of 2x2 parts given as entries, as entries.
@@ -335,8 +335,9 @@ def split_ci_2x2_entries(
         ``(x, y)`` of the means, each shape () or (N,) [m].
     P1i, P1d, P2i, P2d : tuple of ndarray
         ``(xx, xy, yy)`` of the independent and dependent parts [m^2].
-    omega : ndarray, shape () or (N,)
-        Weight in (0, 1).
+    omega : ndarray, shape () or (N,), or None
+        Weight in (0, 1). None: the two dependent parts are independent of each other
+        (no weight: the product of Gaussians, the parts kept apart).
 
     Returns
     -------
@@ -357,7 +358,7 @@ def split_ci_2x2_entries(
     """
     s = power_of_4_scale(P1i[0] + P1d[0], P1i[2] + P1d[2], P2i[0] + P2d[0], P2i[2] + P2d[2])
     P1i, P1d, P2i, P2d = (_divide(P, s) for P in (P1i, P1d, P2i, P2d))
-    u, v = omega, 1.0 - omega
+    u, v = (1.0, 1.0) if omega is None else (omega, 1.0 - omega)
     D1 = _divide(P1d, u)
     D2 = _divide(P2d, v)
     A = (D1[0] + P1i[0], D1[1] + P1i[1], D1[2] + P1i[2])
@@ -373,7 +374,7 @@ def split_ci_2x2_entries(
     return m, P_ind, P_dep
 
 
-def _divide(P: Entries2x2, s: NDArray[np.float64]) -> Entries2x2:
+def _divide(P: Entries2x2, s: Union[float, NDArray[np.float64]]) -> Entries2x2:
     """Return the entries of ``P / s``."""
     return P[0] / s, P[1] / s, P[2] / s
 

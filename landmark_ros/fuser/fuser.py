@@ -88,7 +88,8 @@ class Fuser:
             self.logger.warning(warning)
         self.counters = Counters(self.logger.warning, config.log_throttle_s)
         self.map = MovingLandmarkMap(config.fusion, config.gate_probability,
-                                     config.min_observations, config.max_consecutive_rejections)
+                                     config.min_observations, config.max_consecutive_rejections,
+                                     config.source_correlation)
         self.moves = move_detector(config, self.map.threshold)
         """Change detection on the confirmed landmarks (``fuser.change_detection``)."""
         self.sources: Dict[str, Source] = {

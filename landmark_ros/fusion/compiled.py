@@ -28,10 +28,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 
-def _limits():
-    """Return the weight search's constants (an argument: numba would freeze globals)."""
+def _limits(independent=False):
+    """
+    Return the weight search's constants (an argument: numba would freeze globals).
+
+    The last entry is 1.0 when the sources are independent of each other (no weight).
+    """
     return np.array([OMEGA_BRACKET, 1.0 - OMEGA_BRACKET, OMEGA_EDGE, OMEGA_TOLERANCE,
-                     OMEGA_QUADRATIC])
+                     OMEGA_QUADRATIC, 1.0 if independent else 0.0])
 
 
 def _scale4(d0, d1, d2, d3):
@@ -159,15 +163,15 @@ def _congruence(k00, k01, k10, k11, a, b, c):
     return r00 * k00 + r01 * k01, r00 * k10 + r01 * k11, r10 * k10 + r11 * k11
 
 
-def _split_ci(first, second, omega, out):
-    # split_ci_2x2_entries on packed (x, y, ind xx, xy, yy, dep xx, xy, yy).
+def _split_ci(first, second, u, v, out):
+    # split_ci_2x2_entries on packed (x, y, ind xx, xy, yy, dep xx, xy, yy); the
+    # dependent parts divided by u and v (omega, 1 - omega; 1, 1: independent).
     s = _scale4(first[2] + first[5], first[4] + first[7],
                 second[2] + second[5], second[4] + second[7])
     p1i0, p1i1, p1i2 = first[2] / s, first[3] / s, first[4] / s
     p1d0, p1d1, p1d2 = first[5] / s, first[6] / s, first[7] / s
     p2i0, p2i1, p2i2 = second[2] / s, second[3] / s, second[4] / s
     p2d0, p2d1, p2d2 = second[5] / s, second[6] / s, second[7] / s
-    u, v = omega, 1.0 - omega
     d10, d11, d12 = p1d0 / u, p1d1 / u, p1d2 / u
     d20, d21, d22 = p2d0 / v, p2d1 / v, p2d2 / v
     a0, a1, a2 = d10 + p1i0, d11 + p1i1, d12 + p1i2
@@ -240,8 +244,11 @@ def _fold_one(table, slots, order, out, limits):
     for j in range(start, n):
         first = table[slots[order[j - 1]], PREFIX:PREFIX + 8]
         t = table[slots[order[j]]]
-        _split_ci(first, t[PART:PART + 8], _omega_of(first, t[PART:PART + 8], limits),
-                  t[PREFIX:PREFIX + 8])
+        u, v = 1.0, 1.0
+        if limits[5] == 0.0:
+            u = _omega_of(first, t[PART:PART + 8], limits)
+            v = 1.0 - u
+        _split_ci(first, t[PART:PART + 8], u, v, t[PREFIX:PREFIX + 8])
         t[RANK] = j
     for i in range(8):
         out[i] = table[slots[order[n - 1]], PREFIX + i]
@@ -266,34 +273,37 @@ _lock = threading.Lock()
 
 
 def fold_python(table: NDArray[np.float64], slots: NDArray[np.int64], lo: NDArray[np.int64],
-                hi: NDArray[np.int64]) -> NDArray[np.float64]:
+                hi: NDArray[np.int64], independent: bool = False) -> NDArray[np.float64]:
     """Return ``fold`` by the plain Python functions (slow; for tests); keeps the fold too."""
-    return _call(_fold_all, table, slots, lo, hi)
+    return _call(_fold_all, table, slots, lo, hi, independent)
 
 
-def _call(kernel, table, slots, lo, hi):
+def _call(kernel, table, slots, lo, hi, independent):
     out = np.empty((len(lo), 8))
     with np.errstate(all='ignore'):
         kernel(np.ascontiguousarray(table, dtype=np.float64), *(
-            np.ascontiguousarray(x, dtype=np.int64) for x in (slots, lo, hi)), out, _limits())
+            np.ascontiguousarray(x, dtype=np.int64) for x in (slots, lo, hi)), out,
+            _limits(independent))
     return out
 
 
 def fold(table: NDArray[np.float64], slots: NDArray[np.int64], lo: NDArray[np.int64],
-         hi: NDArray[np.int64]) -> Optional[NDArray[np.float64]]:
+         hi: NDArray[np.int64], independent: bool = False) -> Optional[NDArray[np.float64]]:
     """
     Return the fold of landmarks, compiled; None while that is not ready.
 
     Landmark ``k``'s sources are ``table[slots[lo[k]:hi[k]]]`` (``source_sums.fold``:
     at least one); returns shape (K, 8): mean, ``(xx, xy, yy)`` of ``P_ind`` and of
-    ``P_dep``. Updates the kept folds in ``table`` (columns ``DIRTY`` on). Starts
-    loading the compiled fold on first call (``start``), without waiting.
+    ``P_dep``. ``independent``: the sources' dependent parts are independent of each
+    other (no weight). Updates the kept folds in ``table`` (columns ``DIRTY`` on); a
+    table is folded one way only. Starts loading the compiled fold on first call
+    (``start``), without waiting.
     """
     kernel = _state['kernel']
     if kernel is None:
         start()
         return None
-    return _call(kernel, table, slots, lo, hi)
+    return _call(kernel, table, slots, lo, hi, independent)
 
 
 def enabled() -> bool:
@@ -342,7 +352,8 @@ def _load() -> None:
             kernels[name] = jit(type(function)(function.__code__, scope, name))
         table = np.zeros((1, COLUMNS))
         table[0, 0], table[0, 2], table[0, DIRTY] = 1.0, 1.0, 1.0
-        _call(kernels['_fold_all'], table, [0], [0], [1])
+        for independent in (False, True):
+            _call(kernels['_fold_all'], table, [0], [0], [1], independent)
     except Exception:   # noqa: BLE001 - any failure: the numpy fold serves
         return
     _state['kernel'] = kernels['_fold_all']

@@ -2,19 +2,18 @@
 A map of landmark estimates fused by ID, with gating and confirmation.
 
 Symbols: ``ids`` landmark IDs (N,); ``z`` observed positions in the world (N, 2) [m];
-``R`` their covariances (N, 2, 2) [m^2], ``R_dep`` the dependent part (pose error,
-sensor bias: correlated across observations), ``R_ind = R - R_dep`` the independent
-part (noise). An estimate ``m, P`` is held as ``P_ind`` and ``P_dep``; ``stamp_ns`` is
-integer nanoseconds. The fusion method (``fusion.methods``) is chosen once.
+``R`` their covariances (N, 2, 2) [m^2], ``R_dep`` the dependent part (pose error, sensor
+bias: correlated across observations), ``R_ind = R - R_dep`` the independent part. An
+estimate is held as ``m, P_ind, P_dep``; ``stamp_ns`` is integer nanoseconds.
 
 An observation of a confirmed landmark is gated by its squared Mahalanobis distance to
 the landmark's gate reference (innovation covariance ``P_ref + R``): the estimate after
 its last refresh (``records.gate_due``), rebuild, merge, ``set_estimate`` or
 ``load_records``. A new ID becomes a landmark once ``min_observations`` of its
-observations agree; a landmark rejected ``max_consecutive_rejections`` times in a row is
-rebuilt from them when they agree (it moved). A batch gives the same map as its rows one
-by one: the rows of confirmed landmarks go in passes, each taking every landmark's rows
-up to its next refresh or rebuild (``_pass``), when its gate reference changes.
+observations agree; one rejected ``max_consecutive_rejections`` times in a row is rebuilt
+from them when they agree (it moved). A batch gives the same map as its rows one by one:
+the rows of confirmed landmarks go in passes, each taking every landmark's rows up to its
+next refresh or rebuild (``_pass``), when its gate reference changes.
 """
 
 from collections import deque
@@ -23,7 +22,7 @@ from typing import Any, Deque, Dict, List, Mapping, Optional, Sequence, Tuple, U
 
 from landmark_ros.core.arrays import mahalanobis_sq_2x2, unique_ints
 from landmark_ros.core.gating import chi2_threshold
-from landmark_ros.fusion.methods import METHODS, Rows
+from landmark_ros.fusion.methods import FUSION_METHODS, make_method, Rows  # noqa: F401
 from landmark_ros.fusion.records import (agreeing, Batch, Checkpoint, floored, gate_due,
                                          MapSnapshot, Observation, parse_record, stack,
                                          UpdateResult)
@@ -33,8 +32,6 @@ from numpy.typing import ArrayLike, NDArray
 
 _NO_STAMP = np.iinfo(np.int64).min
 """``first_stamp_ns`` of a landmark that has not had an observation yet."""
-
-FUSION_METHODS = tuple(METHODS)
 
 
 class LandmarkMap:
@@ -51,23 +48,25 @@ class LandmarkMap:
         Mutually consistent observations needed before a landmark is confirmed.
     max_consecutive_rejections : int
         Rejections in a row after which a landmark is rebuilt from them.
+    source_correlation : str
+        ``'unknown'`` or ``'independent'`` (split CI: ``methods.make_method``).
 
     Raises
     ------
     ValueError
-        If ``fusion`` is unknown or a count is below 1.
+        If ``fusion`` or ``source_correlation`` is unknown or a count is below 1.
 
     """
 
     def __init__(self, fusion: str = 'split_covariance_intersection',
                  gate_probability: float = 0.999, min_observations: int = 2,
-                 max_consecutive_rejections: int = 5) -> None:
-        if fusion not in FUSION_METHODS:
-            raise ValueError(f'fusion must be one of {FUSION_METHODS}, got {fusion!r}')
+                 max_consecutive_rejections: int = 5, source_correlation: str = 'unknown'
+                 ) -> None:
         if min_observations < 1 or max_consecutive_rejections < 1:
             raise ValueError('min_observations and max_consecutive_rejections must be >= 1')
         self.fusion = fusion
-        self._method = METHODS[fusion]()
+        self._method = make_method(fusion, source_correlation)
+        self.source_correlation = source_correlation
         self.threshold = chi2_threshold(2, gate_probability)
         self.min_observations = int(min_observations)
         self.max_consecutive_rejections = int(max_consecutive_rejections)

@@ -63,6 +63,11 @@ class Independent:
 
     name = 'independent'
 
+    def __init__(self, independent_sources: bool = False) -> None:
+        self.independent_sources = bool(independent_sources)
+        """Whether the sources' dependent parts are independent of each other (split CI
+        only: this method treats every part as independent, CI none)."""
+
     def reset(self) -> None:
         """Forget every landmark (nothing to forget)."""
 
@@ -168,7 +173,7 @@ class SplitCovarianceIntersection(Independent):
 
     def reset(self) -> None:
         """Forget every landmark (the compiled fold starts loading at the first fold)."""
-        self.sums = SourceSums()
+        self.sums = SourceSums(self.independent_sources)
         self.stale = np.zeros(64, bool)
 
     def _mark(self, rows, value):
@@ -253,3 +258,20 @@ class SplitCovarianceIntersection(Independent):
 METHODS = {cls.name: cls for cls in (
     Independent, CovarianceIntersection, SplitCovarianceIntersection)}
 """The fusion methods by name."""
+
+FUSION_METHODS = tuple(METHODS)
+"""Their names."""
+
+SOURCE_CORRELATIONS = ('unknown', 'independent')
+"""``source_correlation`` values: the dependent parts of different sources correlated in
+an unknown way (robots posed against a shared map), or independent (motion capture)."""
+
+
+def make_method(fusion: str, source_correlation: str = 'unknown') -> Independent:
+    """Return a new fusion method by name; ValueError for an unknown name or correlation."""
+    if fusion not in METHODS:
+        raise ValueError(f'fusion must be one of {tuple(METHODS)}, got {fusion!r}')
+    if source_correlation not in SOURCE_CORRELATIONS:
+        raise ValueError(f'source_correlation must be one of {SOURCE_CORRELATIONS}, '
+                         f'got {source_correlation!r}')
+    return METHODS[fusion](source_correlation == 'independent')

@@ -74,7 +74,9 @@ class SourceSums:
     it changes, so a checkpoint is cheap.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, independent: bool = False) -> None:
+        self.independent = bool(independent)
+        """Whether the sources' dependent parts are independent of each other (``fold``)."""
         self.keys = np.empty(0, np.int64)
         self.slots = np.empty(0, np.int64)
         self.table = np.zeros((64, compiled.COLUMNS))   # sums, then the kept fold
@@ -129,7 +131,8 @@ class SourceSums:
         lo, hi = self._bounds(rows)
         held = hi > lo
         rows, lo, hi = rows[held], lo[held], hi[held]
-        return rows, (fold(self.table, self.slots, lo, hi) if len(rows) else None)
+        return rows, (fold(self.table, self.slots, lo, hi, self.independent) if len(rows)
+                      else None)
 
     def clear(self, rows: NDArray[np.int64]) -> None:
         """Forget the sources of landmarks (their slots stay unused until ``checkpoint``)."""
@@ -275,9 +278,16 @@ def one_source(mean: NDArray[np.float64], P_ind: NDArray[np.float64],
 
 
 def fold(table: NDArray[np.float64], slots: NDArray[np.int64], lo: NDArray[np.int64],
-         hi: NDArray[np.int64]) -> Estimates:
+         hi: NDArray[np.int64], independent: bool = False) -> Estimates:
     """
     Fuse the source estimates of each landmark by split CI, the tightest first.
+
+    With ``independent`` the dependent parts of different sources are independent of
+    each other (each source's own pose error and sensor bias: robots posed by motion
+    capture): no weight, the product of the sources' Gaussians, each source's own
+    parts still bounded by CI (``_estimate``); the fused dependent part is the sources'
+    dependent parts through the gains. Else their correlation is unknown (robots posed
+    against a shared map): split CI.
 
     Split CI is not associative: folding the sources from the smallest covariance
     (determinant) up makes the result independent of the order they arrived in. The
@@ -293,15 +303,17 @@ def fold(table: NDArray[np.float64], slots: NDArray[np.int64], lo: NDArray[np.in
         Rows of ``table``.
     lo, hi : ndarray of int, shape (K,)
         Landmark ``k``'s sources are ``table[slots[lo[k]:hi[k]]]``, at least one.
+    independent : bool
+        Whether the sources' dependent parts are independent of each other.
 
     Returns
     -------
     Estimates
 
     """
-    packed = compiled.fold(table, slots, lo, hi)
+    packed = compiled.fold(table, slots, lo, hi, independent)
     if packed is None:
-        packed = fold_numpy(table, slots, lo, hi)
+        packed = fold_numpy(table, slots, lo, hi, independent)
     return Estimates(packed[:, :2].copy(), symmetric_2x2(packed[:, 2], packed[:, 3], packed[:, 4]),
                      symmetric_2x2(packed[:, 5], packed[:, 6], packed[:, 7]))
 
@@ -319,7 +331,7 @@ def _estimate(Y, y, Q):
 
 
 def fold_numpy(table: NDArray[np.float64], slots: NDArray[np.int64], lo: NDArray[np.int64],
-               hi: NDArray[np.int64]) -> NDArray[np.float64]:
+               hi: NDArray[np.int64], independent: bool = False) -> NDArray[np.float64]:
     """
     Return ``fold`` packed, shape (K, 8): mean, ``P_ind`` and ``P_dep`` entries (numpy).
 
@@ -342,7 +354,8 @@ def fold_numpy(table: NDArray[np.float64], slots: NDArray[np.int64], lo: NDArray
     steps = (counts[:, None] > np.arange(1, int(counts[0]))).sum(axis=0)
     for j, k in enumerate(steps.tolist(), start=1):
         first, second = _split_entries(fused[:k]), _split_entries(parts[:k, j])
-        omega = sci_omega_2x2(first[1], first[2], second[1], second[2])
+        omega = None if independent else sci_omega_2x2(first[1], first[2], second[1],
+                                                       second[2])
         new_m, new_i, new_d = split_ci_2x2_entries(first[0], first[1], first[2], second[0],
                                                    second[1], second[2], omega)
         fused[:k] = np.stack([*new_m, *new_i, *new_d], axis=1)

@@ -291,13 +291,18 @@ def correlation_model(key, time, residuals, max_lag_steps=400):
     return out
 
 
-def _weighted_bias(medians, counts, noise_variance):
-    """Return the RMS bias: mean of median^2 minus the median's own variance, weighted."""
+def _rms_bias(medians, counts, noise_variance):
+    """
+    Return the RMS bias: the mean of median^2 less the median's own variance.
+
+    Each robot (or pair) is one draw of the bias, whatever its number of sightings: the
+    mean is over the draws, each weighing the same.
+    """
     medians, counts = np.asarray(medians), np.asarray(counts, dtype=np.float64)
     if not len(medians):
         return 0.0
     excess = medians ** 2 - (math.pi / 2.0) * np.asarray(noise_variance) / counts
-    return math.sqrt(max(0.0, float(np.sum(counts * excess) / np.sum(counts))))
+    return math.sqrt(max(0.0, float(np.mean(excess))))
 
 
 ROBOT_RANGE_EDGES = (0.0, 1.5, 2.5, 3.5, 4.5, 1000.0)
@@ -371,8 +376,10 @@ def calibrate(dataset, min_pair=10, bins=10, part=None, delay=True):
        ``range_calibration.fit_range_noise``) gives ``range_stddev = a``,
        ``range_stddev_per_m = k`` and ``range_stddev_per_m2 = c``. ``bearing_stddev`` is the
        same standard deviation of all bearing residuals.
-    5. Bias standard deviations: the root mean square of the robot medians, weighted
-       by sightings, less the variance of a median of ``n`` noisy errors,
+    5. Bias standard deviations: the root mean square of the robot medians, each
+       robot one draw of the bias whatever its number of sightings (a robot's bias is
+       shared by all its sightings; weighted by sightings, a robot seen little would
+       hardly count), less the variance of a median of ``n`` noisy errors,
        ``(pi / 2) sigma^2 / n`` with ``sigma`` from step 4: ``range_bias_stddev`` and
        ``bearing_bias_stddev``. The same over the pair medians is printed for
        comparison. The same over the robots' median relative range errors (range
@@ -468,16 +475,16 @@ def calibrate(dataset, min_pair=10, bins=10, part=None, delay=True):
     # variance of a median of noisy errors.
     noise_r = a * a + (k * ranges) ** 2 + (c * ranges ** 2) ** 2
     mean_noise_r = float(np.mean(noise_r))
-    range_bias = _weighted_bias([m[0] for m, _ in robot_medians],
-                                [n for _, n in robot_medians],
-                                np.full(len(robot_medians), mean_noise_r))
-    bearing_bias = _weighted_bias([m[1] for m, _ in robot_medians],
-                                  [n for _, n in robot_medians],
-                                  np.full(len(robot_medians), sigma_b ** 2))
+    range_bias = _rms_bias([m[0] for m, _ in robot_medians],
+                           [n for _, n in robot_medians],
+                           np.full(len(robot_medians), mean_noise_r))
+    bearing_bias = _rms_bias([m[1] for m, _ in robot_medians],
+                             [n for _, n in robot_medians],
+                             np.full(len(robot_medians), sigma_b ** 2))
     pair_noise_r = np.array([np.mean(noise_r[inverse == p]) for p in np.flatnonzero(big)])
-    pair_range = _weighted_bias(pair_range_median[big], sizes[big], pair_noise_r)
-    pair_bearing = _weighted_bias(pair_bearing_median[big], sizes[big],
-                                  np.full(int(big.sum()), sigma_b ** 2))
+    pair_range = _rms_bias(pair_range_median[big], sizes[big], pair_noise_r)
+    pair_bearing = _rms_bias(pair_bearing_median[big], sizes[big],
+                             np.full(int(big.sum()), sigma_b ** 2))
     model_r = np.sqrt(noise_r)
     state_sd = _scale_spread(e, model_r)
     tails = {'range': float(np.mean(np.abs(res_r) > 3.0 * model_r)),
@@ -499,8 +506,8 @@ def _scale_spread(e, model_r):
     noise = np.mean(np.square(model_r / e['range']))
     index = e['robot'].astype(int)
     robots = np.unique(index)
-    return _weighted_bias([float(np.median(rel[index == i])) for i in robots],
-                          [int(np.sum(index == i)) for i in robots], np.full(len(robots), noise))
+    return _rms_bias([float(np.median(rel[index == i])) for i in robots],
+                     [int(np.sum(index == i)) for i in robots], np.full(len(robots), noise))
 
 
 def _bin_label(b):

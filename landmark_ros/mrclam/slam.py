@@ -311,6 +311,7 @@ def loop_config(replay_config, localizer: LocalizerConfig,
     and the team's mean scale as its own, and its uncertainty (0.1 to 0.2 m) hides a
     1 % scale (3 cm at 3 m); split CI discounts the state's prior at every update
     against such a map (``docs/slam.md``), and the scale drifts to tens of per cent.
+    The fuser's ``source_correlation`` is ``unknown`` whatever the file says.
     """
     values = replay_values or {}
     if 'slam_correlated_noise' in values:
@@ -319,6 +320,8 @@ def loop_config(replay_config, localizer: LocalizerConfig,
             and localizer.range_scale_state_stddev > 0.0):
         localizer = replace(localizer, range_scale_state_stddev=0.0,
                             range_bias_stddev=replay_config.observer.range_bias_stddev)
-    return LoopConfig(localizer, replay_config.observer, replay_config.fuser,
+    # The loop's poses share the map: their errors are correlated across robots.
+    fuser = replace(replay_config.fuser, source_correlation='unknown')
+    return LoopConfig(localizer, replay_config.observer, fuser,
                       precision_sources=int(values.get('slam_precision_sources', 1)),
                       precision_base_m=float(values.get('slam_precision_base_m', 0.02)))

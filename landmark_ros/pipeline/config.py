@@ -283,6 +283,12 @@ class FuserConfig(ConfigBase):
         'split_covariance_intersection',
         'independent, covariance_intersection or split_covariance_intersection.',
         read_only=True)
+    source_correlation: str = param(
+        'unknown', 'Split CI: how the dependent parts (pose error, sensor bias) of different '
+        'sources relate. unknown (default): split CI across sources too, as for robots '
+        'localized against a shared map; independent: each is its own (robots posed by '
+        'motion capture or independent surveys), the product of the source estimates; '
+        'range-only and bearing-only rows do not use it.', read_only=True)
     gate_probability: float = param(
         0.999, 'Probability of the chi-square gate on observations of known landmarks.',
         read_only=True, low=0.5, high=0.999999)
@@ -402,7 +408,7 @@ class FuserConfig(ConfigBase):
 
     def check(self) -> None:
         """Check relations between fields."""
-        from landmark_ros.fusion.landmark_map import FUSION_METHODS
+        from landmark_ros.fusion.methods import FUSION_METHODS, SOURCE_CORRELATIONS
         methods = ('nearest_neighbour', 'global_nearest_neighbour', 'jcbb')
         if self.association not in methods:
             raise ValueError(f'association must be one of {methods}, got {self.association!r}')
@@ -417,6 +423,9 @@ class FuserConfig(ConfigBase):
                              f'{self.ambiguous_rows!r}')
         if self.fusion not in FUSION_METHODS:
             raise ValueError(f'fusion must be one of {FUSION_METHODS}, got {self.fusion!r}')
+        if self.source_correlation not in SOURCE_CORRELATIONS:
+            raise ValueError(f'source_correlation must be one of {SOURCE_CORRELATIONS}, '
+                             f'got {self.source_correlation!r}')
         if 0.0 < self.move_false_alarm_rate < 1e-12:
             raise ValueError('move_false_alarm_rate must be 0 (off) or at least 1e-12, got '
                              f'{self.move_false_alarm_rate}')

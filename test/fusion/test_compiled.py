@@ -10,6 +10,7 @@ from hypothesis import given, settings, strategies as st
 from landmark_ros.core.gaussian import split_covariance_intersection_omega
 from landmark_ros.fusion import compiled, source_sums
 import numpy as np
+import pytest
 
 
 def sums_of(seed, landmarks, width):
@@ -33,11 +34,13 @@ def sums_of(seed, landmarks, width):
 
 
 @settings(max_examples=30, deadline=None)
-@given(seed=st.integers(0, 2 ** 32 - 1), landmarks=st.integers(1, 6), width=st.integers(1, 6))
-def test_the_plain_python_fold_is_numpys_bit_for_bit(seed, landmarks, width):
+@given(seed=st.integers(0, 2 ** 32 - 1), landmarks=st.integers(1, 6), width=st.integers(1, 6),
+       independent=st.booleans())
+def test_the_plain_python_fold_is_numpys_bit_for_bit(seed, landmarks, width, independent):
     # The functions numba compiles, run as plain Python: the same IEEE operations.
     pairs = sums_of(seed, landmarks, width)
-    np.testing.assert_array_equal(compiled.fold_python(*pairs), source_sums.fold_numpy(*pairs))
+    np.testing.assert_array_equal(compiled.fold_python(*pairs, independent=independent),
+                                  source_sums.fold_numpy(*pairs, independent=independent))
 
 
 @settings(max_examples=20, deadline=None)
@@ -57,14 +60,15 @@ def test_a_kept_fold_redone_from_the_first_change_is_the_whole_fold(seed, width,
         table[changed, compiled.DIRTY] = 1.0
 
 
-def test_the_compiled_fold_is_numpys_bit_for_bit_or_absent():
+@pytest.mark.parametrize('independent', [False, True])
+def test_the_compiled_fold_is_numpys_bit_for_bit_or_absent(independent):
     pairs = sums_of(3, 400, 7)
-    expected = source_sums.fold_numpy(*pairs)
+    expected = source_sums.fold_numpy(*pairs, independent)
     if compiled.load():
-        np.testing.assert_array_equal(compiled.fold(*pairs), expected)
+        np.testing.assert_array_equal(compiled.fold(*pairs, independent), expected)
     else:   # numba missing or turned off: the numpy fold serves, nothing else
-        assert compiled.fold(*pairs) is None and not compiled.ready()
-    np.testing.assert_array_equal(source_sums.fold(*pairs).m, expected[:, :2])
+        assert compiled.fold(*pairs, independent) is None and not compiled.ready()
+    np.testing.assert_array_equal(source_sums.fold(*pairs, independent).m, expected[:, :2])
 
 
 def test_turned_off_by_the_environment_and_never_waited_for():

@@ -965,7 +965,7 @@ def test_fusion_methods_share_one_interface():
         assert method.name == fusion and isinstance(method, methods.Independent)
         # Nothing beyond the interface (the map can call only that).
         extra = {name for name in dir(method) if not name.startswith('_')} - interface
-        assert extra <= {'sums', 'stale'}
+        assert extra <= {'sums', 'stale', 'independent_sources'}   # state, a setting
     assert set(methods.METHODS) == set(FUSION_METHODS)
 
 

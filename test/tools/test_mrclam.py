@@ -270,11 +270,12 @@ def test_config_file_sections():
     assert config.observer.range_stddev_per_m == 0.0053
     assert config.observer.range_stddev_per_m2 == 0.00195
     assert config.observer.bearing_stddev == 0.0146
-    assert config.observer.range_bias_stddev == 0.0321
-    assert config.observer.bearing_bias_stddev == 0.0054
+    assert config.observer.range_bias_stddev == 0.0327
+    assert config.observer.bearing_bias_stddev == 0.0065
     assert config.camera_delay_s == 0.036
     assert config.fuser.gate_probability == 0.999
     assert config.fuser.min_observations == 2
+    assert config.fuser.source_correlation == 'independent'   # motion-capture poses
     assert config.pose_stddev == (0.002, 0.002, 0.002)
 
 
