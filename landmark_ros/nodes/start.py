@@ -14,6 +14,7 @@ endpoints before it imports the fusion or geometry code; ``imported`` runs that 
 a thread while watching for a stop signal.
 """
 
+import faulthandler
 import importlib
 import importlib.util
 import os
@@ -39,6 +40,24 @@ def install():
     signal.signal(signal.SIGTERM, _exit_now)
 
 
+EXIT_DEADLINE_S = 10.0
+"""Wall time the interpreter has to exit once the node has stopped [s]."""
+
+
+def stop_watchdog(seconds):
+    """
+    End the process in ``seconds`` unless it has ended by then: a stop that hangs.
+
+    Tearing down DDS (the node's endpoints; the participant when the interpreter
+    collects the context at exit) hung a node once, past ``ros2 launch``'s SIGTERM,
+    which a stopped node ignores (``finish``). ``faulthandler``'s watchdog is a C
+    thread, so it fires whatever holds the GIL: it writes every thread's Python stack
+    to stderr (where it hung) and exits with code 1. ``ros.runner.run`` arms it for
+    the teardown and disarms it when done; ``finish`` arms it for the exit.
+    """
+    faulthandler.dump_traceback_later(seconds, exit=True)
+
+
 def finish(code):
     """
     Ignore SIGINT and SIGTERM from now on; return ``code`` (the node has stopped).
@@ -46,10 +65,12 @@ def finish(code):
     Ctrl-C in a terminal signals the whole process group and ``ros2 launch`` forwards
     its own SIGINT, so a node gets a second one while it stops. Python's finalisation
     puts back the default action of every signal that has a Python handler, and a
-    SIGINT then would end the process with -2; an ignored signal stays ignored.
+    SIGINT then would end the process with -2; an ignored signal stays ignored. The
+    exit has ``EXIT_DEADLINE_S`` (``stop_watchdog``).
     """
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    stop_watchdog(EXIT_DEADLINE_S)
     return code
 
 

@@ -8,6 +8,7 @@ remap or override rcl cannot parse, an unknown argument or an invalid parameter 
 one line on stderr and exit code 2, never a traceback.
 """
 
+import faulthandler
 import importlib
 import os
 import signal
@@ -23,6 +24,10 @@ from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 
 USAGE_ERROR = 2
 """Exit code of a command line or parameter the node cannot start with."""
+
+STOP_DEADLINE_S = 10.0
+"""Wall time a node has to tear down once its spin has ended [s]: then it dumps every
+thread's stack and exits with code 1 (``nodes.start.stop_watchdog``)."""
 
 NODE_CONFIGS = {
     'landmark_observer': ('landmark_ros.pipeline.config', 'ObserverConfig', 'observer.yaml'),
@@ -219,7 +224,7 @@ def run(node_class, name, args=None, startup_errors=(), what='invalid parameters
     if _STOPS:      # before rclpy's handler was installed: nobody shut the context down
         rclpy.try_shutdown()
         return 0
-    node = None
+    node = executor = None
     try:
         # The executor first: one built on a context a stop signal just shut down
         # would print an "Exception ignored" traceback when collected.
@@ -241,11 +246,18 @@ def run(node_class, name, args=None, startup_errors=(), what='invalid parameters
             return 0
         raise
     finally:
-        if node is not None:
-            try:
-                node.destroy_node()
-            except Exception:  # noqa: B902 - a node half torn down by the stop signal
-                if rclpy.ok():
-                    raise
-        rclpy.try_shutdown()
+        # A teardown that hangs ends the process (nodes.start.stop_watchdog).
+        faulthandler.dump_traceback_later(STOP_DEADLINE_S, exit=True)   # C thread
+        try:
+            if executor is not None:
+                executor.shutdown(timeout_sec=STOP_DEADLINE_S)
+            if node is not None:
+                try:
+                    node.destroy_node()
+                except Exception:  # noqa: B902 - a node half torn down by the stop signal
+                    if rclpy.ok():
+                        raise
+            rclpy.try_shutdown()
+        finally:
+            faulthandler.cancel_dump_traceback_later()
     return 0
