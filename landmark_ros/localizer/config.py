@@ -96,9 +96,8 @@ class LocalizerConfig(ConfigBase):
         'for any correlation of the map with the pose)')
     correlated_noise: str = param(
         'count', 'how the time-correlated noise and the bias enter an update: count (in the '
-        'independent noise; the k-th sighting of a landmark within noise_correlation_time_s '
-        'adds what k sharing one error carry beyond k - 1, the bias variance times the '
-        'sightings of any landmark) or '
+        'independent noise, the correlated variance times the sightings of the landmark '
+        'within noise_correlation_time_s, the bias variance times those of any landmark) or '
         'dependent (with split_ci: beside the map term, of unknown correlation with the '
         'pose, once per sighting; the bias shared by the rows of one update)')
     gate_probability: float = param(0.99, 'chi-square gate per observation row',

@@ -421,10 +421,13 @@ class Localizer:
 
         The time-correlated part of the noise (``*_correlated_fraction``, correlation
         time ``noise_correlation_time_s``) repeats across the sightings of a landmark
-        made within that time: the k-th (the sightings of the trailing correlation
-        time, this one included) adds only what k such sightings carry beyond k - 1
-        (``update.row_noise``), so that the k weigh their mean. Without a correlation
-        time the count is 1.
+        made within that time: n sightings that share one error carry the information
+        of one, so each counts with its correlated variance times n (the sightings of
+        the trailing correlation time, this one included). Without a correlation time
+        the count is 1. In steady state (a landmark seen at a steady rate) each
+        sighting weighs 1/n and the sightings of one correlation time weigh one; right
+        after a first encounter the k-th weighs 1/k, so the first n weigh the harmonic
+        sum H(n) (about 5 for 100): over-confident by that factor at most.
         """
         tau = int(self.config.noise_correlation_time_s * 1e9)
         shared = np.ones(len(ids))

@@ -182,14 +182,9 @@ def row_noise(R: NDArray[np.float64], parts: Tuple[NDArray[np.float64], NDArray[
     """
     Return the noise of a batch's rows with its time-correlated part and the bias.
 
-    ``count`` (``dependent`` False): one array, taken as independent. The ``k``-th of
-    the sightings of a landmark that share one error (``shared``) gets the information
-    the ``k`` carry beyond the first ``k - 1``: per component, with white and
-    correlated variances ``a`` and ``c``, ``k / (a + k c) - (k - 1) / (a + (k - 1) c)``,
-    the variance ``(a + k c) (a + (k - 1) c) / a`` (the first: ``a + c``), so that the
-    first ``k`` together weigh what their mean does, ``1 / (c + a / k)``, and never the
-    harmonic sum's ``H(k) / c``. ``R`` is scaled as ``D R D`` (positive definite
-    stays). ``R_bias`` is added times ``shared_bias`` (the sightings of any landmark).
+    ``count`` (``dependent`` False): one array, the correlated part times ``shared`` (the
+    sightings of the row's landmark sharing its error) and ``R_bias`` times
+    ``shared_bias`` (the sightings of any landmark), all taken as independent.
     ``dependent``: a ``SensorNoise``, the white part independent, the correlated part
     (once) and the bias (one error for every row) of unknown correlation with the pose.
 
@@ -210,12 +205,8 @@ def row_noise(R: NDArray[np.float64], parts: Tuple[NDArray[np.float64], NDArray[
     white, correlated = parts
     if dependent:
         return SensorNoise(R * white, R * correlated, R_bias if R_bias.any() else None)
-    out = R
-    if shared is not None:
-        a, c = np.maximum(np.diagonal(white), 1e-9), np.diagonal(correlated)
-        k = np.asarray(shared, np.float64)[:, None]
-        d = np.sqrt((a + k * c) * (a + (k - 1.0) * c) / a)        # (N, 2)
-        out = R * d[:, :, None] * d[:, None, :]
+    n = 1.0 if shared is None else shared[:, None, None]
+    out = R * (white + correlated * n)
     if shared_bias is not None and R_bias.any():
         out = out + R_bias * shared_bias[:, None, None]
     return out
