@@ -38,6 +38,12 @@ class LocalizerConfig(ConfigBase):
         'odometry motion noise (Probabilistic Robotics 5.4) a1 [rad^2/rad^2], a2 '
         '[rad^2/m^2], a3 [m^2/m^2], a4 [m^2/rad^2], per odometry step; used when the '
         'message covariance is zero')
+    odometry_alphas_period_s: float = param(
+        0.0, 'odometry step duration the alphas describe [s]: a step of dt has the '
+        'model variances times this / dt (odometry error white in time: the same '
+        'variance per second at any rate, irregular stamps included); 0: per step '
+        'whatever its length (Probabilistic Robotics 5.4; regular odometry at the '
+        'calibrated rate)', low=0.0, high=10.0)
     odometry_speed_scale: float = param(
         1.0, 'true distance per odometry distance (wheel radius error)', low=0.01,
         high=100.0)

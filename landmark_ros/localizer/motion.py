@@ -23,9 +23,12 @@ alphas
     ``a1`` [rad^2/rad^2] rotation from rotation, ``a2`` [rad^2/m^2] rotation from
     translation, ``a3`` [m^2/m^2] translation from translation, ``a4`` [m^2/rad^2]
     translation from rotation. The model applies to the motion between two consecutive
-    odometry messages, so its alphas belong to the odometry rate they were calibrated at
-    (``landmark_ros.mrclam.localize_data.calibrate_odometry``); the variances are quadratic in the
-    step, so a different rate needs a new calibration.
+    odometry messages: the variances are quadratic in the step, so halving the step
+    length quarters them, and the same drive reported at twice the rate, or with
+    irregular stamps, gets a different covariance. ``step_noise_scale`` makes the model
+    white in time: the alphas describe a step of a fixed period, a step of ``dt`` has
+    its variances scaled by ``period / dt`` (constant speed: variance growing linearly
+    with time, the same at any rate).
 
 The functions take and return plain floats and small arrays: one odometry message costs a
 few microseconds. ``compose``-style results agree with ``landmark_ros.core.pose2`` (tests).
@@ -121,6 +124,35 @@ def odometry_noise(delta: Sequence[float], alphas: Sequence[float]) -> NDArray[n
     q01 = -ts * tc * v1 + c * s * vt
     q11 = tc * tc * v1 + s * s * vt
     return np.array([[q00, q01, -ts * v1], [q01, q11, tc * v1], [-ts * v1, tc * v1, v1 + v2]])
+
+
+def step_noise_scale(dt, period_s: float):
+    """
+    Return the factor of a step's model covariance: ``period_s / dt``, 1 for period 0.
+
+    With ``period_s`` > 0 the alphas describe a step of that duration and the odometry
+    error is white in time: at constant speed a step of ``dt`` has the model variance
+    ``a v^2 dt^2`` times ``period_s / dt``, linear in ``dt``, so cutting a motion into
+    more steps leaves its total variance unchanged. With ``period_s`` = 0 the alphas
+    apply per step whatever its length (Probabilistic Robotics, ch. 5.4, as written).
+
+    Parameters
+    ----------
+    dt : float or ndarray, shape (N,)
+        Step durations [s]; a step of ``dt <= 0`` (no motion) gets factor 0.
+    period_s : float
+        The step duration the alphas describe [s], >= 0.
+
+    Returns
+    -------
+    float or ndarray, shape (N,)
+
+    """
+    if period_s <= 0.0:
+        return 1.0 if np.ndim(dt) == 0 else np.ones(np.shape(dt))
+    dt = np.asarray(dt, dtype=np.float64)
+    out = np.divide(period_s, dt, out=np.zeros_like(dt), where=dt > 0.0)
+    return float(out) if out.ndim == 0 else out
 
 
 def scale_motion(delta: Sequence[float], dt: float, speed_scale: float = 1.0,

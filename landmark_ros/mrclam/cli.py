@@ -360,7 +360,7 @@ def other_command(args, dataset, config):
         from landmark_ros.mrclam import localize_cli
         document = {'mode': 'offline', 'dataset': dataset_dict(dataset)}
         if args.calibrate_odometry:
-            return localize_cli.calibrate(args, dataset, document)
+            return localize_cli.calibrate(args, dataset, config, document)
         return localize_cli.localize(args, dataset, config, document)
     if args.calibrate:
         return calibrate_command(args, dataset)

@@ -184,9 +184,11 @@ def through_nodes(args, data, entries, tracks, document):
     return 0 if ok else 1
 
 
-def calibrate(args, dataset, document):
+def calibrate(args, dataset, replay_config, document):
     """Run ``--calibrate-odometry``; return the exit code."""
-    result = calibrate_odometry(dataset, load_all_extras(dataset))
+    localizer_values, _ = _sections(replay_config.path)
+    period_s = localizer_config(localizer_values).odometry_alphas_period_s
+    result = calibrate_odometry(dataset, load_all_extras(dataset), period_s=period_s)
     print(format_odometry_calibration(result))
     if args.json:
         document['odometry_calibration'] = result

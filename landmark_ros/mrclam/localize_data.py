@@ -155,7 +155,7 @@ def reference_floor(start, end, stddev):
             + np.einsum('wij,jk,wlk->wil', J_d_ge, Sigma, J_d_ge))
 
 
-def _windows(extras, robot, window_s, delay_s=0.0, scales=(1.0, 1.0)):
+def _windows(extras, robot, window_s, delay_s=0.0, scales=(1.0, 1.0), period_s=0.0):
     """Yield (error (3,), per-alpha covariances (4, 3, 3), start, end truth) per window."""
     t = extras.odom_times + delay_s
     gt_t, gt_p = robot.gt_times, robot.gt_poses
@@ -164,6 +164,7 @@ def _windows(extras, robot, window_s, delay_s=0.0, scales=(1.0, 1.0)):
     truth, _ = interpolate_poses(gt_t, gt_p, t)
     poses, deltas = motion.integrate_twists(t, twist)
     terms = motion.odometry_noise_terms(deltas)  # step k -> k + 1
+    terms = terms * motion.step_noise_scale(np.diff(t), period_s)[:, None, None, None]
     start = 0
     while start < len(t) - 1:
         end = int(np.searchsorted(t, t[start] + window_s))
@@ -202,7 +203,7 @@ class WindowSamples:
 
 
 def window_samples(dataset, extras, numbers, window_s, delay_s=0.0, scales=(1.0, 1.0),
-                   reference_stddev=(0.0, 0.0, 0.0)):
+                   reference_stddev=(0.0, 0.0, 0.0), period_s=0.0):
     """
     Return the windows of the robots ``numbers`` as ``WindowSamples``.
 
@@ -210,6 +211,7 @@ def window_samples(dataset, extras, numbers, window_s, delay_s=0.0, scales=(1.0,
     ``scales`` (speed, yaw rate[, speed per yaw rate]) correct the odometry's twists
     first (``motion.scale_twists``, ``odometry_scales``). ``reference_stddev`` (x [m],
     y [m], theta [rad]): the noise of the ground truth, for ``reference_floor``.
+    ``period_s``: the localizer's ``odometry_alphas_period_s`` (``motion.step_noise_scale``).
     """
     errors, covs, starts, ends, lengths = [], [], [], [], []
     for length in np.atleast_1d(np.asarray(window_s, dtype=np.float64)):
@@ -217,7 +219,7 @@ def window_samples(dataset, extras, numbers, window_s, delay_s=0.0, scales=(1.0,
             if robot.number not in numbers:
                 continue
             for error, Ps, a, b in _windows(extras[robot.number], robot, float(length),
-                                            delay_s, scales):
+                                            delay_s, scales, period_s):
                 errors.append(error)
                 covs.append(Ps)
                 starts.append(a)
@@ -364,47 +366,50 @@ def odometry_scales(dataset, extras, numbers, delay_s, window_s=0.5, min_distanc
 
 
 def calibrate_odometry(dataset, extras, windows_s=(2.0, 5.0, 10.0, 20.0),
-                       check_windows=(2.0, 5.0, 10.0, 20.0)):
+                       check_windows=(2.0, 5.0, 10.0, 20.0), period_s=0.0):
     """
     Fit the alphas on all robots, and cross-check: fit on all but one, test on it.
 
     The windows of every length of ``windows_s`` [s] together, the reference's noise
-    ``dataset.pose_stddev`` (``reference_floor``).
+    ``dataset.pose_stddev`` (``reference_floor``), the steps scaled as the localizer
+    does with ``odometry_alphas_period_s`` = ``period_s`` (``motion.step_noise_scale``).
 
     Returns
     -------
     dict
-        ``alphas`` (all robots), ``windows_s``, ``reference_stddev``, ``windows`` (their
-        number), ``window_nees`` (all robots, per window length) and ``cross_check``:
-        per held-out robot, the alphas fitted without it and the window NEES on it per
-        window length; ``halves``: ``robot_halves``, per robot and fold.
+        ``alphas`` (all robots), ``period_s``, ``windows_s``, ``reference_stddev``,
+        ``windows`` (their number), ``window_nees`` (all robots, per window length) and
+        ``cross_check``: per held-out robot, the alphas fitted without it and the window
+        NEES on it per window length; ``halves``: ``robot_halves``, per robot and fold.
 
     """
     numbers = [r.number for r in dataset.robots]
     stddev = tuple(float(v) for v in dataset.pose_stddev)
     delay = odometry_delay(dataset, extras)
+
+    def samples(robots, lengths, scales):
+        return window_samples(dataset, extras, robots, lengths, delay, scales, stddev,
+                              period_s)
+
     scales = odometry_scales(dataset, extras, numbers, delay)
-    samples = window_samples(dataset, extras, numbers, windows_s, delay, scales, stddev)
-    alphas = fit_alphas(samples)
-    own_nees = {str(w): window_nees(alphas, window_samples(dataset, extras, numbers, w, delay,
-                                                           scales, stddev))
+    pooled = samples(numbers, windows_s, scales)
+    alphas = fit_alphas(pooled)
+    own_nees = {str(w): window_nees(alphas, samples(numbers, w, scales))
                 for w in check_windows}
     check = []
     for held in numbers:
         others = [n for n in numbers if n != held]
         held_scales = odometry_scales(dataset, extras, others, delay)
-        fitted = fit_alphas(window_samples(dataset, extras, others, windows_s, delay,
-                                           held_scales, stddev))
-        nees = {str(w): window_nees(fitted, window_samples(dataset, extras, [held], w, delay,
-                                                           held_scales, stddev))
+        fitted = fit_alphas(samples(others, windows_s, held_scales))
+        nees = {str(w): window_nees(fitted, samples([held], w, held_scales))
                 for w in check_windows}
         own = odometry_scales(dataset, extras, [held], delay)
         check.append({'held_out': held, 'alphas': fitted.tolist(), 'scales': held_scales,
                       'own_scales': own, 'window_nees': nees})
-    return {'alphas': alphas.tolist(), 'scales': scales, 'windows_s': list(windows_s),
-            'reference_stddev': list(stddev), 'delay_s': delay,
-            'windows': len(samples.errors), 'window_nees': own_nees, 'cross_check': check,
-            'halves': robot_halves(dataset, extras, delay, windows_s, stddev)}
+    return {'alphas': alphas.tolist(), 'period_s': period_s, 'scales': scales,
+            'windows_s': list(windows_s), 'reference_stddev': list(stddev), 'delay_s': delay,
+            'windows': len(pooled.errors), 'window_nees': own_nees, 'cross_check': check,
+            'halves': robot_halves(dataset, extras, delay, windows_s, stddev, period_s)}
 
 
 def _half(dataset, second, middle):
@@ -421,7 +426,7 @@ def _half(dataset, second, middle):
 
 
 def robot_halves(dataset, extras, delay_s, windows_s=(2.0, 5.0, 10.0, 20.0),
-                 stddev=(0.0, 0.0, 0.0)):
+                 stddev=(0.0, 0.0, 0.0), period_s=0.0):
     """
     Check a per-robot odometry model across the halves of the run, both folds.
 
@@ -445,18 +450,20 @@ def robot_halves(dataset, extras, delay_s, windows_s=(2.0, 5.0, 10.0, 20.0),
                     + max(r.gt_times[-1] for r in dataset.robots))
     halves = [_half(dataset, False, middle), _half(dataset, True, middle)]
     out = []
+
+    def samples(data, robots, lengths, scales):
+        return window_samples(data, extras, robots, lengths, delay_s, scales, stddev,
+                              period_s)
+
     for k, name in enumerate(('first', 'second')):
         fit_on, score_on = halves[k], halves[1 - k]
         scales = odometry_scales(fit_on, extras, numbers, delay_s)
-        alphas = fit_alphas(window_samples(fit_on, extras, numbers, windows_s, delay_s,
-                                           scales, stddev))
+        alphas = fit_alphas(samples(fit_on, numbers, windows_s, scales))
         for n in numbers:
             own_scales = odometry_scales(fit_on, extras, [n], delay_s)
-            own = fit_alphas(window_samples(fit_on, extras, [n], windows_s, delay_s,
-                                            own_scales, stddev))
-            nees = [{str(w): window_nees(a, window_samples(score_on, extras, [n], w, delay_s,
-                                                           sc, stddev))
-                     for w in windows_s} for a, sc in ((own, own_scales), (alphas, scales))]
+            own = fit_alphas(samples(fit_on, [n], windows_s, own_scales))
+            nees = [{str(w): window_nees(a, samples(score_on, [n], w, sc)) for w in windows_s}
+                    for a, sc in ((own, own_scales), (alphas, scales))]
             out.append({'fitted_on': name, 'robot': n, 'alphas': own.tolist(),
                         'scales': own_scales, 'nees_own': nees[0], 'nees_pooled': nees[1]})
     return out
@@ -471,7 +478,7 @@ def format_odometry_calibration(result):
              + ', '.join(f'{v:g}' for v in result['reference_stddev'])
              + f', odometry delay {result["delay_s"]:.3f} s, speed and yaw-rate '
              'scales {:.4f}, {:.4f}, speed scale per yaw rate {:.4f} s/rad, veer {:.4f} '
-             'rad/m): '.format(*result['scales'])
+             'rad/m, alphas per {}): '.format(*result['scales'], _period(result))
              + ', '.join(f'{v:.4g}' for v in a),
              'window NEES, all robots (3 is right): '
              + ', '.join(f'{w} s: {v:.2f}' for w, v in result['window_nees'].items()),
@@ -493,6 +500,7 @@ def format_odometry_calibration(result):
                      + ', '.join(f'{v:.2f}' for v in entry['nees_pooled'].values()))
     lines.append('landmark_localizer:\n  ros__parameters:\n    odometry_alphas: ['
                  + ', '.join(f'{v:.4g}' for v in a) + ']\n'
+                 f'    odometry_alphas_period_s: {result.get("period_s", 0.0):g}\n'
                  f'    odometry_speed_scale: {result["scales"][0]:.4f}\n'
                  f'    odometry_yaw_rate_scale: {result["scales"][1]:.4f}\n'
                  f'    odometry_speed_scale_per_yaw_rate: {result["scales"][2]:.4f}\n'
@@ -500,6 +508,11 @@ def format_odometry_calibration(result):
                  'landmark_mrclam:\n  ros__parameters:\n'
                  f'    odometry_delay_s: {result["delay_s"]:.3f}')
     return '\n'.join(lines)
+
+
+def _period(result):
+    period = result.get('period_s', 0.0)
+    return f'{period:g} s of odometry' if period > 0.0 else 'odometry step'
 
 
 def heading_error(a, b):

@@ -49,16 +49,19 @@ def test_reference_floor_is_the_first_order_covariance_of_between():
                                    rtol=1e-6, atol=1e-14)
 
 
-def _sample_robot(number, alphas, reference_stddev, seed, duration_s=900.0):
+def _sample_robot(number, alphas, reference_stddev, seed, duration_s=900.0, steps_s=(0.015,),
+                  period_s=0.0):
     """
     Return a robot and its odometry: the true motion is the odometry's plus model noise.
 
     Each step's true motion is the odometry's plus a draw of the odometry model with
-    ``alphas`` (``motion.odometry_noise_terms``); the ground truth is the true path plus
-    white noise of ``reference_stddev``.
+    ``alphas`` (``motion.odometry_noise_terms``, scaled by ``motion.step_noise_scale``
+    with ``period_s``); the steps last one of ``steps_s`` [s] each, drawn at random;
+    the ground truth is the true path plus white noise of ``reference_stddev``.
     """
     rng = np.random.default_rng(seed)
-    t = np.arange(0.0, duration_s, 0.015)
+    t = np.cumsum(rng.choice(steps_s, int(duration_s / min(steps_s))))
+    t = np.concatenate([[0.0], t[t < duration_s]])
     # commanded twists held for 1 to 6 s: straight, turning in place, or an arc (the
     # three make a1 to a4 separable)
     kinds = np.array([[0.15, 0.0], [0.0, 0.5], [0.1, 0.3]])
@@ -68,6 +71,7 @@ def _sample_robot(number, alphas, reference_stddev, seed, duration_s=900.0):
     twists = segment[np.searchsorted(ends, t)]
     _, deltas = motion.integrate_twists(t, twists)
     Q = np.einsum('i,kijl->kjl', np.asarray(alphas), motion.odometry_noise_terms(deltas))
+    Q *= motion.step_noise_scale(np.diff(t), period_s)[:, None, None]
     vals, vecs = np.linalg.eigh(Q)
     noise = np.einsum('kij,kj->ki', vecs,
                       np.sqrt(np.clip(vals, 0.0, None)) * rng.standard_normal(deltas.shape))
@@ -137,3 +141,27 @@ def test_robot_halves_prefers_the_own_model_of_a_robot_that_keeps_it():
             assert pooled > 4.0 and entry['alphas'][0] > 2.0 * ALPHAS[0]
         else:  # and too wide for the others
             assert pooled < 2.5
+
+
+def test_alphas_per_period_carry_over_to_other_odometry_stamps():
+    # The odometry error is white in time. Robot 1 logs every 10 ms, robot 2 every 10 or
+    # 21 ms with some 0.3 s gaps (as MRCLAM's robots differ): with the alphas per period
+    # (odometry_alphas_period_s), the fit on robot 1 holds on robot 2; per step, the
+    # long steps of robot 2 get far too much variance.
+    period = 0.01
+    one, odom_one = _sample_robot(1, ALPHAS, STDDEV, 41, 600.0, (0.01,), period)
+    two, odom_two = _sample_robot(2, ALPHAS, STDDEV, 42, 600.0,
+                                  (0.01,) * 30 + (0.021,) * 12 + (0.3,), period)
+    dataset = SimpleNamespace(robots=[one, two])
+    extras = {1: odom_one, 2: odom_two}
+    nees, fits = {}, {}
+    for p in (period, 0.0):
+        fitted = fits[p] = fit_alphas(window_samples(dataset, extras, [1], WINDOWS_S, 0.0,
+                                                     (1.0, 1.0), STDDEV, period_s=p))
+        nees[p] = [window_nees(fitted, window_samples(dataset, extras, [2], w, 0.0,
+                                                      (1.0, 1.0), STDDEV, period_s=p))
+                   for w in (5.0, 20.0)]
+    # at the period the alphas describe, both models are one
+    np.testing.assert_allclose(fits[period], fits[0.0], rtol=1e-6)
+    assert all(2.3 < v < 3.8 for v in nees[period]), nees
+    assert all(v < 1.5 for v in nees[0.0]), nees
