@@ -45,11 +45,19 @@ pairing moves the pose by the distance between two landmarks, which no later upd
 repairs, while a skipped row costs one sighting. With ``take_ambiguous`` (parameter
 ``association_take_ambiguous``) the method's choice stands: where the pose is known
 only to a fraction of the landmark spacing every row has several candidates, and
-skipping them all leaves the filter on dead reckoning for good. Partial rows (range-only or
+skipping them all leaves the filter on dead reckoning for good. With ``merge_ambiguous``
+(parameter ``association_merge_ambiguous``) such a row is applied once per candidate
+and the results combined (``localizer.mixture``, probabilistic data association), with
+the probabilities ``association_probabilities``: ``beta_j`` proportional to
+``exp(-d2_j / 2) / sqrt(det S_j)`` (Bar-Shalom and Fortmann, "Tracking and Data
+Association", 1988, ch. 6; detection certain, no clutter). Candidates close together
+(a pair of landmarks a fraction of the pose's spread apart) give nearly one update;
+candidates far apart leave the pose spread between them. Partial rows (range-only or
 bearing-only) cannot be placed in the map and are not associated.
 """
 
 from dataclasses import dataclass
+from typing import Dict, Optional, Tuple
 
 from landmark_ros.core.association import (candidates, LandmarkIndex, nearest_neighbour,
                                            scan_covariance)
@@ -74,6 +82,32 @@ class Assigned:
     """Rows left out because their choice was not settled."""
     unmatched: int
     """Rows without any compatible landmark (or that could not be placed)."""
+    merged: Optional[Dict[int, Tuple[NDArray[np.intp], NDArray[np.float64]]]] = None
+    """With ``merge_ambiguous``: row -> its candidates (map indices, (C,)) and their
+    probabilities (C,); ``landmark`` holds each such row's likeliest candidate."""
+
+
+def association_probabilities(d2: NDArray[np.float64], S: NDArray[np.float64]
+                              ) -> NDArray[np.float64]:
+    """
+    Return the probabilities of one row's candidate landmarks (module docstring).
+
+    Parameters
+    ----------
+    d2 : ndarray, shape (C,)
+        Squared Mahalanobis distance of the row to each candidate.
+    S : ndarray, shape (C, 2, 2)
+        Covariance of each difference (row plus landmark) [m^2].
+
+    Returns
+    -------
+    beta : ndarray, shape (C,)
+        ``exp(-d2 / 2) / sqrt(det S)``, normalised to sum 1.
+
+    """
+    log_w = -0.5 * np.asarray(d2, dtype=np.float64) - 0.5 * np.log(np.linalg.det(S))
+    beta = np.exp(log_w - log_w.max())
+    return beta / beta.sum()
 
 
 class MapAssociation:
@@ -93,6 +127,9 @@ class MapAssociation:
     take_ambiguous : bool
         Keep the method's choice for a row with several candidates (else it is left
         out, counted ambiguous).
+    merge_ambiguous : bool
+        Apply such a row once per candidate and combine (``localizer.mixture``);
+        overrides ``take_ambiguous``.
 
     Raises
     ------
@@ -102,9 +139,12 @@ class MapAssociation:
     """
 
     def __init__(self, m_map: NDArray[np.float64], P_map: NDArray[np.float64],
-                 method: str, probability: float, take_ambiguous: bool = False) -> None:
+                 method: str, probability: float, take_ambiguous: bool = False,
+                 merge_ambiguous: bool = False) -> None:
         """Build the index of the map (class docstring)."""
         self.take_ambiguous = bool(take_ambiguous)
+        self.merge_ambiguous = bool(merge_ambiguous)
+        self._P = np.asarray(P_map, np.float64)
         if method not in ('nn', 'jcbb'):
             raise ValueError(f"association method must be 'nn' or 'jcbb', got {method!r}")
         self.method = method
@@ -147,12 +187,29 @@ class MapAssociation:
         else:
             result = jcbb(cands, self.index, m_obs, scan_covariance(m_obs, P_obs, x[:2], P))
         chosen = result.assignment.copy()
-        ambiguous = 0
-        if not self.take_ambiguous:
+        ambiguous, merged = 0, None
+        if self.merge_ambiguous:
+            merged = {int(rows[r]): v
+                      for r, v in self._merge(cands, P_obs, result.ambiguous, chosen).items()}
+        elif not self.take_ambiguous:
             chosen[result.ambiguous] = -1
             ambiguous = int(np.count_nonzero(result.assignment[result.ambiguous] >= 0))
         landmark[rows] = chosen
-        return Assigned(landmark, ambiguous, int(np.count_nonzero(landmark < 0)) - ambiguous)
+        return Assigned(landmark, ambiguous, int(np.count_nonzero(landmark < 0)) - ambiguous,
+                        merged)
+
+    def _merge(self, cands, P_obs, ambiguous, chosen):
+        """Return row -> (candidates, probabilities); set ``chosen`` to the likeliest."""
+        out = {}
+        for row in np.asarray(ambiguous, np.intp).tolist():
+            sel = cands.rows == row
+            if np.count_nonzero(sel) < 2:
+                continue
+            j = cands.landmarks[sel]
+            beta = association_probabilities(cands.d2[sel], P_obs[row] + self._P[j])
+            chosen[row] = j[int(np.argmax(beta))]
+            out[row] = (j, beta)
+        return out
 
 
 def label_rows(association: MapAssociation, estimate, map_ids: NDArray[np.int64],
@@ -181,21 +238,30 @@ def label_rows(association: MapAssociation, estimate, map_ids: NDArray[np.int64]
         A copy with the associated rows labelled.
     counts : dict
         ``associated``, ``association_ambiguous`` (several candidates left unsettled:
-        skipped), ``association_unmatched`` (no compatible landmark: skipped) and
-        ``association_partial`` (partial rows: not associated).
+        skipped), ``association_unmatched`` (no compatible landmark: skipped),
+        ``association_partial`` (partial rows: not associated) and
+        ``association_merged`` (rows applied once per candidate).
+    merged : dict
+        Row index (into ``ids``) -> (candidate IDs (C,), probabilities (C,)) of the rows
+        to apply once per candidate (``merge_ambiguous``; their ``ids`` the likeliest
+        candidate's, which names them for the correlated noise).
 
     """
     unknown = ids == UNKNOWN_ID
     rows = np.flatnonzero(unknown & (kind == RANGE_BEARING))
     counts = {'associated': 0, 'association_ambiguous': 0,
               'association_unmatched': len(rows),
-              'association_partial': int(np.count_nonzero(unknown)) - len(rows)}
+              'association_partial': int(np.count_nonzero(unknown)) - len(rows),
+              'association_merged': 0}
     if estimate is None or not len(rows):
-        return ids, counts
+        return ids, counts, {}
     found = association.assign(estimate.x, estimate.P, z[rows], R[rows])
     ids = ids.copy()
     hit = found.landmark >= 0
     ids[rows[hit]] = map_ids[found.landmark[hit]]
+    merged = {}
+    if found.merged is not None:
+        merged = {int(rows[r]): (map_ids[j], beta) for r, (j, beta) in found.merged.items()}
     counts.update(associated=int(hit.sum()), association_ambiguous=found.ambiguous,
-                  association_unmatched=found.unmatched)
-    return ids, counts
+                  association_unmatched=found.unmatched, association_merged=len(merged))
+    return ids, counts, merged

@@ -147,6 +147,11 @@ class LocalizerConfig(ConfigBase):
     association_take_ambiguous: bool = param(
         False, "rows without ID with several candidates take the method's choice "
         '(nearest, or the joint hypothesis) instead of being skipped')
+    association_merge_ambiguous: bool = param(
+        False, 'rows without ID with several candidates are applied once per candidate '
+        'and the results combined with the probabilistic data association weights: a '
+        'pairing the pose cannot decide leaves it spread between the candidates; '
+        'overrides association_take_ambiguous')
 
     def check(self) -> None:
         """Check the choices and the list values."""

@@ -53,6 +53,7 @@ from landmark_ros.core.sensors import range_noise_variance
 from landmark_ros.localizer import motion
 from landmark_ros.localizer.association import label_rows, MapAssociation
 from landmark_ros.localizer.config import LocalizerConfig
+from landmark_ros.localizer.mixture import alternatives, update_mixture
 from landmark_ros.localizer.steps import Batch, Estimate, Step as _Step
 from landmark_ros.localizer.update import (correct_ranges, RANGE_BEARING, row_noise, update,
                                            UpdateSettings)
@@ -362,8 +363,9 @@ class Localizer:
         z, R = self.correct_ranges(z, kind, R)
         unknown = ids == UNKNOWN_ID
         self.counters.add('no_id', int(unknown.sum()), detail='rows without ID')
+        merged = {}
         if unknown.any() and self.config.association != 'none':
-            ids = self._associate(int(stamp_ns), ids, z, kind, R)
+            ids, merged = self._associate(int(stamp_ns), ids, z, kind, R)
             unknown = ids == UNKNOWN_ID
         index = np.array([self._map_index.get(int(i), -1) for i in ids], np.intp)
         missing = (index < 0) & ~unknown
@@ -373,8 +375,10 @@ class Localizer:
         if not keep.any():
             return 0
         k = index[keep]
+        others = alternatives(merged, keep, self._map_index, self._map_m, self._map_P)
         self._apply_at(Batch(int(stamp_ns), self._map_m[k], self._map_P[k], z[keep], R[keep],
-                             kind[keep], shared=self._shared(int(stamp_ns), ids[keep]),
+                             kind[keep], alternatives=others,
+                             shared=self._shared(int(stamp_ns), ids[keep]),
                              shared_bias=self._shared(int(stamp_ns), [None] * int(keep.sum()))))
         return int(keep.sum())
 
@@ -384,13 +388,14 @@ class Localizer:
             self._association = MapAssociation(self._map_m, self._map_P,
                                                self.config.association,
                                                self.config.association_probability,
-                                               self.config.association_take_ambiguous)
+                                               self.config.association_take_ambiguous,
+                                               self.config.association_merge_ambiguous)
         est = self.pose_at(stamp_ns) or self.estimate()
         map_ids = np.fromiter(self._map_index, np.int64, len(self._map_index))
-        ids, counts = label_rows(self._association, est, map_ids, ids, z, kind, R)
+        ids, counts, merged = label_rows(self._association, est, map_ids, ids, z, kind, R)
         for name, count in counts.items():
             self.counters.add(name, count, detail=f'rows without ID: {name}')
-        return ids
+        return ids, merged
 
     def add_robot_sighting(self, stamp_ns: int, z: NDArray[np.float64],
                            other: Estimate, R: Optional[NDArray[np.float64]] = None,
@@ -522,18 +527,30 @@ class Localizer:
             step.x, step.P = x, P
 
     def _update(self, x, P, batch):
-        try:
-            R = self._noise(batch)
-            settings = self.settings if not batch.correlation else replace(
-                self.settings, correlation=batch.correlation)
-            result = update(x, P, batch.m, batch.P_m, batch.z, R, batch.kind, settings)
-        except ValueError as error:
-            self.counters.add('update_failed', len(batch.z), detail=str(error))
+        if batch.alternatives:
+            x, P, result = update_mixture(x, P, batch, self._update_rows)
+            if batch.result is None:
+                batch.result = result
+                self._count(batch, result)
+            return x, P
+        result = self._update_rows(x, P, batch)
+        if result is None:
             return x, P
         if batch.result is None:  # first application: count it
             batch.result = result
             self._count(batch, result)
         return result.x, result.P
+
+    def _update_rows(self, x, P, batch):
+        """Return ``update`` of ``batch`` from ``(x, P)`` (None if it failed, counted)."""
+        try:
+            R = self._noise(batch)
+            settings = self.settings if not batch.correlation else replace(
+                self.settings, correlation=batch.correlation)
+            return update(x, P, batch.m, batch.P_m, batch.z, R, batch.kind, settings)
+        except ValueError as error:
+            self.counters.add('update_failed', len(batch.z), detail=str(error))
+            return None
 
     def _noise(self, batch):
         """Return the noise of a batch's rows (``update.row_noise``)."""

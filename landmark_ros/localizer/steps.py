@@ -1,7 +1,7 @@
 """The records of ``localizer.Localizer``: sightings, filter steps and pose estimates."""
 
 from dataclasses import dataclass, field
-from typing import List, Optional
+from typing import Dict, List, Optional, Tuple
 
 from landmark_ros.localizer.update import UpdateResult
 import numpy as np
@@ -32,6 +32,10 @@ class Batch:
     shared_bias: Optional[NDArray[np.float64]] = None
     """Per row, how many sightings (any landmark) share the sensor bias, shape (N,)."""
     result: Optional[UpdateResult] = None
+    alternatives: Optional[Dict[int, Tuple[NDArray[np.float64], NDArray[np.float64],
+                                           NDArray[np.float64]]]] = None
+    """Rows whose landmark is one of several: row -> candidates (C, 2), their
+    covariances (C, 2, 2) and probabilities (C,) (``localizer.mixture``)."""
 
 
 @dataclass

@@ -29,7 +29,8 @@ from landmark_ros.mrclam.localize_plan import hide_ids, slice_run
 from landmark_ros.mrclam.report import write_json
 
 ASSOCIATION_KEYS = ('no_id', 'associated', 'association_ambiguous',
-                    'association_unmatched', 'rows_used', 'rows_gated')
+                    'association_unmatched', 'association_merged', 'rows_used',
+                    'rows_gated')
 
 
 def _sections(path):

@@ -303,6 +303,8 @@ def loop_config(replay_config, localizer: LocalizerConfig,
     ``slam_precision_base_m`` (``LoopConfig.precision_base_m``, default 0.02 m); and
     ``slam_correlated_noise``, the localizers' ``correlated_noise`` in the loop (default:
     the localizer section's);
+    ``slam_association`` (``LoopConfig.association``, default ``fuser``): with IDs
+    hidden, whose pairing names a row for the localizer;
     ``slam_range_scale_state`` (default false): whether the localizers keep the range
     scale state (``range_scale_state_stddev``) against the map the loop builds. Off,
     they run without it and count the robot's range error as the observer does, a bias
@@ -314,6 +316,9 @@ def loop_config(replay_config, localizer: LocalizerConfig,
     The fuser's ``source_correlation`` is ``unknown`` whatever the file says.
     """
     values = replay_values or {}
+    association = str(values.get('slam_association', 'fuser'))
+    if association not in ('fuser', 'localizer'):
+        raise ValueError(f"slam_association must be 'fuser' or 'localizer', got {association!r}")
     if 'slam_correlated_noise' in values:
         localizer = replace(localizer, correlated_noise=str(values['slam_correlated_noise']))
     if (not bool(values.get('slam_range_scale_state', False))
@@ -324,4 +329,5 @@ def loop_config(replay_config, localizer: LocalizerConfig,
     fuser = replace(replay_config.fuser, source_correlation='unknown')
     return LoopConfig(localizer, replay_config.observer, fuser,
                       precision_sources=int(values.get('slam_precision_sources', 1)),
-                      precision_base_m=float(values.get('slam_precision_base_m', 0.02)))
+                      precision_base_m=float(values.get('slam_precision_base_m', 0.02)),
+                      association=association)

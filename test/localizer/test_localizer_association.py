@@ -93,18 +93,19 @@ def test_rows_take_the_ids_of_their_landmarks_and_strangers_none(method):
         kind = np.array([RANGE_BEARING] * 4 + [RANGE_BEARING])
         ids = np.full(5, UNKNOWN_ID, np.int64)
         ids[0] = 99  # a row with an ID keeps it
-        out, counts = label_rows(assoc, Estimate(0, x, P), map_ids, ids, z, kind, R)
+        out, counts, _ = label_rows(assoc, Estimate(0, x, P), map_ids, ids, z, kind, R)
         assert out[0] == 99 and out[4] == UNKNOWN_ID
         np.testing.assert_array_equal(out[1:4], map_ids[truth[1:4]])
         assert counts['associated'] == 3 and counts['association_unmatched'] == 1
     # a partial row is not associated; a row seen from a badly wrong pose is not paired
     kind = np.array([RANGE, RANGE_BEARING])
     z = sensors.observe(np.zeros((2, 3)), LANDMARKS[:2])
-    out, counts = label_rows(assoc, Estimate(0, np.array([0.0, 0.0, 1.0]), np.eye(3) * 1e-6),
-                             map_ids, np.full(2, UNKNOWN_ID, np.int64), z, kind,
-                             np.tile(np.eye(2) * 1e-6, (2, 1, 1)))
+    pose = Estimate(0, np.array([0.0, 0.0, 1.0]), np.eye(3) * 1e-6)
+    out, counts, _ = label_rows(assoc, pose, map_ids, np.full(2, UNKNOWN_ID, np.int64), z,
+                                kind, np.tile(np.eye(2) * 1e-6, (2, 1, 1)))
     assert counts == {'associated': 0, 'association_ambiguous': 0,
-                      'association_unmatched': 1, 'association_partial': 1}
+                      'association_unmatched': 1, 'association_partial': 1,
+                      'association_merged': 0}
     assert np.all(out == UNKNOWN_ID)
 
 
@@ -113,14 +114,16 @@ def test_ambiguous_rows_are_skipped():
     m = np.array([[3.0, 0.0], [3.0, 0.05]])
     assoc = MapAssociation(m, np.tile(np.eye(2) * 1e-6, (2, 1, 1)), 'nn', 0.999)
     z = sensors.observe(np.zeros((1, 3)), m[:1])
-    out, counts = label_rows(assoc, Estimate(0, np.zeros(3), np.eye(3) * 0.25),
-                             np.array([1, 2]), np.array([UNKNOWN_ID]), z,
-                             np.array([RANGE_BEARING]), np.tile(np.eye(2) * 1e-4, (1, 1, 1)))
+    out, counts, _ = label_rows(assoc, Estimate(0, np.zeros(3), np.eye(3) * 0.25),
+                                np.array([1, 2]), np.array([UNKNOWN_ID]), z,
+                                np.array([RANGE_BEARING]),
+                                np.tile(np.eye(2) * 1e-4, (1, 1, 1)))
     assert counts['association_ambiguous'] == 1 and out[0] == UNKNOWN_ID
     take = MapAssociation(m, np.tile(np.eye(2) * 1e-6, (2, 1, 1)), 'nn', 0.999, True)
-    out, counts = label_rows(take, Estimate(0, np.zeros(3), np.eye(3) * 0.25),
-                             np.array([1, 2]), np.array([UNKNOWN_ID]), z,
-                             np.array([RANGE_BEARING]), np.tile(np.eye(2) * 1e-4, (1, 1, 1)))
+    out, counts, _ = label_rows(take, Estimate(0, np.zeros(3), np.eye(3) * 0.25),
+                                np.array([1, 2]), np.array([UNKNOWN_ID]), z,
+                                np.array([RANGE_BEARING]),
+                                np.tile(np.eye(2) * 1e-4, (1, 1, 1)))
     assert counts['association_ambiguous'] == 0 and out[0] == 1  # the nearest
 
 
