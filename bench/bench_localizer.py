@@ -4,7 +4,9 @@ Benchmark the ``Localizer`` pipeline object: cost per odometry message and per s
 Odometry: ``add_odometry`` with a twist, ``--steps`` messages at 50 Hz (the odometry
 model, the saved step, the window pruning). Sightings: batches of ``--rows`` range-bearing
 rows of a 20-landmark map, applied at the newest odometry stamp (no re-filtering) and
-0.5 s late (the re-filter of the 25 steps since), split CI and plain EKF. CPU time
+0.5 s late (the re-filter of the 25 steps since), split CI and plain EKF; and rows without
+ID against a map of pairs 0.3 m apart, ambiguous rows taking JCBB's choice or applied
+once per candidate (``association_merge_ambiguous``). CPU time
 (``time.thread_time``), best of ``--repeats``; the machine is shared, so the ratios
 between cases taken side by side mean more than the absolute figures.
 
@@ -40,10 +42,13 @@ import numpy as np
 MS = 1_000_000
 
 
-def _localizer(correlation):
+def _localizer(correlation, hidden=None):
     rng = np.random.default_rng(0)
     m = rng.uniform(-10, 10, (20, 2))
-    loc = Localizer(LocalizerConfig(correlation=correlation))
+    if hidden:  # ten pairs 0.3 m apart, as MRCLAM's: rows fit both of a pair
+        m[10:] = m[:10] + [0.3, 0.0]
+    loc = Localizer(LocalizerConfig(correlation=correlation, association_take_ambiguous=True,
+                                    association_merge_ambiguous=hidden == 'merge'))
     loc.set_map(np.arange(20), m, np.tile(np.eye(2) * 1e-3, (20, 1, 1)))
     loc.initialize(0, np.zeros(3), np.eye(3) * 0.01)
     return loc, m
@@ -59,9 +64,14 @@ def odometry_cost(steps):
     return (time.thread_time() - t0) / steps
 
 
-def sighting_cost(rows, batches, correlation, late_s):
-    """Return CPU seconds per sighting row (batches of ``rows``, ``late_s`` behind)."""
-    loc, m = _localizer(correlation)
+def sighting_cost(rows, batches, correlation, late_s, hidden=None):
+    """
+    Return CPU seconds per sighting row (batches of ``rows``, ``late_s`` behind).
+
+    ``hidden``: None (rows with IDs), ``take`` or ``merge`` (rows without IDs against a
+    map of pairs, ambiguous rows taking JCBB's choice or applied per candidate).
+    """
+    loc, m = _localizer(correlation, hidden)
     twist = np.array([0.3, 0.1])
     k, spent, done = 0, 0.0, 0
     for _ in range(batches):
@@ -72,6 +82,8 @@ def sighting_cost(rows, batches, correlation, late_s):
         est = loc.pose_at(stamp) or loc.estimate()
         ids = np.arange(rows) % len(m)
         z = sensors.observe(np.tile(est.x, (rows, 1)), m[ids]) + 0.01
+        if hidden:
+            ids = np.full(rows, 0xFFFFFFFF, np.int64)
         t0 = time.thread_time()
         loc.add_observations(stamp, ids, z)
         spent += time.thread_time() - t0
@@ -98,10 +110,16 @@ def main(argv=None):
             cases[(correlation, late)] = min(
                 sighting_cost(args.rows, args.batches, correlation, late)
                 for _ in range(args.repeats))
+    for hidden in ('take', 'merge'):
+        cases[(f'split_ci_noid_{hidden}', 0.0)] = min(
+            sighting_cost(args.rows, args.batches, 'split_ci', 0.0, hidden)
+            for _ in range(args.repeats))
     print(f'odometry: {odom * 1e6:.1f} us per message (CPU)')
     for (correlation, late), cost in cases.items():
-        print(f'sightings {correlation:11s} {late:.1f} s late: {cost * 1e6:.1f} us per row '
+        print(f'sightings {correlation:21s} {late:.1f} s late: {cost * 1e6:.1f} us per row '
               f'(batches of {args.rows})')
+    print('  (noid: rows without ID, map of pairs 0.3 m apart; take: JCBB choice, merge: '
+          'per candidate)')
     extra = {'rows': args.rows}
     if args.node_rounds > 0:
         nodes = node_costs(args.node_rounds, args.node_messages, args.rows)

@@ -200,6 +200,12 @@ def localizer_rows(loc):
                 rows.append(('pipeline', f'Localizer.add_observations, {correlation}, {what}',
                              f'{_num(loc[key])} us/row', 'thread CPU time, batches of '
                              f'{_num(loc.get("rows"))} rows', 'bench_localizer'))
+    for hidden, what in (('take', "JCBB's choice"), ('merge', 'applied per candidate')):
+        key = f'split_ci_noid_{hidden}_now_row_us'
+        if key in loc:
+            rows.append(('pipeline', f'Localizer.add_observations, rows without ID, {what}',
+                         f'{_num(loc[key])} us/row', 'thread CPU time, map of pairs 0.3 m '
+                         f'apart, batches of {_num(loc.get("rows"))} rows', 'bench_localizer'))
     if 'localizer_msg_per_s' in loc:
         rows.append(('node', 'landmark_localizer, odometry (a sighting batch every 5th)',
                      si(loc['localizer_msg_per_s'], 'msg/s'),

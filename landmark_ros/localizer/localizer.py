@@ -313,8 +313,9 @@ class Localizer:
                               f'{rot:.2f} rad in {dt:.3f} s: motion dropped')
             return _ZERO3, self._jump_Q.copy()
         if Q is None or not np.any(Q):
-            Q = motion.odometry_noise(delta, self._alphas) * motion.step_noise_scale(
-                dt, cfg.odometry_alphas_period_s)
+            Q = motion.odometry_noise(delta, self._alphas)
+            if cfg.odometry_alphas_period_s > 0.0:  # motion.step_noise_scale, dt > 0
+                Q *= cfg.odometry_alphas_period_s / dt
         Q = Q + self._floor
         if dt > cfg.max_odometry_gap_s:
             self.counters.add('odometry_gap', detail=f'{dt:.2f} s without odometry')
