@@ -11,7 +11,13 @@ up to the linearisation). Per seed the average NEES of the 3-dof pose over the r
 (after the first 2 s); over the seeds their mean and its 95 % interval (normal
 approximation of the seed means): consistent when the interval holds 3.
 
-Run: ``python -m landmark_ros.eval.localization_montecarlo [--seeds 20]``.
+With ``--hide-ids take|merge`` every landmark has a partner ``PAIR_M`` away (random
+direction, as MRCLAM's pairs) and the rows come without IDs: the localizer associates
+them (JCBB), its ambiguous rows taking JCBB's choice (``take``) or applied once per
+candidate (``merge``, ``association_merge_ambiguous``).
+
+Run: ``python -m landmark_ros.eval.localization_montecarlo [--seeds 20] [--hide-ids
+merge]``.
 """
 
 import argparse
@@ -20,20 +26,32 @@ import sys
 
 from landmark_ros.localizer import motion
 from landmark_ros.localizer.config import LocalizerConfig
-from landmark_ros.localizer.localizer import Localizer
+from landmark_ros.localizer.localizer import Localizer, UNKNOWN_ID
 from landmark_ros.sim.odometry import wheel_odometry
 from landmark_ros.sim.simulation import generate_world, make_paths, visible
 import numpy as np
 
 ALPHAS = (0.05, 0.5, 0.05, 0.01)
+PAIR_M = 0.25
+"""Distance of each landmark's partner with ``--hide-ids`` [m]."""
 RANGE_STDDEV, BEARING_STDDEV = 0.05, 0.02
 MS = 1_000_000
 
 
-def run_seed(seed, duration_s=60.0, rate_hz=50.0):
-    """Return the average pose NEES of one seed and the rows used."""
+def _paired(world, generator):
+    """Return ids, positions of the world's landmarks and a partner of each."""
+    angle = generator.uniform(0.0, 2.0 * math.pi, len(world.ids))
+    partners = world.positions + PAIR_M * np.column_stack([np.cos(angle), np.sin(angle)])
+    ids = np.concatenate([world.ids, world.ids.max() + 1 + np.arange(len(world.ids))])
+    return ids, np.vstack([world.positions, partners])
+
+
+def run_seed(seed, duration_s=60.0, rate_hz=50.0, hidden=None):
+    """Return the average pose NEES of one seed and the rows used (``hidden``: module)."""
     generator = np.random.default_rng(seed)
     world = generate_world(15, 20.0, seed)
+    ids, positions = (_paired(world, generator) if hidden
+                      else (world.ids, world.positions))
     path = make_paths(1, world.bounds, 0.5, seed)[0]
     times = np.arange(0.0, duration_s, 1.0 / rate_hz)
     truth = np.array([path.pose(t) for t in times]).reshape(-1, 3)
@@ -41,10 +59,10 @@ def run_seed(seed, duration_s=60.0, rate_hz=50.0):
     config = LocalizerConfig(odometry_alphas=ALPHAS, range_stddev=RANGE_STDDEV,
                              range_stddev_per_m=0.0, bearing_stddev=BEARING_STDDEV,
                              initial_stddev=(0.05, 0.05, 0.02),
-                             correlation='independent')
+                             correlation='independent', association_take_ambiguous=True,
+                             association_merge_ambiguous=hidden == 'merge')
     loc = Localizer(config)
-    loc.set_map(world.ids, world.positions,
-                np.tile(np.eye(2) * 1e-6, (len(world.ids), 1, 1)))
+    loc.set_map(ids, positions, np.tile(np.eye(2) * 1e-6, (len(ids), 1, 1)))
     start = truth[0] + generator.normal(0.0, config.initial_stddev)
     loc.initialize(0, start, np.diag(np.square(config.initial_stddev)))
     every = int(round(0.2 * rate_hz))
@@ -53,10 +71,11 @@ def run_seed(seed, duration_s=60.0, rate_hz=50.0):
         stamp = int(round(t * 1e9))
         est = loc.add_odometry(stamp, pose=odom[k])
         if k % every == every // 2:
-            mask, z = visible(truth[k], world.positions, 0.5, 8.0, 2.0 * math.pi)
+            mask, z = visible(truth[k], positions, 0.5, 8.0, 2.0 * math.pi)
             z = z[mask] + generator.normal(0.0, [RANGE_STDDEV, BEARING_STDDEV],
                                            (int(mask.sum()), 2))
-            loc.add_observations(stamp, world.ids[mask], z)
+            loc.add_observations(stamp, np.full(int(mask.sum()), UNKNOWN_ID, np.int64)
+                                 if hidden else ids[mask], z)
             est = loc.estimate()
         if t >= 2.0 and est is not None:
             e = est.x - truth[k]
@@ -65,9 +84,9 @@ def run_seed(seed, duration_s=60.0, rate_hz=50.0):
     return float(np.mean(nees)), loc.counters['rows_used']
 
 
-def run(seeds=20):
+def run(seeds=20, hidden=None):
     """Return the seed means, their mean and its 95 % interval."""
-    means = np.array([run_seed(seed)[0] for seed in range(seeds)])
+    means = np.array([run_seed(seed, hidden=hidden)[0] for seed in range(seeds)])
     half = 1.96 * means.std(ddof=1) / math.sqrt(len(means)) if len(means) > 1 else math.inf
     return means, float(means.mean()), (float(means.mean() - half),
                                         float(means.mean() + half))
@@ -77,8 +96,10 @@ def main(argv=None):
     """Print the Monte Carlo result; exit 1 when 3 is outside the interval."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[1])
     parser.add_argument('--seeds', type=int, default=20)
+    parser.add_argument('--hide-ids', choices=('take', 'merge'), default=None,
+                        help='landmarks in pairs, rows without IDs (module docstring)')
     args = parser.parse_args(argv)
-    means, mean, (low, high) = run(args.seeds)
+    means, mean, (low, high) = run(args.seeds, args.hide_ids)
     inside = low <= 3.0 <= high
     print(f'pose ANEES over {args.seeds} seeds: {mean:.2f} (95 % interval {low:.2f} to '
           f'{high:.2f}; 3 is consistent: {"inside" if inside else "outside"})')

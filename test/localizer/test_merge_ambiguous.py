@@ -86,3 +86,12 @@ def test_config_default_keeps_the_old_behaviour():
     assert LocalizerConfig().association_merge_ambiguous is False
     with pytest.raises((TypeError, ValueError)):
         LocalizerConfig(association_merge_ambiguous='maybe')
+
+
+def test_simulated_pairs_without_ids_stay_consistent():
+    from landmark_ros.eval.localization_montecarlo import run_seed
+    nees, rows = run_seed(1, duration_s=30.0, hidden='merge')
+    nees_ids, rows_ids = run_seed(1, duration_s=30.0)
+    # every landmark has a partner 0.25 m away: twice the rows, nearly all associated
+    assert rows > 1.8 * rows_ids
+    assert 1.5 < nees < 4.5 and 1.5 < nees_ids < 4.5
