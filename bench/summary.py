@@ -193,19 +193,17 @@ def localizer_rows(loc):
     if 'odometry_us' in loc:
         rows.append(('pipeline', 'Localizer.add_odometry', f'{_num(loc["odometry_us"])} us/msg',
                      'thread CPU time', 'bench_localizer'))
-    for correlation in ('independent', 'split_ci'):
-        for when, what in (('now', 'at the newest odometry'), ('late', '0.5 s late')):
-            key = f'{correlation}_{when}_row_us'
-            if key in loc:
-                rows.append(('pipeline', f'Localizer.add_observations, {correlation}, {what}',
-                             f'{_num(loc[key])} us/row', 'thread CPU time, batches of '
-                             f'{_num(loc.get("rows"))} rows', 'bench_localizer'))
-    for hidden, what in (('take', "JCBB's choice"), ('merge', 'applied per candidate')):
-        key = f'split_ci_noid_{hidden}_now_row_us'
+    cases = [(f'{correlation}_{when}_row_us', f'{correlation}, {what}', '')
+             for correlation in ('independent', 'split_ci')
+             for when, what in (('now', 'at the newest odometry'), ('late', '0.5 s late'))]
+    cases += [(f'split_ci_noid_{hidden}_now_row_us', f'rows without ID, {what}',
+               'map of pairs 0.3 m apart, ')
+              for hidden, what in (('take', "JCBB's choice"), ('merge', 'applied per candidate'))]
+    for key, what, setting in cases:
         if key in loc:
-            rows.append(('pipeline', f'Localizer.add_observations, rows without ID, {what}',
-                         f'{_num(loc[key])} us/row', 'thread CPU time, map of pairs 0.3 m '
-                         f'apart, batches of {_num(loc.get("rows"))} rows', 'bench_localizer'))
+            rows.append(('pipeline', f'Localizer.add_observations, {what}',
+                         f'{_num(loc[key])} us/row', f'thread CPU time, {setting}batches of '
+                         f'{_num(loc.get("rows"))} rows', 'bench_localizer'))
     if 'localizer_msg_per_s' in loc:
         rows.append(('node', 'landmark_localizer, odometry (a sighting batch every 5th)',
                      si(loc['localizer_msg_per_s'], 'msg/s'),

@@ -530,17 +530,15 @@ class Localizer:
     def _update(self, x, P, batch):
         if batch.alternatives:
             x, P, result = update_mixture(x, P, batch, self._update_rows)
-            if batch.result is None:
-                batch.result = result
-                self._count(batch, result)
-            return x, P
-        result = self._update_rows(x, P, batch)
-        if result is None:
-            return x, P
+        else:
+            result = self._update_rows(x, P, batch)
+            if result is None:
+                return x, P
+            x, P = result.x, result.P
         if batch.result is None:  # first application: count it
             batch.result = result
             self._count(batch, result)
-        return result.x, result.P
+        return x, P
 
     def _update_rows(self, x, P, batch):
         """Return ``update`` of ``batch`` from ``(x, P)`` (None if it failed, counted)."""
