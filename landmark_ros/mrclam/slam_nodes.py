@@ -67,6 +67,7 @@ from landmark_ros.mrclam.player import stamp_msg
 from landmark_ros.mrclam.replay_plan import (cpu_seconds, observer_arguments,
                                              OBSERVER_TRANSPORT, ReplayError)
 from landmark_ros.mrclam.slam_plan import plan, start_pose
+from landmark_ros.pipeline.rows import UNKNOWN_ID
 from landmark_ros.ros import qos
 from landmark_ros.ros.conversions import stamp_ns
 from landmark_ros.ros.launcher import Launcher, write_params_file
@@ -169,6 +170,7 @@ class SlamPlayer:
         self.node, self.executor, self.launcher = node, executor, launcher
         self.steps = plan(dataset, extras, delay_s, loop_config.observer)
         self.live = bool(live)
+        self.hide_ids = bool(loop_config.hide_ids)
         self.take = self.steps.poses - 1 if live else self.steps.poses
         """Poses each step's localizer has published when it takes the sightings, (S,)."""
         depth = qos.reliable_output(10000)
@@ -360,8 +362,9 @@ class SlamPlayer:
     def _cloud(self, i):
         steps, robot = self.steps, self.robots[int(self.steps.robot[i])].robot
         a, b = int(steps.start[i]), int(steps.end[i])
+        ids = np.full(b - a, UNKNOWN_ID, np.int64) if self.hide_ids else robot.ids[a:b]
         return observation_message(Header(stamp=stamp_msg(steps.stamp_ns[i]),
-                                          frame_id='base_link'), robot.ids[a:b], robot.z[a:b])
+                                          frame_id='base_link'), ids, robot.z[a:b])
 
     def _step(self, i):
         """Play step ``i``: localizer, observer, fuser (module docstring)."""
@@ -466,7 +469,12 @@ def start_nodes(launcher, dataset, extras, setup):
 def run_through_nodes(dataset, extras, loop_config, paths, delay_s, domain_id,
                       live=False):
     """
-    Run the loop (IDs shown, no anchors) through the nodes; return what it left.
+    Run the loop (no anchors) through the nodes; return what it left.
+
+    With ``loop_config.hide_ids`` the clouds go without IDs (every row ``UNKNOWN_ID``):
+    each localizer names the rows against the map it holds, the fuser associates them
+    (``LoopConfig.association`` must be ``localizer``: no topic carries the fuser's
+    pairing back to a localizer).
 
     ``paths`` is ``(config_path, work)``; ``live``: the localizers take the sightings
     before the odometry that passes their stamp (``SlamPlayer``). Returns a dict: ``tracks`` (one

@@ -1,9 +1,10 @@
 """
 ``landmark_mrclam --slam --through-nodes``: run the loop through the nodes and compare.
 
-The node run (``slam_nodes.run_through_nodes``: IDs shown, no anchors, no robot
-sightings) beside ``slam_plan.offline_reference`` (the offline loop with the same
-events) and the offline ``--slam`` entry of the same mode. ``--json`` gains
+The node run (``slam_nodes.run_through_nodes``: no anchors, no robot sightings; IDs
+shown, or hidden with ``--hide-ids``, the localizers then naming the rows themselves,
+``slam_association: localizer``) beside ``slam_plan.offline_reference`` (the offline
+loop with the same events) and the offline ``--slam`` entry of the same mode. ``--json`` gains
 ``slam_nodes`` (the node run: the keys of a ``slam`` entry) and ``slam_agreement``
 (``compare``: the published poses, the final map and the rows, against the reference;
 the figures against the reference and against the full offline run). With
@@ -72,16 +73,16 @@ def compare(reference, nodes):
             'same_rows': bool(rows), 'track_max_position_diff_m': track_dpos}
 
 
-def node_entry(dataset, nodes):
+def node_entry(dataset, nodes, hide_ids=False):
     """Return the node run's entry: the keys of a ``slam`` entry."""
     robots, overall = metrics(nodes['tracks'])
     the_map = nodes['map']
     records = [{'id': int(i), 'mean': mean.tolist(), 'covariance': cov.tolist(),
                 'observations': int(n)} for i, mean, cov, n in zip(
                     the_map['ids'], the_map['m'], the_map['P'], the_map['observations'])]
-    _, scores = slam.map_entry(dataset, records, False)
+    _, scores = slam.map_entry(dataset, records, hide_ids)
     info = nodes['info']
-    return {'ids_hidden': False, 'anchors': False, 'robot_sightings': False,
+    return {'ids_hidden': bool(hide_ids), 'anchors': False, 'robot_sightings': False,
             **{key: overall[key] for key in KEYS}, **scores,
             'rows_used': overall['rows_used'], 'rows_gated': overall['rows_gated'],
             'seconds': info['play_wall_s'], 'cpu_seconds': info['node_cpu_s'],
@@ -98,7 +99,8 @@ def reference_entry(dataset, reference):
         tracks.append(Track(robot.number, times[inside], pub['x'][inside], pub['P'][inside],
                             truth[inside], dict(loc.counters.counts)))
     robots, overall = metrics(tracks)
-    _, scores = slam.map_entry(dataset, reference.loop.map_records(), False)
+    _, scores = slam.map_entry(dataset, reference.loop.map_records(),
+                               reference.loop.config.hide_ids)
     return {**{key: overall[key] for key in KEYS}, **scores, 'robots': robots}
 
 
@@ -107,16 +109,18 @@ def through_nodes(args, data, results, document):
     Run ``--slam --through-nodes``; fill ``document``; return the exit code.
 
     ``data`` is ``(dataset, extras, loop_config, config_path, delay_s)``; ``results``
-    the offline ``slam.SlamResult`` list (its IDs, no-anchors entry is compared).
+    the offline ``slam.SlamResult`` list (its no-anchors entry of the same IDs mode is
+    compared).
     Returns 1 when the run failed or does not agree (stamps, rows or map IDs differ;
     with ``--live-order`` only when it failed: the differences are then measured).
     """
     from landmark_ros.mrclam.replay_plan import domain_id_for, ReplayError
     from landmark_ros.mrclam.slam_nodes import run_through_nodes
     dataset, extras, loop_config, config_path, delay_s = data
-    if args.hide_ids:
-        print('landmark_mrclam: --slam --through-nodes runs with IDs only (a localizer '
-              "node cannot take the fuser's track IDs)", file=sys.stderr)
+    if loop_config.hide_ids and loop_config.association != 'localizer':
+        print('landmark_mrclam: --slam --through-nodes --hide-ids needs slam_association: '
+              "localizer (a localizer node cannot take the fuser's track IDs)",
+              file=sys.stderr)
         return 1
     extras = without_robot_sightings(extras)
     reference = offline_reference(dataset, extras, loop_config, delay_s)
@@ -130,18 +134,18 @@ def through_nodes(args, data, results, document):
     except (RuntimeError, ReplayError) as error:
         print(f'landmark_mrclam: {error}', file=sys.stderr)
         return 1
-    entry = node_entry(dataset, nodes)
+    entry = node_entry(dataset, nodes, loop_config.hide_ids)
     agreement = {'order': 'live' if live else 'offline', **compare(reference, nodes)}
     ref_entry = reference_entry(dataset, reference)
     agreement['max_figure_diff'] = max(abs(entry[k] - ref_entry[k]) for k in FIGURES)
     offline = next((r.entry for r in results
-                    if not r.mode.hide_ids and not r.mode.anchors), None)
+                    if r.mode.hide_ids == loop_config.hide_ids and not r.mode.anchors), None)
     if offline is not None:
         agreement['figures_minus_offline_slam'] = {k: entry[k] - offline[k] for k in FIGURES}
     document['mode'] = 'through_nodes'
     document['slam_nodes'] = [entry]
     document['slam_agreement'] = [agreement]
-    print(format_agreement(entry, agreement, dataset.duration))
+    print(format_agreement(entry, agreement, dataset.duration, loop_config.hide_ids))
     # In the live order the differences are the measurement, not a failure.
     ok = live or (agreement['same_stamps'] and agreement['same_rows']
                   and agreement['same_map_ids'])
@@ -150,9 +154,10 @@ def through_nodes(args, data, results, document):
     return 0 if ok else 1
 
 
-def format_agreement(entry, a, duration_s):
+def format_agreement(entry, a, duration_s, hide_ids=False):
     """Return the node run's figures and its agreement as text."""
-    lines = [f'through the nodes ({a["order"]} order; IDs, no anchors, no robot sightings): '
+    ids = 'IDs hidden' if hide_ids else 'IDs'
+    lines = [f'through the nodes ({a["order"]} order; {ids}, no anchors, no robot sightings): '
              f'position RMSE '
              f'{entry["position_rmse_m"]:.3f} m, heading RMSE {entry["heading_rmse_rad"]:.4f} '
              f'rad, ANEES {entry["anees"]:.2f}, in 95% {entry["inside_95_fraction"]:.3f}; '

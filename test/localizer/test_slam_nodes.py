@@ -9,7 +9,7 @@ from landmark_ros.eval.slam_loop import LoopConfig
 from landmark_ros.fuser.fuser import Fuser
 from landmark_ros.fuser.sources import LandmarkMessage
 from landmark_ros.localizer.config import LocalizerConfig
-from landmark_ros.localizer.localizer import Localizer
+from landmark_ros.localizer.localizer import Localizer, UNKNOWN_ID
 from landmark_ros.mrclam.data import Dataset, interpolate_poses, Robot, seconds_to_stamps_ns
 from landmark_ros.mrclam.localize_data import RobotExtras
 from landmark_ros.mrclam.localize_plan import batches
@@ -82,6 +82,8 @@ class _Nodes:
             start_pose(r, extras, delay_s)))) for r in dataset.robots]
         self.observers = [Observer(config.observer) for _ in dataset.robots]
         self.fuser = Fuser(config.fuser, [f'/{r.name}/landmarks' for r in dataset.robots])
+        self.hide_ids = config.hide_ids
+        self.held = [None] * len(self.robots)
         self.the_map = self.fuser.snapshot()
         self.odom_ns = [seconds_to_stamps_ns(ex.odom_times + delay_s) for ex in self.extras]
         self.sent = [0] * len(self.robots)
@@ -101,7 +103,11 @@ class _Nodes:
     def step(self, r, stamp, rows, hold, stale=False):
         """Give the sightings to the localizer (against the map), then observer and fuser."""
         ids, z = rows
-        self.locs[r].set_map(*self.the_map[:3])
+        if self.hide_ids:  # the player's clouds: every row UNKNOWN_ID
+            ids = np.full(len(ids), UNKNOWN_ID, np.int64)
+        if self.held[r] is not self.the_map:  # the node takes each map once
+            self.locs[r].set_map(*self.the_map[:3])
+            self.held[r] = self.the_map
         self.locs[r].add_observations(stamp, ids, z)
         message = ObservationMessage(stamp, {'id': ids, 'range': z[:, 0], 'bearing': z[:, 1]})
         placed = self.observers[r].add_observations([message], now_ns=stamp)
@@ -114,7 +120,8 @@ class _Nodes:
         (batch,) = placed
         if len(batch.ids):
             self.fuser.add_landmarks(f'/{self.robots[r].name}/landmarks', LandmarkMessage(
-                batch.stamp_ns, batch.ids, batch.m, batch.P, batch.P_dep))
+                batch.stamp_ns, batch.ids, batch.m, batch.P, batch.P_dep,
+                classes=batch.classes, scan=batch.scan))
             self.fuser.fuse_queued()
             if self.fuser.map_changed:
                 self.the_map = self.fuser.snapshot()
@@ -144,6 +151,10 @@ def _play(dataset, extras, delay_s, rng, config=CONFIG):
     return steps, nodes
 
 
+HIDDEN = replace(CONFIG, hide_ids=True, association='localizer',
+                 localizer=replace(CONFIG.localizer, association_merge_ambiguous=True))
+
+
 def _assert_same(reference, nodes):
     loop = reference.loop
     for pub, mine, loc, offline in zip(reference.published, nodes.published, nodes.locs,
@@ -151,7 +162,7 @@ def _assert_same(reference, nodes):
         assert [s for s, _, _ in mine] == pub['stamps_ns'].tolist()
         np.testing.assert_array_equal(np.array([x for _, x, _ in mine]), pub['x'])
         np.testing.assert_array_equal(np.array([P for _, _, P in mine]), pub['P'])
-        for key in ('rows_used', 'rows_gated', 'refiltered'):
+        for key in ('rows_used', 'rows_gated', 'refiltered', 'no_id', 'association_merged'):
             assert loc.counters[key] == offline.counters[key], key
     for a, b in zip(nodes.fuser.map.snapshot(), loop.fuser.map.snapshot()):
         np.testing.assert_array_equal(a, b)
@@ -169,8 +180,24 @@ def test_the_steps_make_the_offline_loops_calls(seed, delay_s):
     _assert_same(reference, nodes)
 
 
+@pytest.mark.parametrize('seed', [0, 4])
+def test_the_steps_without_ids_make_the_offline_loops_calls(seed):
+    # The localizer names the rows itself against the map it holds (the node's own
+    # association), the fuser's association places them: the node wiring, no track IDs.
+    dataset, extras = _synthetic(seed)
+    reference = offline_reference(dataset, extras, HIDDEN, 0.0)
+    _, nodes = _play(dataset, extras, 0.0, np.random.default_rng(seed), HIDDEN)
+    loop = reference.loop
+    assert loop.counts['rows_to_localizer'] > 100 and len(loop.map_records()) >= 4
+    assert sum(loc.counters['no_id'] for loc in nodes.locs) > 0.9 * sum(
+        len(r.ids) for r in dataset.robots)
+    assert sum(loc.counters['rows_used'] for loc in nodes.locs) > 100
+    _assert_same(reference, nodes)
+
+
 @pytest.mark.skipif(not DATASET.is_dir(), reason='needs ../shared MRCLAM dataset 6')
-def test_the_steps_on_mrclam_make_the_offline_loops_calls():
+@pytest.mark.parametrize('hide_ids', [False, True])
+def test_the_steps_on_mrclam_make_the_offline_loops_calls(hide_ids):
     from landmark_ros.mrclam import slam
     from landmark_ros.mrclam.config import load_config
     from landmark_ros.mrclam.data import load_dataset
@@ -184,7 +211,10 @@ def test_the_steps_on_mrclam_make_the_offline_loops_calls():
     extras = without_robot_sightings(load_all_extras(dataset))
     dataset, extras = slice_run(dataset, extras, 45.0)  # robot5 drops two messages
     localizer_values, replay_values = _sections(replay.path)
-    config = slam.loop_config(replay, localizer_config(localizer_values))
+    # The file's loop, one source per robot as the nodes publish (slam_cli).
+    config = replace(slam.loop_config(replay, localizer_config(localizer_values),
+                                      replay_values), precision_sources=1, hide_ids=hide_ids)
+    assert config.association == 'localizer'  # config/mrclam.yaml: the node wiring
     delay_s = float(replay_values['odometry_delay_s'])
     reference = offline_reference(dataset, extras, config, delay_s)
     steps, nodes = _play(dataset, extras, delay_s, np.random.default_rng(0), config)
@@ -210,13 +240,15 @@ def test_a_step_waits_for_the_pose_after_its_stamp_or_tied_with_it():
 
 
 @pytest.mark.skipif(not DATASET.is_dir(), reason='needs ../shared MRCLAM dataset 6')
-def test_through_the_nodes_agrees_with_the_offline_loop(tmp_path):
+@pytest.mark.parametrize('hide_ids', [False, True])
+def test_through_the_nodes_agrees_with_the_offline_loop(tmp_path, hide_ids):
     pytest.importorskip('rclpy')
     from landmark_ros.mrclam.cli import main
     from rosutil import next_domain_id
     out = tmp_path / 'slam.json'
     code = main([str(DATASET), '--slam', '--through-nodes', '--duration', '12',
-                 '--no-progress', '--domain-id', str(next_domain_id()), '--json', str(out)])
+                 '--no-progress', '--domain-id', str(next_domain_id()), '--json', str(out)]
+                + ['--hide-ids'] * hide_ids)
     assert code == 0
     document = json.loads(out.read_text())
     (a,) = document['slam_agreement']
@@ -228,6 +260,7 @@ def test_through_the_nodes_agrees_with_the_offline_loop(tmp_path):
     assert a['max_cov_diff'] < 1e-12 and a['max_figure_diff'] < 1e-9
     assert a['max_map_mean_diff_m'] < 1e-12 and a['max_map_cov_diff'] < 1e-12
     (entry,) = document['slam_nodes']
+    assert entry['ids_hidden'] == hide_ids
     assert entry['rows_used'] > 50 and entry['tracks_confirmed'] >= 5
     assert entry['player']['maps_expected'] > 20 and entry['player']['map_waits'] > 0
     # loop_counts and dependent_stddev_m are the offline TeamLoop's own records
