@@ -81,6 +81,11 @@ class LocalizerConfig(ConfigBase):
         'over the run, its camera calibration; the spread of the scales of the robots): '
         'estimated as a fourth state, range = distance x (1 + s); 0: no state',
         low=0.0, high=0.5)
+    range_scale_bearing_state_stddev: float = param(
+        0.0, 'prior standard deviation of the change of that range scale error with the '
+        "bearing [1/rad] (a lens that reads one side shorter; the spread of the robots' "
+        'own values): a fifth state, range = distance x (1 + s + this state x bearing); '
+        'needs range_scale_state_stddev; 0: no state', low=0.0, high=1.0)
     bearing_stddev: float = param(0.02, 'bearing noise [rad]', low=0.0, high=1e6)
     range_bias_stddev: float = param(
         0.0, 'range error shared by all sightings of the robot [m] (camera calibration): '
@@ -166,5 +171,7 @@ class LocalizerConfig(ConfigBase):
                              f'got {self.association!r}')
         if any(a < 0.0 for a in self.odometry_alphas):
             raise ValueError(f'odometry_alphas must be >= 0, got {self.odometry_alphas}')
+        if self.range_scale_bearing_state_stddev > 0.0 and self.range_scale_state_stddev <= 0.0:
+            raise ValueError('range_scale_bearing_state_stddev needs range_scale_state_stddev')
         if any(s <= 0.0 for s in self.initial_stddev):
             raise ValueError(f'initial_stddev must be > 0, got {self.initial_stddev}')

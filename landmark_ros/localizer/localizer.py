@@ -164,19 +164,22 @@ class Localizer:
         """
         Restart the filter at pose ``x`` (3,) with covariance ``P`` (3, 3) at a stamp.
 
-        With ``range_scale_state_stddev`` the state takes the range scale error
-        (``update``): the previous estimate, else 0 with that standard deviation.
+        With ``range_scale_state_stddev`` the state takes the range scale error, with
+        ``range_scale_bearing_state_stddev`` its change with the bearing (``update``):
+        the previous estimates, else 0 with those standard deviations.
         """
         odom = self._steps[-1].odom if self._steps else _ZERO3
         x = np.array(x, dtype=np.float64)[:3]
         x[2] = motion.wrap(x[2])
         P = np.array(P, dtype=np.float64)[:3, :3]
-        sd = self.config.range_scale_state_stddev
-        if sd > 0.0:
-            last = self._steps[-1] if self._steps and len(self._steps[-1].x) == 4 else None
-            x = np.append(x, last.x[3] if last else 0.0)
-            P = np.pad(P, ((0, 1), (0, 1)))
-            P[3, 3] = last.P[3, 3] if last else sd * sd
+        sd = [v for v in (self.config.range_scale_state_stddev,
+                          self.config.range_scale_bearing_state_stddev) if v > 0.0]
+        if sd:  # the previous estimates (a restart keeps what was learnt), else the prior
+            n = 3 + len(sd)
+            last = self._steps[-1] if self._steps and len(self._steps[-1].x) == n else None
+            x = np.append(x, last.x[3:] if last else np.zeros(len(sd)))
+            P = np.pad(P, ((0, len(sd)), (0, len(sd))))
+            P[3:, 3:] = last.P[3:, 3:] if last else np.diag(np.square(sd))
         self._steps = [_Step(int(stamp_ns), _ZERO3, np.zeros((3, 3)), odom, x, P, x, P)]
         self._stamps = [int(stamp_ns)]
         self._pending = []

@@ -53,6 +53,11 @@ it is counted again at every sighting, and a forward-looking camera, whose landm
 all ahead, turns it into a position error along the heading that no number of sightings
 removes. With ``x`` of 4 components the fourth is that relative error ``s``: a range reads
 ``d (1 + s)`` (``observe``), ``s`` constant between updates (``motion.predict_with``).
+With 5 the fifth is its change with the bearing ``b`` [1/rad]: ``d (1 + s + s_b b)``, a
+lens that reads landmarks on one side shorter than on the other (MRCLAM dataset 6:
+robot 5's ranges 1.3 % short on its left, 0.7 % long on its right, the same in both
+halves of the run), which a forward-looking camera turns into a sideways position
+error.
 
 Iterated update
 ---------------
@@ -237,14 +242,16 @@ def observe(x: NDArray[np.float64], m: NDArray[np.float64]
     """
     Return the predicted readings of landmarks and their Jacobians, with the range scale.
 
-    ``x`` is the pose ``(x, y, theta)``, or the pose and a range scale error ``s``
-    (module docstring, range scale state): the range reads ``d (1 + s)``, ``d`` the
-    distance (``sensors.observe``); the bearing does not depend on ``s``.
+    ``x`` is the pose ``(x, y, theta)``, or the pose and a range scale error ``s``, and
+    its change with the bearing ``s_b`` (module docstring, range scale state): the range
+    reads ``d (1 + s + s_b b)``, ``d`` the distance and ``b`` the bearing
+    (``sensors.observe``); the bearing does not depend on them.
 
     Parameters
     ----------
-    x : ndarray, shape (3,) or (4,)
-        Pose [m, m, rad], optionally the scale error [1].
+    x : ndarray, shape (3,), (4,) or (5,)
+        Pose [m, m, rad], optionally the scale error [1] and its change with the
+        bearing [1/rad].
     m : ndarray, shape (N, 2)
         Landmark positions [m].
 
@@ -262,15 +269,19 @@ def observe(x: NDArray[np.float64], m: NDArray[np.float64]
     J_z_p, J_z_m = sensors.observe_jacobians(x[:3], m)
     if len(x) == 3:
         return h, J_z_p, J_z_m
-    g = 1.0 + x[3]
+    d, b = h[:, 0], h[:, 1]
+    s_b = x[4] if len(x) > 4 else 0.0
+    g = 1.0 + x[3] + s_b * b
     J_z_x = np.zeros((len(m), 2, len(x)))
     J_z_x[:, :, :3] = J_z_p
-    J_z_x[:, 0, :3] *= g
-    J_z_x[:, 0, 3] = h[:, 0]
+    J_z_x[:, 0, :3] = g[:, None] * J_z_p[:, 0] + (s_b * d)[:, None] * J_z_p[:, 1]
+    J_z_x[:, 0, 3] = d
     J_z_m = J_z_m.copy()
-    J_z_m[:, 0] *= g
+    J_z_m[:, 0] = g[:, None] * J_z_m[:, 0] + (s_b * d)[:, None] * J_z_m[:, 1]
+    if len(x) > 4:
+        J_z_x[:, 0, 4] = d * b
     h = h.copy()
-    h[:, 0] *= g
+    h[:, 0] = d * g
     return h, J_z_x, J_z_m
 
 
@@ -358,9 +369,9 @@ def update(x: NDArray[np.float64], P: NDArray[np.float64], m: NDArray[np.float64
 
     Parameters
     ----------
-    x : ndarray, shape (3,) or (4,)
-        Prior pose, optionally with the range scale error (module docstring).
-    P : ndarray, shape (3, 3) or (4, 4)
+    x : ndarray, shape (3,), (4,) or (5,)
+        Prior pose, optionally with the range scale states (module docstring).
+    P : ndarray, shape (n, n), n = len(x)
         Its covariance.
     m : ndarray, shape (N, 2)
         Landmark positions [m].

@@ -18,9 +18,9 @@ import math
 from landmark_ros.core.pose2 import wrap_angle
 from landmark_ros.mrclam.camera_delay import (CameraDelay, estimate_camera_delay,
                                               format_camera_delay)
-from landmark_ros.mrclam.range_calibration import (fit_range_noise, range_noise_bins,
-                                                   remove_range_scale, robust_sigma,
-                                                   SHORT_TAIL_M)
+from landmark_ros.mrclam.range_calibration import (bearing_scale_spread, fit_range_noise,
+                                                   range_noise_bins, remove_range_scale,
+                                                   robust_sigma, SHORT_TAIL_M)
 import numpy as np
 from scipy import special
 from scipy.optimize import minimize_scalar
@@ -103,6 +103,11 @@ class Calibration:
     """Stamp delay of the sightings [s] (step 0), removed before every other step."""
     camera_delay: dict = None
     """``camera_delay.CameraDelay.to_dict`` of step 0 (None when not estimated)."""
+    range_scale_bearing_state_stddev: float = 0.0
+    """Root mean square of the robots' own change of the range scale with the bearing
+    [1/rad] (``range_calibration.bearing_scale_spread``, step 5)."""
+    range_scale_bearing_per_robot: dict = None
+    """That change per robot name [1/rad]."""
 
     def to_dict(self):
         """Return plain values for JSON."""
@@ -142,6 +147,8 @@ class Calibration:
         values['range_scale_coeffs'] = tuple(float(c) for c in self.range_scale_coeffs)
         values['range_bias_stddev'] = 0.0
         values['range_scale_state_stddev'] = float(self.range_scale_state_stddev)
+        values['range_scale_bearing_state_stddev'] = float(
+            self.range_scale_bearing_state_stddev)
         return values
 
     def suggested_yaml(self):
@@ -388,7 +395,10 @@ def calibrate(dataset, min_pair=10, bins=10, part=None, delay=True):
        ``range_scale_bias_stddev`` when a robot's shared range error is modelled as a
        scale error (``Calibration.observer_values``; ``range_bias_stddev`` is then 0:
        what an offset would leave after each robot's median relative error is zero
-       by construction, the median of ``b - b r / median(r)``).
+       by construction, the median of ``b - b r / median(r)``). Each robot's own
+       change of that error with the bearing gives ``range_scale_bearing_state_stddev``
+       (``range_calibration.bearing_scale_spread``), the prior of the localizer's fifth
+       state.
     6. Tails: the fraction of residuals beyond 3 model standard deviations
        (``sigma_r(r)``, ``bearing_stddev``); well above 0.27 % means heavy tails,
        which the gate of the fuser (``gate_probability``) has to reject.
@@ -487,6 +497,7 @@ def calibrate(dataset, min_pair=10, bins=10, part=None, delay=True):
                              np.full(int(big.sum()), sigma_b ** 2))
     model_r = np.sqrt(noise_r)
     state_sd = _scale_spread(e, model_r)
+    bearing_sd, slopes = bearing_scale_spread(e)
     tails = {'range': float(np.mean(np.abs(res_r) > 3.0 * model_r)),
              'bearing': float(np.mean(np.abs(res_b) > 3.0 * sigma_b))}
     correlation = correlation_model(pair_key, e['time'], {'range': res_r / model_r,
@@ -497,7 +508,8 @@ def calibrate(dataset, min_pair=10, bins=10, part=None, delay=True):
                        correlation['tau_s'], correlation, scale_coeffs, scale_per_m,
                        scale['no_bearing'], scale, state_sd, c,
                        0.0 if camera_delay is None else camera_delay.delay_s,
-                       None if camera_delay is None else camera_delay.to_dict())
+                       None if camera_delay is None else camera_delay.to_dict(), bearing_sd,
+                       {dataset.robots[i].name: c1 for i, c1 in slopes.items()})
 
 
 def _scale_spread(e, model_r):
@@ -563,6 +575,12 @@ def format_calibration(cal):
                  f'{cal.range_bias_stddev:.4f} m, bearing {cal.bearing_bias_stddev:.4f} rad; '
                  f'of the {cal.pairs} robot-landmark pair medians, for comparison: range '
                  f'{cal.pair_range_bias_rms:.4f} m, bearing {cal.pair_bearing_bias_rms:.4f} rad')
+    if cal.range_scale_bearing_per_robot:
+        lines.append('per robot range scale (RMS of the robot medians, less their noise) '
+                     f'{cal.range_scale_state_stddev:.4f}; its change with the bearing '
+                     f'{cal.range_scale_bearing_state_stddev:.4f} /rad (per robot: ' + ', '.join(
+                         f'{name} {c1:+.4f}' for name, c1 in
+                         cal.range_scale_bearing_per_robot.items()) + ')')
     lines.append(f'residuals beyond 3 model sd: range {100 * cal.residual_tails["range"]:.2f}%, '
                  f'bearing {100 * cal.residual_tails["bearing"]:.2f}% (Gaussian: 0.27%)')
     lines.append('time correlation (white + first-order Gauss-Markov per robot-landmark pair): '

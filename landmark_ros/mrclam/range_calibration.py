@@ -228,3 +228,30 @@ def fit_range_noise(r, sigma, counts):
     solution, _ = nnls(np.stack(columns, axis=1) * sw[:, None], s2 * sw)
     a2, k2, c2 = (list(solution) + [0.0])[:3]
     return math.sqrt(a2), math.sqrt(k2), math.sqrt(c2)
+
+
+def bearing_scale_spread(e, min_sightings=50):
+    """
+    Return the spread of the robots' own change of the range scale with the bearing.
+
+    After the shared correction (``remove_range_scale``) each robot's relative range
+    errors are fitted again (``fit_range_scale``: ``c0 + c1 b + c2 b^2 + k r``); its
+    ``c1`` [1/rad] is what its own lens adds (MRCLAM dataset 6: robot 5 -0.037, the
+    others -0.000 to +0.017, each the same in both halves of the run). Returns the root
+    mean square of the robots' ``c1`` less the variance of a least-squares slope,
+    ``sigma^2 / (n var(b))`` (each robot one draw, as ``_rms_bias``): the prior standard
+    deviation of the localizer's ``range_scale_bearing_state_stddev``; and the ``c1``
+    per robot index. Robots with fewer than ``min_sightings`` are left out.
+    """
+    true = e['range'] - e['range_error']
+    index = e['robot'].astype(int)
+    slopes, excess = {}, []
+    for robot in np.unique(index).tolist():
+        mine = index == robot
+        if np.count_nonzero(mine) < min_sightings:
+            continue
+        coeffs, _, sigma = fit_range_scale(e['range'][mine], e['bearing'][mine], true[mine])
+        slopes[robot] = float(coeffs[1])
+        noise = sigma ** 2 / (np.count_nonzero(mine) * np.var(e['bearing'][mine]))
+        excess.append(coeffs[1] ** 2 - noise)
+    return (math.sqrt(max(0.0, float(np.mean(excess)))) if excess else 0.0), slopes

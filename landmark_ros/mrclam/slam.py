@@ -324,6 +324,7 @@ def loop_config(replay_config, localizer: LocalizerConfig,
     if (not bool(values.get('slam_range_scale_state', False))
             and localizer.range_scale_state_stddev > 0.0):
         localizer = replace(localizer, range_scale_state_stddev=0.0,
+                            range_scale_bearing_state_stddev=0.0,
                             range_bias_stddev=replay_config.observer.range_bias_stddev)
     # The loop's poses share the map: their errors are correlated across robots.
     fuser = replace(replay_config.fuser, source_correlation='unknown')
