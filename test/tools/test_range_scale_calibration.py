@@ -131,6 +131,26 @@ def test_scale_spread_is_the_rms_of_the_robots_relative_errors():
     assert spread == pytest.approx(np.sqrt(np.mean(scales ** 2)), rel=0.05)
 
 
+def test_bearing_scale_spread_recovers_each_robots_lens():
+    from landmark_ros.mrclam.range_calibration import bearing_scale_spread
+    rng = np.random.default_rng(8)
+    slopes = np.array([0.012, -0.038, 0.0, 0.015])
+    robot = np.repeat(np.arange(4), 3000)
+    true = rng.uniform(1.0, 6.0, len(robot))
+    b = rng.uniform(-0.5, 0.5, len(robot))
+    scale = 1.0 + 0.004 * (robot - 1.5) + np.take(slopes, robot) * b
+    reading = true * scale * (1.0 + 0.012 * rng.standard_normal(len(robot)))
+    e = {'robot': robot, 'range': reading, 'range_error': reading - true, 'bearing': b}
+    spread, per_robot = bearing_scale_spread(e)
+    np.testing.assert_allclose([per_robot[i] for i in range(4)], slopes, atol=0.003)
+    assert spread == pytest.approx(np.sqrt(np.mean(slopes ** 2)), rel=0.05)
+    # a robot with too few sightings is left out; no lens, no spread
+    flat = dict(e, range=true * (1.0 + 0.012 * rng.standard_normal(len(robot))))
+    flat['range_error'] = flat['range'] - true
+    assert bearing_scale_spread(flat)[0] < 0.002
+    assert bearing_scale_spread(e, min_sightings=3001) == (0.0, {})
+
+
 def test_a_scale_error_model_in_the_params_file_is_kept_by_the_folds():
     from dataclasses import replace
     from landmark_ros.mrclam.calibrate import Calibration
