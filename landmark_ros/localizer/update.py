@@ -5,7 +5,8 @@ Symbols
 -------
 x, P
     Robot pose ``(x, y, theta)`` in the map frame and its covariance, (3,), (3, 3); or
-    the pose and the range scale error ``s`` (below), (4,), (4, 4).
+    the pose and the range scale error ``s`` (below), (4,), (4, 4), and its change with
+    the bearing, (5,), (5, 5).
 m, P_m
     Landmark positions and covariances from the map (or another robot's position and
     the xy block of its published covariance), (N, 2), (N, 2, 2).
@@ -103,9 +104,9 @@ class UpdateResult:
     """What one update did."""
 
     x: NDArray[np.float64]
-    """Updated state, shape (3,) or (4,) (as ``x``)."""
+    """Updated state, shape (n,) (as ``x``)."""
     P: NDArray[np.float64]
-    """Updated covariance, shape (3, 3) or (4, 4)."""
+    """Updated covariance, shape (n, n)."""
     used: NDArray[np.bool_]
     """Rows applied, shape (N,)."""
     gated: NDArray[np.bool_]

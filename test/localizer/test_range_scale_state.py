@@ -1,5 +1,6 @@
 """The localizer's range scale state: Jacobians, prediction, recovery and consistency."""
 
+from dataclasses import replace
 import math
 
 from landmark_ros.core import sensors
@@ -13,25 +14,30 @@ MS = 1_000_000
 LANDMARKS = np.array([[4.0, 1.0], [-3.0, 5.0], [2.0, -4.0], [6.0, 6.0], [-5.0, -2.0]])
 
 
+def assert_jacobians_match_central_differences(x, m, eps=1e-6):
+    """Check ``observe``'s Jacobians at ``x`` (n,) against central differences."""
+    _, J_z_x, J_z_m = observe(x, m)
+    for i in range(len(x)):
+        d = np.zeros(len(x))
+        d[i] = eps
+        num = (observe(x + d, m)[0] - observe(x - d, m)[0]) / (2 * eps)
+        num[:, 1] = (num[:, 1] + math.pi / eps) % (2 * math.pi / eps) - math.pi / eps
+        np.testing.assert_allclose(J_z_x[:, :, i], num, atol=1e-6)
+    for i in range(2):
+        d = np.zeros(2)
+        d[i] = eps
+        num = (observe(x, m + d)[0] - observe(x, m - d)[0]) / (2 * eps)
+        np.testing.assert_allclose(J_z_m[:, :, i], num, atol=1e-6)
+
+
 def test_observe_with_scale_matches_central_differences():
     rng = np.random.default_rng(3)
     for _ in range(20):
         x = np.append(rng.normal(size=3), rng.normal(0.0, 0.05))
         m = rng.normal(size=(4, 2)) * 3.0 + 5.0
-        h, J_z_x, J_z_m = observe(x, m)
+        h, _, _ = observe(x, m)
         np.testing.assert_allclose(h[:, 0], sensors.observe(x[:3], m)[:, 0] * (1.0 + x[3]))
-        eps = 1e-6
-        for i in range(4):
-            d = np.zeros(4)
-            d[i] = eps
-            num = (observe(x + d, m)[0] - observe(x - d, m)[0]) / (2 * eps)
-            num[:, 1] = (num[:, 1] + math.pi / eps) % (2 * math.pi / eps) - math.pi / eps
-            np.testing.assert_allclose(J_z_x[:, :, i], num, atol=1e-6)
-        for i in range(2):
-            d = np.zeros(2)
-            d[i] = eps
-            num = (observe(x, m + d)[0] - observe(x, m - d)[0]) / (2 * eps)
-            np.testing.assert_allclose(J_z_m[:, :, i], num, atol=1e-6)
+        assert_jacobians_match_central_differences(x, m)
     h3, J3, Jm3 = observe(x[:3], m)
     assert J3.shape == (4, 2, 3)
     np.testing.assert_allclose(h3, sensors.observe(x[:3], m))
@@ -64,21 +70,33 @@ def test_predict_with_keeps_the_scale_and_turns_its_cross_covariance():
         np.testing.assert_allclose(P_n[:3, :3], P3)
 
 
-def _simulate(seed, scale, state_stddev, steps=1500):
-    """Drive a robot whose ranges read ``scale`` too long; return pose NEES and the filter."""
+def _random_two(rng, x, landmarks):
+    """Return the indices of the landmarks seen: two at random (a camera sees a few)."""
+    return rng.permutation(len(landmarks))[:2]
+
+
+def simulate(seed, scale, config, steps=1500, landmarks=LANDMARKS, seen=_random_two,
+             settle=300):
+    """
+    Drive a robot whose ranges read ``scale(z)`` (relative) too long.
+
+    ``scale`` is a number or a function of the true readings (N, 2); ``seen(rng, x,
+    landmarks)`` picks the landmarks of each sighting. Returns the pose NEES after
+    ``settle`` steps, the filter, and the position RMSE over the same steps.
+    """
     rng = np.random.default_rng(seed)
-    cfg = LocalizerConfig(odometry_alphas=(0.5, 2.0, 0.5, 0.1), range_stddev=0.03,
-                          range_stddev_per_m=0.0, bearing_stddev=0.02,
-                          initial_stddev=(0.05, 0.05, 0.02), correlation='independent',
-                          range_scale_state_stddev=state_stddev)
+    cfg = replace(LocalizerConfig(odometry_alphas=(0.5, 2.0, 0.5, 0.1), range_stddev=0.03,
+                                  range_stddev_per_m=0.0, bearing_stddev=0.02,
+                                  initial_stddev=(0.05, 0.05, 0.02),
+                                  correlation='independent'), **config)
     loc = Localizer(cfg)
-    loc.set_map(np.arange(len(LANDMARKS)), LANDMARKS,
-                np.tile(np.eye(2) * 1e-10, (len(LANDMARKS), 1, 1)))
+    loc.set_map(np.arange(len(landmarks)), landmarks,
+                np.tile(np.eye(2) * 1e-10, (len(landmarks), 1, 1)))
     x = np.zeros(3)
     loc.initialize(0, x + rng.normal(0, cfg.initial_stddev),
                    np.diag(np.square(cfg.initial_stddev)))
     loc.add_odometry(0, twist=np.array([0.3, 0.0]))
-    nees, t = [], 0
+    nees, err, t = [], [], 0
     for k in range(steps):
         v, w = 0.3, 0.4 * math.sin(k / 200)
         d = motion.delta_from_twist(v, w, 0.02)
@@ -87,17 +105,24 @@ def _simulate(seed, scale, state_stddev, steps=1500):
         t += 20 * MS
         loc.add_odometry(t, twist=np.array([v, w]))
         if k % 10 == 3:
-            seen = rng.permutation(len(LANDMARKS))[:2]  # a camera sees a few at a time
-            z = sensors.observe(np.tile(x, (2, 1)), LANDMARKS[seen])
-            z[:, 0] *= 1.0 + scale
+            ids = seen(rng, x, landmarks)
+            z = sensors.observe(np.tile(x, (len(ids), 1)), landmarks[ids])
+            z[:, 0] *= 1.0 + (scale(z) if callable(scale) else scale)
             z += rng.normal(0, [0.03, 0.02], z.shape)
-            loc.add_observations(t, seen, z)
-        if k > 300 and k % 5 == 0:
+            loc.add_observations(t, ids, z)
+        if k > settle and k % 5 == 0:
             est = loc.estimate()
             e = est.x - x
             e[2] = motion.wrap(e[2])
             nees.append(e @ np.linalg.solve(est.P, e))
-    return np.array(nees), loc
+            err.append(math.hypot(e[0], e[1]))
+    return np.array(nees), loc, math.sqrt(np.mean(np.square(err)))
+
+
+def _simulate(seed, scale, state_stddev):
+    """Drive a robot whose ranges read ``scale`` too long; return pose NEES and the filter."""
+    nees, loc, _ = simulate(seed, scale, {'range_scale_state_stddev': state_stddev})
+    return nees, loc
 
 
 def test_a_constant_range_scale_is_recovered_and_the_pose_stays_consistent():
