@@ -10,7 +10,7 @@ from landmark_ros.pipeline.config import ConfigBase, param
 ASSOCIATION_METHODS = ('none', 'nn', 'jcbb')
 """Values of the ``association`` parameter (``none``: rows without ID are skipped)."""
 
-CORRELATIONS = ('independent', 'split_ci')
+CORRELATIONS = ('independent', 'split_ci', 'consider')
 """Values of ``correlation``: how the map's errors relate to the pose's (``update``)."""
 CORRELATED_NOISE = ('count', 'dependent')
 """Values of ``correlated_noise``: where the time-correlated noise and the bias go."""
@@ -103,8 +103,11 @@ class LocalizerConfig(ConfigBase):
         0.0, 'correlation time of the time-correlated noise part [s]: the sightings of a '
         'landmark within it share that part (0: none)', low=0.0, high=1e6)
     correlation: str = param(
-        'split_ci', 'map-pose correlation: independent (plain EKF) or split_ci (consistent '
-        'for any correlation of the map with the pose)')
+        'split_ci', 'map-pose correlation: independent (plain EKF: a landmark error new at '
+        'every sighting), split_ci (consistent for any correlation of the map with the pose: '
+        "a map built from this robot's poses) or consider (Schmidt-Kalman, the landmarks as "
+        "consider states: exact for a map whose errors are independent of the robot's, a "
+        'surveyed map or one built from other poses; localizer.consider)')
     correlated_noise: str = param(
         'count', 'how the time-correlated noise and the bias enter an update: count (in the '
         'independent noise, the correlated variance times the sightings of the landmark '

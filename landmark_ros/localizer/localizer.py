@@ -53,8 +53,9 @@ from landmark_ros.core.sensors import range_noise_variance
 from landmark_ros.localizer import motion
 from landmark_ros.localizer.association import label_rows, MapAssociation
 from landmark_ros.localizer.config import LocalizerConfig
+from landmark_ros.localizer.consider import ConsiderRows, ConsiderSlots, update_consider
 from landmark_ros.localizer.mixture import alternatives, update_mixture
-from landmark_ros.localizer.steps import Batch, Estimate, Step as _Step
+from landmark_ros.localizer.steps import Batch, count_shared, Estimate, Step as _Step
 from landmark_ros.localizer.update import (correct_ranges, RANGE_BEARING, row_noise, update,
                                            UpdateSettings)
 from landmark_ros.pipeline.counters import Counters, Status
@@ -105,6 +106,7 @@ class Localizer:
         self._last_update_ns: Optional[int] = None
         self._gated_in_a_row = 0
         self._sightings: dict = {}
+        self._consider = ConsiderSlots()
 
     def configure(self, config: LocalizerConfig) -> None:
         """Take a new config (parameters changed at run time)."""
@@ -181,6 +183,7 @@ class Localizer:
             P = np.pad(P, ((0, len(sd)), (0, len(sd))))
             P[3:, 3:] = last.P[3:, 3:] if last else np.diag(np.square(sd))
         self._steps = [_Step(int(stamp_ns), _ZERO3, np.zeros((3, 3)), odom, x, P, x, P)]
+        self._consider = ConsiderSlots()  # a new pose is independent of the map
         self._stamps = [int(stamp_ns)]
         self._pending = []
         self.counters.add('initialised')
@@ -270,7 +273,8 @@ class Localizer:
         if odom is None:
             odom = motion.compose(last.odom, delta)
         x, P = motion.predict_with(last.x, last.P, delta, Q)
-        self._steps.append(_Step(stamp_ns, delta, Q, odom, x, P, x, P))
+        C = motion.predict_cross(last.x, last.C, delta)
+        self._steps.append(_Step(stamp_ns, delta, Q, odom, x, P, x, P, C_prior=C, C=C))
         self._stamps.append(stamp_ns)
         self._prune()
         self._apply_pending()
@@ -288,7 +292,8 @@ class Localizer:
         if first and stamp_ns < last.stamp_ns:
             stamp_ns = last.stamp_ns
         odom = odom if odom is not None else _ZERO3
-        self._steps = [_Step(stamp_ns, _ZERO3, np.zeros((3, 3)), odom, last.x, P, last.x, P)]
+        self._steps = [_Step(stamp_ns, _ZERO3, np.zeros((3, 3)), odom, last.x, P, last.x, P,
+                             C_prior=last.C, C=last.C)]
         self._stamps = [stamp_ns]
         self._last_twist = None if twist is None else np.asarray(twist, dtype=np.float64)
         return _pose(self._steps[0])
@@ -381,7 +386,7 @@ class Localizer:
         k = index[keep]
         others = alternatives(merged, keep, self._map_index, self._map_m, self._map_P)
         self._apply_at(Batch(int(stamp_ns), self._map_m[k], self._map_P[k], z[keep], R[keep],
-                             kind[keep], alternatives=others,
+                             kind[keep], alternatives=others, landmarks=ids[keep],
                              shared=self._shared(int(stamp_ns), ids[keep]),
                              shared_bias=self._shared(int(stamp_ns), [None] * int(keep.sum()))))
         return int(keep.sum())
@@ -426,30 +431,9 @@ class Localizer:
                              np.array([RANGE_BEARING]), 'split_ci', 'robot_rows', shared))
 
     def _shared(self, stamp_ns, ids):
-        """
-        Return per row the sightings of its landmark within the correlation time.
-
-        The time-correlated part of the noise (``*_correlated_fraction``, correlation
-        time ``noise_correlation_time_s``) repeats across the sightings of a landmark
-        made within that time: n sightings that share one error carry the information
-        of one, so each counts with its correlated variance times n (the sightings of
-        the trailing correlation time, this one included). Without a correlation time
-        the count is 1. In steady state (a landmark seen at a steady rate) each
-        sighting weighs 1/n and the sightings of one correlation time weigh one; right
-        after a first encounter the k-th weighs 1/k, so the first n weigh the harmonic
-        sum H(n) (about 5 for 100): over-confident by that factor at most.
-        """
-        tau = int(self.config.noise_correlation_time_s * 1e9)
-        shared = np.ones(len(ids))
-        if tau <= 0:
-            return shared
-        for row, landmark in enumerate(ids.tolist() if hasattr(ids, 'tolist') else ids):
-            seen = self._sightings.setdefault(landmark, deque())
-            seen.append(stamp_ns)
-            while seen and seen[0] <= stamp_ns - tau:
-                seen.popleft()
-            shared[row] = sum(1 for t in seen if t <= stamp_ns)
-        return shared
+        """Return per row the sightings sharing its correlated noise (``steps.count_shared``)."""
+        return count_shared(self._sightings, stamp_ns, ids,
+                            int(self.config.noise_correlation_time_s * 1e9))
 
     def correct_ranges(self, z: NDArray[np.float64], kind: NDArray[np.int64],
                        R: Optional[NDArray[np.float64]] = None
@@ -525,31 +509,36 @@ class Localizer:
                 prev = self._steps[j - 1]
                 step.x_prior, step.P_prior = motion.predict_with(
                     prev.x, prev.P, step.delta, step.Q)
-            x, P = step.x_prior, step.P_prior
+                step.C_prior = motion.predict_cross(prev.x, prev.C, step.delta)
+            x, P, C = step.x_prior, step.P_prior, step.C_prior
             for batch in step.batches:
-                x, P = self._update(x, P, batch)
-            step.x, step.P = x, P
+                x, P, C = self._update(x, P, C, batch)
+            step.x, step.P, step.C = x, P, C
 
-    def _update(self, x, P, batch):
+    def _update(self, x, P, C, batch):
         if batch.alternatives:
-            x, P, result = update_mixture(x, P, batch, self._update_rows)
+            result = update_mixture(x, P, C, batch, self._update_rows)
         else:
-            result = self._update_rows(x, P, batch)
+            result = self._update_rows(x, P, C, batch)
             if result is None:
-                return x, P
-            x, P = result.x, result.P
+                return x, P, C
         if batch.result is None:  # first application: count it
             batch.result = result
             self._count(batch, result)
-        return x, P
+        return result.x, result.P, result.C
 
-    def _update_rows(self, x, P, batch):
-        """Return ``update`` of ``batch`` from ``(x, P)`` (None if it failed, counted)."""
+    def _update_rows(self, x, P, C, batch):
+        """Return the update of ``batch`` from ``(x, P, C)`` (None if it failed, counted)."""
         try:
             R = self._noise(batch)
+            if self.config.correlation == 'consider' and batch.landmarks is not None:
+                rows = ConsiderRows(self._consider.slots(batch.landmarks), batch.m, batch.P_m)
+                return update_consider(x, P, C, rows, batch.z, R, batch.kind, self.settings)
             settings = self.settings if not batch.correlation else replace(
                 self.settings, correlation=batch.correlation)
-            return update(x, P, batch.m, batch.P_m, batch.z, R, batch.kind, settings)
+            result = update(x, P, batch.m, batch.P_m, batch.z, R, batch.kind, settings)
+            result.C = C if C is None or result.A is None else result.A @ C
+            return result
         except ValueError as error:
             self.counters.add('update_failed', len(batch.z), detail=str(error))
             return None

@@ -26,9 +26,10 @@ from landmark_ros.localizer.update import UpdateResult
 import numpy as np
 from numpy.typing import NDArray
 
-UpdateRows = Callable[[NDArray[np.float64], NDArray[np.float64], Batch],
-                      Optional[UpdateResult]]
-"""``(x, P, batch) -> UpdateResult`` (None when the update failed)."""
+UpdateRows = Callable[[NDArray[np.float64], NDArray[np.float64],
+                       Optional[NDArray[np.float64]], Batch], Optional[UpdateResult]]
+"""``(x, P, C, batch) -> UpdateResult`` (None when the update failed); ``C`` the
+cross-covariance with the consider landmarks (``localizer.consider``) or None."""
 
 
 def alternatives(merged, keep, map_index, m_map, P_map):
@@ -45,7 +46,7 @@ def alternatives(merged, keep, map_index, m_map, P_map):
     out = {}
     for row, (cand_ids, beta) in merged.items():
         k = np.array([map_index[int(i)] for i in cand_ids], np.intp)
-        out[int(position[row])] = (m_map[k], P_map[k], beta)
+        out[int(position[row])] = (m_map[k], P_map[k], beta, np.asarray(cand_ids, np.int64))
     return out
 
 
@@ -57,7 +58,8 @@ def sub_batch(batch: Batch, rows: NDArray[np.intp]) -> Batch:
 
     return replace(batch, m=batch.m[rows], P_m=batch.P_m[rows], z=batch.z[rows],
                    R=batch.R[rows], kind=batch.kind[rows], shared=pick(batch.shared),
-                   shared_bias=pick(batch.shared_bias), result=None, alternatives=None)
+                   shared_bias=pick(batch.shared_bias), landmarks=pick(batch.landmarks),
+                   result=None, alternatives=None)
 
 
 def collapse(x_parts, P_parts, beta) -> Tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -77,15 +79,17 @@ def collapse(x_parts, P_parts, beta) -> Tuple[NDArray[np.float64], NDArray[np.fl
     return x, 0.5 * (P + P.T)
 
 
-def update_mixture(x: NDArray[np.float64], P: NDArray[np.float64], batch: Batch,
-                   update_rows: UpdateRows
-                   ) -> Tuple[NDArray[np.float64], NDArray[np.float64], UpdateResult]:
+def update_mixture(x: NDArray[np.float64], P: NDArray[np.float64],
+                   C: Optional[NDArray[np.float64]], batch: Batch,
+                   update_rows: UpdateRows) -> UpdateResult:
     """
     Apply ``batch``: its known rows, then each row of ``batch.alternatives`` by PDA.
 
-    Returns the state, its covariance and an ``UpdateResult`` over the batch's rows for
-    the counters (an ambiguous row used when a candidate passed its gate, gated when
-    none did; NIS and weight of the known rows' update).
+    Returns an ``UpdateResult`` with the state, its covariance, the cross-covariance
+    with the consider landmarks (the candidates' weighted sum: the landmarks' means are
+    the same in every candidate) and, over the batch's rows for the counters, an
+    ambiguous row used when a candidate passed its gate, gated when none did; NIS and
+    weight of the known rows' update.
     """
     n = len(batch.z)
     ambiguous = sorted(batch.alternatives or {})
@@ -93,14 +97,15 @@ def update_mixture(x: NDArray[np.float64], P: NDArray[np.float64], batch: Batch,
     used, gated = np.zeros(n, bool), np.zeros(n, bool)
     first = UpdateResult(x, P, used, gated, math.nan, 0, 1.0, 0)
     if len(known):
-        result = update_rows(x, P, sub_batch(batch, known))
+        result = update_rows(x, P, C, sub_batch(batch, known))
         if result is not None:
-            x, P, first = result.x, result.P, result
+            x, P, C, first = result.x, result.P, result.C, result
             used[known], gated[known] = result.used, result.gated
     for row in ambiguous:
-        m_c, P_c, beta = batch.alternatives[row]
+        m_c, P_c, beta, ids = batch.alternatives[row]
         one = sub_batch(batch, np.array([row]))
-        parts = [update_rows(x, P, replace(one, m=m_c[j:j + 1], P_m=P_c[j:j + 1]))
+        parts = [update_rows(x, P, C, replace(one, m=m_c[j:j + 1], P_m=P_c[j:j + 1],
+                                              landmarks=ids[j:j + 1]))
                  for j in range(len(beta))]
         ok = [j for j, r in enumerate(parts) if r is not None and r.used[0]]
         gated[row] = not ok
@@ -108,7 +113,16 @@ def update_mixture(x: NDArray[np.float64], P: NDArray[np.float64], batch: Batch,
             continue
         used[row] = True
         w = np.asarray(beta, dtype=np.float64)[ok]
-        x, P = collapse([parts[j].x for j in ok], np.array([parts[j].P for j in ok]),
-                        w / w.sum())
-    return x, P, UpdateResult(x, P, used, gated, first.nis, first.dof, first.omega,
-                              first.iterations)
+        w = w / w.sum()
+        x, P = collapse([parts[j].x for j in ok], np.array([parts[j].P for j in ok]), w)
+        C = _collapse_cross([parts[j].C for j in ok], w)
+    return UpdateResult(x, P, used, gated, first.nis, first.dof, first.omega,
+                        first.iterations, None, C)
+
+
+def _collapse_cross(parts, w):
+    """Return the weighted sum of the candidates' ``C`` (None when they have none)."""
+    if parts[0] is None:
+        return None
+    width = max(c.shape[1] for c in parts)
+    return sum(wj * np.pad(c, ((0, 0), (0, width - c.shape[1]))) for wj, c in zip(w, parts))

@@ -35,7 +35,7 @@ few microseconds. ``compose``-style results agree with ``landmark_ros.core.pose2
 """
 
 import math
-from typing import Sequence, Tuple
+from typing import Optional, Sequence, Tuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -298,14 +298,34 @@ def predict_with(x: NDArray[np.float64], P: NDArray[np.float64], delta: Sequence
     if len(x) == 3:
         return predict(x, P, delta, Q)
     pose, P_pose = predict(x[:3], P[:3, :3], delta, Q)
-    c, s = math.cos(x[2]), math.sin(x[2])
-    J_x = np.array([[1.0, 0.0, -s * delta[0] - c * delta[1]],
-                    [0.0, 1.0, c * delta[0] - s * delta[1]], [0.0, 0.0, 1.0]])
     x_next, P_next = x.copy(), P.copy()
     x_next[:3], P_next[:3, :3] = pose, P_pose
-    P_next[:3, 3:] = J_x @ P[:3, 3:]
+    P_next[:3, 3:] = _pose_jacobian(x, delta) @ P[:3, 3:]
     P_next[3:, :3] = P_next[:3, 3:].T
     return x_next, P_next
+
+
+def _pose_jacobian(x, delta):
+    """Return ``J_x`` (3, 3) of ``x (+) delta`` with respect to ``x``."""
+    c, s = math.cos(x[2]), math.sin(x[2])
+    return np.array([[1.0, 0.0, -s * delta[0] - c * delta[1]],
+                     [0.0, 1.0, c * delta[0] - s * delta[1]], [0.0, 0.0, 1.0]])
+
+
+def predict_cross(x: NDArray[np.float64], C: Optional[NDArray[np.float64]],
+                  delta: Sequence[float]) -> Optional[NDArray[np.float64]]:
+    """
+    Return the cross-covariance of the state with constant states after a motion.
+
+    ``C`` (n, w) is the cross-covariance of the state ``x`` (n,) (pose first) with
+    states that do not move (``localizer.consider``); the pose rows turn with the motion
+    (``J_x C``), the others stay. None stays None.
+    """
+    if C is None:
+        return None
+    C_next = C.copy()
+    C_next[:3] = _pose_jacobian(x, delta) @ C[:3]
+    return C_next
 
 
 def between(a: Sequence[float], b: Sequence[float]) -> NDArray[np.float64]:

@@ -119,6 +119,13 @@ class UpdateResult:
     """Split-CI weight of the pose prior (1: plain EKF)."""
     iterations: int
     """Gauss-Newton iterations (1: plain EKF step)."""
+    A: Optional[NDArray[np.float64]] = None
+    """``I - K H`` of the last linearisation, shape (n, n) (None: nothing applied): the
+    state's error after the update is ``A`` times the one before plus the gain times the
+    measurement's (``localizer.consider`` carries cross-covariances through it)."""
+    C: Optional[NDArray[np.float64]] = None
+    """Updated cross-covariance with the consider states, shape (n, 2K)
+    (``localizer.consider``; None: none)."""
 
 
 @dataclass(frozen=True)
@@ -290,9 +297,20 @@ def _row_gate(x, P, m, P_m, z, R, kind, settings):
     """Return the per-row chi-square test: d2 (N,), passed (N,); ``R`` the total noise."""
     h, J_z_x, J_z_m = observe(x, m)
     S = J_z_x @ P @ J_z_x.transpose(0, 2, 1) + J_z_m @ P_m @ J_z_m.transpose(0, 2, 1) + R
-    nu = z - h
+    return row_test(z - h, S, kind, settings)
+
+
+def row_test(nu: NDArray[np.float64], S: NDArray[np.float64], kind: NDArray[np.int64],
+             settings: UpdateSettings) -> Tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    """
+    Return each row's chi-square test: ``d2`` (N,) and whether it passed (N,).
+
+    ``nu`` (N, 2) are the innovations (the bearing is wrapped here), ``S`` (N, 2, 2)
+    their covariances; a partial row counts its one component (1 dof).
+    """
+    nu = np.array(nu, dtype=np.float64)
     nu[:, 1] = (nu[:, 1] + math.pi) % (2.0 * math.pi) - math.pi
-    d2 = np.empty(len(z))
+    d2 = np.empty(len(nu))
     full = kind == RANGE_BEARING
     if full.any():
         solved = np.linalg.solve(S[full], nu[full][..., None])[..., 0]
@@ -444,7 +462,7 @@ def update(x: NDArray[np.float64], P: NDArray[np.float64], m: NDArray[np.float64
     nu0 = _innovation(z_s, h0, comps)
     nis = float(nu0 @ np.linalg.solve(S0, nu0))
     return UpdateResult(x_i, 0.5 * (P_new + P_new.T), used, ~passed, nis, len(rows), w,
-                        iterations)
+                        iterations, A)
 
 
 def _pose_diff(a, b):

@@ -313,7 +313,9 @@ def loop_config(replay_config, localizer: LocalizerConfig,
     and the team's mean scale as its own, and its uncertainty (0.1 to 0.2 m) hides a
     1 % scale (3 cm at 3 m); split CI discounts the state's prior at every update
     against such a map (``docs/slam.md``), and the scale drifts to tens of per cent.
-    The fuser's ``source_correlation`` is ``unknown`` whatever the file says.
+    The fuser's ``source_correlation`` is ``unknown`` and the localizers' ``correlation``
+    ``split_ci`` whatever the file says (``consider`` needs a map whose errors are
+    independent of the robot's; the loop's map is built from its poses).
     """
     values = replay_values or {}
     association = str(values.get('slam_association', 'fuser'))
@@ -326,6 +328,8 @@ def loop_config(replay_config, localizer: LocalizerConfig,
         localizer = replace(localizer, range_scale_state_stddev=0.0,
                             range_scale_bearing_state_stddev=0.0,
                             range_bias_stddev=replay_config.observer.range_bias_stddev)
+    if localizer.correlation == 'consider':
+        localizer = replace(localizer, correlation='split_ci')
     # The loop's poses share the map: their errors are correlated across robots.
     fuser = replace(replay_config.fuser, source_correlation='unknown')
     return LoopConfig(localizer, replay_config.observer, fuser,

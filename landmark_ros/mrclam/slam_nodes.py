@@ -447,7 +447,8 @@ def start_nodes(launcher, dataset, extras, setup):
     Start the localizers, observers and the fuser.
 
     ``setup`` is ``(config_path, work, delay_s, loop_config)``; the localizers take the
-    loop's range scale states and range bias (``slam.loop_config``) over the file's.
+    loop's range scale states, range bias and map correlation (``slam.loop_config``)
+    over the file's.
     """
     config_path, work, delay_s, loop_config = setup
     fusion, loc = loop_config.fuser.fusion, loop_config.localizer
@@ -457,7 +458,7 @@ def start_nodes(launcher, dataset, extras, setup):
             **LOCALIZER_TRANSPORT, 'map_file': '',
             'range_scale_state_stddev': float(loc.range_scale_state_stddev),
             'range_scale_bearing_state_stddev': float(loc.range_scale_bearing_state_stddev),
-            'range_bias_stddev': float(loc.range_bias_stddev),
+            'range_bias_stddev': float(loc.range_bias_stddev), 'correlation': loc.correlation,
             'initial_pose': [float(v) for v in start_pose(robot, extras, delay_s)]}})
         launcher.start_module(f'localizer_{robot.name}', 'landmark_ros.nodes.localizer',
                               localizer_arguments(robot, config_path, params))

@@ -113,6 +113,11 @@ def test_the_replay_section_sets_the_precision_sources():
                             {'slam_association': 'localizer'}).association == 'localizer'
     with pytest.raises(ValueError):
         slam.loop_config(replay, LocalizerConfig(), {'slam_association': 'both'})
+    # a map built from the loop's own poses is not independent of them: never consider
+    for correlation, expected in (('consider', 'split_ci'), ('split_ci', 'split_ci'),
+                                  ('independent', 'independent')):
+        cfg = slam.loop_config(replay, LocalizerConfig(correlation=correlation))
+        assert cfg.localizer.correlation == expected
 
 
 def test_the_loop_runs_without_the_range_scale_state_unless_the_section_says():
