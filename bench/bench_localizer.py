@@ -4,7 +4,8 @@ Benchmark the ``Localizer`` pipeline object: cost per odometry message and per s
 Odometry: ``add_odometry`` with a twist, ``--steps`` messages at 50 Hz (the odometry
 model, the saved step, the window pruning). Sightings: batches of ``--rows`` range-bearing
 rows of a 20-landmark map, applied at the newest odometry stamp (no re-filtering) and
-0.5 s late (the re-filter of the 25 steps since), split CI and plain EKF; and rows without
+0.5 s late (the re-filter of the 25 steps since), plain EKF, split CI and the consider
+update (``localizer.consider``); and rows without
 ID against a map of pairs 0.3 m apart, ambiguous rows taking JCBB's choice or applied
 once per candidate (``association_merge_ambiguous``). CPU time
 (``time.thread_time``), best of ``--repeats``; the machine is shared, so the ratios
@@ -105,7 +106,7 @@ def main(argv=None):
     args = parser.parse_args(argv)
     odom = min(odometry_cost(args.steps) for _ in range(args.repeats))
     cases = {}
-    for correlation in ('independent', 'split_ci'):
+    for correlation in ('independent', 'split_ci', 'consider'):
         for late in (0.0, 0.5):
             cases[(correlation, late)] = min(
                 sighting_cost(args.rows, args.batches, correlation, late)
