@@ -55,8 +55,9 @@ as uncorrelated with the map's.
 import math
 from typing import Dict, NamedTuple, Optional
 
-from landmark_ros.localizer.update import (_blocks, _components, _innovation, _pose_diff,
-                                           observe, row_test, UpdateResult, UpdateSettings)
+from landmark_ros.localizer.update import (observe, pose_difference, row_test, stacked_blocks,
+                                           stacked_components, UpdateResult, UpdateSettings,
+                                           wrapped_innovation)
 import numpy as np
 from numpy.typing import NDArray
 
@@ -163,7 +164,7 @@ def update_consider(x: NDArray[np.float64], P: NDArray[np.float64],
     if not passed.any():
         return UpdateResult(x, P, passed, ~passed, math.nan, 0, 1.0, 0, None, C)
     idx = np.flatnonzero(passed)
-    rows, comps = _components(kind[idx])
+    rows, comps = stacked_components(kind[idx])
     rows_g = idx[rows]
     used_slots, first, landmark = np.unique(slots[idx], return_index=True, return_inverse=True)
     cols = (2 * used_slots[:, None] + np.arange(2)).ravel()
@@ -171,7 +172,7 @@ def update_consider(x: NDArray[np.float64], P: NDArray[np.float64],
     P_u = np.zeros((len(cols), len(cols)))
     for j, row in enumerate(idx[first]):
         P_u[2 * j:2 * j + 2, 2 * j:2 * j + 2] = P_m[row]
-    R_s = _blocks(R[idx], rows, comps)
+    R_s = stacked_blocks(R[idx], rows, comps)
     z_s = z[rows_g, comps]
     pieces = (m, rows_g, comps, landmark[rows], len(used_slots))
     h0, H0, G0 = _stack(x, *pieces)
@@ -180,11 +181,11 @@ def update_consider(x: NDArray[np.float64], P: NDArray[np.float64],
         PHt = P @ H_i.T + C_u @ G_i.T
         S = H_i @ PHt + G_i @ (C_u.T @ H_i.T + P_u @ G_i.T) + R_s
         K = np.linalg.solve(S, PHt.T).T
-        x_next = x + K @ (_innovation(z_s, h_i, comps) - H_i @ _pose_diff(x, x_i))
+        x_next = x + K @ (wrapped_innovation(z_s, h_i, comps) - H_i @ pose_difference(x, x_i))
         x_next[2] = (x_next[2] + math.pi) % (2.0 * math.pi) - math.pi
         iterations += 1
         h_next, H_next, G_next = _stack(x_next, *pieces)
-        error = np.abs(_innovation(h_next, h_i + H_i @ _pose_diff(x_next, x_i), comps))
+        error = np.abs(wrapped_innovation(h_next, h_i + H_i @ pose_difference(x_next, x_i), comps))
         H_f, G_f = H_i, G_i
         x_i, h_i, H_i, G_i = x_next, h_next, H_next, G_next
         if (iterations >= settings.max_iterations
@@ -194,7 +195,7 @@ def update_consider(x: NDArray[np.float64], P: NDArray[np.float64],
     D[:, cols] += G_f @ P_u
     P_new = P - K @ S @ K.T
     S0 = H0 @ (P @ H0.T + C_u @ G0.T) + G0 @ (C_u.T @ H0.T + P_u @ G0.T) + R_s
-    nu0 = _innovation(z_s, h0, comps)
+    nu0 = wrapped_innovation(z_s, h0, comps)
     nis = float(nu0 @ np.linalg.solve(S0, nu0))
     return UpdateResult(x_i, 0.5 * (P_new + P_new.T), passed, ~passed, nis, len(rows), 1.0,
                         iterations, np.eye(len(x)) - K @ H_f, C - K @ D)

@@ -225,8 +225,8 @@ def row_noise(R: NDArray[np.float64], parts: Tuple[NDArray[np.float64], NDArray[
     return out
 
 
-def _components(kind):
-    """Return the row index and component (0 range, 1 bearing) of each scalar."""
+def stacked_components(kind: NDArray[np.int64]) -> Tuple[NDArray[np.intp], NDArray[np.intp]]:
+    """Return the row index and component (0 range, 1 bearing) of each used scalar (k,)."""
     rows, comps = [], []
     for i, k in enumerate(kind):
         if k != BEARING:
@@ -238,7 +238,9 @@ def _components(kind):
     return np.array(rows, np.intp), np.array(comps, np.intp)
 
 
-def _innovation(z, h, comp):
+def wrapped_innovation(z: NDArray[np.float64], h: NDArray[np.float64],
+                       comp: NDArray[np.intp]) -> NDArray[np.float64]:
+    """Return ``z - h`` (k,) of stacked components, the bearings (``comp`` 1) wrapped."""
     nu = z - h
     bearing = comp == 1
     nu[bearing] = (nu[bearing] + math.pi) % (2.0 * math.pi) - math.pi
@@ -330,7 +332,8 @@ def _stack(x, m, rows, comps):
     return h[k, comps], J_z_x[k, comps]
 
 
-def _blocks(M_rows, rows, comps):
+def stacked_blocks(M_rows: NDArray[np.float64], rows: NDArray[np.intp],
+                   comps: NDArray[np.intp]) -> NDArray[np.float64]:
     """Return the (k, k) block-diagonal matrix of per-row 2x2 blocks at the components."""
     same = rows[:, None] == rows[None, :]
     return np.where(same, M_rows[rows[:, None], comps[:, None], comps[None, :]], 0.0)
@@ -427,11 +430,11 @@ def update(x: NDArray[np.float64], P: NDArray[np.float64], m: NDArray[np.float64
     if not used.any():
         return UpdateResult(x, P, used, ~passed, math.nan, 0, 1.0, 0)
     idx = np.flatnonzero(used)
-    rows, comps = _components(kind[idx])
+    rows, comps = stacked_components(kind[idx])
     rows_g = idx[rows]
     _, _, J_z_m = observe(x, m[idx])
     M_rows = J_z_m @ P_m[idx] @ J_z_m.transpose(0, 2, 1) + noise.R_dep[idx]
-    R_s, M_s = _blocks(noise.R[idx], rows, comps), _blocks(M_rows, rows, comps)
+    R_s, M_s = stacked_blocks(noise.R[idx], rows, comps), stacked_blocks(M_rows, rows, comps)
     if noise.R_shared is not None:  # one error in every row: the full block
         M_s = M_s + noise.R_shared[comps[:, None], comps[None, :]]
     z_s = z[rows_g, comps]
@@ -444,13 +447,13 @@ def update(x: NDArray[np.float64], P: NDArray[np.float64], m: NDArray[np.float64
     while True:
         S = H_i @ P1 @ H_i.T + P2
         K = np.linalg.solve(S, H_i @ P1).T
-        nu = _innovation(z_s, h_i, comps) - H_i @ _pose_diff(x, x_i)
+        nu = wrapped_innovation(z_s, h_i, comps) - H_i @ pose_difference(x, x_i)
         x_next = x + K @ nu
         x_next[2] = (x_next[2] + math.pi) % (2.0 * math.pi) - math.pi
         iterations += 1
         h_next, H_next = _stack(x_next, m, rows_g, comps)
-        linear = h_i + H_i @ _pose_diff(x_next, x_i)
-        error = np.abs(_innovation(h_next, linear, comps))
+        linear = h_i + H_i @ pose_difference(x_next, x_i)
+        error = np.abs(wrapped_innovation(h_next, linear, comps))
         x_i, h_i, H_i_prev, H_i = x_next, h_next, H_i, H_next
         if (iterations >= settings.max_iterations
                 or np.all(error <= settings.iterate_threshold * np.sqrt(np.diag(S)))):
@@ -459,13 +462,14 @@ def update(x: NDArray[np.float64], P: NDArray[np.float64], m: NDArray[np.float64
     A = np.eye(len(x)) - K_f @ H_i_prev
     P_new = A @ P1 @ A.T + K_f @ P2 @ K_f.T
     S0 = H0 @ P @ H0.T + R_s + M_s
-    nu0 = _innovation(z_s, h0, comps)
+    nu0 = wrapped_innovation(z_s, h0, comps)
     nis = float(nu0 @ np.linalg.solve(S0, nu0))
     return UpdateResult(x_i, 0.5 * (P_new + P_new.T), used, ~passed, nis, len(rows), w,
                         iterations, A)
 
 
-def _pose_diff(a, b):
+def pose_difference(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Return ``a - b`` of two states (n,), the heading wrapped."""
     d = np.asarray(a, dtype=np.float64) - b
     d[2] = (d[2] + math.pi) % (2.0 * math.pi) - math.pi
     return d

@@ -20,7 +20,7 @@ heading RMSE, average NEES of the 3-dof pose (3 is consistent), the fraction of 
 whose true position lies inside the 95 % ellipse of the position, rows used and gated.
 """
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 import math
 import time
 
@@ -278,8 +278,3 @@ def targets(entries):
 def localizer_config(values):
     """Return the ``LocalizerConfig`` of a params-file section (unknown keys ignored)."""
     return LocalizerConfig.from_values(values)
-
-
-def with_map_correlation(config, correlation):
-    """Return ``config`` with another map correlation."""
-    return replace(config, correlation=correlation)
