@@ -6,10 +6,16 @@ loop path at 0.5 m/s (``make_paths``), wheel odometry at 50 Hz with the odometry
 noise (``sim.odometry``), and range-bearing sightings of the visible landmarks (8 m,
 all around) every 0.2 s with white noise. The map is the true landmarks with a small
 stated covariance (independent of the robot: the plain EKF update); the localizer
-uses the same alphas and noise (the models are exact
-up to the linearisation). Per seed the average NEES of the 3-dof pose over the run
-(after the first 2 s); over the seeds their mean and its 95 % interval (normal
-approximation of the seed means): consistent when the interval holds 3.
+uses the same alphas and noise (the models are exact up to the linearisation). Per
+seed the average NEES of the 3-dof pose over the run (after the first 2 s); over the
+seeds their mean and its 95 % interval (normal approximation of the seed means):
+consistent when the interval holds 3.
+
+With ``--map-stddev S`` the map the localizer holds is off the truth by N(0, S^2) per
+coordinate, drawn once per seed, and states that covariance: the same error at every
+sighting, which ``--correlation consider`` (the Schmidt-Kalman update,
+``localizer.consider``) accounts for, ``independent`` counts again at every sighting
+(over-confident) and ``split_ci`` bounds at every update.
 
 With ``--hide-ids take|merge`` every landmark has a partner ``PAIR_M`` away (random
 direction, as MRCLAM's pairs) and the rows come without IDs: the localizer associates
@@ -17,7 +23,7 @@ them (JCBB), its ambiguous rows taking JCBB's choice (``take``) or applied once 
 candidate (``merge``, ``association_merge_ambiguous``).
 
 Run: ``python -m landmark_ros.eval.localization_montecarlo [--seeds 20] [--hide-ids
-merge]``.
+merge] [--map-stddev 0.1 --correlation consider]``.
 """
 
 import argparse
@@ -25,7 +31,7 @@ import math
 import sys
 
 from landmark_ros.localizer import motion
-from landmark_ros.localizer.config import LocalizerConfig
+from landmark_ros.localizer.config import CORRELATIONS, LocalizerConfig
 from landmark_ros.localizer.localizer import Localizer, UNKNOWN_ID
 from landmark_ros.sim.odometry import wheel_odometry
 from landmark_ros.sim.simulation import generate_world, make_paths, visible
@@ -46,12 +52,20 @@ def _paired(world, generator):
     return ids, np.vstack([world.positions, partners])
 
 
-def run_seed(seed, duration_s=60.0, rate_hz=50.0, hidden=None):
-    """Return the average pose NEES of one seed and the rows used (``hidden``: module)."""
+def run_seed(seed, duration_s=60.0, rate_hz=50.0, hidden=None, map_stddev=0.0,
+             correlation='independent'):
+    """
+    Return the average pose NEES of one seed and the rows used.
+
+    ``hidden``, ``map_stddev`` [m] and ``correlation``: the module docstring.
+    """
     generator = np.random.default_rng(seed)
     world = generate_world(15, 20.0, seed)
     ids, positions = (_paired(world, generator) if hidden
                       else (world.ids, world.positions))
+    variance = max(map_stddev, 1e-3) ** 2
+    held = (positions + generator.normal(0.0, map_stddev, positions.shape) if map_stddev > 0.0
+            else positions)
     path = make_paths(1, world.bounds, 0.5, seed)[0]
     times = np.arange(0.0, duration_s, 1.0 / rate_hz)
     truth = np.array([path.pose(t) for t in times]).reshape(-1, 3)
@@ -59,10 +73,10 @@ def run_seed(seed, duration_s=60.0, rate_hz=50.0, hidden=None):
     config = LocalizerConfig(odometry_alphas=ALPHAS, range_stddev=RANGE_STDDEV,
                              range_stddev_per_m=0.0, bearing_stddev=BEARING_STDDEV,
                              initial_stddev=(0.05, 0.05, 0.02),
-                             correlation='independent', association_take_ambiguous=True,
+                             correlation=correlation, association_take_ambiguous=True,
                              association_merge_ambiguous=hidden == 'merge')
     loc = Localizer(config)
-    loc.set_map(ids, positions, np.tile(np.eye(2) * 1e-6, (len(ids), 1, 1)))
+    loc.set_map(ids, held, np.tile(np.eye(2) * variance, (len(ids), 1, 1)))
     start = truth[0] + generator.normal(0.0, config.initial_stddev)
     loc.initialize(0, start, np.diag(np.square(config.initial_stddev)))
     every = int(round(0.2 * rate_hz))
@@ -84,9 +98,10 @@ def run_seed(seed, duration_s=60.0, rate_hz=50.0, hidden=None):
     return float(np.mean(nees)), loc.counters['rows_used']
 
 
-def run(seeds=20, hidden=None):
+def run(seeds=20, hidden=None, map_stddev=0.0, correlation='independent'):
     """Return the seed means, their mean and its 95 % interval."""
-    means = np.array([run_seed(seed, hidden=hidden)[0] for seed in range(seeds)])
+    means = np.array([run_seed(seed, hidden=hidden, map_stddev=map_stddev,
+                               correlation=correlation)[0] for seed in range(seeds)])
     half = 1.96 * means.std(ddof=1) / math.sqrt(len(means)) if len(means) > 1 else math.inf
     return means, float(means.mean()), (float(means.mean() - half),
                                         float(means.mean() + half))
@@ -98,8 +113,13 @@ def main(argv=None):
     parser.add_argument('--seeds', type=int, default=20)
     parser.add_argument('--hide-ids', choices=('take', 'merge'), default=None,
                         help='landmarks in pairs, rows without IDs (module docstring)')
+    parser.add_argument('--map-stddev', type=float, default=0.0,
+                        help='the held map is off the truth by this much per coordinate [m]')
+    parser.add_argument('--correlation', choices=CORRELATIONS, default='independent',
+                        help="the localizer's map correlation")
     args = parser.parse_args(argv)
-    means, mean, (low, high) = run(args.seeds, args.hide_ids)
+    means, mean, (low, high) = run(args.seeds, args.hide_ids, args.map_stddev,
+                                   args.correlation)
     inside = low <= 3.0 <= high
     print(f'pose ANEES over {args.seeds} seeds: {mean:.2f} (95 % interval {low:.2f} to '
           f'{high:.2f}; 3 is consistent: {"inside" if inside else "outside"})')

@@ -242,3 +242,14 @@ def test_the_localizer_keeps_the_cross_covariance_through_refiltering():
         a, b = (loc_._consider.slots(np.array([i]))[0] for loc_ in locs)
         np.testing.assert_allclose(out[1].C[:, 2 * b:2 * b + 2], out[0].C[:, 2 * a:2 * a + 2],
                                    atol=1e-12)
+
+
+def test_the_monte_carlo_tool_draws_the_map_off_by_its_covariance():
+    """``--map-stddev``: the same seeds, independent far above consider; 0 keeps the map."""
+    from landmark_ros.eval.localization_montecarlo import run_seed
+    seeds = range(6)
+    consider = np.mean([run_seed(s, 20.0, map_stddev=0.1, correlation='consider')[0]
+                        for s in seeds])
+    independent = np.mean([run_seed(s, 20.0, map_stddev=0.1)[0] for s in seeds])
+    assert 1.5 < consider < 4.5 and independent > 3.0 * consider, (consider, independent)
+    assert run_seed(0, 5.0)[0] == run_seed(0, 5.0, map_stddev=0.0, correlation='independent')[0]
