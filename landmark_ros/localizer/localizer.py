@@ -53,7 +53,7 @@ from landmark_ros.core.sensors import range_noise_variance
 from landmark_ros.localizer import motion
 from landmark_ros.localizer.association import label_rows, MapAssociation
 from landmark_ros.localizer.config import LocalizerConfig
-from landmark_ros.localizer.consider import ConsiderRows, ConsiderSlots, update_consider
+from landmark_ros.localizer.consider import ConsiderRows, ConsiderSlots, select, update_consider
 from landmark_ros.localizer.mixture import alternatives, update_mixture
 from landmark_ros.localizer.steps import Batch, count_shared, Estimate, Step as _Step
 from landmark_ros.localizer.update import (correct_ranges, RANGE_BEARING, row_noise, update,
@@ -133,7 +133,9 @@ class Localizer:
 
         Landmarks that fail the fuser's live row checks (``rows.landmark_row_problems``:
         finite, a covariance in the accepted range, plausible coordinates) are left out
-        and counted as ``map_<reason>``.
+        and counted as ``map_<reason>``. With ``correlation: consider`` the
+        cross-covariances of the landmarks that stay (by ID) are kept, those of the
+        landmarks that left dropped (``consider.ConsiderSlots.retain``).
 
         Parameters
         ----------
@@ -155,6 +157,10 @@ class Localizer:
         self._map_m = m[valid].copy()
         self._map_P = P_m[valid].copy()
         self._association = None  # built on the first row without ID
+        if self._consider.width:  # the cross-covariances of the landmarks that stay
+            columns = self._consider.retain(self._map_index)
+            for step in self._steps:
+                step.C_prior, step.C = select(step.C_prior, columns), select(step.C, columns)
 
     @property
     def map_size(self) -> int:

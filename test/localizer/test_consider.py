@@ -253,3 +253,30 @@ def test_the_monte_carlo_tool_draws_the_map_off_by_its_covariance():
     independent = np.mean([run_seed(s, 20.0, map_stddev=0.1)[0] for s in seeds])
     assert 1.5 < consider < 4.5 and independent > 3.0 * consider, (consider, independent)
     assert run_seed(0, 5.0)[0] == run_seed(0, 5.0, map_stddev=0.0, correlation='independent')[0]
+
+
+def test_a_new_map_keeps_the_cross_covariance_of_the_landmarks_that_stay():
+    cfg = LocalizerConfig(correlation='consider', initial_stddev=(0.05, 0.05, 0.02))
+    lm = np.array([[3.0, 1.0], [-2.0, 4.0], [1.0, -3.0]])
+    loc = Localizer(cfg)
+    loc.set_map(np.array([4, 9, 2]), lm, np.tile(np.eye(2) * 0.01, (3, 1, 1)))
+    loc.initialize(0, np.zeros(3), np.diag([0.0025, 0.0025, 0.0004]))
+    for k in range(1, 6):
+        loc.add_odometry(k * 20 * MS, twist=np.array([0.1, 0.0]))
+        loc.add_observations(k * 20 * MS, np.array([4, 9, 2]),
+                             observe(np.array([0.002 * k, 0.0, 0.0]), lm)[0])
+    before = loc._steps[-1].C.copy()
+    slot = {i: int(loc._consider.slots(np.array([i]))[0]) for i in (4, 9, 2)}
+    loc.set_map(np.array([2, 4, 7]), np.vstack([lm[[2, 0]], [[5.0, 5.0]]]),
+                np.tile(np.eye(2) * 0.01, (3, 1, 1)))   # 9 left, 7 came
+    after = loc._steps[-1].C
+    assert after.shape == (3, 4) and loc._consider.width == 4
+    for i in (4, 2):
+        new = int(loc._consider.slots(np.array([i]))[0])
+        np.testing.assert_array_equal(after[:, 2 * new:2 * new + 2],
+                                      before[:, 2 * slot[i]:2 * slot[i] + 2])
+    assert all(s.C is None or s.C.shape[1] == 4 for s in loc._steps)
+    loc.add_odometry(6 * 20 * MS, twist=np.array([0.1, 0.0]))
+    loc.add_observations(6 * 20 * MS, np.array([7]),
+                         observe(np.zeros(3), np.array([[5.0, 5.0]]))[0])
+    assert loc._steps[-1].C.shape == (3, 6)
