@@ -104,7 +104,16 @@ def test_pose_at_the_odometry_rate_and_late_out_of_order_sightings(rig):
     assert len(rig.corrections.messages) == len(rig.poses.messages)
 
 
-def test_landmark_missing_from_map_and_a_map_that_changes(rig):
+@pytest.fixture(params=['split_ci', 'consider'])
+def map_rig(request):
+    r = Rig(initial_pose=[0.0, 0.0, 0.0], initial_stddev=[0.3, 0.3, 0.1],
+            correlation=request.param)
+    yield r
+    r.close()
+
+
+def test_landmark_missing_from_map_and_a_map_that_changes(map_rig):
+    rig = map_rig
     rig.publish_map(IDS[:2], LANDMARKS[:2])
     rig.wait(lambda: rig.node.localizer.map_size == 2)
     rig.odometry(T0)
@@ -128,6 +137,9 @@ def test_landmark_missing_from_map_and_a_map_that_changes(rig):
     rig.wait(lambda: rig.counters['rows_used'] >= 30)
     rig.wait(lambda: len(rig.poses.messages) == 13)
     assert rig.poses.messages[-1].pose.pose.position.x > 0.3
+    if rig.node.localizer.config.correlation == 'consider':  # every landmark's columns
+        assert rig.node.localizer.estimate() is not None
+        assert rig.node.localizer._steps[-1].C.shape == (3, 8)
 
 
 def test_odometry_reset_and_a_minute_without_sightings(rig):
