@@ -7,7 +7,8 @@ from landmark_ros.core import sensors
 from landmark_ros.core.gating import chi2_threshold
 from landmark_ros.localizer import motion
 from landmark_ros.localizer.config import LocalizerConfig
-from landmark_ros.localizer.consider import ConsiderRows, ConsiderSlots, update_consider, widen
+from landmark_ros.localizer.consider import (ConsiderRows, ConsiderSlots, select,
+                                             update_consider, widen)
 from landmark_ros.localizer.localizer import Localizer
 from landmark_ros.localizer.mixture import update_mixture
 from landmark_ros.localizer.steps import Batch
@@ -145,6 +146,14 @@ def test_slots_and_widen():
     C = widen(np.ones((3, 2)), 3, 6)
     assert C.shape == (3, 6) and C[:, 2:].sum() == 0.0
     assert widen(None, 4, 2).shape == (4, 2)
+    C = np.arange(18.0).reshape(3, 6)
+    columns = slots.retain([9, 7, 8])              # 3 (slot 1) leaves
+    np.testing.assert_array_equal(columns, [0, 1, 4, 5])
+    np.testing.assert_array_equal(select(C, columns), C[:, [0, 1, 4, 5]])
+    np.testing.assert_array_equal(slots.slots(np.array([7, 9, 3])), [0, 1, 2])
+    assert select(C[:, :2], columns)[:, 2:].sum() == 0.0   # narrower: zero columns
+    assert select(C, slots.retain([])).shape == (3, 0) and slots.width == 0
+    assert select(None, columns) is None
 
 
 def test_the_mixture_collapses_the_cross_covariance_with_the_weights():
