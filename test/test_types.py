@@ -64,6 +64,7 @@ REQUIRED = [
     'landmark_ros.fuser.fuser',
     'landmark_ros.fuser.map_file',
     'landmark_ros.fuser.partial',
+    'landmark_ros.fuser.partial_sources',
     'landmark_ros.fuser.persistence',
     'landmark_ros.fuser.publishing',
     'landmark_ros.fuser.sources',

@@ -65,6 +65,11 @@ class UpdateResult:
     iterations : ndarray of int, shape (N,)
         Linearisations the update took: 1 for the plain (extended) step, more where
         it iterated (``ITERATE_THRESHOLD``), 0 where not ``UPDATED``.
+    L : ndarray, shape (N, 2, 2)
+        ``I - K H`` of the Joseph form (the identity where not ``UPDATED``): a part
+        of the prior's covariance independent of the view leaves as ``L P L^T``.
+    gain : ndarray, shape (N, 2)
+        ``K`` (zero where not ``UPDATED``).
 
     """
 
@@ -77,6 +82,8 @@ class UpdateResult:
     omega: NDArray[np.float64]
     status: NDArray[np.int64]
     iterations: NDArray[np.int64]
+    L: Optional[NDArray[np.float64]] = None
+    gain: Optional[NDArray[np.float64]] = None
 
     @property
     def updated(self) -> NDArray[np.bool_]:
@@ -384,7 +391,9 @@ def update(m: ArrayLike, P_m: ArrayLike, views: Views, P_m_dep: Optional[ArrayLi
     new_dep = 0.5 * (new_dep + np.swapaxes(new_dep, -1, -2))
     P_new = np.where(keep[:, None, None], new_ind + new_dep, P_m)
     dep_new = np.where(keep[:, None, None], new_dep, P_dep)
-    return UpdateResult(m_new, P_new, dep_new, innovation, S, d2, omega, status, iterations)
+    return UpdateResult(m_new, P_new, dep_new, innovation, S, d2, omega, status, iterations,
+                        np.where(keep[:, None, None], L, np.eye(2)),
+                        np.where(keep[:, None], K, 0.0))
 
 
 def _nonlinear_rows(views, m, m_new, H, spread, threshold, updated):

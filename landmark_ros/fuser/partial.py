@@ -21,6 +21,7 @@ from landmark_ros.core.partial import (BEARING, GATED, Initialisation, initialis
                                        InitialiseParams, RANGE, TOO_CLOSE, update, UPDATED,
                                        Views)
 from landmark_ros.core.sensors import MIN_RANGE
+from landmark_ros.fuser.partial_sources import SourceLedger
 from landmark_ros.fusion.landmark_map import LandmarkMap
 from landmark_ros.pipeline.limits import partial_problems
 from landmark_ros.pipeline.partial_rows import (PARTIAL_COLUMNS, PartialObservations,
@@ -214,6 +215,7 @@ class PartialFusion:
         self.recent: Dict[int, Deque[_Buffered]] = {}
         self.streak: Counter[int] = Counter()
         self.wait_reasons: Counter[str] = Counter()
+        self.ledger = SourceLedger()
 
     def reset(self) -> None:
         """Forget the queued and waiting views."""
@@ -221,6 +223,7 @@ class PartialFusion:
         self.waiting.clear()
         self.recent.clear()
         self.streak.clear()
+        self.ledger.clear()
 
     def waiting_records(self) -> List[Dict[str, Any]]:
         """
@@ -299,7 +302,52 @@ class PartialFusion:
                 count[f'partial_result_{reason}'] += 1
             return False
         self.map.set_estimate(landmark_id, m, P, P_dep, PARTIAL_SOURCE, stamp_ns, views)
+        self.ledger.forget(landmark_id)    # an update keeps its new parts after this
         return True
+
+    def _update(self, count: Counter[str], seen: _Buffered, landmark_id: int,
+                estimate: Tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]
+                ) -> List[int]:
+        """
+        Update a placed landmark with one view; return its ID when it changed.
+
+        With split CI and ``source_correlation: independent`` a bearing-only view's
+        dependent error is shared only with its own source's part of ``P_dep`` (and the
+        part of no known source): ``partial_sources.SourceLedger``. A range-only view's
+        is not: it holds the range scale error at the bearing it could not correct
+        (``range_scale_no_bearing``), one lens function for every robot, so views of
+        different robots from like bearings share it; it takes all of ``P_dep``.
+        """
+        m, P, P_dep = estimate
+        by_source = (self.map.fusion == 'split_covariance_intersection'
+                     and self.map.source_correlation == 'independent'
+                     and int(seen.views.kind[0]) == BEARING)
+        shared = self.ledger.shared_part(landmark_id, seen.source, P_dep) if by_source else P_dep
+        result = update(m, P, seen.views, shared, self.map.fusion, self.gate_probability)
+        status = int(result.status[0])
+        changed = []
+        self.streak[landmark_id] = self.streak[landmark_id] + 1 if status == GATED else 0
+        if self.streak[landmark_id] >= self.max_consecutive_rejections:
+            self.streak[landmark_id] = 0
+            placed = self._initialise(self.recent[landmark_id])
+            if placed.ok and self._set(count, landmark_id, (
+                    placed.m, placed.P_m, placed.P_m_dep), seen.stamp_ns, 0):
+                count['landmarks_reinitialised'] += 1
+                changed.append(landmark_id)
+        if status == UPDATED:
+            new_dep, parts = (self.ledger.book(landmark_id, seen.source, P_dep, result)
+                              if by_source else (result.P_m_dep[0], None))
+            if self._set(count, landmark_id, (result.m[0], result.P_m[0], new_dep),
+                         seen.stamp_ns, 1):
+                count['partial_fused'] += 1
+                changed.append(landmark_id)
+                if parts is not None:
+                    self.ledger.keep(landmark_id, parts)
+        elif status == GATED:
+            count['partial_gated'] += 1
+        elif status == TOO_CLOSE:
+            count['partial_too_close'] += 1
+        return changed
 
     def fuse(self) -> PartialResult:
         """
@@ -315,7 +363,6 @@ class PartialFusion:
         """
         counts: Dict[str, Counter[str]] = {}
         changed: List[int] = []
-        method = self.map.fusion
         while self.queue:
             source, stamp_ns, ids, views, groups = self.queue.popleft()
             count = counts.setdefault(source, Counter())
@@ -326,28 +373,10 @@ class PartialFusion:
                     stale = self.waiting.pop(landmark_id, None)
                     if stale:  # range-bearing rows confirmed it first
                         count['partial_superseded'] += len(stale)
-                    m, P, P_dep = estimate
                     recent = self.recent.setdefault(landmark_id, deque(maxlen=self.max_views))
                     recent.append(_Buffered(source, stamp_ns, int(groups[k]), view))
-                    result = update(m, P, view, P_dep, method, self.gate_probability)
-                    status = int(result.status[0])
-                    self.streak[landmark_id] = self.streak[landmark_id] + 1 if (
-                        status == GATED) else 0
-                    if self.streak[landmark_id] >= self.max_consecutive_rejections:
-                        self.streak[landmark_id] = 0
-                        placed = self._initialise(recent)
-                        if placed.ok and self._set(count, landmark_id, (
-                                placed.m, placed.P_m, placed.P_m_dep), stamp_ns, 0):
-                            count['landmarks_reinitialised'] += 1
-                            changed.append(landmark_id)
-                    if status == UPDATED and self._set(count, landmark_id, (
-                            result.m[0], result.P_m[0], result.P_m_dep[0]), stamp_ns, 1):
-                        count['partial_fused'] += 1
-                        changed.append(landmark_id)
-                    elif status == GATED:
-                        count['partial_gated'] += 1
-                    elif status == TOO_CLOSE:
-                        count['partial_too_close'] += 1
+                    changed += self._update(count, _Buffered(source, stamp_ns, int(groups[k]),
+                                                             view), landmark_id, estimate)
                     continue
                 buffer = self.waiting.setdefault(landmark_id, deque(maxlen=self.max_views))
                 if len(buffer) == buffer.maxlen:
