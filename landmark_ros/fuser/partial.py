@@ -373,10 +373,9 @@ class PartialFusion:
                     stale = self.waiting.pop(landmark_id, None)
                     if stale:  # range-bearing rows confirmed it first
                         count['partial_superseded'] += len(stale)
-                    recent = self.recent.setdefault(landmark_id, deque(maxlen=self.max_views))
-                    recent.append(_Buffered(source, stamp_ns, int(groups[k]), view))
-                    changed += self._update(count, _Buffered(source, stamp_ns, int(groups[k]),
-                                                             view), landmark_id, estimate)
+                    seen = _Buffered(source, stamp_ns, int(groups[k]), view)
+                    self.recent.setdefault(landmark_id, deque(maxlen=self.max_views)).append(seen)
+                    changed += self._update(count, seen, landmark_id, estimate)
                     continue
                 buffer = self.waiting.setdefault(landmark_id, deque(maxlen=self.max_views))
                 if len(buffer) == buffer.maxlen:
