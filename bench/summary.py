@@ -194,7 +194,7 @@ def localizer_rows(loc):
         rows.append(('pipeline', 'Localizer.add_odometry', f'{_num(loc["odometry_us"])} us/msg',
                      'thread CPU time', 'bench_localizer'))
     cases = [(f'{correlation}_{when}_row_us', f'{correlation}, {what}', '')
-             for correlation in ('independent', 'split_ci')
+             for correlation in ('independent', 'split_ci', 'consider')
              for when, what in (('now', 'at the newest odometry'), ('late', '0.5 s late'))]
     cases += [(f'split_ci_noid_{hidden}_now_row_us', f'rows without ID, {what}',
                'map of pairs 0.3 m apart, ')
