@@ -68,8 +68,6 @@ class UpdateResult:
     L : ndarray, shape (N, 2, 2)
         ``I - K H`` of the Joseph form (the identity where not ``UPDATED``): a part
         of the prior's covariance independent of the view leaves as ``L P L^T``.
-    gain : ndarray, shape (N, 2)
-        ``K`` (zero where not ``UPDATED``).
 
     """
 
@@ -83,7 +81,6 @@ class UpdateResult:
     status: NDArray[np.int64]
     iterations: NDArray[np.int64]
     L: Optional[NDArray[np.float64]] = None
-    gain: Optional[NDArray[np.float64]] = None
 
     @property
     def updated(self) -> NDArray[np.bool_]:
@@ -392,8 +389,7 @@ def update(m: ArrayLike, P_m: ArrayLike, views: Views, P_m_dep: Optional[ArrayLi
     P_new = np.where(keep[:, None, None], new_ind + new_dep, P_m)
     dep_new = np.where(keep[:, None, None], new_dep, P_dep)
     return UpdateResult(m_new, P_new, dep_new, innovation, S, d2, omega, status, iterations,
-                        np.where(keep[:, None, None], L, np.eye(2)),
-                        np.where(keep[:, None], K, 0.0))
+                        np.where(keep[:, None, None], L, np.eye(2)))
 
 
 def _nonlinear_rows(views, m, m_new, H, spread, threshold, updated):
