@@ -11,6 +11,7 @@ every process that still carries the token, whatever happened in the test.
 
 import os
 from pathlib import Path
+import re
 import select
 import shutil
 import signal
@@ -108,6 +109,28 @@ def wait_for_any_exit(pids, timeout_s):
     finally:
         for fd in fds:
             os.close(fd)
+
+
+def teardown_hangs(output):
+    """
+    Return the launched processes the node's stop watchdog ended inside DDS's teardown.
+
+    A node whose teardown has not returned 10 s after its spin ended writes its Python
+    stack and exits with code 1 (``nodes.start.stop_watchdog``, docs/nodes.md). Rarely,
+    under load, Fast DDS's participant deletion inside rclpy's ``Node.destroy_node``
+    never returns: a process counts here only when its stack's innermost frame is that
+    call and launch reports it died with code 1. Anything else still fails a test.
+    """
+    hung = set()
+    for match in re.finditer(r'^\[([\w.-]+)\] Timeout \(\d+:\d\d:\d\d\)!\n'
+                             r'\[\1\] Thread 0x[0-9a-f]+ \(most recent call first\):\n'
+                             r'\[\1\]   File "[^"\n]*/rclpy/node\.py", line \d+ in destroy_node$',
+                             output, re.MULTILINE):
+        name = match.group(1)
+        if re.search(rf'^\[ERROR\] \[{re.escape(name)}\]: process has died \[pid \d+, '
+                     r'exit code 1,', output, re.MULTILINE):
+            hung.add(name)
+    return hung
 
 
 class Launch:
