@@ -16,7 +16,7 @@ from landmark_ros.core import sensors
 from landmark_ros.core._partial_geometry import (intersect_circles, intersect_ray_circle,
                                                  intersect_rays, trilaterate)
 from landmark_ros.core._partial_model import (BEARING, Linearisation, linearise,
-                                              observe_view_jacobians, OK, RANGE, residuals,
+                                              observe_views_jacobians, OK, RANGE, residuals,
                                               Views, WAIT)
 from landmark_ros.core.curvature import CONFIDENCE_RADIUS_95, observe_hessians, \
     relative_curvatures
@@ -266,7 +266,7 @@ def _refine(views, m0, params, reweight):
         return residuals(views, m) * w
 
     def jac(m, w):
-        return -observe_view_jacobians(views.kind, views.s, m)[1][:, 0, :] * w[:, None]
+        return -observe_views_jacobians(views, m)[1][:, 0, :] * w[:, None]
 
     from scipy.optimize import least_squares  # a second or more: when first needed
     m = np.asarray(m0, dtype=np.float64)

@@ -16,6 +16,7 @@ from typing import Any, Iterable, Optional, Tuple, TYPE_CHECKING, Union
 from landmark_ros.core import sensors
 from landmark_ros.core.landmarks import sensor_in_world
 from landmark_ros.core.pose2 import wrap_angle
+from landmark_ros.core.range_scale import MIN_SCALE
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -43,6 +44,9 @@ TOO_CLOSE = 2
 UPDATE_STATUS_NAMES = {UPDATED: 'updated', GATED: 'gated', TOO_CLOSE: 'too_close'}
 """Names of the codes ``update`` returns per row."""
 
+NO_RANGE_SCALE = (0.0, 0.0, 0.0)
+"""``Views.range_scale`` of a sensor whose range has no bearing-dependent scale."""
+
 METHODS = ('independent', 'covariance_intersection', 'split_covariance_intersection')
 """Fusion methods of ``update``, named as the fuser's ``fusion`` parameter names them."""
 
@@ -51,6 +55,27 @@ OMEGA_EDGE = 1e-9
 
 _OMEGA_STEPS = 60
 """Bisection steps on the weight: the bracket shrinks below 1e-18."""
+
+
+def _range_scale_fields(range_scale, limit, shape):
+    """Return ``Views.range_scale`` and its bearing limit broadcast to ``shape``, checked."""
+    range_scale = np.asarray(range_scale, dtype=np.float64)
+    limit = np.asarray(limit, dtype=np.float64)
+    if range_scale.ndim not in (1, 2) or range_scale.shape[-1] != 3 or limit.ndim > 1:
+        raise ValueError(f'range_scale must have shape (3,) or (N, 3) and its bearing limit '
+                         f'() or (N,), got {range_scale.shape} and {limit.shape}')
+    try:
+        range_scale = np.broadcast_to(range_scale, shape + (3,)).copy()
+        limit = np.broadcast_to(limit, shape).copy()
+    except ValueError:
+        raise ValueError(f'range_scale disagrees on N: {range_scale.shape}, {shape}') from None
+    if not (np.all(np.isfinite(range_scale)) and np.all((limit > 0.0) & (limit <= np.pi))):
+        raise ValueError('range_scale must be finite and its bearing limit in (0, pi]')
+    b = limit[:, None] * np.linspace(-1.0, 1.0, 9)
+    factor = 1.0 + range_scale[:, :1] + b * (range_scale[:, 1:2] + range_scale[:, 2:] * b)
+    if not np.all(factor >= MIN_SCALE):
+        raise ValueError(f'range scale factor below {MIN_SCALE} inside the bearing limit')
+    return range_scale, limit
 
 
 def _kinds(kind):
@@ -89,12 +114,20 @@ class Views:
         Variance of the independent sensor noise [m^2] or [rad^2], positive.
     R_bias : ndarray, shape (N,)
         Variance of a sensor bias (dependent), non-negative; zero by default.
+    range_scale : ndarray, shape (N, 3)
+        ``(q0, q1, q2)``: a range view measures ``|m - s_xy| (1 + q0 + q1 b + q2 b^2)``,
+        ``b`` the landmark's bearing from the sensor clipped to
+        ``[-range_scale_bearing_limit, range_scale_bearing_limit]`` (a camera's range
+        scale over its image, ``range_scale``); zero by default, ignored by bearing views.
+    range_scale_bearing_limit : ndarray, shape (N,)
+        Half the sensor's field of view [rad], in (0, pi]; pi by default.
 
     Raises
     ------
     ValueError
-        On a wrong shape or kind, a non-finite value, ``R <= 0``, ``R_bias < 0`` or a
-        ``P_s`` that is not symmetric positive semi-definite.
+        On a wrong shape or kind, a non-finite value, ``R <= 0``, ``R_bias < 0``, a
+        ``P_s`` that is not symmetric positive semi-definite, a bearing limit outside
+        (0, pi] or a range scale factor below ``range_scale.MIN_SCALE`` inside it.
 
     """
 
@@ -105,11 +138,15 @@ class Views:
     R: NDArray[np.float64]
     # Any array_like on input: __post_init__ makes every field an array (0.0 too).
     R_bias: NDArray[np.float64] = 0.0  # type: ignore[assignment]
+    range_scale: NDArray[np.float64] = NO_RANGE_SCALE  # type: ignore[assignment]
+    range_scale_bearing_limit: NDArray[np.float64] = np.pi  # type: ignore[assignment]
 
     if TYPE_CHECKING:
         # The constructor takes array_like fields (what __post_init__ converts).
         def __init__(self, kind: ArrayLike, s: ArrayLike, P_s: ArrayLike, y: ArrayLike,
-                     R: ArrayLike, R_bias: ArrayLike = 0.0) -> None:
+                     R: ArrayLike, R_bias: ArrayLike = 0.0,
+                     range_scale: ArrayLike = NO_RANGE_SCALE,
+                     range_scale_bearing_limit: ArrayLike = np.pi) -> None:
             ...
 
     def __post_init__(self) -> None:
@@ -151,8 +188,11 @@ class Views:
             raise ValueError('P_s must be symmetric')
         if not np.all(np.linalg.eigvalsh(P_s)[:, 0] >= -1e-9 * scale):
             raise ValueError('P_s must be positive semi-definite')
+        scale, limit = _range_scale_fields(self.range_scale, self.range_scale_bearing_limit,
+                                           shape)
         for name, value in (('kind', kind), ('s', s), ('P_s', P_s), ('y', y), ('R', R),
-                            ('R_bias', R_bias)):
+                            ('R_bias', R_bias), ('range_scale', scale),
+                            ('range_scale_bearing_limit', limit)):
             value.flags.writeable = False
             object.__setattr__(self, name, value)
 
@@ -176,7 +216,9 @@ class Views:
 
 def views_from_robot(kind: ArrayLike, pose: ArrayLike, P_pose: ArrayLike, y: ArrayLike,
                      R: ArrayLike, R_bias: ArrayLike = 0.0,
-                     sensor_pose: Optional[ArrayLike] = None) -> Views:
+                     sensor_pose: Optional[ArrayLike] = None,
+                     range_scale: Tuple[ArrayLike, ArrayLike] = (NO_RANGE_SCALE, np.pi)
+                     ) -> Views:
     """
     Make views from robot poses, their covariances and the sensor mounting.
 
@@ -199,6 +241,8 @@ def views_from_robot(kind: ArrayLike, pose: ArrayLike, P_pose: ArrayLike, y: Arr
         Variance of the sensor bias (dependent).
     sensor_pose : array_like, shape (3,) or (N, 3), optional
         Sensor pose in the robot frame; ``None`` means the robot origin.
+    range_scale : tuple
+        ``Views.range_scale`` and ``Views.range_scale_bearing_limit``.
 
     Returns
     -------
@@ -211,7 +255,7 @@ def views_from_robot(kind: ArrayLike, pose: ArrayLike, P_pose: ArrayLike, y: Arr
 
     """
     s, P_s = sensor_in_world(pose, P_pose, sensor_pose)
-    return Views(kind, s, P_s, y, R, R_bias)
+    return Views(kind, s, P_s, y, R, R_bias, *range_scale)
 
 
 # --- the model: h, its Jacobians, residuals, effective variances --------------------------
@@ -284,6 +328,85 @@ def observe_view_jacobians(kind: ArrayLike, s: ArrayLike,
     return J_h_s, J_h_m
 
 
+def observe_views(views: Views, m: ArrayLike) -> NDArray[np.float64]:
+    """
+    Predict views at landmarks: ``observe_view`` with each range view's scale.
+
+    A range view predicts ``rho (1 + q0 + q1 b + q2 b^2)``, ``rho`` and ``b`` the range
+    and the bearing (clipped to the view's limit) of ``m`` from the sensor
+    (``Views.range_scale``); a bearing view predicts the bearing.
+
+    Parameters
+    ----------
+    views : Views
+        ``N`` views.
+    m : array_like, shape (2,) or (N, 2) [m]
+        One landmark for all views or one per view.
+
+    Returns
+    -------
+    h : ndarray, shape (N,)
+
+    Raises
+    ------
+    ValueError
+        If a landmark is closer than ``sensors.MIN_RANGE`` to its sensor.
+
+    """
+    z = np.broadcast_to(sensors.observe(views.s, m), views.s.shape[:-1] + (2,))
+    factor, _ = _scale_factor(views, z[:, 1])
+    return np.where(views.kind == RANGE, z[:, 0] * factor, z[:, 1])
+
+
+def observe_views_jacobians(views: Views, m: ArrayLike
+                            ) -> Tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """
+    Return the Jacobians of ``observe_views``.
+
+    For a range view, ``d h = f d rho + rho f'(b) d b`` (``f`` the scale factor; ``f'``
+    is 0 where the bearing is clipped); for a bearing view the bearing's row.
+
+    Parameters
+    ----------
+    views : Views
+        ``N`` views.
+    m : array_like, shape (2,) or (N, 2) [m]
+        One landmark for all views or one per view.
+
+    Returns
+    -------
+    J_h_s : ndarray, shape (N, 1, 3)
+    J_h_m : ndarray, shape (N, 1, 2)
+
+    Raises
+    ------
+    ValueError
+        If a landmark is closer than ``sensors.MIN_RANGE`` to its sensor.
+
+    """
+    shape = views.s.shape[:-1]
+    z = np.broadcast_to(sensors.observe(views.s, m), shape + (2,))
+    J_z_s, J_z_m = sensors.observe_jacobians(views.s, m)
+    J_z_s, J_z_m = np.broadcast_to(J_z_s, shape + (2, 3)), np.broadcast_to(J_z_m, shape + (2, 2))
+    factor, slope = _scale_factor(views, z[:, 1])
+    is_range = (views.kind == RANGE)[:, None]
+    J_h_s = np.where(is_range, factor[:, None] * J_z_s[:, 0]
+                     + (z[:, 0] * slope)[:, None] * J_z_s[:, 1], J_z_s[:, 1])
+    J_h_m = np.where(is_range, factor[:, None] * J_z_m[:, 0]
+                     + (z[:, 0] * slope)[:, None] * J_z_m[:, 1], J_z_m[:, 1])
+    return J_h_s[:, None, :], J_h_m[:, None, :]
+
+
+def _scale_factor(views, bearing):
+    """Return each view's range scale factor at ``bearing`` and its derivative."""
+    limit = views.range_scale_bearing_limit
+    b = np.clip(bearing, -limit, limit)
+    q = views.range_scale
+    factor = 1.0 + q[:, 0] + b * (q[:, 1] + q[:, 2] * b)
+    slope = np.where(np.abs(bearing) < limit, q[:, 1] + 2.0 * q[:, 2] * b, 0.0)
+    return factor, slope
+
+
 @dataclass(frozen=True)
 class Linearisation:
     """
@@ -336,10 +459,8 @@ def linearise(views: Views, m: ArrayLike) -> Linearisation:
 
     """
     m = np.asarray(m, dtype=np.float64)
-    h = observe_view(views.kind, views.s, m)[:, 0]
-    residual = views.y - h
-    residual = np.where(views.kind == BEARING, wrap_angle(residual), residual)
-    J_h_s, J_h_m = observe_view_jacobians(views.kind, views.s, m)
+    residual = residuals(views, m)
+    J_h_s, J_h_m = observe_views_jacobians(views, m)
     pose_term = np.einsum('ni,nij,nj->n', J_h_s[:, 0], views.P_s, J_h_s[:, 0])
     R_dep = views.R_bias + np.maximum(pose_term, 0.0)
     return Linearisation(residual, J_h_s, J_h_m, views.R + R_dep, R_dep)
@@ -366,8 +487,7 @@ def residuals(views: Views, m: ArrayLike) -> NDArray[np.float64]:
         If a landmark is closer than ``sensors.MIN_RANGE`` to its sensor.
 
     """
-    h = observe_view(views.kind, views.s, m)[:, 0]
-    residual = views.y - h
+    residual = views.y - observe_views(views, m)
     return np.where(views.kind == BEARING, wrap_angle(residual), residual)
 
 

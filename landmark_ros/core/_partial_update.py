@@ -13,7 +13,7 @@ from typing import Optional
 
 from landmark_ros.core import sensors
 from landmark_ros.core._partial_model import (_OMEGA_STEPS, BEARING, GATED, linearise,
-                                              METHODS, observe_view, OMEGA_EDGE, TOO_CLOSE,
+                                              METHODS, observe_views, OMEGA_EDGE, TOO_CLOSE,
                                               UPDATED, Views)
 from landmark_ros.core.gating import chi2_threshold
 from landmark_ros.core.pose2 import wrap_angle
@@ -405,8 +405,8 @@ def _nonlinear_rows(views, m, m_new, H, spread, threshold, updated):
     sub = views[rows]
     step = m_new[rows] - m[rows]
     far = np.hypot(*(m_new[rows] - sub.s[:, :2]).T) >= sensors.MIN_RANGE
-    moved = observe_view(sub.kind, sub.s, np.where(far[:, None], m_new[rows], m[rows]))[:, 0]
-    change = moved - observe_view(sub.kind, sub.s, m[rows])[:, 0]
+    moved = observe_views(sub, np.where(far[:, None], m_new[rows], m[rows]))
+    change = moved - observe_views(sub, m[rows])
     change = np.where(sub.kind == BEARING, wrap_angle(change), change)
     error = np.abs(change - np.einsum('ni,ni->n', H[rows], step))
     return rows[far & (error > threshold * spread[rows])]

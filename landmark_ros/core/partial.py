@@ -18,7 +18,11 @@ P_s : its covariance, shape (3, 3) or (N, 3, 3): the robot pose covariance pushe
 y : measured value, range [m] or bearing [rad], shape (N,).
 R : variance of the independent sensor noise [m^2] or [rad^2], shape (N,).
 R_bias : variance of a sensor bias shared by the sensor's views, shape (N,).
-h : predicted value ``h(s, m)``, shape (1,) or (N, 1).
+range_scale : ``(q0, q1, q2)`` of a range view, shape (N, 3): it measures
+    ``|m - s_xy| (1 + q0 + q1 b + q2 b^2)``, ``b`` the bearing of ``m`` clipped to
+    ``range_scale_bearing_limit`` (shape (N,)); zero for a plain range sensor.
+h : predicted value ``h(s, m)``, shape (1,) or (N, 1) (``observe_view``), or with the
+    range scale, shape (N,) (``observe_views``).
 J_h_s, J_h_m : its Jacobians, shapes (1, 3) and (1, 2) or (N, 1, 3) and (N, 1, 2).
 R_eff : effective variance of a view at ``m``, ``R + R_bias + J_h_s P_s J_h_s^T``
     (the pose uncertainty pushed into the measurement), shape (N,).
@@ -43,8 +47,10 @@ from landmark_ros.core._partial_geometry import (intersect_circles, intersect_ra
 from landmark_ros.core._partial_init import (dependent_covariance, Geometry, geometry,
                                              Initialisation, initialise, InitialiseParams)
 from landmark_ros.core._partial_model import (BEARING, effective_variances, GATED, KIND_NAMES,
-                                              Linearisation, linearise, METHODS, observe_view,
-                                              observe_view_jacobians, OK, OMEGA_EDGE, RANGE,
+                                              Linearisation, linearise, METHODS,
+                                              NO_RANGE_SCALE, observe_view,
+                                              observe_view_jacobians, observe_views,
+                                              observe_views_jacobians, OK, OMEGA_EDGE, RANGE,
                                               residuals, TOO_CLOSE, UPDATE_STATUS_NAMES,
                                               UPDATED, Views, views_from_robot, WAIT,
                                               WAIT_REASONS)
@@ -55,7 +61,8 @@ __all__ = [
     'BEARING', 'dependent_covariance', 'effective_variances', 'GATED', 'Geometry', 'geometry',
     'Initialisation', 'initialise', 'InitialiseParams', 'intersect_circles',
     'intersect_ray_circle', 'intersect_rays', 'ITERATE_THRESHOLD', 'KIND_NAMES', 'Linearisation',
-    'linearise', 'MAX_ITERATIONS', 'METHODS', 'observe_view', 'observe_view_jacobians', 'OK',
+    'linearise', 'MAX_ITERATIONS', 'METHODS', 'NO_RANGE_SCALE', 'observe_view',
+    'observe_view_jacobians', 'observe_views', 'observe_views_jacobians', 'OK',
     'OMEGA_EDGE', 'RANGE', 'residuals', 'TOO_CLOSE', 'trilaterate', 'update',
     'UPDATE_STATUS_NAMES', 'UPDATED', 'UpdateResult', 'view_omega', 'Views', 'views_from_robot',
     'WAIT', 'WAIT_REASONS',

@@ -20,12 +20,14 @@ from typing import Any, Deque, Dict, Iterable, List, Tuple
 from landmark_ros.core.partial import (BEARING, GATED, Initialisation, initialise,
                                        InitialiseParams, RANGE, TOO_CLOSE, update, UPDATED,
                                        Views)
+from landmark_ros.core.range_scale import MIN_SCALE
 from landmark_ros.core.sensors import MIN_RANGE
 from landmark_ros.fuser.partial_sources import SourceLedger
 from landmark_ros.fusion.landmark_map import LandmarkMap
 from landmark_ros.pipeline.limits import partial_problems
-from landmark_ros.pipeline.partial_rows import (PARTIAL_COLUMNS, PartialObservations,
-                                                sensor_covariance)
+from landmark_ros.pipeline.partial_rows import (NO_RANGE_SCALE_ROW, PARTIAL_COLUMNS,
+                                                PartialObservations, range_scale,
+                                                RANGE_SCALE_COLUMNS, sensor_covariance)
 from landmark_ros.pipeline.rows import first_problems, landmark_row_problems, UNKNOWN_ID
 import numpy as np
 from numpy.typing import NDArray
@@ -55,7 +57,9 @@ def partial_row_problems(
         Rejected rows per reason (each counted once, under its first problem):
         ``partial_nonfinite``, ``invalid_id``, ``invalid_kind``,
         ``range_not_positive``, ``variance_not_positive``, ``variance_dep_negative``,
-        ``sensor_covariance_not_psd``, then the ``limits.partial_problems``
+        ``sensor_covariance_not_psd``, ``range_scale_invalid`` (not finite, a bearing
+        limit outside (0, pi], a factor below ``range_scale.MIN_SCALE`` inside it), then
+        the ``limits.partial_problems``
         (``range_out_of_range``, ``bearing_out_of_range``, ``variance_out_of_range``,
         ``pose_out_of_range``).
 
@@ -84,7 +88,18 @@ def partial_row_problems(
             ('variance_not_positive', ~(np.asarray(columns['variance']) > 0.0)),
             ('variance_dep_negative', ~(np.asarray(columns['variance_dep']) >= 0.0)),
             ('sensor_covariance_not_psd', ~psd),
+            ('range_scale_invalid', ~_range_scale_valid(columns)),
         ] + plausible)
+
+
+def _range_scale_valid(columns):
+    """Return the rows whose range scale ``core.partial.Views`` accepts."""
+    q, limit = range_scale(columns)
+    with np.errstate(invalid='ignore', over='ignore'):
+        b = np.clip(limit, 0.0, np.pi)[:, None] * np.linspace(-1.0, 1.0, 9)
+        factor = 1.0 + q[:, :1] + b * (q[:, 1:2] + q[:, 2:] * b)
+        return (np.isfinite(q).all(axis=1) & (limit > 0.0) & (limit <= np.pi)
+                & (factor >= MIN_SCALE).all(axis=1))
 
 
 def views_from_columns(columns: Dict[str, NDArray[Any]]) -> Views:
@@ -100,7 +115,8 @@ def views_from_columns(columns: Dict[str, NDArray[Any]]) -> Views:
     """
     s = np.stack([columns['sensor_x'], columns['sensor_y'], columns['sensor_theta']], axis=1)
     return Views(np.asarray(columns['kind']).astype(np.int64), s, sensor_covariance(columns),
-                 columns['value'], columns['variance'], columns['variance_dep'])
+                 columns['value'], columns['variance'], columns['variance_dep'],
+                 *range_scale(columns))
 
 
 @dataclass(frozen=True)
@@ -139,7 +155,9 @@ def parse_waiting_records(records: Any) -> List[Tuple[int, _Buffered]]:
         raise ValueError('waiting_partial_observations must be a list of objects')
     if not records:
         return []
-    names = PARTIAL_COLUMNS + ('source', 'stamp_ns')
+    # Map files written before the range scale lack it: none.
+    records = [dict(zip(RANGE_SCALE_COLUMNS, NO_RANGE_SCALE_ROW), **r) for r in records]
+    names = PARTIAL_COLUMNS + RANGE_SCALE_COLUMNS + ('source', 'stamp_ns')
     for record in records:
         missing = [name for name in names if name not in record]
         if missing:
@@ -157,7 +175,7 @@ def parse_waiting_records(records: Any) -> List[Tuple[int, _Buffered]]:
     try:
         columns = {name: np.array([r[name] for r in records],
                                   np.int64 if name in ('id', 'kind', 'view_group') else
-                                  np.float64) for name in PARTIAL_COLUMNS}
+                                  np.float64) for name in PARTIAL_COLUMNS + RANGE_SCALE_COLUMNS}
     except OverflowError as error:
         raise ValueError(f'waiting view number out of range: {error}') from None
     valid, reasons = partial_row_problems(columns)
@@ -232,8 +250,8 @@ class PartialFusion:
         Returns
         -------
         list of dict
-            One per view, oldest first per landmark: ``PARTIAL_COLUMNS`` (plain
-            numbers) plus ``source`` and ``stamp_ns`` [ns].
+            One per view, oldest first per landmark: ``PARTIAL_COLUMNS`` and
+            ``RANGE_SCALE_COLUMNS`` (plain numbers) plus ``source`` and ``stamp_ns`` [ns].
 
         """
         records = []
@@ -311,19 +329,21 @@ class PartialFusion:
         """
         Update a placed landmark with one view; return its ID when it changed.
 
-        With split CI and ``source_correlation: independent`` a bearing-only view's
-        dependent error is shared only with its own source's part of ``P_dep`` (and the
-        part of no known source): ``partial_sources.SourceLedger``. A range-only view's
-        is not: it holds the range scale error at the bearing it could not correct
-        (``range_scale_no_bearing``), one lens function for every robot, so views of
-        different robots from like bearings share it; it takes all of ``P_dep``.
+        With split CI and ``source_correlation: independent`` a view's dependent error
+        is shared only with its own source's part of ``P_dep`` (and the part of no known
+        source): ``partial_sources.SourceLedger``. Not so a range-only view without a
+        range scale model (``Views.range_scale``): it holds the camera's scale error at
+        the bearing it could not correct as noise (``range_scale_no_bearing``), one
+        lens function for every robot, so views of different robots from like bearings
+        share it; it takes all of ``P_dep``.
         """
         m, P, P_dep = estimate
+        views = seen.views
         by_source = (self.map.fusion == 'split_covariance_intersection'
                      and self.map.source_correlation == 'independent'
-                     and int(seen.views.kind[0]) == BEARING)
+                     and (int(views.kind[0]) == BEARING or bool(np.any(views.range_scale))))
         shared = self.ledger.shared_part(landmark_id, seen.source, P_dep) if by_source else P_dep
-        result = update(m, P, seen.views, shared, self.map.fusion, self.gate_probability)
+        result = update(m, P, views, shared, self.map.fusion, self.gate_probability)
         status = int(result.status[0])
         changed = []
         self.streak[landmark_id] = self.streak[landmark_id] + 1 if status == GATED else 0

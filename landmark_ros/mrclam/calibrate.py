@@ -47,7 +47,7 @@ OBSERVER_FIELDS = ('range_stddev', 'range_stddev_per_m', 'range_stddev_per_m2', 
                    'range_bias_stddev',
                    'bearing_bias_stddev', 'noise_correlation_time_s',
                    'range_correlated_fraction', 'bearing_correlated_fraction',
-                   'range_scale_per_m')
+                   'range_scale_per_m', 'range_scale_bearing_limit')
 """The observer parameters ``calibrate`` estimates (``Calibration.observer_values``)."""
 
 LOCALIZER_FIELDS = ('range_stddev', 'range_stddev_per_m', 'range_stddev_per_m2',
@@ -108,6 +108,8 @@ class Calibration:
     [1/rad] (``range_calibration.bearing_scale_spread``, step 5)."""
     range_scale_bearing_per_robot: dict = None
     """That change per robot name [1/rad]."""
+    range_scale_bearing_limit: float = 0.0
+    """Half the camera's field of view: the largest bearing of a sighting [rad]."""
 
     def to_dict(self):
         """Return plain values for JSON."""
@@ -169,6 +171,7 @@ class Calibration:
                 f'    range_scale_per_m: {self.range_scale_per_m:.5f}\n'
                 f'    range_scale_no_bearing: [{self.range_scale_no_bearing[0]:.4f}, '
                 f'{self.range_scale_no_bearing[1]:.4f}]\n'
+                f'    range_scale_bearing_limit: {self.range_scale_bearing_limit:.3f}\n'
                 '/**/landmark_localizer:\n  ros__parameters:\n'
                 + '\n'.join(f'    {k}: {_yaml_value(v)}'
                             for k, v in self.localizer_values().items())
@@ -509,7 +512,8 @@ def calibrate(dataset, min_pair=10, bins=10, part=None, delay=True):
                        scale['no_bearing'], scale, state_sd, c,
                        0.0 if camera_delay is None else camera_delay.delay_s,
                        None if camera_delay is None else camera_delay.to_dict(), bearing_sd,
-                       {dataset.robots[i].name: c1 for i, c1 in slopes.items()})
+                       {dataset.robots[i].name: c1 for i, c1 in slopes.items()},
+                       scale['bearing_limit'])
 
 
 def _scale_spread(e, model_r):

@@ -146,7 +146,9 @@ def remove_range_scale(e):
     s_b = coeffs[0] + e['bearing'] * (coeffs[1] + coeffs[2] * e['bearing'])
     return out, coeffs, per_m, {'bearing_bins': bins, 'short_tail': short,
                                 'relative_sd': sigma,
-                                'no_bearing': (float(np.mean(s_b)), float(np.std(s_b)))}
+                                'no_bearing': (float(np.mean(s_b)), float(np.std(s_b))),
+                                'bearing_limit': float(np.max(np.abs(e['bearing']),
+                                                              initial=0.0))}
 
 
 def range_noise_bins(ranges, residuals, spread, bins=10):

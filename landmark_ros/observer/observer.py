@@ -18,7 +18,8 @@ from typing import Any, Callable, Deque, Dict, List, Optional, Sequence, Tuple
 from landmark_ros.core import range_scale
 from landmark_ros.core.covariance import COVARIANCE_PROBLEMS, covariance_status
 from landmark_ros.observer.partial import (CorrelatedNoise, partial_observations_from_rows,
-                                           SensorMount, split_partial)
+                                           range_only_corrected, RangeOnlyScale, SensorMount,
+                                           split_partial)
 from landmark_ros.observer.rows import landmarks_from_rows, NOISE_FIELDS, observation_noise
 from landmark_ros.pipeline import limits, pose_buffer
 from landmark_ros.pipeline.config import ObserverConfig
@@ -157,6 +158,9 @@ class Observer:
         pose = np.array(config.sensor_pose, dtype=np.float64)
         self._sensor_pose = pose if pose.any() else None
         self._R_bias, self._scale_var = None, config.range_scale_bias_stddev ** 2
+        self._lens = RangeOnlyScale(config.range_scale_coeffs, config.range_scale_per_m,
+                                    config.range_scale_no_bearing,
+                                    config.range_scale_bearing_limit)
         if config.range_bias_stddev or config.bearing_bias_stddev or self._scale_var:
             self._R_bias = np.diag([config.range_bias_stddev ** 2,
                                     config.bearing_bias_stddev ** 2])
@@ -481,30 +485,6 @@ class Observer:
             columns['range_bearing_covariance'] = R[:, 0, 1]
         return columns
 
-    def _range_only_corrected(self, rows: Dict[str, NDArray[Any]]
-                              ) -> Tuple[Dict[str, NDArray[Any]], NDArray[np.float64]]:
-        """
-        Return partial rows with the range scale of rows without bearing removed, and R.
-
-        ``range_scale_no_bearing`` (mean ``s``, standard deviation ``d``): a range-only
-        row is divided by ``g = 1 + s + range_scale_per_m r``; its range variance
-        becomes ``R_rr / g^2 + (d r / g)^2`` (the bearing-dependent scale it could not
-        correct, as noise). Bearing-only rows are unchanged.
-        """
-        cfg = self.config
-        R = self.noise(rows)
-        mean, spread = cfg.range_scale_no_bearing
-        r = np.asarray(rows['range'], np.float64)
-        only = np.isfinite(r) & ~np.isfinite(np.asarray(rows['bearing'], np.float64))
-        if not (mean or spread or cfg.range_scale_per_m) or not only.any():
-            return rows, R
-        g = np.where(only, 1.0 + mean + cfg.range_scale_per_m * np.where(only, r, 0.0), 1.0)
-        if np.any(g < range_scale.MIN_SCALE):
-            return rows, R
-        R = np.array(np.broadcast_to(R, (len(r), 2, 2)))
-        R[:, 0, 0] = np.where(only, R[:, 0, 0] / g ** 2 + (spread * r / g) ** 2, R[:, 0, 0])
-        return dict(rows, range=np.where(only, r / g, r)), R
-
     def _partial(self, ready: Sequence[MessageWithPose]
                  ) -> Tuple[List[MessageWithPose], Dict[int, PartialObservations]]:
         """Take the partial rows out of messages; return the rest and their observations."""
@@ -514,7 +494,7 @@ class Observer:
             columns, partial = split_partial(item.columns)
             if np.count_nonzero(partial):
                 rows = {name: np.asarray(values)[partial] for name, values in columns.items()}
-                rows, R = self._range_only_corrected(rows)
+                rows, R = range_only_corrected(rows, self.noise(rows), self._lens)
                 mount = SensorMount(self._sensor_pose, self._R_bias, self._scale_var)
                 found, reasons = partial_observations_from_rows(
                     rows, R, pose, P_pose, mount, self._view_group, item.stamp_ns,

@@ -13,9 +13,12 @@ from dataclasses import dataclass
 from typing import Any, Dict, Optional, Tuple
 
 from landmark_ros.core.partial import BEARING, RANGE, views_from_robot
+from landmark_ros.core.range_scale import MIN_SCALE
 from landmark_ros.core.sensors import MIN_RANGE
 from landmark_ros.pipeline.limits import partial_problems
-from landmark_ros.pipeline.partial_rows import no_partial_observations, PartialObservations
+from landmark_ros.pipeline.partial_rows import (no_partial_observations, NO_RANGE_SCALE_ROW,
+                                                PartialObservations, range_scale,
+                                                RANGE_SCALE_COLUMNS)
 from landmark_ros.pipeline.rows import first_problems, MAX_ID, UNKNOWN_ID
 import numpy as np
 from numpy.typing import NDArray
@@ -133,6 +136,74 @@ class CorrelatedNoise:
 
 
 @dataclass(frozen=True)
+class RangeOnlyScale:
+    """
+    A camera's range scale for rows without a bearing (from ``ObserverConfig``).
+
+    ``coeffs``, ``per_m``: ``core.range_scale``; ``no_bearing``: mean and standard
+    deviation of ``c0 + c1 b + c2 b^2`` over the image; ``bearing_limit``: half the
+    field of view [rad], 0 when unknown.
+    """
+
+    coeffs: Tuple[float, float, float] = (0.0, 0.0, 0.0)
+    per_m: float = 0.0
+    no_bearing: Tuple[float, float] = (0.0, 0.0)
+    bearing_limit: float = 0.0
+
+
+def range_only_corrected(rows: Dict[str, NDArray[Any]], R: NDArray[np.float64],
+                         lens: RangeOnlyScale
+                         ) -> Tuple[Dict[str, NDArray[Any]], NDArray[np.float64]]:
+    """
+    Return partial rows with the mean range scale removed from range-only rows, and R.
+
+    A range-only row is divided by ``g = 1 + s + per_m r`` (``s`` the mean of
+    ``lens.no_bearing``) and ``R_rr`` by ``g^2``. What is left depends on the bearing
+    of the landmark in the image, which the row lacks. With ``lens.bearing_limit`` and
+    ``lens.coeffs`` set, the row carries it as a model (``RANGE_SCALE_COLUMNS``:
+    ``q0 = (c0 - s) / g``, ``q1 = c1 / g``, ``q2 = c2 / g``; the fuser evaluates it
+    at the landmark's predicted bearing, ``core.partial.Views``); otherwise its spread
+    is noise, ``R_rr`` grows by ``(d r / g)^2`` (``d`` the standard deviation). Rows
+    whose ``g`` would fall below ``range_scale.MIN_SCALE`` leave everything unchanged;
+    bearing-only rows are unchanged.
+
+    Parameters
+    ----------
+    rows : dict of str to ndarray, shape (K,)
+        Partial rows: ``range`` [m], ``bearing`` [rad], one of them NaN.
+    R : ndarray, shape (2, 2) or (K, 2, 2)
+        Their noise covariance.
+    lens : RangeOnlyScale
+        The camera's range scale model.
+
+    Returns
+    -------
+    rows : dict of str to ndarray, shape (K,)
+    R : ndarray, shape (2, 2) or (K, 2, 2)
+
+    """
+    mean, spread = lens.no_bearing
+    modelled = lens.bearing_limit > 0.0 and any(lens.coeffs)
+    r = np.asarray(rows['range'], np.float64)
+    only = np.isfinite(r) & ~np.isfinite(np.asarray(rows['bearing'], np.float64))
+    if not (mean or spread or lens.per_m or modelled) or not only.any():
+        return rows, R
+    g = np.where(only, 1.0 + mean + lens.per_m * np.where(only, r, 0.0), 1.0)
+    if np.any(g < MIN_SCALE):
+        return rows, R
+    R = np.array(np.broadcast_to(R, (len(r), 2, 2)))
+    noise = 0.0 if modelled else (spread * r / g) ** 2
+    R[:, 0, 0] = np.where(only, R[:, 0, 0] / g ** 2 + noise, R[:, 0, 0])
+    rows = dict(rows, range=np.where(only, r / g, r))
+    if modelled:
+        c0, c1, c2 = lens.coeffs
+        model = ((c0 - mean) / g, c1 / g, c2 / g, np.full(len(r), lens.bearing_limit))
+        rows.update({name: np.where(only, value, default) for name, value, default in
+                     zip(RANGE_SCALE_COLUMNS, model, NO_RANGE_SCALE_ROW)})
+    return rows, R
+
+
+@dataclass(frozen=True)
 class SensorMount:
     """Where the sensor sits on the robot and how biased it is (from ``ObserverConfig``)."""
 
@@ -155,7 +226,8 @@ def partial_observations_from_rows(columns: Dict[str, NDArray[Any]], R: NDArray[
     Parameters
     ----------
     columns : dict of str to ndarray, shape (K,)
-        The partial rows only: ``id``, ``range`` [m], ``bearing`` [rad], one of them NaN.
+        The partial rows only: ``id``, ``range`` [m], ``bearing`` [rad], one of them NaN;
+        optionally ``RANGE_SCALE_COLUMNS`` (``range_only_corrected``).
     R : ndarray, shape (2, 2) or (K, 2, 2)
         Noise covariance of the rows (``rows.observation_noise``); the diagonal entry
         of the measured column is the view's variance.
@@ -209,7 +281,8 @@ def partial_observations_from_rows(columns: Dict[str, NDArray[Any]], R: NDArray[
     variance = variance[valid]
     if correlated is not None:
         variance = variance * correlated.factors(stamp_ns, ids[valid], kind[valid])
+    q, limit = range_scale(columns)
     views = views_from_robot(kind[valid], pose, P_pose, y[valid], variance,
-                             bias[valid], sensor_pose)
+                             bias[valid], sensor_pose, (q[valid], limit[valid]))
     return PartialObservations(ids[valid].astype(np.int64), views,
                                np.full(int(valid.sum()), view_group, np.int64)), reasons

@@ -159,7 +159,13 @@ class ObserverConfig(ConfigBase):
         (0.0, 0.0), 'Range scale error of a range-only row (no bearing to correct with): '
         'mean and standard deviation of c0 + c1 b + c2 b^2 over where targets appear in '
         'the field of view; the row is divided by 1 + mean + range_scale_per_m r and its '
-        'range variance grows by (stddev r)^2. (0, 0): no correction.')
+        'range variance grows by (stddev r)^2 unless range_scale_bearing_limit is set. '
+        '(0, 0): no correction.')
+    range_scale_bearing_limit: float = param(
+        0.0, 'Half the field of view of a camera whose range scale depends on the bearing '
+        '(range_scale_coeffs) [rad]. When set, a range-only row carries that scale as a '
+        "model the fuser evaluates at the landmark's predicted bearing, instead of the "
+        'spread of range_scale_no_bearing as noise. 0: not used.', low=0.0, high=math.pi)
     bearing_stddev: float = param(
         0.02, 'Bearing noise standard deviation [rad] for rows without bearing_variance.',
         low=0.0, high=math.pi)

@@ -10,11 +10,12 @@ buffers, places and fuses them (``fuser.partial``); in between they travel as ro
 Symbols as in ``core.partial``: ``kind`` (``RANGE`` 0, ``BEARING`` 1), ``s`` and
 ``P_s`` the sensor pose in the world (x [m], y [m], theta [rad]) and its covariance,
 ``y`` the measured value (range [m] or bearing [rad]), ``R`` the variance of the
-independent noise, ``R_bias`` that of a sensor bias.
+independent noise, ``R_bias`` that of a sensor bias; a range row may carry the
+range scale of its camera (``RANGE_SCALE_COLUMNS``, ``Views.range_scale``).
 """
 
 from dataclasses import dataclass
-from typing import Any, Dict, Optional
+from typing import Any, Dict, Optional, Tuple
 
 from landmark_ros.core.partial import Views
 import numpy as np
@@ -25,6 +26,14 @@ PARTIAL_COLUMNS = (
     'sensor_cov_xx', 'sensor_cov_xy', 'sensor_cov_xt', 'sensor_cov_yy', 'sensor_cov_yt',
     'sensor_cov_tt', 'view_group')
 """Columns of a ``partial_observations`` row, in wire order (``ros.schemas``)."""
+
+RANGE_SCALE_COLUMNS = ('range_scale_q0', 'range_scale_q1', 'range_scale_q2',
+                       'range_scale_bearing_limit')
+"""Optional columns after ``PARTIAL_COLUMNS``: ``Views.range_scale`` and its bearing
+limit [rad]. Absent, a row has no range scale (zeros and pi)."""
+
+NO_RANGE_SCALE_ROW = (0.0, 0.0, 0.0, float(np.pi))
+"""``RANGE_SCALE_COLUMNS`` of a row without a range scale."""
 
 SENSOR_COVARIANCE_COLUMNS = (
     ('sensor_cov_xx', 0, 0), ('sensor_cov_xy', 0, 1), ('sensor_cov_xt', 0, 2),
@@ -58,18 +67,20 @@ class PartialObservations:
         return len(self.ids)
 
     def columns(self) -> Dict[str, NDArray[Any]]:
-        """Return the rows as ``PARTIAL_COLUMNS`` columns, shape (K,) each."""
+        """Return the rows as ``PARTIAL_COLUMNS + RANGE_SCALE_COLUMNS``, shape (K,) each."""
         out: Dict[str, NDArray[Any]] = {'id': self.ids, 'view_group': self.view_group}
         if self.views is None:
             out.update({name: np.zeros(0) for name in PARTIAL_COLUMNS[2:-1]})
             out['kind'] = np.zeros(0, np.int64)
+            out.update({name: np.zeros(0) for name in RANGE_SCALE_COLUMNS})
         else:
             v = self.views
             out.update({'kind': v.kind, 'value': v.y, 'variance': v.R,
                         'variance_dep': v.R_bias, 'sensor_x': v.s[:, 0],
                         'sensor_y': v.s[:, 1], 'sensor_theta': v.s[:, 2]})
             out.update({name: v.P_s[:, i, j] for name, i, j in SENSOR_COVARIANCE_COLUMNS})
-        return {name: out[name] for name in PARTIAL_COLUMNS}
+            out.update(zip(RANGE_SCALE_COLUMNS, (*v.range_scale.T, v.range_scale_bearing_limit)))
+        return {name: out[name] for name in PARTIAL_COLUMNS + RANGE_SCALE_COLUMNS}
 
 
 def no_partial_observations() -> PartialObservations:
@@ -84,3 +95,20 @@ def sensor_covariance(columns: Dict[str, NDArray[Any]]) -> NDArray[np.float64]:
     for name, i, j in SENSOR_COVARIANCE_COLUMNS:
         P_s[:, i, j] = P_s[:, j, i] = columns[name]
     return P_s
+
+
+def with_range_scale(columns: Dict[str, NDArray[Any]]) -> Dict[str, NDArray[Any]]:
+    """Return partial observation rows with ``RANGE_SCALE_COLUMNS`` (defaults if absent)."""
+    count = len(columns['id'])
+    missing = {name: np.full(count, value) for name, value in
+               zip(RANGE_SCALE_COLUMNS, NO_RANGE_SCALE_ROW) if name not in columns}
+    return dict(columns, **missing) if missing else columns
+
+
+def range_scale(columns: Dict[str, NDArray[Any]]
+                ) -> Tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Return ``Views.range_scale`` (N, 3) and its bearing limit (N,) of rows."""
+    columns = with_range_scale(columns)
+    q = np.stack([np.asarray(columns[name], np.float64) for name in RANGE_SCALE_COLUMNS[:3]],
+                 axis=1).reshape(-1, 3)
+    return q, np.asarray(columns[RANGE_SCALE_COLUMNS[3]], np.float64)

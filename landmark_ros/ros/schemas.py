@@ -37,7 +37,9 @@ no position, so nothing for RViz to draw): ``id`` UINT32, ``kind`` UINT8 (0 rang
 1 bearing), ``value`` [m or rad], ``variance``, ``variance_dep`` (independent noise and
 bias variances), ``sensor_x``, ``sensor_y``, ``sensor_theta`` (sensor pose in the world),
 ``sensor_cov_xx``, ``_xy``, ``_xt``, ``_yy``, ``_yt``, ``_tt`` (its covariance) FLOAT64,
-``view_group`` UINT32, little-endian, in this order.
+``view_group`` UINT32, then ``range_scale_q0``, ``_q1``, ``_q2``,
+``range_scale_bearing_limit`` FLOAT64 (a camera's range scale over its image,
+``core.partial.Views``; optional for readers, absent: none), little-endian, in this order.
 ``landmarks`` gains ``class`` UINT32 when the message had a ``class`` or a row without
 an ID, and the ``SCAN_FIELDS`` (per row, the same for all rows of the message: robot
 position and pose covariance) when it had a row without an ID, then ``sensor_theta``
@@ -59,7 +61,8 @@ from typing import NamedTuple
 
 
 from geometry_msgs.msg import PoseWithCovarianceStamped
-from landmark_ros.pipeline.partial_rows import PARTIAL_COLUMNS
+from landmark_ros.pipeline.partial_rows import (PARTIAL_COLUMNS, RANGE_SCALE_COLUMNS,
+                                                with_range_scale)
 from landmark_ros.pipeline.scan import Scan
 from landmark_ros.ros.cloud import CloudError, CloudWriter, FieldSpec, INTEGER_TYPES
 from landmark_ros.ros.cloud import columns_of, read_columns, read_records
@@ -115,11 +118,13 @@ _OBSERVATION_NOISE_WRITER = CloudWriter((
     ('range_bearing_covariance', np.float64)))
 PARTIAL_SCHEMA = tuple(
     (name, np.uint32 if name in ('id', 'view_group') else np.uint8 if name == 'kind'
-     else np.float64) for name in PARTIAL_COLUMNS)
+     else np.float64) for name in PARTIAL_COLUMNS + RANGE_SCALE_COLUMNS)
 PARTIAL_FIELDS = tuple(
-    FieldSpec(name, INTEGER_TYPES if dtype is not np.float64 else REAL_TYPES)
+    FieldSpec(name, INTEGER_TYPES if dtype is not np.float64 else REAL_TYPES,
+              required=name not in RANGE_SCALE_COLUMNS)
     for name, dtype in PARTIAL_SCHEMA)
 PARTIAL_WRITER = CloudWriter(PARTIAL_SCHEMA)
+PARTIAL_WRITER_NAMES = frozenset(PARTIAL_COLUMNS + RANGE_SCALE_COLUMNS)
 LANDMARK_WRITER = CloudWriter(LANDMARK_SCHEMA)
 FUSED_WRITER = CloudWriter(FUSED_SCHEMA)
 _REMOVED_WRITER = CloudWriter(FUSED_SCHEMA + (('merged_into', np.uint32),))
@@ -539,7 +544,8 @@ def partial_observation_message(header, columns, out=None):
     header : std_msgs.msg.Header
         Stamp and world frame.
     columns : dict of str to ndarray, shape (N,)
-        ``pipeline.partial_rows.PARTIAL_COLUMNS`` (``PartialObservations.columns``).
+        ``pipeline.partial_rows.PARTIAL_COLUMNS`` and optionally ``RANGE_SCALE_COLUMNS``
+        (``PartialObservations.columns``).
     out : sensor_msgs.msg.PointCloud2, optional
         A message to fill instead of a new one.
 
@@ -549,8 +555,9 @@ def partial_observation_message(header, columns, out=None):
 
     """
     rows = PARTIAL_WRITER.rows(len(columns['id']))
-    for name in PARTIAL_COLUMNS:
-        rows[name] = columns[name]
+    for name, values in with_range_scale(columns).items():
+        if name in PARTIAL_WRITER_NAMES:
+            rows[name] = values
     return PARTIAL_WRITER.message(header, rows, out)
 
 

@@ -12,7 +12,8 @@ from landmark_ros.fusion.landmark_map import LandmarkMap
 from landmark_ros.observer.observer import ObservationMessage, Observer
 from landmark_ros.observer.partial import CorrelatedNoise
 from landmark_ros.pipeline.config import FuserConfig, ObserverConfig
-from landmark_ros.pipeline.partial_rows import PARTIAL_COLUMNS, PartialObservations
+from landmark_ros.pipeline.partial_rows import (PARTIAL_COLUMNS, PartialObservations,
+                                                RANGE_SCALE_COLUMNS)
 import numpy as np
 import pytest
 from scipy.stats import chi2
@@ -60,7 +61,7 @@ def test_bearing_only_cloud_gives_partial_observations_with_the_mounting_compose
     np.testing.assert_allclose(c.views.R, 1e-4)
     np.testing.assert_allclose(c.views.R_bias, 0.005 ** 2)
     out = c.columns()
-    assert tuple(out) == tuple(sorted(out, key=PARTIAL_COLUMNS.index))
+    assert tuple(out) == PARTIAL_COLUMNS + RANGE_SCALE_COLUMNS
     assert all(np.isfinite(np.asarray(v, dtype=float)).all() for v in out.values())
     assert observer.counters['partial_rows'] == 2
     assert observer.status().level == 'ok'
@@ -431,7 +432,8 @@ def test_waiting_partial_observations_survive_a_restart(tmp_path):
     restored = again.partial.waiting[7][0]
     original = f.partial.waiting[7][0]
     assert (restored.source, restored.stamp_ns, restored.group) == (VIEWS[0], S, 9)
-    for name in ('kind', 's', 'P_s', 'y', 'R', 'R_bias'):
+    for name in ('kind', 's', 'P_s', 'y', 'R', 'R_bias', 'range_scale',
+                 'range_scale_bearing_limit'):
         np.testing.assert_array_equal(getattr(restored.views, name),
                                       getattr(original.views, name))
     again.add_partial_observations(VIEWS[1], 2 * S,
@@ -445,7 +447,8 @@ def test_waiting_partial_observations_survive_a_restart(tmp_path):
 
 @pytest.mark.parametrize('field, value', [
     ('kind', 3), ('variance', -1.0), ('value', 'x'), ('stamp_ns', 1.5), ('id', 2 ** 70),
-    ('source', 4), ('sensor_cov_xx', -1.0)])
+    ('source', 4), ('sensor_cov_xx', -1.0), ('range_scale_q2', -9.0),
+    ('range_scale_bearing_limit', 0.0), ('range_scale_q0', 'x')])
 def test_a_bad_waiting_partial_observation_is_quarantined_and_the_map_kept(tmp_path, field, value):
     path = str(tmp_path / 'map.json')
     f = fuser(map_file=path)
@@ -543,3 +546,18 @@ def test_the_deprecated_constraint_topics_parameter_still_names_the_partial_sour
 def test_the_fusers_curvature_rule_is_a_parameter(ratio, expected):
     # max_curvature_ratio reaches the placement; 0 turns the rule off (None).
     assert fuser(max_curvature_ratio=ratio).partial.params.max_curvature_ratio == expected
+
+
+def test_a_map_file_without_range_scale_columns_loads_views_without_one(tmp_path):
+    path = str(tmp_path / 'map.json')
+    document = _saved_with_a_waiting_observation(path)
+    for record in document['waiting_partial_observations']:
+        for name in RANGE_SCALE_COLUMNS:
+            del record[name]
+    with open(path, 'w') as stream:
+        json.dump(document, stream)
+    again = fuser(map_file=path)
+    again.load()
+    views = again.partial.waiting[7][0].views
+    np.testing.assert_array_equal(views.range_scale, [[0.0, 0.0, 0.0]])
+    np.testing.assert_array_equal(views.range_scale_bearing_limit, [np.pi])

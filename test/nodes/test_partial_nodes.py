@@ -5,7 +5,7 @@ import math
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from landmark_ros.nodes.fuser import LandmarkFuser
 from landmark_ros.nodes.observer import LandmarkObserver
-from landmark_ros.pipeline.partial_rows import PARTIAL_COLUMNS
+from landmark_ros.pipeline.partial_rows import PARTIAL_COLUMNS, RANGE_SCALE_COLUMNS
 from landmark_ros.ros.cloud import CloudWriter
 from landmark_ros.ros.qos import LATCHED
 from landmark_ros.ros.schemas import (observation_message, read_landmarks,
@@ -75,7 +75,7 @@ def test_observers_publish_partial_observations_and_the_fuser_places_the_landmar
                         observation_message(header(10.0, 'camera'), [7], [[math.nan, bearing]]))
         assert env.spin_until(lambda: partial.messages, DEADLINE_S)
         msg = partial.messages[-1]
-        assert [f.name for f in msg.fields] == list(PARTIAL_COLUMNS)
+        assert [f.name for f in msg.fields] == list(PARTIAL_COLUMNS + RANGE_SCALE_COLUMNS)
         assert not msg.is_bigendian and msg.header.frame_id == 'map'
         rows = read_partial_observations(msg)
         assert rows['id'].tolist() == [7] and rows['kind'].tolist() == [1]
