@@ -8,7 +8,7 @@ Gauss-Newton on the posterior: ``ITERATE_THRESHOLD``). Private to ``core``:
 ``partial`` is the interface.
 """
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Optional
 
 from landmark_ros.core import sensors
@@ -19,6 +19,8 @@ from landmark_ros.core.gating import chi2_threshold
 from landmark_ros.core.pose2 import wrap_angle
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+
+_linearise = linearise   # _iterate's model may add a shift to it
 
 ITERATE_THRESHOLD = 0.1
 """The update iterates where the linearisation error of the EKF step,
@@ -202,7 +204,7 @@ def _gain(H, A, a):
     return (A @ H[:, :, None])[:, :, 0] / (_quadratic(H, A) + a)[:, None]
 
 
-def _iterate(views, m0, m1, A, R_ind, a_of, max_iterations=MAX_ITERATIONS):
+def _iterate(views, m0, m1, A, R_ind, a_of, max_iterations=MAX_ITERATIONS, shift=None):
     """
     Iterate the update of rows whose EKF step ``m0 -> m1`` was not linear enough.
 
@@ -228,6 +230,9 @@ def _iterate(views, m0, m1, A, R_ind, a_of, max_iterations=MAX_ITERATIONS):
         dependent part of the view's variance at an iterate.
     max_iterations : int
         Most linearisations, the EKF step's included.
+    shift : ndarray, shape (N, 2), optional
+        ``g``: the model is ``h(m) + g (m0 - m)`` (a prior error correlated with the
+        view's, taken out: ``partial.update_consider``); None: ``h``.
 
     Returns
     -------
@@ -237,6 +242,14 @@ def _iterate(views, m0, m1, A, R_ind, a_of, max_iterations=MAX_ITERATIONS):
         Linearisations taken per row (at least 2).
 
     """
+    def linearise(v, x, rows=slice(None)):
+        lin = _linearise(v, x)
+        if shift is None:
+            return lin
+        g = shift[rows]
+        return replace(lin, residual=lin.residual - np.einsum('ni,ni->n', g, m0[rows] - x),
+                       J_h_m=lin.J_h_m - g[:, None, :])
+
     A_inv = np.linalg.solve(A, np.broadcast_to(np.eye(2), A.shape))
     everything = np.arange(len(m0))
     m = m1.copy()
@@ -261,7 +274,7 @@ def _iterate(views, m0, m1, A, R_ind, a_of, max_iterations=MAX_ITERATIONS):
             trial = m[rows] + step
             near = np.hypot(*(trial - sub.s[:, :2]).T) < sensors.MIN_RANGE
             trial = np.where(near[:, None], m[rows], trial)
-            lin_trial = linearise(sub, trial)
+            lin_trial = linearise(sub, trial, rows)
             c = np.einsum('ni,nij,nj->n', trial - m0[rows], A_inv[rows], trial - m0[rows]) + (
                 lin_trial.residual ** 2 / (R_ind[rows] + a_of(lin_trial, rows)))
             good = ~accepted & ~near & (c <= current[rows])

@@ -37,11 +37,13 @@ A residual is ``y - h`` with bearings wrapped to [-pi, pi).
 The implementation is in four private modules, this one is the interface:
 ``_partial_model`` (kinds, ``Views``, the model ``h``, its Jacobians, residuals,
 effective variances), ``_partial_geometry`` (closed-form intersections),
-``_partial_init`` (delayed initialisation) and ``_partial_update`` (EKF updates, iterated
-where the model is not linear over the step).
+``_partial_init`` (delayed initialisation), ``_partial_update`` (EKF updates, iterated
+where the model is not linear over the step) and ``_partial_consider`` (the update
+with the view's sensor bias as a consider state).
 
 """
 
+from landmark_ros.core._partial_consider import update_consider
 from landmark_ros.core._partial_geometry import (intersect_circles, intersect_ray_circle,
                                                  intersect_rays, trilaterate)
 from landmark_ros.core._partial_init import (dependent_covariance, Geometry, geometry,
@@ -64,6 +66,7 @@ __all__ = [
     'linearise', 'MAX_ITERATIONS', 'METHODS', 'NO_RANGE_SCALE', 'observe_view',
     'observe_view_jacobians', 'observe_views', 'observe_views_jacobians', 'OK',
     'OMEGA_EDGE', 'RANGE', 'residuals', 'TOO_CLOSE', 'trilaterate', 'update',
-    'UPDATE_STATUS_NAMES', 'UPDATED', 'UpdateResult', 'view_omega', 'Views', 'views_from_robot',
+    'update_consider', 'UPDATE_STATUS_NAMES', 'UPDATED', 'UpdateResult', 'view_omega', 'Views',
+    'views_from_robot',
     'WAIT', 'WAIT_REASONS',
 ]

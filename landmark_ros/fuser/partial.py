@@ -14,14 +14,16 @@ nanoseconds.
 """
 
 from collections import Counter, deque
-from dataclasses import dataclass
-from typing import Any, Deque, Dict, Iterable, List, Tuple
+from dataclasses import dataclass, replace
+from typing import Any, Deque, Dict, Iterable, List, Optional, Tuple
 
 from landmark_ros.core.partial import (BEARING, GATED, Initialisation, initialise,
-                                       InitialiseParams, RANGE, TOO_CLOSE, update, UPDATED,
-                                       Views)
+                                       InitialiseParams, RANGE, TOO_CLOSE, update,
+                                       update_consider, UPDATED, UpdateResult, Views)
 from landmark_ros.core.range_scale import MIN_SCALE
 from landmark_ros.core.sensors import MIN_RANGE
+from landmark_ros.fuser.partial_consider import (BiasCrosses, CONSIDERED_KINDS, Crosses,
+                                                 Estimate, psd_part)
 from landmark_ros.fuser.partial_sources import SourceLedger
 from landmark_ros.fusion.landmark_map import LandmarkMap
 from landmark_ros.pipeline.limits import partial_problems
@@ -234,6 +236,7 @@ class PartialFusion:
         self.streak: Counter[int] = Counter()
         self.wait_reasons: Counter[str] = Counter()
         self.ledger = SourceLedger()
+        self.biases = BiasCrosses()
 
     def reset(self) -> None:
         """Forget the queued and waiting views."""
@@ -242,6 +245,7 @@ class PartialFusion:
         self.recent.clear()
         self.streak.clear()
         self.ledger.clear()
+        self.biases.clear()
 
     def waiting_records(self) -> List[Dict[str, Any]]:
         """
@@ -321,53 +325,108 @@ class PartialFusion:
             return False
         self.map.set_estimate(landmark_id, m, P, P_dep, PARTIAL_SOURCE, stamp_ns, views)
         self.ledger.forget(landmark_id)    # an update keeps its new parts after this
+        self.biases.forget(landmark_id)
         return True
 
+    def _considered(self, landmark_id: int, buffer: Iterable[_Buffered],
+                    placed: Initialisation) -> None:
+        """Start the bias cross-covariances of a landmark just placed from ``buffer``."""
+        if not self._by_source():
+            return
+        buffer = list(buffer)
+        keys = [(b.source, int(b.views.kind[0])) for b in buffer]
+        views = Views.concatenate(b.views for b in buffer)
+        estimate = self.map.estimate(landmark_id)
+        if estimate is not None:
+            self.biases.keep(landmark_id, self.biases.placed(views, keys, placed, estimate))
+
+    def _by_source(self, views: Optional[Views] = None) -> bool:
+        """Return whether views (a view) split the dependent parts by source (``_update``)."""
+        return (self.map.fusion == 'split_covariance_intersection'
+                and self.map.source_correlation == 'independent'
+                and (views is None or int(views.kind[0]) == BEARING
+                     or bool(np.any(views.range_scale))))
+
     def _update(self, count: Counter[str], seen: _Buffered, landmark_id: int,
-                estimate: Tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]
-                ) -> List[int]:
+                estimate: Estimate) -> List[int]:
         """
         Update a placed landmark with one view; return its ID when it changed.
 
         With split CI and ``source_correlation: independent`` a view's dependent error
         is shared only with its own source's part of ``P_dep`` (and the part of no known
-        source): ``partial_sources.SourceLedger``. Not so a range-only view without a
-        range scale model (``Views.range_scale``): it holds the camera's scale error at
-        the bearing it could not correct as noise (``range_scale_no_bearing``), one
-        lens function for every robot, so views of different robots from like bearings
-        share it; it takes all of ``P_dep``.
+        source): ``partial_sources.SourceLedger``; its sensor bias, when the landmark
+        was placed and updated by views only, is a consider state whose
+        cross-covariance is carried (``partial_consider``). Not so a range-only view
+        without a range scale model (``Views.range_scale``): it holds the camera's
+        scale error at the bearing it could not correct as noise
+        (``range_scale_no_bearing``), one lens function for every robot, so views of
+        different robots from like bearings share it; it takes all of ``P_dep``.
         """
-        m, P, P_dep = estimate
-        views = seen.views
-        by_source = (self.map.fusion == 'split_covariance_intersection'
-                     and self.map.source_correlation == 'independent'
-                     and (int(views.kind[0]) == BEARING or bool(np.any(views.range_scale))))
-        shared = self.ledger.shared_part(landmark_id, seen.source, P_dep) if by_source else P_dep
-        result = update(m, P, views, shared, self.map.fusion, self.gate_probability)
+        by_source = self._by_source(seen.views)
+        crosses = (self.biases.current(landmark_id, estimate)
+                   if by_source and int(seen.views.kind[0]) in CONSIDERED_KINDS else None)
+        result, book = self._step(seen, landmark_id, estimate, by_source, crosses)
         status = int(result.status[0])
         changed = []
         self.streak[landmark_id] = self.streak[landmark_id] + 1 if status == GATED else 0
         if self.streak[landmark_id] >= self.max_consecutive_rejections:
             self.streak[landmark_id] = 0
-            placed = self._initialise(self.recent[landmark_id])
+            recent = list(self.recent[landmark_id])
+            placed = self._initialise(recent)
             if placed.ok and self._set(count, landmark_id, (
                     placed.m, placed.P_m, placed.P_m_dep), seen.stamp_ns, 0):
+                self._considered(landmark_id, recent, placed)
                 count['landmarks_reinitialised'] += 1
                 changed.append(landmark_id)
         if status == UPDATED:
-            new_dep, parts = (self.ledger.book(landmark_id, seen.source, P_dep, result)
-                              if by_source else (result.P_m_dep[0], None))
+            new_dep, keep = book(result)
             if self._set(count, landmark_id, (result.m[0], result.P_m[0], new_dep),
                          seen.stamp_ns, 1):
                 count['partial_fused'] += 1
                 changed.append(landmark_id)
-                if parts is not None:
-                    self.ledger.keep(landmark_id, parts)
+                keep(self.map.estimate(landmark_id))
         elif status == GATED:
             count['partial_gated'] += 1
         elif status == TOO_CLOSE:
             count['partial_too_close'] += 1
         return changed
+
+    def _step(self, seen: _Buffered, landmark_id: int, estimate: Estimate, by_source: bool,
+              crosses: Optional[Crosses]) -> Tuple[UpdateResult, Any]:
+        """
+        Return the update of a landmark by a view and how to book it.
+
+        ``book(result)`` gives the new ``P_dep`` and ``keep(estimate)``, which holds
+        the ledger's parts and the cross-covariances once the map has the estimate.
+        """
+        m, P, P_dep = estimate
+        if crosses is None:
+            shared = (self.ledger.shared_part(landmark_id, seen.source, P_dep) if by_source
+                      else P_dep)
+            result = update(m, P, seen.views, shared, self.map.fusion, self.gate_probability)
+
+            def book(result):
+                if not by_source:
+                    return result.P_m_dep[0], lambda estimate: None
+                new_dep, parts = self.ledger.book(landmark_id, seen.source, P_dep, result)
+                return new_dep, lambda estimate: self.ledger.keep(landmark_id, parts)
+            return result, book
+        key = (seen.source, int(seen.views.kind[0]))
+        pose_dep = psd_part(P_dep - crosses.bias_part())   # >= 0 but for rounding
+        shared = self.ledger.shared_part(landmark_id, seen.source, pose_dep)
+        result, c_key = update_consider(m, P, seen.views, shared,
+                                        crosses.c.get(key, np.zeros(2)), self.gate_probability)
+
+        def book_consider(result):
+            new_pose, parts = self.ledger.book(landmark_id, seen.source, pose_dep, result)
+            after = crosses.after(key, c_key[0], result.L[0], crosses.estimate)
+
+            def keep(estimate):
+                self.ledger.keep(landmark_id, parts)
+                if estimate is not None:
+                    self.biases.keep(landmark_id, replace(after, estimate=estimate))
+            return new_pose + after.bias_part(), keep
+        return result, book_consider
 
     def fuse(self) -> PartialResult:
         """
@@ -410,6 +469,7 @@ class PartialFusion:
                 if not self._set(count, landmark_id, (placed.m, placed.P_m, placed.P_m_dep),
                                  stamp_ns, len(buffer)):
                     continue
+                self._considered(landmark_id, buffer, placed)
                 for b in buffer:
                     counts.setdefault(b.source, Counter())['partial_fused'] += 1
                 count['landmarks_initialised'] += 1
