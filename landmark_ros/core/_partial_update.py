@@ -22,6 +22,10 @@ from numpy.typing import ArrayLike, NDArray
 
 _linearise = linearise   # _iterate's model may add a shift to it
 
+_ROOT_BRACKET = 1e-15
+"""``view_omega`` stops an element's search once its bracket is narrower: a few
+rounding errors of omega, so a batch gives its rows' single-call weights to about 1e-15."""
+
 ITERATE_THRESHOLD = 0.1
 """The update iterates where the linearisation error of the EKF step,
 ``|h(m1) - h(m0) - H0 (m1 - m0)|`` (the part of the change of the predicted view the
@@ -119,7 +123,8 @@ def view_omega(H: NDArray[np.float64], P_m_ind: NDArray[np.float64], P_m_dep: ND
     ``det P+ = det(A) a / (H A H^T + a)``. Its logarithm is convex in omega (the
     posterior information ``A^-1 + H^T H / a`` is a sum of parallel sums of terms
     linear in omega, hence operator concave), so its derivative, in closed form, has
-    one root: found by bisection in ``[OMEGA_EDGE, 1 - OMEGA_EDGE]``, vectorised.
+    one root: found in ``[OMEGA_EDGE, 1 - OMEGA_EDGE]`` by regula falsi (``_slope_root``),
+    vectorised.
     An end is returned when the slope does not change sign there (for example a
     landmark without a dependent part: ``OMEGA_EDGE``). Covariance intersection is
     the case ``P_m_ind = 0``, ``R_ind = 0``. Source: split CI (Julier and Uhlmann,
@@ -152,15 +157,45 @@ def view_omega(H: NDArray[np.float64], P_m_ind: NDArray[np.float64], P_m_dep: ND
         omega = np.where(slope_lo >= 0.0, lo, np.where(slope_hi <= 0.0, hi, 0.5))
         inside = (slope_lo < 0.0) & (slope_hi > 0.0)
         if inside.any():
-            sub = tuple(x[inside] for x in args)
             a, b = lo[inside], hi[inside]
-            for _ in range(_OMEGA_STEPS):
-                mid = 0.5 * (a + b)
-                rising = _posterior_log_det_slope(mid, *sub) > 0.0
-                b = np.where(rising, mid, b)
-                a = np.where(rising, a, mid)
-            omega[inside] = 0.5 * (a + b)
+            omega[inside] = _slope_root(tuple(x[inside] for x in args), a, b,
+                                        a * (1.0 - a) * slope_lo[inside],
+                                        b * (1.0 - b) * slope_hi[inside])
     return omega
+
+
+def _slope_root(args, a, b, fa, fb):
+    """
+    Return the root in ``[a, b]`` of ``g(w) = w (1 - w) _posterior_log_det_slope(w, *args)``.
+
+    ``fa = g(a) < 0 < fb = g(b)``. The factor keeps the same root and takes away the
+    slope's ``1 / w`` and ``1 / (1 - w)`` poles at the ends, which leave regula falsi
+    crawling. Regula falsi with the Illinois modification (Dowell and Jarratt, BIT 11,
+    1971; superlinear: about 12 evaluations against bisection's 60), vectorised; an
+    element stops once its bracket is below ``_ROOT_BRACKET`` (or its ``g`` is 0),
+    all after ``_OMEGA_STEPS`` evaluations at most (then the bracket's middle).
+    """
+    a, b, fa, fb = a.copy(), b.copy(), fa.copy(), fb.copy()
+    side = np.zeros(len(a))
+    c = 0.5 * (a + b)
+    active = np.ones(len(a), bool)
+    for _ in range(_OMEGA_STEPS):
+        k = np.flatnonzero(active)
+        if not len(k):
+            return c
+        new = (a[k] * fb[k] - b[k] * fa[k]) / (fb[k] - fa[k])
+        new = np.where((new > a[k]) & (new < b[k]), new, 0.5 * (a[k] + b[k]))
+        fc = new * (1.0 - new) * _posterior_log_det_slope(
+            new, *(x if len(k) == len(a) else x[k] for x in args))
+        c[k] = new
+        up = fc > 0.0
+        b[k] = np.where(up, new, b[k])
+        a[k] = np.where(up, a[k], new)
+        fb[k] = np.where(up, fc, np.where(side[k] < 0.0, 0.5 * fb[k], fb[k]))
+        fa[k] = np.where(up, np.where(side[k] > 0.0, 0.5 * fa[k], fa[k]), fc)
+        side[k] = np.where(up, 1.0, -1.0)
+        active[k] = ~((b[k] - a[k] < _ROOT_BRACKET) | (fc == 0.0))
+    return np.where(active, 0.5 * (a + b), c)
 
 
 def _method_terms(method, H, P_m, P_ind, P_dep, lin, R_ind, omega):
