@@ -8,7 +8,9 @@ landmark's error at every update; seen from every side of a landmark, where a ra
 bias mostly cancels, the landmark keeps it in full and ends under-confident
 (``test/core/test_partial_consider.py``). Here, for each landmark, the
 cross-covariance ``c`` of its error with each (robot, kind) bias is carried from the
-placement on (``core.partial.update_consider``), so a bias counts once.
+placement on (``core.partial.update_consider``), so a bias counts once. Only range
+views use it (``CONSIDERED_KINDS``); the cross-covariances of every kind start at the
+placement, and a bearing view's update (split CI) ends them.
 
 Bookkeeping. At the placement, ``initialise`` gives ``P_dep = B D B^T`` with ``B`` the
 map from the views to the landmark and ``D`` the views' dependent errors; a group of
