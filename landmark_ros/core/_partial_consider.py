@@ -25,6 +25,7 @@ noise ``a + l^2 (1 - G c)`` independent of the prior: the plain update, gate and
 iterations (``_iterate`` with ``shift = l G``) apply to it unchanged.
 """
 
+from dataclasses import fields
 from typing import Optional, Tuple
 
 from landmark_ros.core import sensors
@@ -84,8 +85,8 @@ def update_consider(m: ArrayLike, P_m: ArrayLike, views: Views, P_m_dep: ArrayLi
     P_dep = np.broadcast_to(np.asarray(P_m_dep, dtype=np.float64), (n, 2, 2)).copy()
     c_prior = np.broadcast_to(np.asarray(c, dtype=np.float64), (n, 2)).copy()
     load = np.sqrt(views.R_bias)
-    plain = Views(views.kind, views.s, views.P_s, views.y, views.R, 0.0, views.range_scale,
-                  views.range_scale_bearing_limit)
+    plain = Views._checked({f.name: getattr(views, f.name) for f in fields(Views)}
+                           | {'R_bias': np.zeros(n)})
     xy = views.s[:, :2]
     too_close = np.hypot(*(m - xy).T) < sensors.MIN_RANGE
     lin = linearise(plain, np.where(too_close[:, None], xy + [1.0, 0.0], m))

@@ -11,7 +11,7 @@ pose term pushed through the Jacobian to first order.
 """
 
 from dataclasses import dataclass, fields
-from typing import Any, Iterable, Optional, Tuple, TYPE_CHECKING, Union
+from typing import Any, Dict, Iterable, Optional, Tuple, TYPE_CHECKING, Union
 
 from landmark_ros.core import sensors
 from landmark_ros.core.landmarks import sensor_in_world
@@ -204,14 +204,35 @@ class Views:
         """Return the views selected by an index, a slice or a mask, as a batch."""
         if isinstance(index, (int, np.integer)):
             index = slice(index, index + 1 if index != -1 else None)
-        return Views(**{f.name: getattr(self, f.name)[index] for f in fields(self)})
+        picked = {f.name: getattr(self, f.name)[index] for f in _FIELDS}
+        if picked['kind'].ndim != 1:
+            return Views(**picked)      # not a selection of rows: let the checks say so
+        return Views._checked(picked)
 
     @staticmethod
     def concatenate(batches: Iterable['Views']) -> 'Views':
         """Return one batch holding the views of several, in order."""
         batches = list(batches)
-        return Views(**{f.name: np.concatenate([getattr(b, f.name) for b in batches])
-                        for f in fields(Views)})
+        return Views._checked({f.name: np.concatenate([getattr(b, f.name) for b in batches])
+                               for f in _FIELDS})
+
+    @staticmethod
+    def _checked(values: Dict[str, NDArray[Any]]) -> 'Views':
+        """
+        Return views made of the fields of checked views, without checking them again.
+
+        For rows picked or joined, and within ``core`` for a bias set to zero: the
+        checks hold by construction (they cost more than the updates of one view).
+        """
+        views = object.__new__(Views)
+        for name, value in values.items():
+            value = np.asarray(value)
+            value.flags.writeable = False
+            object.__setattr__(views, name, value)
+        return views
+
+
+_FIELDS = fields(Views)
 
 
 def views_from_robot(kind: ArrayLike, pose: ArrayLike, P_pose: ArrayLike, y: ArrayLike,

@@ -178,24 +178,21 @@ def _slope_root(args, a, b, fa, fb):
     a, b, fa, fb = a.copy(), b.copy(), fa.copy(), fb.copy()
     side = np.zeros(len(a))
     c = 0.5 * (a + b)
-    active = np.ones(len(a), bool)
-    for _ in range(_OMEGA_STEPS):
-        k = np.flatnonzero(active)
-        if not len(k):
+    done = np.zeros(len(a), bool)
+    for _ in range(_OMEGA_STEPS):   # every element each time; a finished one is frozen
+        new = (a * fb - b * fa) / (fb - fa)
+        new = np.where((new > a) & (new < b), new, 0.5 * (a + b))
+        fc = new * (1.0 - new) * _posterior_log_det_slope(new, *args)
+        up, down = ~done & (fc > 0.0), ~done & ~(fc > 0.0)
+        c = np.where(done, c, new)
+        fb, fa = (np.where(up, fc, np.where(down & (side < 0.0), 0.5 * fb, fb)),
+                  np.where(down, fc, np.where(up & (side > 0.0), 0.5 * fa, fa)))
+        b, a = np.where(up, new, b), np.where(down, new, a)
+        side = np.where(up, 1.0, np.where(down, -1.0, side))
+        done |= (b - a < _ROOT_BRACKET) | (fc == 0.0)
+        if done.all():
             return c
-        new = (a[k] * fb[k] - b[k] * fa[k]) / (fb[k] - fa[k])
-        new = np.where((new > a[k]) & (new < b[k]), new, 0.5 * (a[k] + b[k]))
-        fc = new * (1.0 - new) * _posterior_log_det_slope(
-            new, *(x if len(k) == len(a) else x[k] for x in args))
-        c[k] = new
-        up = fc > 0.0
-        b[k] = np.where(up, new, b[k])
-        a[k] = np.where(up, a[k], new)
-        fb[k] = np.where(up, fc, np.where(side[k] < 0.0, 0.5 * fb[k], fb[k]))
-        fa[k] = np.where(up, np.where(side[k] > 0.0, 0.5 * fa[k], fa[k]), fc)
-        side[k] = np.where(up, 1.0, -1.0)
-        active[k] = ~((b[k] - a[k] < _ROOT_BRACKET) | (fc == 0.0))
-    return np.where(active, 0.5 * (a + b), c)
+    return np.where(done, c, 0.5 * (a + b))
 
 
 def _method_terms(method, H, P_m, P_ind, P_dep, lin, R_ind, omega):
