@@ -71,11 +71,37 @@ def _range_scale_fields(range_scale, limit, shape):
         raise ValueError(f'range_scale disagrees on N: {range_scale.shape}, {shape}') from None
     if not (np.all(np.isfinite(range_scale)) and np.all((limit > 0.0) & (limit <= np.pi))):
         raise ValueError('range_scale must be finite and its bearing limit in (0, pi]')
-    b = limit[:, None] * np.linspace(-1.0, 1.0, 9)
-    factor = 1.0 + range_scale[:, :1] + b * (range_scale[:, 1:2] + range_scale[:, 2:] * b)
-    if not np.all(factor >= MIN_SCALE):
+    if not np.all(range_scale_valid(range_scale, limit)):
         raise ValueError(f'range scale factor below {MIN_SCALE} inside the bearing limit')
     return range_scale, limit
+
+
+def range_scale_valid(range_scale: ArrayLike, limit: ArrayLike) -> NDArray[np.bool_]:
+    """
+    Return which rows hold a range scale ``Views`` accepts.
+
+    Parameters
+    ----------
+    range_scale : array_like, shape (N, 3)
+        ``(q0, q1, q2)`` per row.
+    limit : array_like, shape (N,)
+        Bearing limit [rad].
+
+    Returns
+    -------
+    ndarray of bool, shape (N,)
+        Finite coefficients, a limit in (0, pi], and a factor
+        ``1 + q0 + q1 b + q2 b^2`` of at least ``range_scale.MIN_SCALE`` at nine
+        bearings spread over ``[-limit, limit]``.
+
+    """
+    q = np.asarray(range_scale, dtype=np.float64).reshape(-1, 3)
+    limit = np.asarray(limit, dtype=np.float64)
+    with np.errstate(invalid='ignore', over='ignore'):
+        b = np.clip(limit, 0.0, np.pi)[:, None] * np.linspace(-1.0, 1.0, 9)
+        factor = 1.0 + q[:, :1] + b * (q[:, 1:2] + q[:, 2:] * b)
+        return (np.isfinite(q).all(axis=1) & (limit > 0.0) & (limit <= np.pi)
+                & (factor >= MIN_SCALE).all(axis=1))
 
 
 def _kinds(kind):

@@ -53,9 +53,9 @@ from landmark_ros.core._partial_model import (BEARING, effective_variances, GATE
                                               NO_RANGE_SCALE, observe_view,
                                               observe_view_jacobians, observe_views,
                                               observe_views_jacobians, OK, OMEGA_EDGE, RANGE,
-                                              residuals, TOO_CLOSE, UPDATE_STATUS_NAMES,
-                                              UPDATED, Views, views_from_robot, WAIT,
-                                              WAIT_REASONS)
+                                              range_scale_valid, residuals, TOO_CLOSE,
+                                              UPDATE_STATUS_NAMES, UPDATED, Views,
+                                              views_from_robot, WAIT, WAIT_REASONS)
 from landmark_ros.core._partial_update import (ITERATE_THRESHOLD, MAX_ITERATIONS, update,
                                                UpdateResult, view_omega)
 
@@ -65,7 +65,8 @@ __all__ = [
     'intersect_ray_circle', 'intersect_rays', 'ITERATE_THRESHOLD', 'KIND_NAMES', 'Linearisation',
     'linearise', 'MAX_ITERATIONS', 'METHODS', 'NO_RANGE_SCALE', 'observe_view',
     'observe_view_jacobians', 'observe_views', 'observe_views_jacobians', 'OK',
-    'OMEGA_EDGE', 'RANGE', 'residuals', 'TOO_CLOSE', 'trilaterate', 'update',
+    'OMEGA_EDGE', 'RANGE', 'range_scale_valid', 'residuals', 'TOO_CLOSE', 'trilaterate',
+    'update',
     'update_consider', 'UPDATE_STATUS_NAMES', 'UPDATED', 'UpdateResult', 'view_omega', 'Views',
     'views_from_robot',
     'WAIT', 'WAIT_REASONS',

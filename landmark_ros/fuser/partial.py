@@ -18,9 +18,8 @@ from dataclasses import dataclass, replace
 from typing import Any, Deque, Dict, Iterable, List, Optional, Tuple
 
 from landmark_ros.core.partial import (BEARING, GATED, Initialisation, initialise,
-                                       InitialiseParams, RANGE, TOO_CLOSE, update,
-                                       update_consider, UPDATED, UpdateResult, Views)
-from landmark_ros.core.range_scale import MIN_SCALE
+                                       InitialiseParams, RANGE, range_scale_valid, TOO_CLOSE,
+                                       update, update_consider, UPDATED, UpdateResult, Views)
 from landmark_ros.core.sensors import MIN_RANGE
 from landmark_ros.fuser.partial_consider import (BiasCrosses, CONSIDERED_KINDS, Crosses,
                                                  Estimate, psd_part)
@@ -90,18 +89,8 @@ def partial_row_problems(
             ('variance_not_positive', ~(np.asarray(columns['variance']) > 0.0)),
             ('variance_dep_negative', ~(np.asarray(columns['variance_dep']) >= 0.0)),
             ('sensor_covariance_not_psd', ~psd),
-            ('range_scale_invalid', ~_range_scale_valid(columns)),
+            ('range_scale_invalid', ~range_scale_valid(*range_scale(columns))),
         ] + plausible)
-
-
-def _range_scale_valid(columns):
-    """Return the rows whose range scale ``core.partial.Views`` accepts."""
-    q, limit = range_scale(columns)
-    with np.errstate(invalid='ignore', over='ignore'):
-        b = np.clip(limit, 0.0, np.pi)[:, None] * np.linspace(-1.0, 1.0, 9)
-        factor = 1.0 + q[:, :1] + b * (q[:, 1:2] + q[:, 2:] * b)
-        return (np.isfinite(q).all(axis=1) & (limit > 0.0) & (limit <= np.pi)
-                & (factor >= MIN_SCALE).all(axis=1))
 
 
 def views_from_columns(columns: Dict[str, NDArray[Any]]) -> Views:
