@@ -62,6 +62,7 @@ REQUIRED = [
     'landmark_ros.fuser',
     'landmark_ros.fuser.change_detection',
     'landmark_ros.fuser.change_reference',
+    'landmark_ros.fuser.change_rows',
     'landmark_ros.fuser.fuser',
     'landmark_ros.fuser.map_file',
     'landmark_ros.fuser.partial',

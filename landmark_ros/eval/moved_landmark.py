@@ -217,7 +217,8 @@ def main(argv=None):
     config = FuserConfig(move_false_alarm_rate=STUDY_RATE)
     print(f'moved landmark: {args.seeds} seeds, {LANDMARKS} landmarks, {ROBOTS} robots, '
           f'{args.before} + {args.after} steps; move_false_alarm_rate '
-          f'{config.move_false_alarm_rate:g}, move_shift_sigma {config.move_shift_sigma:g}')
+          f'{config.move_false_alarm_rate:g}, move_shift_sigma {config.move_shift_sigma:g}, '
+          f'move_min_sources {config.move_min_sources}')
     ok = True
     for fusion in args.fusion or FUSION_METHODS:
         started = time.monotonic()

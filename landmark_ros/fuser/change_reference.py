@@ -48,6 +48,8 @@ The first row of a landmark starts its filter (``p = z``, ``X_pp = W + C``,
 
 from typing import Dict, List, NamedTuple, Sequence, Tuple
 
+from landmark_ros.core.arrays import (entries_2x2, inverse_2x2, mahalanobis_sq_2x2,
+                                      symmetric_2x2)
 import numpy as np
 from numpy.typing import NDArray
 
@@ -163,6 +165,8 @@ class ReferenceFilter:
         if not len(ids):
             return d2
         W, C = split_noise(P, P_dep, self.model)
+        if not self.correlated:
+            return self._white(ids, z, W)
         blocks = np.array([self._block(str(name)) for name in sources], np.int64)
         order = np.argsort(ids, kind='stable')
         first = np.ones(len(ids), bool)
@@ -181,6 +185,56 @@ class ReferenceFilter:
             if len(old):
                 d2[old] = self._step(slots[~fresh], old, z, W, C, blocks, stamps)
         return d2
+
+    def _white(self, ids: NDArray[np.int64], z: NDArray[np.float64],
+               W: NDArray[np.float64]) -> NDArray[np.float64]:
+        """
+        Return the ``d2`` of white rows, all at once (information form; module notes).
+
+        Row ``k``'s prediction is the product of its landmark's prior and the rows before
+        it that were taken: prefix sums of the rows' information. A row past the clip is
+        not taken, which changes the rows after it: each pass drops the first such row
+        of every landmark and sums again (one pass when no row is past the clip).
+        """
+        order = np.argsort(ids, kind='stable')
+        first = np.ones(len(ids), bool)
+        first[1:] = ids[order][1:] != ids[order][:-1]
+        group = np.cumsum(first) - 1
+        starts = np.flatnonzero(first)
+        landmarks = ids[order][starts].tolist()
+        slots = np.array([self.slots.get(i, -1) for i in landmarks], np.int64)
+        fresh = slots < 0
+        slots[fresh] = [self._slot(landmarks[k]) for k in np.flatnonzero(fresh).tolist()]
+        prior = np.zeros((len(starts), 5))       # information (a, b, c) and vector, per landmark
+        old = slots[~fresh]
+        if len(old):
+            prior[~fresh, :3] = np.column_stack(inverse_2x2(*entries_2x2(self.X[old][:, :2, :2])))
+            prior[~fresh, 3:] = _times(prior[~fresh, :3], self.x[old][:, :2])
+        zs, Ws = z[order], entries_2x2(W[order])
+        rows = np.empty((len(ids), 5))
+        rows[:, :3] = np.column_stack(inverse_2x2(*Ws))
+        rows[:, 3:] = _times(rows[:, :3], zs)
+        starting = first & fresh[group]          # a fresh landmark's first row starts it
+        taken = np.ones(len(ids), bool)
+        while True:
+            before = _prefix(rows * taken[:, None], starts, group, prior)
+            before[starting, :3] = [1.0, 0.0, 1.0]        # no prior: any invertible value
+            X = np.column_stack(inverse_2x2(*before[:, :3].T))
+            nu = zs - _times(X, before[:, 3:])
+            d2 = mahalanobis_sq_2x2(nu[:, 0], nu[:, 1], *(X + np.column_stack(Ws)).T)
+            d2[starting] = np.nan
+            wild = np.flatnonzero(taken & (d2 > self.clip))
+            if not len(wild):
+                break
+            taken[wild[np.unique(group[wild], return_index=True)[1]]] = False
+        last = np.append(starts[1:], len(ids)) - 1
+        end = np.where(starting[last, None], 0.0, before[last]) + rows[last] * taken[last, None]
+        X_end = np.column_stack(inverse_2x2(*end[:, :3].T))
+        self.X[slots, :2, :2] = symmetric_2x2(*X_end.T)
+        self.x[slots, :2] = _times(X_end, end[:, 3:])
+        out = np.empty(len(ids))
+        out[order] = d2
+        return out
 
     def _block(self, name: str) -> int:
         """Return the state block of a source (added to every filter when new)."""
@@ -263,3 +317,16 @@ class ReferenceFilter:
         self.x[slots] = np.where(take[:, None], x_new, x)
         self.X[slots] = np.where(take[:, None, None], X_new, X)
         return d2
+
+
+def _prefix(values: NDArray[np.float64], starts: NDArray[np.intp], group: NDArray[np.intp],
+            prior: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Return, per row, ``prior`` of its group plus the ``values`` of its group before it."""
+    total = np.cumsum(values, axis=0) - values                 # every row before, any group
+    return prior[group] + total - total[starts][group]
+
+
+def _times(M: NDArray[np.float64], v: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Return symmetric 2x2 matrices given as columns ``(a, b, c)`` times 2-vectors."""
+    return np.column_stack([M[:, 0] * v[:, 0] + M[:, 1] * v[:, 1],
+                            M[:, 1] * v[:, 0] + M[:, 2] * v[:, 1]])

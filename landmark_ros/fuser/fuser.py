@@ -433,11 +433,11 @@ class Fuser:
         stamps, index = np.repeat([item.stamp_ns for item, _ in items], lengths), np.repeat(
             index, lengths)
         ids, z, P, P_dep = rows
-        d2 = None if self.moves is None else self.map.gate_distances(ids, z, P)
+        tested = None if self.moves is None else self.map.confirmed_ids(ids)
         result = self.map.update(ids, z, P, P_dep, list(names), stamps,
                                  settle=False, source_index=index)  # folded when read
-        if self.moves is not None and d2 is not None:
-            moved = detect_moves(self.moves, self.map, d2, (ids, z, P, P_dep, np.array(
+        if self.moves is not None and tested is not None:
+            moved = detect_moves(self.moves, self.map, tested, (ids, z, P, P_dep, np.array(
                 list(names))[index], stamps), result)
             if moved:
                 self.counters.add('landmark_moved', len(moved), f'landmarks {moved} moved: '

@@ -137,7 +137,8 @@ def cross_validate(dataset, config, modes: Sequence[str], methods: Sequence[str]
         ``anees_interval``, ``consistent``, ``landmarks_fused``, ``observations_used``,
         ``observations_rejected``, and with ``hide_ids`` the association scores
         (``association_accuracy``, ``oracle_accuracy``, ``tracks_confirmed``,
-        ``true_landmarks``, ``gospa_m``).
+        ``true_landmarks``, ``gospa_m``), and with change detection ``move_alarms`` and
+        ``move_tested_rows``.
 
     """
     entries = []
@@ -176,6 +177,8 @@ def format_entry(entry) -> str:
         line += (f"  assoc {100 * entry['association_accuracy']:.1f}% "
                  f"(oracle {100 * entry['oracle_accuracy']:.1f}%), tracks "
                  f"{entry['tracks_confirmed']}/{entry['true_landmarks']}")
+    if 'move_alarms' in entry:
+        line += f"  moved {entry['move_alarms']}/{entry['move_tested_rows']}"
     return line
 
 

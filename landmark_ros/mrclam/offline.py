@@ -208,6 +208,8 @@ def run_offline(dataset, config, methods, chunk=FUSE_CHUNK, sensor='rb',
         result.sensor = sensor
         result.landmarks_initialised = sum(c['landmarks_initialised'] for c in counts)
         result.association = association
+        if fuser.moves is not None:
+            result.moves = (sum(fuser.moves.alarms.values()), fuser.moves.tested)
         results[method] = result
     return OfflineRun(results, observers, fusers, messages)
 

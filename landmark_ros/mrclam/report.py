@@ -39,6 +39,8 @@ class MethodResult:
     """Landmarks placed from partial observations (``fuser.partial``)."""
     association: object = None
     """``eval.metrics.AssociationSummary`` of a run without IDs (``--hide-ids``), else None."""
+    moves: object = None
+    """``(alarms, rows tested)`` of the fuser's change detection (None: off or not known)."""
 
     def to_dict(self):
         """Return the JSON summary entry, with the landmarks inside."""
@@ -64,6 +66,8 @@ class MethodResult:
                 'observations_used': int(self.observations_used),
                 'observations_rejected': int(self.observations_rejected),
                 **({} if self.association is None else self.association.to_dict()),
+                **({} if self.moves is None else {'move_alarms': int(self.moves[0]),
+                                                  'move_tested_rows': int(self.moves[1])}),
                 'landmarks': landmarks}
 
 
@@ -107,9 +111,18 @@ def report(results):
             result.results, result.summary,
             f'== {result.fusion}: {len(result.records)} landmarks, '
             f'{result.observations_used} observations fused, '
-            f'{result.observations_rejected} rejected'))
+            f'{result.observations_rejected} rejected' + _moves(result.moves)))
     parts.append('== summary\n' + summary_table(results))
     return '\n\n'.join(parts)
+
+
+def _moves(moves):
+    """Return the change detection's alarms as a phrase ('' when off)."""
+    if moves is None:
+        return ''
+    alarms, tested = moves
+    return (f'; change detection: {alarms} alarms in {tested} tested rows '
+            f'({1e4 * alarms / max(tested, 1):.2f} per 10,000)')
 
 
 def format_association(results):

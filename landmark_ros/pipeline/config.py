@@ -308,9 +308,14 @@ class FuserConfig(ConfigBase):
         0.0, 'Change detection (Page CUSUM on the innovations of each confirmed landmark, '
         'fuser.change_detection): false alarms per observation of a static landmark its '
         'threshold is set for (e.g. 2e-5); an alarm rebuilds the landmark from its '
-        'post-change rows (landmark_moved). 0 (default) turns it off: the rate holds only '
-        'for sightings whose errors are independent in time.', read_only=True, low=0.0,
-        high=0.1)
+        'post-change rows (landmark_moved). 0 (default) turns it off: its reference '
+        'filters and tests cost about as much again as the fusion (bench_fuser).',
+        read_only=True, low=0.0, high=0.1)
+    move_min_sources: int = param(
+        2, 'Change detection: sources (robots) whose rows an alarm needs, each counting up '
+        'to 1/move_min_sources of the threshold: a move is seen by every robot, one '
+        "robot's persistent sensing error is not. 1: one robot's rows suffice.",
+        read_only=True, low=1, high=100)
     noise_correlation_time_s: float = param(
         0.0, "Change detection: correlation time of the slowly varying part of the rows' "
         'noise (first-order Gauss-Markov, fuser.change_reference) [s]; the test takes the '

@@ -137,3 +137,27 @@ def test_a_wild_row_does_not_move_the_reference_and_reset_restarts_it():
     reference.reset([1])
     assert np.isnan(reference.innovations(np.array([1]), z[2:], P[:1], 0 * P[:1], ['a'],
                                           np.array([4 * S]))[0])
+
+
+def test_white_rows_in_one_batch_equal_one_at_a_time_with_wild_rows():
+    """Several landmarks, several rows past the clip each: a batch equals rows one by one."""
+    rng = np.random.default_rng(21)
+    n = 400
+    ids = rng.integers(0, 5, n)
+    P = np.array([[0.02, 0.004], [0.004, 0.01]]) * rng.uniform(0.5, 2.0, (n, 1, 1))
+    z = rng.multivariate_normal([0.0, 0.0], np.diag([0.02, 0.01]), n)
+    z[rng.random(n) < 0.05] += 5.0                        # wild rows, some in a row
+    z[[30, 31, 32]] += 5.0
+    stamps = np.arange(n) * S
+    whole = ReferenceFilter(NoiseModel(), clip=13.8)
+    got = whole.innovations(ids, z, P, 0 * P, ['a'] * n, stamps)
+    single = ReferenceFilter(NoiseModel(), clip=13.8)
+    want = np.concatenate([single.innovations(ids[k:k + 1], z[k:k + 1], P[k:k + 1],
+                                              0 * P[k:k + 1], ['a'], stamps[k:k + 1])
+                           for k in range(n)])
+    assert np.isnan(got).sum() == 5 and (want[np.isfinite(want)] > 13.8).sum() > 20
+    np.testing.assert_allclose(got, want, rtol=1e-9)
+    for landmark_id in range(5):
+        a, b = whole.slots[landmark_id], single.slots[landmark_id]
+        np.testing.assert_allclose(whole.x[a], single.x[b], rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(whole.X[a], single.X[b], rtol=1e-9, atol=1e-15)

@@ -1,0 +1,109 @@
+"""
+Row bookkeeping of change detection: recent rows for the rebuild, rows grouped (ROS-free).
+
+``RowLog`` keeps the last ``capacity`` rows the tests took, each with a sequence number,
+so that an alarm can rebuild its landmark from the rows since its test last left zero
+(``fuser.change_detection``) without the tests copying rows into per-landmark lists.
+``Groups`` groups a batch's rows by landmark and runs Page's recursion on each group in
+closed form.
+"""
+
+from typing import List, Sequence
+
+from landmark_ros.fusion.records import Observation
+import numpy as np
+from numpy.typing import NDArray
+
+LOG_ROWS = 1 << 16
+"""Rows the log keeps (the most recent); a rebuild takes its rows from them."""
+
+
+class RowLog:
+    """
+    A ring of the most recent rows the tests took, in arrival order.
+
+    Parameters
+    ----------
+    capacity : int
+        Rows kept (> 0).
+
+    """
+
+    def __init__(self, capacity: int = LOG_ROWS) -> None:
+        self.capacity = int(capacity)
+        self.next = 0
+        """Sequence number of the next row."""
+        self.landmark = np.full(self.capacity, -1, np.int64)
+        self.sequence = np.full(self.capacity, -1, np.int64)
+        self.source = np.zeros(self.capacity, np.int64)
+        self.stamp = np.zeros(self.capacity, np.int64)
+        self.z = np.zeros((self.capacity, 2))
+        self.R_ind = np.zeros((self.capacity, 2, 2))
+        self.R_dep = np.zeros((self.capacity, 2, 2))
+
+    def append(self, landmarks: NDArray[np.int64], sources: NDArray[np.int64],
+               positions: NDArray[np.intp], rows: Sequence[NDArray]) -> NDArray[np.int64]:
+        """
+        Add rows (arrival order); return their sequence numbers.
+
+        Parameters
+        ----------
+        landmarks, sources : ndarray of int, shape (N,)
+            Landmark IDs and source codes of the rows.
+        positions : ndarray of int, shape (N,)
+            Where the rows are in ``rows``.
+        rows : tuple
+            ``z`` (M, 2), ``R_ind``, ``R_dep`` (M, 2, 2), source names (M,), stamps (M,).
+
+        """
+        sequence = self.next + np.arange(len(landmarks), dtype=np.int64)
+        self.next += len(landmarks)
+        keep = slice(max(0, len(landmarks) - self.capacity), None)
+        at = sequence[keep] % self.capacity
+        z, R_ind, R_dep, _, stamps = rows
+        self.landmark[at], self.sequence[at] = landmarks[keep], sequence[keep]
+        self.source[at] = sources[keep]
+        self.stamp[at] = np.asarray(stamps)[positions[keep]]
+        self.z[at], self.R_ind[at] = z[positions[keep]], R_ind[positions[keep]]
+        self.R_dep[at] = R_dep[positions[keep]]
+        return sequence
+
+    def rows_of(self, landmark_id: int, first: int, names: List[str],
+                most: int) -> List[Observation]:
+        """
+        Return a landmark's rows from sequence number ``first`` on, at most the last ``most``.
+
+        ``names`` turns source codes into source names. Rows already out of the ring are
+        missing.
+        """
+        at = np.flatnonzero((self.landmark == landmark_id) & (self.sequence >= first))
+        at = at[np.argsort(self.sequence[at])][-most:]
+        return [Observation(self.z[i], self.R_ind[i], self.R_dep[i], names[self.source[i]],
+                            int(self.stamp[i])) for i in at.tolist()]
+
+
+class Groups:
+    """A batch's rows grouped by a key, arrival order kept within each group."""
+
+    def __init__(self, keys: NDArray[np.int64]) -> None:
+        self.order = np.argsort(keys, kind='stable')
+        first = np.ones(len(keys), bool)
+        first[1:] = keys[self.order][1:] != keys[self.order][:-1]
+        self.starts = np.flatnonzero(first)
+        self.ends = np.append(self.starts[1:], len(keys)) - 1
+        self.group = np.cumsum(first) - 1
+        self.unique = keys[self.order][self.starts]
+        self.count = len(self.starts)
+
+    def lindley(self, g: NDArray[np.float64], start: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Return Page's statistic after each row (grouped order), from ``start`` per group."""
+        total = np.cumsum(g)
+        C = start[self.group] + total - (total[self.starts] - g[self.starts])[self.group]
+        # C_k - min(0, min_{j<=k} C_j) per group; the offset keeps a group's running
+        # minimum from reaching the next, and costs the last bits (below: 0).
+        span = 2.0 * (np.abs(C).max() + 1.0)
+        offset = self.group * span
+        low = np.minimum(np.minimum.accumulate(np.minimum(C, 0.0) - offset) + offset, 0.0)
+        statistic = C - low
+        statistic[statistic <= 8.0 * np.finfo(float).eps * (offset + span)] = 0.0
+        return statistic
