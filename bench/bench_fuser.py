@@ -244,6 +244,37 @@ def warm_fuser(fusion, truth, seed):
 
 # --- Part 1: the pipeline object. --------------------------------------------------
 
+DETECTION_RATE = 2e-5
+"""``move_false_alarm_rate`` of the pipeline timed with change detection on."""
+
+
+def time_blocks(warmed, messages, per, blocks):
+    """
+    Time a copy of ``warmed`` per message over ``blocks`` passes (after one warm-up).
+
+    Returns ``add_us``, ``fuse_us`` (thread CPU time per message, the best pass) and
+    ``gated_out`` (the fraction of rows gated out).
+    """
+    import copy
+    timed = []
+    for block in range(blocks + 1):
+        fuser = copy.deepcopy(warmed)
+        add_s = fuse_s = 0.0
+        for k in range(0, len(messages), per):
+            start = time.thread_time()
+            add_bursts(fuser, messages[k:k + per])
+            middle = time.thread_time()
+            fuser.fuse_queued()
+            add_s += middle - start
+            fuse_s += time.thread_time() - middle
+        if block:  # the first pass is a warm-up
+            timed.append((add_s / len(messages), fuse_s / len(messages)))
+    counts = fuser.sources[SOURCE].counts
+    best = min(timed, key=sum)
+    return {'add_us': best[0] * 1e6, 'fuse_us': best[1] * 1e6,
+            'gated_out': counts['gated_out'] / max(counts['gated_out'] + counts['fused'], 1)}
+
+
 def add_bursts(fuser, messages):
     """Queue ``messages`` as the node does: ``max_batch_messages`` per row check."""
     burst = FuserConfig().max_batch_messages
@@ -275,26 +306,14 @@ def pipeline(args, truth):
         # Loaded from the records into a fuser fed by another source, as the nodes are.
         warmed = Fuser(FuserConfig(fusion=method), [SOURCE])
         warmed.map.load_records(records)
-        blocks = []
-        for block in range(args.blocks + 1):
-            fuser = copy.deepcopy(warmed)
-            add_s = fuse_s = 0.0
-            for k in range(0, len(messages), per):
-                start = time.thread_time()
-                add_bursts(fuser, messages[k:k + per])
-                middle = time.thread_time()
-                fuser.fuse_queued()
-                add_s += middle - start
-                fuse_s += time.thread_time() - middle
-            if block:  # the first block is a warm-up
-                blocks.append((add_s / len(messages), fuse_s / len(messages)))
-        counts = fuser.sources[SOURCE].counts
-        best = min(blocks, key=sum)
-        result[method] = {'add_us': best[0] * 1e6, 'fuse_us': best[1] * 1e6,
-                          'gated_out': counts['gated_out'] / max(
-                              counts['gated_out'] + counts['fused'], 1),
-                          'records': records}
+        result[method] = dict(time_blocks(warmed, messages, per, args.blocks),
+                              records=records)
         if method == FuserConfig().fusion:
+            # The same with change detection on (off by default: what it costs).
+            detecting = Fuser(FuserConfig(fusion=method, move_false_alarm_rate=DETECTION_RATE),
+                              [SOURCE])
+            detecting.map.load_records(records)
+            result['detection'] = time_blocks(detecting, messages, per, args.blocks)
             fuser = copy.deepcopy(warmed)
 
             def step(i, fuser=fuser):
@@ -764,6 +783,13 @@ def main(argv=None):
         cell = own[method]
         lines.append(f'{method:29s} | {cell["add_us"]:13.1f} | {cell["fuse_us"]:11.1f} | '
                      f'{cell["add_us"] + cell["fuse_us"]:5.0f} | {cell["gated_out"] * 100:6.2f} %')
+    cell, plain = own['detection'], own[FuserConfig().fusion]
+    total = cell['add_us'] + cell['fuse_us']
+    lines.append(f'{"  + change detection":29s} | {cell["add_us"]:13.1f} | '
+                 f'{cell["fuse_us"]:11.1f} | {total:5.0f} | {cell["gated_out"] * 100:6.2f} % '
+                 f'({total / (plain["add_us"] + plain["fuse_us"]):.2f}x '
+                 f'{FuserConfig().fusion} without; move_false_alarm_rate {DETECTION_RATE:g}, '
+                 'off by default, no target)')
     functions, packages, total, calls = own['profile']
     lines.append(f'cProfile, {FuserConfig().fusion}, per message ({total:.0f} us under the '
                  f'profiler, {calls:.0f} function calls); own time by package:')
@@ -774,7 +800,8 @@ def main(argv=None):
         lines.append(f'  {tottime:7.1f} {cumtime:8.1f} {ncalls:5.2f}  {where}')
     result = 'RESULT bench_fuser' + ''.join(
         f' pipeline_{SHORT[m]}_add_us={own[m]["add_us"]:.4g}'
-        f' pipeline_{SHORT[m]}_fuse_us={own[m]["fuse_us"]:.4g}' for m in FUSION_METHODS)
+        f' pipeline_{SHORT[m]}_fuse_us={own[m]["fuse_us"]:.4g}' for m in FUSION_METHODS) + (
+        f' pipeline_detection_fuse_us={own["detection"]["fuse_us"]:.4g}')
     targets = {}
     if not args.pipeline_only:
         records = {kind: own[FUSION_OF[kind]]['records'] for kind in RELAY_OF}
