@@ -313,9 +313,10 @@ def loop_config(replay_config, localizer: LocalizerConfig,
     and the team's mean scale as its own, and its uncertainty (0.1 to 0.2 m) hides a
     1 % scale (3 cm at 3 m); split CI discounts the state's prior at every update
     against such a map (``docs/slam.md``), and the scale drifts to tens of per cent.
-    The fuser's ``source_correlation`` is ``unknown`` and the localizers' ``correlation``
-    ``split_ci`` whatever the file says (``consider`` needs a map whose errors are
-    independent of the robot's; the loop's map is built from its poses).
+    The fuser's ``source_correlation`` is ``unknown``, its change detection off and the
+    localizers' ``correlation`` ``split_ci`` whatever the file says (``consider`` needs a
+    map whose errors are independent of the robot's; the loop's map is built from its
+    poses; the rows' pose errors are slow, not the white rows change detection tests).
     """
     values = replay_values or {}
     association = str(values.get('slam_association', 'fuser'))
@@ -330,8 +331,10 @@ def loop_config(replay_config, localizer: LocalizerConfig,
                             range_bias_stddev=replay_config.observer.range_bias_stddev)
     if localizer.correlation == 'consider':
         localizer = replace(localizer, correlation='split_ci')
-    # The loop's poses share the map: their errors are correlated across robots.
-    fuser = replace(replay_config.fuser, source_correlation='unknown')
+    # The loop's poses share the map: their errors are correlated across robots. The
+    # rows carry the localizers' pose errors, slow per robot: change detection's white
+    # reference model does not hold for them.
+    fuser = replace(replay_config.fuser, source_correlation='unknown', move_false_alarm_rate=0.0)
     return LoopConfig(localizer, replay_config.observer, fuser,
                       precision_sources=int(values.get('slam_precision_sources', 1)),
                       precision_base_m=float(values.get('slam_precision_base_m', 0.02)),

@@ -125,7 +125,8 @@ def fuser_arguments(topics, config_path, fusion):
     """Return the ROS arguments of the loop's fuser."""
     arguments = ['-r', f'__ns:={FUSER_NS}', '--params-file', str(config_path)]
     for name, value in dict(SLAM_FUSER_TRANSPORT, input_topics=list(topics), fusion=fusion,
-                            source_correlation='unknown').items():    # slam.loop_config
+                            source_correlation='unknown',
+                            move_false_alarm_rate=0.0).items():    # slam.loop_config
         arguments += _param(name, value)
     return arguments
 
