@@ -54,8 +54,8 @@ distribution of cusum run length", Biometrika 59, 1972): ``C`` on ``[0, h]`` in
 ``STATES`` cells plus the atom at 0, the transition probabilities from the distribution
 of ``g(min(d2, clip))`` (``d2`` chi-square, ``P(d2 <= x) = 1 - exp(-x / 2)``), and
 ``ARL = (I - Q)^-1 1`` from the atom. The same chain with the noncentral distribution
-gives the mean delay to detection (``average_run_length(..., lambda_true)``). With the
-defaults (``alpha`` 2e-5, ``shift_sigma`` 1.75, gate 0.999) ``h`` is 8.71 and a
+gives the mean delay to detection (``average_run_length(..., lambda_true)``). With
+``alpha`` 2e-5 (``config/mrclam.yaml``), ``shift_sigma`` 1.75 and gate 0.999 ``h`` is 8.71 and a
 2-sigma move (``lambda`` 4) takes 10.5 observations on average from ``C = 0``
 (``lambda`` 3: 15.1). ``shift_sigma`` a little under 2 detects a 2-sigma move within
 20 observations more often at the same false-alarm rate than 2 or more (simulated:
@@ -75,7 +75,8 @@ Change point and rebuild
 ------------------------
 Page's estimate of where the change began is just after the last observation with
 ``C = 0``: the rows since (the post-change rows, at most ``MAX_POST_CHANGE_ROWS``, the
-most recent) are kept while ``C > 0``. On an alarm the landmark is rebuilt from them
+most recent), taken at the alarm from the ring of recent rows (``fuser.change_rows``;
+rows older than the ring are gone). On an alarm the landmark is rebuilt from them
 alone (``LandmarkMap.rebuild``: their largest agreeing subset, at least
 ``min_observations``), by the map's fusion method (split CI: its per-source sums start
 again from those rows). The test restarts at 0 whether or not the rebuild took place.

@@ -74,6 +74,11 @@ def test_cross_validate_prints_and_writes_every_fold_and_mode(
         if entry['mode'] == 'hide_ids':
             assert 0.0 <= entry['association_accuracy'] <= 1.0
             assert entry['tracks_confirmed'] >= 1
+        # config/mrclam.yaml turns change detection on: its alarms are reported.
+        assert 0 <= entry['move_alarms'] <= entry['move_tested_rows']
+        assert 0 < entry['move_tested_rows'] <= (entry['observations_used']
+                                                 + entry['observations_rejected'])
+        assert f"moved {entry['move_alarms']}/{entry['move_tested_rows']}" in printed
     # Each fold fused only the rows of its evaluated half.
     evaluated = {e['fold']: e['observations_used'] + e['observations_rejected']
                  for e in entries if e['mode'] == 'ids'}
