@@ -262,6 +262,7 @@ class MoveDetector:
         self.tested = 0
         """Rows the tests took (the denominator of the false-alarm rate)."""
         self._slots: Dict[int, int] = {}
+        self._ids = np.zeros(0, np.int64)            # landmark ID per slot
         self._names: List[str] = []
         self._codes: Dict[str, int] = {}
         self._C = np.zeros(0)                       # statistic per slot
@@ -345,6 +346,7 @@ class MoveDetector:
         if fresh:
             start = len(self._C)
             self._slots.update(zip(fresh, range(start, start + len(fresh))))
+            self._ids = np.concatenate([self._ids, np.array(fresh, np.int64)])
             self._C = np.concatenate([self._C, np.zeros(len(fresh))])
             self._E = np.concatenate([self._E, np.zeros((len(fresh), self._E.shape[1]))])
             self._first = np.concatenate([self._first, np.full(len(fresh), self._log.next)])
@@ -397,9 +399,10 @@ class MoveDetector:
         Return ``(landmark ID, first sequence number of its post-change rows)`` per alarm,
         in the order of the alarms.
         """
+        alarms: List[Tuple[int, int, int]] = []
+        if not len(slots):
+            return []
         batch = Groups(slots)
-        ids = {slot: landmark_id for landmark_id, slot in self._slots.items()}
-        alarms = []
         for k in range(batch.count):
             slot = int(batch.unique[k])
             rows = batch.order[batch.starts[k]:batch.ends[k] + 1]
@@ -414,7 +417,7 @@ class MoveDetector:
                 if statistic <= 0.0:
                     evidence = [0.0] * len(evidence)
                 elif statistic >= self.threshold * (1.0 - 1e-12):
-                    alarms.append((number, ids[slot], first))
+                    alarms.append((number, int(self._ids[slot]), first))
                     break
             self._E[slot], self._C[slot], self._first[slot] = evidence, max(statistic, 0.0), first
         alarms.sort()
