@@ -40,8 +40,6 @@ from landmark_ros.fusion.landmark_map import FUSION_METHODS
 from landmark_ros.pipeline.config import FuserConfig
 import numpy as np
 
-STUDY_RATE = 2e-5
-"""``move_false_alarm_rate`` the study sets (detection is off by default)."""
 LANDMARKS = 20
 """Landmarks per seed (landmark 0 moves)."""
 
@@ -129,8 +127,7 @@ def run_seed(seed, fusion, before=100, after=60, config=None):
     rng = np.random.default_rng([seed, 20260])
     truth = rng.uniform(-10.0, 10.0, (LANDMARKS, 2))
     sources = [f'/robot{k + 1}/landmarks' for k in range(ROBOTS)]
-    fuser = Fuser(config or FuserConfig(fusion=fusion, move_false_alarm_rate=STUDY_RATE),
-                  sources)
+    fuser = Fuser(config or FuserConfig(fusion=fusion), sources)
     ids = np.arange(LANDMARKS, dtype=np.int64)
     result = SeedResult()
     covariances = []
@@ -214,7 +211,7 @@ def main(argv=None):
     parser.add_argument('--before', type=int, default=100, help='steps before the move')
     parser.add_argument('--after', type=int, default=60, help='steps after the move')
     args = parser.parse_args(argv)
-    config = FuserConfig(move_false_alarm_rate=STUDY_RATE)
+    config = FuserConfig()
     print(f'moved landmark: {args.seeds} seeds, {LANDMARKS} landmarks, {ROBOTS} robots, '
           f'{args.before} + {args.after} steps; move_false_alarm_rate '
           f'{config.move_false_alarm_rate:g}, move_shift_sigma {config.move_shift_sigma:g}, '

@@ -88,8 +88,10 @@ from collections import Counter
 from functools import lru_cache
 from typing import Any, Dict, List, NamedTuple, Optional, Sequence, Tuple
 
+from landmark_ros.core.arrays import unique_inverse
 from landmark_ros.fuser.change_reference import NoiseModel, ReferenceFilter
-from landmark_ros.fuser.change_rows import Groups, RowLog
+from landmark_ros.fuser.change_rows import Groups, RowLog, subset
+from landmark_ros.fusion import compiled
 from landmark_ros.fusion.records import Observation, UpdateResult
 import numpy as np
 from numpy.typing import NDArray
@@ -293,7 +295,10 @@ class MoveDetector:
 
     def observe(self, ids: NDArray[np.int64], d2: NDArray[np.float64],
                 rows: Tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64],
-                            NDArray[Any], NDArray[np.int64]]) -> List[PostChange]:
+                            NDArray[Any], NDArray[np.int64]],
+                names: Optional[Sequence[str]] = None,
+                groups: Optional[Tuple[NDArray[np.int64], NDArray[np.intp]]] = None
+                ) -> List[PostChange]:
         """
         Add rows (in arrival order) to their landmarks' tests; return the alarms.
 
@@ -306,6 +311,11 @@ class MoveDetector:
         rows : tuple
             ``z`` (N, 2) [m], ``R_ind``, ``R_dep`` (N, 2, 2) [m^2], the source names (N,)
             and stamps (N,) [ns] of the rows (for the rebuild).
+        names : sequence of str, optional
+            The sources' names; when given, ``rows``' source column holds indices into it
+            (int, (N,)) instead of names.
+        groups : tuple, optional
+            ``core.arrays.unique_inverse(ids)``, when the caller has it.
 
         Returns
         -------
@@ -315,18 +325,30 @@ class MoveDetector:
             order, the batch's rows after the alarm included (they are fused already).
 
         """
-        taken = np.flatnonzero(np.isfinite(d2))
+        mask = np.isfinite(d2)
+        taken = np.flatnonzero(mask)
         self.tested += len(taken)
         if not len(taken):
             return []
         g = increment(np.minimum(d2[taken], self.clip), self.noncentrality)
-        names, inverse = np.unique(np.asarray(rows[3])[taken].astype(str), return_inverse=True)
-        codes = np.array([self._code(name) for name in names.tolist()], np.int64)[inverse]
+        if names is None:
+            unique, inverse = np.unique(np.asarray(rows[3])[taken].astype(str),
+                                        return_inverse=True)
+            names = unique.tolist()
+        else:
+            inverse = np.asarray(rows[3])[taken]
+        codes = np.array([self._code(str(name)) for name in names], np.int64)[inverse]
         landmarks = ids[taken].astype(np.int64)
         sequence = self._log.append(landmarks, codes, taken, rows)
-        slots = self._slots_of(landmarks)
-        looped = self._fast(slots, codes, g, sequence)
-        alarms = self._loop(slots[looped], codes[looped], g[looped], sequence[looped])
+        slots = self._slots_of(unique_inverse(landmarks) if groups is None else
+                               subset(groups, mask))
+        alarm = compiled.cusum((self._E, self._C, self._first), (slots, codes, g, sequence),
+                               self.threshold * (1.0 - 1e-12), self.cap)
+        if alarm is not None:
+            alarms = self._raise(slots[alarm])
+        else:
+            looped = self._fast(slots, codes, g, sequence)
+            alarms = self._loop(slots[looped], codes[looped], g[looped], sequence[looped])
         return [PostChange(landmark_id, self._log.rows_of(
             landmark_id, first, self._names, MAX_POST_CHANGE_ROWS))
             for landmark_id, first in alarms]
@@ -339,9 +361,13 @@ class MoveDetector:
             self._E = np.pad(self._E, ((0, 0), (0, 1)))
         return self._codes[name]
 
-    def _slots_of(self, landmarks: NDArray[np.int64]) -> NDArray[np.int64]:
-        """Return the state rows of landmarks (new, restarted ones for new landmarks)."""
-        unique, inverse = np.unique(landmarks, return_inverse=True)
+    def _slots_of(self, groups: Tuple[NDArray[np.int64], NDArray[np.intp]]) -> NDArray[np.int64]:
+        """
+        Return the state rows of rows' landmarks, given ``unique_inverse`` of their IDs.
+
+        New landmarks get new, restarted rows.
+        """
+        unique, inverse = groups
         fresh = [i for i in unique.tolist() if i not in self._slots]
         if fresh:
             start = len(self._C)
@@ -394,12 +420,11 @@ class MoveDetector:
 
     def _loop(self, slots, codes, g, sequence):
         """
-        Run the capped statistic row by row for the other landmarks.
+        Run the capped statistic row by row for the other landmarks (as ``compiled.cusum``).
 
-        Return ``(landmark ID, first sequence number of its post-change rows)`` per alarm,
-        in the order of the alarms.
+        Return ``_raise`` of the landmarks that raised an alarm, in the order raised.
         """
-        alarms: List[Tuple[int, int, int]] = []
+        alarms: List[Tuple[int, int]] = []
         if not len(slots):
             return []
         batch = Groups(slots)
@@ -412,19 +437,30 @@ class MoveDetector:
                                           sequence[rows].tolist()):
                 if statistic <= 0.0:
                     first = number
+                # C = sum_s min(G_s, cap): only this source's term changes.
+                counted = min(evidence[code], self.cap)
                 evidence[code] += gain
-                statistic = sum(min(value, self.cap) for value in evidence)
+                statistic += min(evidence[code], self.cap) - counted
                 if statistic <= 0.0:
-                    evidence = [0.0] * len(evidence)
+                    evidence, statistic = [0.0] * len(evidence), 0.0
                 elif statistic >= self.threshold * (1.0 - 1e-12):
-                    alarms.append((number, int(self._ids[slot]), first))
+                    alarms.append((number, slot))
                     break
             self._E[slot], self._C[slot], self._first[slot] = evidence, max(statistic, 0.0), first
         alarms.sort()
-        for _, landmark_id, _ in alarms:
+        return self._raise(np.array([slot for _, slot in alarms], np.int64))
+
+    def _raise(self, slots):
+        """
+        Count the alarms of ``slots`` (in the order raised), restart their tests.
+
+        Return ``(landmark ID, first sequence number of its post-change rows)`` of each.
+        """
+        alarms = [(int(self._ids[slot]), int(self._first[slot])) for slot in slots.tolist()]
+        for landmark_id, _ in alarms:
             self.alarms[landmark_id] += 1
-        self._restart(np.array([self._slots[a[1]] for a in alarms], np.int64))
-        return [(landmark_id, first) for _, landmark_id, first in alarms]
+        self._restart(slots)
+        return alarms
 
 
 def move_detector(config: Any, clip: float) -> Optional[MoveDetector]:
@@ -445,7 +481,10 @@ def move_detector(config: Any, clip: float) -> Optional[MoveDetector]:
 
 
 def detect_moves(detector: MoveDetector, landmark_map: Any, tested: NDArray[np.bool_],
-                 rows: Tuple[NDArray[Any], ...], result: UpdateResult) -> List[int]:
+                 rows: Tuple[NDArray[Any], ...], result: UpdateResult,
+                 names: Optional[Sequence[str]] = None,
+                 groups: Optional[Tuple[NDArray[np.int64], NDArray[np.intp]]] = None
+                 ) -> List[int]:
     """
     Feed one update's rows to the tests; rebuild the landmarks that moved; return their IDs.
 
@@ -467,6 +506,10 @@ def detect_moves(detector: MoveDetector, landmark_map: Any, tested: NDArray[np.b
     result : UpdateResult
         The update's result: landmarks it confirmed or rebuilt restart their tests and
         their rows are left out.
+    names : sequence of str, optional
+        When given, the source column of ``rows`` holds indices into it (int, (N,)).
+    groups : tuple, optional
+        ``core.arrays.unique_inverse(ids)``, when the caller has it.
 
     Returns
     -------
@@ -475,6 +518,7 @@ def detect_moves(detector: MoveDetector, landmark_map: Any, tested: NDArray[np.b
 
     """
     ids, z, P, P_dep, sources, stamps = rows
+    groups = unique_inverse(ids) if groups is None else groups
     fresh = list(result.confirmed) + list(result.reinitialised)
     taken = np.asarray(tested, bool).copy()
     if fresh:
@@ -482,11 +526,18 @@ def detect_moves(detector: MoveDetector, landmark_map: Any, tested: NDArray[np.b
         taken &= ~np.isin(ids, fresh)
     white = np.full(len(ids), np.nan)
     if taken.any():
+        named = sources if names is None or not detector.reference.correlated else (
+            np.asarray(names)[sources])
+        every = bool(taken.all())
+
+        def pick(x):
+            return np.asarray(x) if every else np.asarray(x)[taken]
         white[taken] = detector.reference.innovations(
-            ids[taken], z[taken], P[taken], P_dep[taken],
-            np.asarray(sources)[taken], np.asarray(stamps)[taken])
+            ids[taken], pick(z), pick(P), pick(P_dep), pick(named), pick(stamps),
+            groups if every else subset(groups, taken))
     moved = []
-    for alarm in detector.observe(ids, white, (z, P - P_dep, P_dep, sources, stamps)):
+    for alarm in detector.observe(ids, white, (z, P - P_dep, P_dep, sources, stamps), names,
+                                  groups):
         detector.reference.reset([alarm.landmark_id])
         if landmark_map.rebuild(alarm.landmark_id, alarm.observations):
             moved.append(alarm.landmark_id)

@@ -46,10 +46,11 @@ The first row of a landmark starts its filter (``p = z``, ``X_pp = W + C``,
 (the k-th row of every landmark together), vectorised over the landmarks.
 """
 
-from typing import Dict, List, NamedTuple, Sequence, Tuple
+from typing import Dict, List, NamedTuple, Optional, Sequence, Tuple
 
 from landmark_ros.core.arrays import (entries_2x2, inverse_2x2, mahalanobis_sq_2x2,
-                                      symmetric_2x2)
+                                      symmetric_2x2, unique_inverse)
+from landmark_ros.fusion import compiled
 import numpy as np
 from numpy.typing import NDArray
 
@@ -122,6 +123,8 @@ class ReferenceFilter:
         """Their covariances, shape (L, D, D) [m^2]."""
         self.last_ns = np.zeros((0, 0), np.int64)
         """Stamp of each landmark's last row per source, shape (L, S) [ns] (-1: none)."""
+        self.live = np.zeros(0, bool)
+        """Whether each row of ``x`` holds a filter (False: the next row starts one)."""
         self._free: List[int] = []
 
     def reset(self, ids: Sequence[int]) -> None:
@@ -130,6 +133,7 @@ class ReferenceFilter:
             slot = self.slots.pop(int(landmark_id), None)
             if slot is not None:
                 self._free.append(slot)
+                self.live[slot] = False
 
     def clear(self) -> None:
         """Forget every filter."""
@@ -137,7 +141,9 @@ class ReferenceFilter:
 
     def innovations(self, ids: NDArray[np.int64], z: NDArray[np.float64],
                     P: NDArray[np.float64], P_dep: NDArray[np.float64],
-                    sources: Sequence[str], stamps: NDArray[np.int64]) -> NDArray[np.float64]:
+                    sources: Sequence[str], stamps: NDArray[np.int64],
+                    groups: Optional[Tuple[NDArray[np.int64], NDArray[np.intp]]] = None
+                    ) -> NDArray[np.float64]:
         """
         Take rows in arrival order; return their ``d2`` against their filters.
 
@@ -153,6 +159,8 @@ class ReferenceFilter:
             Their sources.
         stamps : ndarray of int, shape (N,) [ns]
             Their stamps.
+        groups : tuple, optional
+            ``core.arrays.unique_inverse(ids)``, when the caller has it.
 
         Returns
         -------
@@ -164,9 +172,13 @@ class ReferenceFilter:
         d2 = np.full(len(ids), np.nan)
         if not len(ids):
             return d2
+        if not self.correlated:         # W = P
+            unique, inverse = unique_inverse(ids) if groups is None else groups
+            slots = np.array([self._slot(i) for i in unique.tolist()], np.int64)
+            d2 = compiled.reference((self.x, self.X, self.live), slots[inverse], z,
+                                    np.column_stack(entries_2x2(P)), self.clip)
+            return self._white(ids, z, np.asarray(P, np.float64)) if d2 is None else d2
         W, C = split_noise(P, P_dep, self.model)
-        if not self.correlated:
-            return self._white(ids, z, W)
         blocks = np.array([self._block(str(name)) for name in sources], np.int64)
         order = np.argsort(ids, kind='stable')
         first = np.ones(len(ids), bool)
@@ -195,16 +207,15 @@ class ReferenceFilter:
         it that were taken: prefix sums of the rows' information. A row past the clip is
         not taken, which changes the rows after it: each pass drops the first such row
         of every landmark and sums again (one pass when no row is past the clip).
+        (``compiled.reference`` runs the rows one by one instead, once it is loaded.)
         """
         order = np.argsort(ids, kind='stable')
         first = np.ones(len(ids), bool)
         first[1:] = ids[order][1:] != ids[order][:-1]
         group = np.cumsum(first) - 1
         starts = np.flatnonzero(first)
-        landmarks = ids[order][starts].tolist()
-        slots = np.array([self.slots.get(i, -1) for i in landmarks], np.int64)
-        fresh = slots < 0
-        slots[fresh] = [self._slot(landmarks[k]) for k in np.flatnonzero(fresh).tolist()]
+        slots = np.array([self._slot(i) for i in ids[order][starts].tolist()], np.int64)
+        fresh = ~self.live[slots]
         prior = np.zeros((len(starts), 5))       # information (a, b, c) and vector, per landmark
         old = slots[~fresh]
         if len(old):
@@ -232,6 +243,7 @@ class ReferenceFilter:
         X_end = np.column_stack(inverse_2x2(*end[:, :3].T))
         self.X[slots, :2, :2] = symmetric_2x2(*X_end.T)
         self.x[slots, :2] = _times(X_end, end[:, 3:])
+        self.live[slots] = True
         out = np.empty(len(ids))
         out[order] = d2
         return out
@@ -261,6 +273,7 @@ class ReferenceFilter:
             self.X = np.concatenate([self.X, np.zeros((1,) + self.X.shape[1:])])
             self.last_ns = np.concatenate([self.last_ns, np.full((1, self.last_ns.shape[1]),
                                                                  -1, np.int64)])
+            self.live = np.append(self.live, False)
         self.slots[landmark_id] = slot
         return slot
 
@@ -273,6 +286,7 @@ class ReferenceFilter:
         self.last_ns[slots] = -1
         self.x[slots, :2] = z[rows]
         self.X[slots, :2, :2] = W[rows] + C[rows]
+        self.live[slots] = True
         if self.correlated:
             c = 2 + 2 * blocks[rows, None] + np.arange(2)             # (n, 2)
             s = slots[:, None, None]

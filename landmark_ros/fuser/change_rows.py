@@ -8,7 +8,8 @@ so that an alarm can rebuild its landmark from the rows since its test last left
 closed form.
 """
 
-from typing import List, Sequence
+from collections import deque
+from typing import Deque, List, Sequence, Tuple
 
 from landmark_ros.fusion.records import Observation
 import numpy as np
@@ -20,7 +21,10 @@ LOG_ROWS = 1 << 16
 
 class RowLog:
     """
-    A ring of the most recent rows the tests took, in arrival order.
+    The most recent rows the tests took, in arrival order, by reference to their batches.
+
+    A batch's arrays are kept as given (no copy: the caller must not change them), until
+    every one of its rows is older than the last ``capacity`` rows.
 
     Parameters
     ----------
@@ -33,13 +37,8 @@ class RowLog:
         self.capacity = int(capacity)
         self.next = 0
         """Sequence number of the next row."""
-        self.landmark = np.full(self.capacity, -1, np.int64)
-        self.sequence = np.full(self.capacity, -1, np.int64)
-        self.source = np.zeros(self.capacity, np.int64)
-        self.stamp = np.zeros(self.capacity, np.int64)
-        self.z = np.zeros((self.capacity, 2))
-        self.R_ind = np.zeros((self.capacity, 2, 2))
-        self.R_dep = np.zeros((self.capacity, 2, 2))
+        self._batches: Deque[Tuple[int, NDArray[np.int64], NDArray[np.int64],
+                                   NDArray[np.intp], Sequence[NDArray]]] = deque()
 
     def append(self, landmarks: NDArray[np.int64], sources: NDArray[np.int64],
                positions: NDArray[np.intp], rows: Sequence[NDArray]) -> NDArray[np.int64]:
@@ -57,15 +56,11 @@ class RowLog:
 
         """
         sequence = self.next + np.arange(len(landmarks), dtype=np.int64)
+        self._batches.append((self.next, landmarks, sources, positions, rows))
         self.next += len(landmarks)
-        keep = slice(max(0, len(landmarks) - self.capacity), None)
-        at = sequence[keep] % self.capacity
-        z, R_ind, R_dep, _, stamps = rows
-        self.landmark[at], self.sequence[at] = landmarks[keep], sequence[keep]
-        self.source[at] = sources[keep]
-        self.stamp[at] = np.asarray(stamps)[positions[keep]]
-        self.z[at], self.R_ind[at] = z[positions[keep]], R_ind[positions[keep]]
-        self.R_dep[at] = R_dep[positions[keep]]
+        while self._batches and (self._batches[0][0] + len(self._batches[0][1])
+                                 <= self.next - self.capacity):
+            self._batches.popleft()
         return sequence
 
     def rows_of(self, landmark_id: int, first: int, names: List[str],
@@ -73,13 +68,39 @@ class RowLog:
         """
         Return a landmark's rows from sequence number ``first`` on, at most the last ``most``.
 
-        ``names`` turns source codes into source names. Rows already out of the ring are
-        missing.
+        ``names`` turns source codes into source names. Rows older than the last
+        ``capacity`` are missing.
         """
-        at = np.flatnonzero((self.landmark == landmark_id) & (self.sequence >= first))
-        at = at[np.argsort(self.sequence[at])][-most:]
-        return [Observation(self.z[i], self.R_ind[i], self.R_dep[i], names[self.source[i]],
-                            int(self.stamp[i])) for i in at.tolist()]
+        first = max(first, self.next - self.capacity)
+        found: List[Observation] = []
+        for start, landmarks, sources, positions, rows in reversed(self._batches):
+            if start + len(landmarks) <= first or len(found) >= most:
+                break
+            at = np.flatnonzero(landmarks == landmark_id)
+            at = at[at >= first - start][::-1][:most - len(found)]
+            z, R_ind, R_dep, _, stamps = rows
+            found += [Observation(z[k], R_ind[k], R_dep[k], names[sources[i]], int(stamps[k]))
+                      for i, k in zip(at.tolist(), positions[at].tolist())]
+        return found[::-1]
+
+
+def subset(groups: Tuple[NDArray[np.int64], NDArray[np.intp]],
+           mask: NDArray[np.bool_]) -> Tuple[NDArray[np.int64], NDArray[np.intp]]:
+    """
+    Return ``core.arrays.unique_inverse`` of the rows ``mask`` keeps, from that of all rows.
+
+    Parameters
+    ----------
+    groups : tuple
+        ``(unique (K,), inverse (N,))`` of the rows' IDs.
+    mask : ndarray of bool, shape (N,)
+        The rows kept.
+
+    """
+    unique, inverse = groups
+    inverse = inverse[mask]
+    present = np.bincount(inverse, minlength=len(unique)) > 0
+    return unique[present], (np.cumsum(present) - 1)[inverse]
 
 
 class Groups:

@@ -15,6 +15,7 @@ from collections import Counter
 import itertools
 from typing import Any, Dict, List, Optional, Sequence, Tuple
 
+from landmark_ros.core.arrays import unique_inverse
 from landmark_ros.fuser import persistence, publishing
 from landmark_ros.fuser.change_detection import detect_moves, move_detector
 from landmark_ros.fuser.partial import (NOT_PROBLEMS as PARTIAL_COUNTS,
@@ -257,8 +258,7 @@ class Fuser:
 
     def _queue(self, state: Source, message: LandmarkMessage, count: int, unlabelled: bool,
                columns: Tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64],
-                              NDArray[np.float64]],
-               keep: Any) -> int:
+                              NDArray[np.float64]], keep: Any) -> int:
         """
         Queue ``count`` checked rows of one message (dropping the oldest of a full queue).
 
@@ -433,12 +433,13 @@ class Fuser:
         stamps, index = np.repeat([item.stamp_ns for item, _ in items], lengths), np.repeat(
             index, lengths)
         ids, z, P, P_dep = rows
-        tested = None if self.moves is None else self.map.confirmed_ids(ids)
+        groups = None if self.moves is None else unique_inverse(ids)
+        tested = None if groups is None else self.map.confirmed_ids(groups[0])[groups[1]]
         result = self.map.update(ids, z, P, P_dep, list(names), stamps,
                                  settle=False, source_index=index)  # folded when read
         if self.moves is not None and tested is not None:
-            moved = detect_moves(self.moves, self.map, tested, (ids, z, P, P_dep, np.array(
-                list(names))[index], stamps), result)
+            moved = detect_moves(self.moves, self.map, tested, (ids, z, P, P_dep, index, stamps),
+                                 result, list(names), groups)
             if moved:
                 self.counters.add('landmark_moved', len(moved), f'landmarks {moved} moved: '
                                   'rebuilt from their rows since the change (change detection)')

@@ -1,26 +1,34 @@
 """
-The split-CI fold compiled with numba: optional, stateless, loaded in the background.
+The package's loops compiled with numba: optional, stateless, loaded in the background.
 
 ``fold(table, slots, lo, hi)`` returns what ``source_sums.fold_numpy`` returns, one
 landmark at a time in a compiled loop (a (landmark, source) step costs about a tenth
 of numpy's): the same IEEE operations in the same order (no fast-math, no fused
-multiply-add), so the same bits. The first ``fold`` starts a daemon thread that imports
-numba and compiles the functions below (or reads numba's disk cache); until it is done,
-and for good when numba is missing, broken or off (``LANDMARK_ROS_NUMBA=0``), ``fold``
-returns None and callers use numpy. ``ready()`` tells, ``load()`` waits. The only
-module of the package that imports numba.
+multiply-add), so the same bits. ``agree`` is the split-CI loop of
+``records.agreeing`` (the rebuild of a landmark; same bits). Change detection's two
+row-by-row loops (``fuser.change_detection``): ``cusum``, the capped CUSUM (the same
+bits as ``MoveDetector._loop``), and ``reference``, the white reference filters
+(covariance form; the numpy path's information form agrees to rounding, so an alarm
+could only differ for a statistic within rounding of the threshold).
+
+The first call starts a daemon thread that imports numba and compiles the functions
+below (or reads numba's disk cache); until it is done, and for good when numba is
+missing, broken or off (``LANDMARK_ROS_NUMBA=0``), each public function returns None
+and callers use numpy. ``ready()`` tells, ``load()`` waits. The only module of the
+package that imports numba.
 
 The scalar closed forms below are those of ``core.gaussian`` (``sci_omega_2x2``,
 ``split_ci_2x2_entries``), ``core.arrays`` (``power_of_4_scale``, ``inverse_2x2``,
-``psd_projection_2x2``) and ``source_sums`` (a source's estimate, its size), for one
-landmark at a time: numba compiles loops over scalars, not numpy's whole-array
-expressions. ``test/fusion/test_compiled.py`` runs them plain and compiled against numpy.
+``psd_projection_2x2``, ``mahalanobis_sq_2x2``) and ``source_sums`` (a source's
+estimate, its size), for one landmark at a time: numba compiles loops over scalars,
+not numpy's whole-array expressions. ``test/fusion/test_compiled.py`` and
+``test/fuser/test_change_compiled.py`` run them plain and compiled against numpy.
 """
 
 import math
 import os
 import threading
-from typing import Any, Callable, Dict, Optional
+from typing import Any, Callable, Dict, Optional, Tuple
 
 from landmark_ros.core.gaussian import (OMEGA_BRACKET, OMEGA_EDGE, OMEGA_QUADRATIC,
                                         OMEGA_TOLERANCE)
@@ -264,12 +272,105 @@ def _fold_all(table, slots, lo, hi, out, limits):
         _fold_one(table, slots[lo[k]:hi[k]], order, out[k], limits)
 
 
+def _mahalanobis(dx, dy, a, b, c):
+    # core.arrays.mahalanobis_sq_2x2 (its scale, its operations).
+    s = _scale4(a, c, 0.0, 0.0)
+    root = math.sqrt(s)
+    a, b, c, dx, dy = a / s, b / s, c / s, dx / root, dy / root
+    return (c * dx * dx - 2.0 * b * dx * dy + a * dy * dy) / (a * c - b * b)
+
+
+def _agree(z, R, members, seed, threshold, limits, keep):
+    # records.agreeing's loop for split CI: R (N, 6) the rows' independent and dependent
+    # entries; keep[j] whether members[j] joins the estimate fused so far.
+    first = members[0]
+    estimate, row, out = np.empty(8), np.empty(8), np.empty(8)
+    estimate[0], estimate[1] = z[first, 0], z[first, 1]
+    for i in range(6):
+        estimate[2 + i] = R[first, i]
+    keep[0] = True
+    for j in range(1, len(members)):
+        i = members[j]
+        d2 = _mahalanobis(z[i, 0] - estimate[0], z[i, 1] - estimate[1],
+                          (estimate[2] + estimate[5]) + (R[i, 0] + R[i, 3]),
+                          (estimate[3] + estimate[6]) + (R[i, 1] + R[i, 4]),
+                          (estimate[4] + estimate[7]) + (R[i, 2] + R[i, 5]))
+        keep[j] = i == seed or d2 <= threshold
+        if keep[j]:
+            row[0], row[1] = z[i, 0], z[i, 1]
+            for k in range(6):
+                row[2 + k] = R[i, k]
+            u = _omega_of(estimate, row, limits)
+            _split_ci(estimate, row, u, 1.0 - u, out)
+            estimate[:] = out
+
+
+def _reference(x, X, live, slots, z, W, clip, d2):
+    # change_reference's white filters, row by row (covariance form): a slot not live
+    # starts from its row; a row whose d2 is above the clip does not update.
+    for n in range(len(slots)):
+        s = slots[n]
+        if not live[s]:
+            x[s, 0], x[s, 1] = z[n, 0], z[n, 1]
+            X[s, 0, 0], X[s, 0, 1], X[s, 1, 0], X[s, 1, 1] = W[n, 0], W[n, 1], W[n, 1], W[n, 2]
+            live[s] = True
+            d2[n] = math.nan
+            continue
+        a, b, c = X[s, 0, 0], X[s, 0, 1], X[s, 1, 1]
+        nx, ny = z[n, 0] - x[s, 0], z[n, 1] - x[s, 1]
+        d2[n] = _mahalanobis(nx, ny, a + W[n, 0], b + W[n, 1], c + W[n, 2])
+        if d2[n] <= clip:
+            i0, i1, i2 = _inverse(a + W[n, 0], b + W[n, 1], c + W[n, 2])
+            k00, k01, k10, k11 = a * i0 + b * i1, a * i1 + b * i2, b * i0 + c * i1, b * i1 + c * i2
+            x[s, 0] += k00 * nx + k01 * ny
+            x[s, 1] += k10 * nx + k11 * ny
+            b_new = b - (k00 * b + k01 * c)
+            X[s, 0, 0] = a - (k00 * a + k01 * b)
+            X[s, 0, 1], X[s, 1, 0] = b_new, b_new
+            X[s, 1, 1] = c - (k10 * b + k11 * c)
+
+
+def _cusum(keys, g, E, C, first, limits, alarm):
+    # change_detection's capped statistic row by row (MoveDetector._loop); keys: rows'
+    # slots, source codes and sequence numbers; limits: (threshold, cap). A landmark's
+    # rows after its alarm in the batch are not taken.
+    slots, codes, sequence = keys[0], keys[1], keys[2]
+    alarmed = np.zeros(len(C), np.bool_)
+    for n in range(len(slots)):
+        s = slots[n]
+        if alarmed[s]:
+            continue
+        if C[s] <= 0.0:
+            first[s] = sequence[n]
+        counted = min(E[s, codes[n]], limits[1])
+        E[s, codes[n]] += g[n]
+        statistic = C[s] + (min(E[s, codes[n]], limits[1]) - counted)
+        C[s] = max(statistic, 0.0)
+        if statistic <= 0.0:
+            E[s, :] = 0.0
+        elif statistic >= limits[0]:
+            alarmed[s] = True
+            alarm[n] = True
+
+
 _COMPILED = ('_scale4', '_inverse', '_psd', '_log2_det', '_omega_of', '_congruence',
-             '_split_ci', '_source_part', '_fold_one', '_fold_all')
+             '_split_ci', '_source_part', '_fold_one', '_fold_all', '_mahalanobis', '_agree',
+             '_reference', '_cusum')
 """The functions compiled, callees before callers."""
 
-_state: Dict[str, Any] = {'thread': None, 'kernel': None}
+_state: Dict[str, Any] = {'thread': None, 'kernels': None}
 _lock = threading.Lock()
+
+
+def _kernel(name: str, python: bool) -> Optional[Callable[..., Any]]:
+    """Return a compiled function (the plain one when ``python``); None while not ready."""
+    if python:
+        return globals()[name]
+    kernels = _state['kernels']
+    if kernels is None:
+        start()
+        return None
+    return kernels[name]
 
 
 def fold_python(table: NDArray[np.float64], slots: NDArray[np.int64], lo: NDArray[np.int64],
@@ -296,14 +397,72 @@ def fold(table: NDArray[np.float64], slots: NDArray[np.int64], lo: NDArray[np.in
     at least one); returns shape (K, 8): mean, ``(xx, xy, yy)`` of ``P_ind`` and of
     ``P_dep``. ``independent``: the sources' dependent parts are independent of each
     other (no weight). Updates the kept folds in ``table`` (columns ``DIRTY`` on); a
-    table is folded one way only. Starts loading the compiled fold on first call
+    table is folded one way only. Starts loading the compiled functions on first call
     (``start``), without waiting.
     """
-    kernel = _state['kernel']
+    kernel = _kernel('_fold_all', False)
+    return None if kernel is None else _call(kernel, table, slots, lo, hi, independent)
+
+
+def agree(z: NDArray[np.float64], R: NDArray[np.float64], members: NDArray[np.int64],
+          seed: int, threshold: float, python: bool = False) -> Optional[NDArray[np.bool_]]:
+    """
+    Return which ``members`` join the split-CI estimate (None while not compiled).
+
+    ``records.agreeing``'s loop. ``z`` (N, 2) [m] and ``R`` (N, 6) [m^2] (entries of
+    ``R_ind``, then of ``R_dep``) the rows; ``members`` (M,) the rows that pass the
+    pairwise gate with ``seed``, in order. The same bits as ``agreeing`` with
+    ``SplitCovarianceIntersection.fuse``. ``python``: the plain functions (tests).
+    """
+    kernel = _kernel('_agree', python)
     if kernel is None:
-        start()
         return None
-    return _call(kernel, table, slots, lo, hi, independent)
+    keep = np.zeros(len(members), np.bool_)
+    with np.errstate(all='ignore'):
+        kernel(np.ascontiguousarray(z, np.float64), np.ascontiguousarray(R, np.float64),
+               np.ascontiguousarray(members, np.int64), int(seed), float(threshold),
+               _limits(), keep)
+    return keep
+
+
+def reference(state: Tuple[NDArray[Any], ...], slots: NDArray[np.int64],
+              z: NDArray[np.float64], W: NDArray[np.float64], clip: float,
+              python: bool = False) -> Optional[NDArray[np.float64]]:
+    """
+    Run white reference filters over rows in order; return ``d2`` (None: not compiled).
+
+    ``state`` ``(x (L, 2), X (L, 2, 2), live (L,))`` of ``fuser.change_reference``,
+    updated in place (C-contiguous float64 and bool); ``slots`` (N,) each row's filter,
+    ``z`` (N, 2) [m], ``W`` (N, 3) [m^2] its covariance's entries. A filter not live
+    starts from its row (``d2`` NaN). Agrees with the numpy information form to rounding.
+    """
+    kernel = _kernel('_reference', python)
+    if kernel is None:
+        return None
+    d2 = np.empty(len(slots))
+    with np.errstate(all='ignore'):
+        kernel(*state, np.ascontiguousarray(slots, np.int64), np.ascontiguousarray(
+            z, np.float64), np.ascontiguousarray(W, np.float64), float(clip), d2)
+    return d2
+
+
+def cusum(state: Tuple[NDArray[Any], ...], rows: Tuple[NDArray[Any], ...],
+          threshold: float, cap: float, python: bool = False) -> Optional[NDArray[np.bool_]]:
+    """
+    Run the capped CUSUM over rows in order; return the alarms' rows (None: not compiled).
+
+    ``state`` ``(E (L, K), C (L,), first (L,))`` of ``fuser.change_detection``, updated
+    in place; ``rows`` ``(slots, codes, g, sequence)``, each (N,). A landmark takes no
+    row after its alarm in the call. The same bits as ``MoveDetector._loop``.
+    """
+    kernel = _kernel('_cusum', python)
+    if kernel is None:
+        return None
+    slots, codes, g, sequence = rows
+    alarm = np.zeros(len(slots), np.bool_)
+    kernel(np.array([slots, codes, sequence], np.int64), np.ascontiguousarray(g, np.float64),
+           *state, np.array([threshold, cap]), alarm)
+    return alarm
 
 
 def enabled() -> bool:
@@ -312,7 +471,7 @@ def enabled() -> bool:
 
 
 def start() -> None:
-    """Start loading the compiled fold in a daemon thread, once; return at once."""
+    """Start loading the compiled functions in a daemon thread, once; return at once."""
     with _lock:
         if _state['thread'] is None:
             thread = threading.Thread(target=_load, name='landmark_ros.compiled', daemon=True)
@@ -328,12 +487,12 @@ def load(timeout: Optional[float] = None) -> bool:
 
 
 def ready() -> bool:
-    """Return whether ``fold`` runs compiled."""
-    return _state['kernel'] is not None
+    """Return whether the compiled functions serve."""
+    return _state['kernels'] is not None
 
 
 def _load() -> None:
-    """Import numba and compile the fold (numba's disk cache when it can); keep it."""
+    """Import numba and compile the functions (numba's disk cache when it can)."""
     if not enabled():
         return
     try:
@@ -354,6 +513,17 @@ def _load() -> None:
         table[0, 0], table[0, 2], table[0, DIRTY] = 1.0, 1.0, 1.0
         for independent in (False, True):
             _call(kernels['_fold_all'], table, [0], [0], [1], independent)
-    except Exception:   # noqa: BLE001 - any failure: the numpy fold serves
+        _warm(kernels)
+    except Exception:   # noqa: BLE001 - any failure: the numpy code serves
         return
-    _state['kernel'] = kernels['_fold_all']
+    _state['kernels'] = kernels
+
+
+def _warm(kernels):
+    """Call each detection kernel once with the argument types callers pass."""
+    z, one = np.zeros((1, 2)), np.zeros(1, np.int64)
+    kernels['_agree'](z, np.ones((1, 6)), one, 0, 1.0, _limits(), np.zeros(1, np.bool_))
+    kernels['_reference'](z, np.zeros((1, 2, 2)), np.zeros(1, np.bool_), one, z,
+                          np.ones((1, 3)), 1.0, np.zeros(1))
+    kernels['_cusum'](np.zeros((3, 1), np.int64), np.zeros(1), np.zeros((1, 1)), np.zeros(1),
+                      one.copy(), np.ones(2), np.zeros(1, np.bool_))

@@ -9,8 +9,9 @@ from collections import Counter
 from dataclasses import dataclass, field
 from typing import Any, Callable, Deque, Dict, List, Mapping, NamedTuple, Sequence, Tuple
 
-from landmark_ros.core.arrays import mahalanobis_sq_2x2
+from landmark_ros.core.arrays import mahalanobis_sq_2x2, symmetrise
 from landmark_ros.core.covariance import MIN_VARIANCE
+from landmark_ros.fusion import compiled
 from landmark_ros.fusion.methods import Rows
 from landmark_ros.fusion.source_sums import entries, Estimates
 import numpy as np
@@ -160,7 +161,7 @@ def stack(observations: Sequence[Observation]) -> Tuple[np.ndarray, np.ndarray, 
 
 
 def agreeing(observations: List[Observation], threshold: float,
-             fuse_rows: Callable[..., Any]) -> List[Observation]:
+             fuse_rows: Callable[..., Any], method: str = '') -> List[Observation]:
     """
     Return the largest subset of observations that agree with one another.
 
@@ -168,11 +169,13 @@ def agreeing(observations: List[Observation], threshold: float,
     (latest on ties); its partners join in arrival order while each passes the gate
     against the estimate fused so far. The seed always belongs to its own subset
     (it is never gated out), so the subset is never empty, even when distances are
-    NaN (degenerate covariances).
+    NaN (degenerate covariances). ``method``: the name of ``fuse_rows``'s method; split
+    CI's loop ``compiled.agree`` runs once it is loaded (the same bits).
     """
     if not observations:
         return []
     z, R_ind, R_dep = stack(observations)
+    R_ind, R_dep = symmetrise(R_ind), symmetrise(R_dep)
     R = R_ind + R_dep
     d = z[:, None, :] - z[None, :, :]
     S = R[:, None] + R[None, :]
@@ -181,7 +184,14 @@ def agreeing(observations: List[Observation], threshold: float,
     np.fill_diagonal(agree, True)
     votes = agree.sum(axis=1)
     seed = len(observations) - 1 - int(np.argmax(votes[::-1]))
-    members = np.flatnonzero(agree[seed]).tolist()
+    members = np.flatnonzero(agree[seed])
+    keep = None
+    if method == 'split_covariance_intersection':
+        keep = compiled.agree(z, np.column_stack(entries(R_ind) + entries(R_dep)), members,
+                              seed, threshold)
+    if keep is not None:
+        return [observations[i] for i in members[keep].tolist()]
+    members = members.tolist()
     first = members[0]
     cluster = [observations[first]]
     m, P_ind, P_dep = z[first:first + 1], R_ind[first:first + 1], R_dep[first:first + 1]

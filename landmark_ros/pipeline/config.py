@@ -305,11 +305,10 @@ class FuserConfig(ConfigBase):
         5, 'Rejections in a row after which a landmark is rebuilt from them.',
         read_only=True, low=1, high=1000)
     move_false_alarm_rate: float = param(
-        0.0, 'Change detection (Page CUSUM on the innovations of each confirmed landmark, '
+        2e-5, 'Change detection (Page CUSUM on the innovations of each confirmed landmark, '
         'fuser.change_detection): false alarms per observation of a static landmark its '
-        'threshold is set for (e.g. 2e-5); an alarm rebuilds the landmark from its '
-        'post-change rows (landmark_moved). 0 (default) turns it off: its reference '
-        'filters and tests cost about as much again as the fusion (bench_fuser).',
+        'threshold is set for; an alarm rebuilds the landmark from its post-change rows '
+        '(landmark_moved). 0 turns it off.',
         read_only=True, low=0.0, high=0.1)
     move_min_sources: int = param(
         2, 'Change detection: sources (robots) whose rows an alarm needs, each counting up '

@@ -165,12 +165,13 @@ def test_no_false_alarm_on_a_long_static_run():
         assert fuser.counters['landmark_moved'] == 0
 
 
-def test_off_when_rate_is_zero():
+def test_on_by_default_and_off_when_rate_is_zero():
     rng = np.random.default_rng(11)
     truth = np.array([[0.0, 0.0]])
-    assert FuserConfig().move_false_alarm_rate == 0.0        # off by default
+    assert FuserConfig().move_false_alarm_rate == 2e-5       # on by default
     assert FuserConfig().move_min_sources == 2
-    fuser = Fuser(FuserConfig(), SOURCES)
+    assert Fuser(FuserConfig(), SOURCES).moves is not None
+    fuser = Fuser(FuserConfig(move_false_alarm_rate=0.0), SOURCES)
     assert fuser.moves is None
     stamp = _feed(fuser, rng, truth, 30, 1_000_000_000)
     truth[0] += [0.25, 0.0]
@@ -185,12 +186,13 @@ def test_mutation_rebuild_from_all_rows_fails(monkeypatch):
     original = change_detection.MoveDetector.observe
     history = {}
 
-    def from_everything(self, ids, d2, rows):
-        alarms = original(self, ids, d2, rows)
+    def from_everything(self, ids, d2, rows, names=None, groups=None):
+        alarms = original(self, ids, d2, rows, names, groups)
         z, R_ind, R_dep, sources, stamps = rows
         for k, landmark_id in enumerate(ids.tolist()):
+            source = sources[k] if names is None else names[sources[k]]
             history.setdefault(landmark_id, []).append(
-                Observation(z[k], R_ind[k], R_dep[k], str(sources[k]), int(stamps[k])))
+                Observation(z[k], R_ind[k], R_dep[k], str(source), int(stamps[k])))
         return [alarm._replace(observations=history[alarm.landmark_id]) for alarm in alarms]
 
     monkeypatch.setattr(change_detection.MoveDetector, 'observe', from_everything)
