@@ -4,7 +4,8 @@ The package's loops compiled with numba: optional, stateless, loaded in the back
 ``fold(table, slots, lo, hi)`` returns what ``source_sums.fold_numpy`` returns, one
 landmark at a time in a compiled loop (a (landmark, source) step costs about a tenth
 of numpy's): the same IEEE operations in the same order (no fast-math, no fused
-multiply-add), so the same bits. ``agree`` is the split-CI loop of
+multiply-add), so the same bits; ``accumulate`` adds rows to the sums as
+``np.add.at`` does (same bits). ``agree`` is the split-CI loop of
 ``records.agreeing`` (the rebuild of a landmark; same bits). Change detection's two
 row-by-row loops (``fuser.change_detection``): ``cusum``, the capped CUSUM (the same
 bits as ``MoveDetector._loop``), and ``reference``, the white reference filters
@@ -272,6 +273,13 @@ def _fold_all(table, slots, lo, hi, out, limits):
         _fold_one(table, slots[lo[k]:hi[k]], order, out[k], limits)
 
 
+def _accumulate(table, slots, added):
+    # np.add.at(table[:, j], slots, added[:, j]) for each column j: row by row, in order.
+    for n in range(len(slots)):
+        for j in range(added.shape[1]):
+            table[slots[n], j] += added[n, j]
+
+
 def _mahalanobis(dx, dy, a, b, c):
     # core.arrays.mahalanobis_sq_2x2 (its scale, its operations).
     s = _scale4(a, c, 0.0, 0.0)
@@ -354,8 +362,8 @@ def _cusum(keys, g, E, C, first, limits, alarm):
 
 
 _COMPILED = ('_scale4', '_inverse', '_psd', '_log2_det', '_omega_of', '_congruence',
-             '_split_ci', '_source_part', '_fold_one', '_fold_all', '_mahalanobis', '_agree',
-             '_reference', '_cusum')
+             '_split_ci', '_source_part', '_fold_one', '_fold_all', '_accumulate',
+             '_mahalanobis', '_agree', '_reference', '_cusum')
 """The functions compiled, callees before callers."""
 
 _state: Dict[str, Any] = {'thread': None, 'kernels': None}
@@ -402,6 +410,22 @@ def fold(table: NDArray[np.float64], slots: NDArray[np.int64], lo: NDArray[np.in
     """
     kernel = _kernel('_fold_all', False)
     return None if kernel is None else _call(kernel, table, slots, lo, hi, independent)
+
+
+def accumulate(table: NDArray[np.float64], slots: NDArray[np.int64],
+               added: NDArray[np.float64]) -> bool:
+    """
+    Add ``added`` (N, C) to the first C columns of ``table``'s rows ``slots`` (N,), in order.
+
+    ``np.add.at`` column by column, the same bits (a slot's rows added one after the
+    other); ``table`` C-contiguous float64, changed in place. Return False (nothing
+    done) while not compiled.
+    """
+    kernel = _kernel('_accumulate', False)
+    if kernel is None:
+        return False
+    kernel(table, np.ascontiguousarray(slots, np.int64), np.ascontiguousarray(added, np.float64))
+    return True
 
 
 def agree(z: NDArray[np.float64], R: NDArray[np.float64], members: NDArray[np.int64],
@@ -522,6 +546,7 @@ def _load() -> None:
 def _warm(kernels):
     """Call each detection kernel once with the argument types callers pass."""
     z, one = np.zeros((1, 2)), np.zeros(1, np.int64)
+    kernels['_accumulate'](np.zeros((1, COLUMNS)), one, np.zeros((1, 9)))
     kernels['_agree'](z, np.ones((1, 6)), one, 0, 1.0, _limits(), np.zeros(1, np.bool_))
     kernels['_reference'](z, np.zeros((1, 2, 2)), np.zeros(1, np.bool_), one, z,
                           np.ones((1, 3)), 1.0, np.zeros(1))

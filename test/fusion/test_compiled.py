@@ -113,3 +113,19 @@ def test_only_the_compiled_module_imports_numba():
     importers = sorted(str(path.relative_to(package)) for path in package.rglob('*.py')
                        if re.search(r'^\s*(import numba|from numba)', path.read_text(), re.M))
     assert importers == ['fusion/compiled.py']
+
+
+def test_the_compiled_accumulation_is_add_at_bit_for_bit_or_absent():
+    # Repeated slots: each slot's rows added one after the other, as np.add.at does.
+    rng = np.random.default_rng(4)
+    table = rng.normal(0.0, 1.0, (50, compiled.COLUMNS)) * 10.0 ** rng.uniform(-8, 8, (50, 1))
+    slots = rng.integers(0, 50, 2000)
+    added = rng.normal(0.0, 1.0, (2000, 9)) * 10.0 ** rng.uniform(-8, 8, (2000, 1))
+    want = table.copy()
+    for j in range(9):
+        np.add.at(want[:, j], slots, added[:, j])
+    if compiled.load():
+        assert compiled.accumulate(table, slots, added)
+        np.testing.assert_array_equal(table, want)
+    else:
+        assert not compiled.accumulate(table, slots, added)
