@@ -22,7 +22,8 @@ robot (``/<robot>/landmark_localizer``, ``localizer_params`` if given) takes the
 robot's ``odometry`` and ``observations`` and the fuser's ``/fused_landmarks``, and
 publishes ``/<robot>/pose``, the pose the observer takes: the observers place the
 sightings with the localizers' poses, the fuser builds the map, the localizers use it
-(``localizer_overrides``). With ``sim:=true`` the simulator's own ``pose`` goes to
+(``localizer_overrides``); the fuser's change detection is off in the loop (its rows
+carry the localizers' slow pose errors). With ``sim:=true`` the simulator's own ``pose`` goes to
 ``/<robot>/sim_pose`` (unused), the localizers run on its wheel odometry and start at
 the simulated robots' true starting poses, with the simulator's noise models.
 
@@ -284,6 +285,8 @@ def team_nodes(robots, arguments):
                               *replayed_inputs(robot, from_sim, sim)],
                   **common) for robot in robots]
     overrides = fuser_topics(robots)
+    if localize:    # the loop's rows carry slow pose errors: no change detection (slam.md)
+        overrides['move_false_alarm_rate'] = 0.0
     if arguments['fusion']:
         overrides['fusion'] = arguments['fusion']
     nodes.append(Node(executable='landmark_fuser', name='landmark_fuser',

@@ -150,7 +150,7 @@ def sim_config(args):
                      sensor_kinds=tuple(getattr(args, 'sensors', ('rb',))))
 
 
-def node_parameters(config, fusion, map_path):
+def node_parameters(config, fusion, map_path, slam=False):
     """
     Return the parameters of every node, for ``launcher.write_params_file``.
 
@@ -158,7 +158,8 @@ def node_parameters(config, fusion, map_path):
     landmark from its first observation (the simulator has no outliers), so that
     every landmark measured at all ends up in the map; without IDs from its
     ``MIN_OBSERVATIONS_NO_IDS``-th (a row the association gate misses must not
-    become a landmark at once).
+    become a landmark at once). ``slam``: the loop, where the fuser runs without change
+    detection (its rows carry the localizers' slow pose errors; docs/slam.md).
     """
     sim = {name: getattr(config, name) for name in (
         'robots', 'landmarks', 'seed', 'world_file', 'duration_s', 'time_scale',
@@ -179,6 +180,8 @@ def node_parameters(config, fusion, map_path):
         'map_file': str(map_path),
         'autosave_period_s': 0.0, 'diagnostics_period_s': 0.5, 'source_timeout_s': 60.0,
     }
+    if slam:
+        fuser['move_false_alarm_rate'] = 0.0
     partial = partial_robots(config)
     if partial:
         fuser['partial_observation_topics'] = [f'/robot{i + 1}/partial_observations'
@@ -360,7 +363,8 @@ def execute(args, config, paths):
     The exit code is 2 when the run failed, 130 on Ctrl-C, None when the run can be
     evaluated (the monitor then holds what it saw).
     """
-    parameters = node_parameters(config, args.fusion, paths.map_path)
+    parameters = node_parameters(config, args.fusion, paths.map_path,
+                                 getattr(args, 'slam', False))
     if getattr(args, 'localize', False) or getattr(args, 'slam', False):
         parameters.update(localizer_parameters(config, Simulation(config)))
         # the localizers start from the first pose: they must get the first odometry

@@ -208,6 +208,13 @@ def test_localize_starts_a_localizer_per_robot_and_moves_the_sim_pose(fake_launc
     assert sorted(replayed) == sorted(
         f'qos_overrides./{localizers[0].kwargs["namespace"]}/{topic}.subscription.{policy}'
         for topic in ('odometry', 'observations') for policy in ('reliability', 'durability'))
+    # The loop's rows carry the localizers' slow pose errors: no change detection.
+    fuser, = [n for n in nodes if n.kwargs.get('executable') == 'landmark_fuser']
+    assert fuser.kwargs['parameters'][1]['move_false_alarm_rate'] == 0.0
+    context.update(localize='false')
+    fuser, = [n for n in start(fake_launch, context)
+              if n.kwargs.get('executable') == 'landmark_fuser']
+    assert 'move_false_alarm_rate' not in fuser.kwargs['parameters'][1]    # the file's
 
 
 def test_fusion_argument_overrides_the_file(fake_launch, context):

@@ -450,3 +450,13 @@ def test_sensor_kinds_on_the_command_line():
         with pytest.raises(SystemExit) as exit_info:
             parse_args(bad)
         assert exit_info.value.code == 2
+
+
+def test_the_slam_demo_runs_the_fuser_without_change_detection(tmp_path):
+    from landmark_ros.demo.run import node_parameters, parse_args, sim_config
+    for argv, rate in (([], None), (['--slam'], 0.0)):
+        args = parse_args(argv)
+        fuser = node_parameters(sim_config(args), args.fusion, tmp_path / 'map.yaml',
+                                args.slam)['/landmark_fuser']
+        assert fuser.get('move_false_alarm_rate') == rate     # None: the package default
+    assert args.fusion == 'split_covariance_intersection'     # --slam's default fusion
