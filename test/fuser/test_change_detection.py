@@ -19,7 +19,7 @@ from scipy import stats
 CLIP = chi2_threshold(2, 0.999)
 SOURCES = ['/robot1/landmarks', '/robot2/landmarks', '/robot3/landmarks']
 RATE = 2e-5
-"""The false-alarm rate the tests switch detection on with (off by default)."""
+"""The false-alarm rate the tests switch detection on with (the default)."""
 
 
 def test_increment_is_the_log_likelihood_ratio():
