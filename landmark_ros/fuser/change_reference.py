@@ -177,7 +177,7 @@ class ReferenceFilter:
             slots = np.array([self._slot(i) for i in unique.tolist()], np.int64)
             d2 = compiled.reference((self.x, self.X, self.live), slots[inverse], z,
                                     np.column_stack(entries_2x2(P)), self.clip)
-            return self._white(ids, z, np.asarray(P, np.float64)) if d2 is None else d2
+            return self._white(ids, z, np.asarray(P, np.float64), slots) if d2 is None else d2
         W, C = split_noise(P, P_dep, self.model)
         blocks = np.array([self._block(str(name)) for name in sources], np.int64)
         order = np.argsort(ids, kind='stable')
@@ -198,8 +198,8 @@ class ReferenceFilter:
                 d2[old] = self._step(slots[~fresh], old, z, W, C, blocks, stamps)
         return d2
 
-    def _white(self, ids: NDArray[np.int64], z: NDArray[np.float64],
-               W: NDArray[np.float64]) -> NDArray[np.float64]:
+    def _white(self, ids: NDArray[np.int64], z: NDArray[np.float64], W: NDArray[np.float64],
+               slots: Optional[NDArray[np.int64]] = None) -> NDArray[np.float64]:
         """
         Return the ``d2`` of white rows, all at once (information form; module notes).
 
@@ -208,13 +208,15 @@ class ReferenceFilter:
         not taken, which changes the rows after it: each pass drops the first such row
         of every landmark and sums again (one pass when no row is past the clip).
         (``compiled.reference`` runs the rows one by one instead, once it is loaded.)
+        ``slots``: the filters of the distinct IDs in order, when the caller has them.
         """
         order = np.argsort(ids, kind='stable')
         first = np.ones(len(ids), bool)
         first[1:] = ids[order][1:] != ids[order][:-1]
         group = np.cumsum(first) - 1
         starts = np.flatnonzero(first)
-        slots = np.array([self._slot(i) for i in ids[order][starts].tolist()], np.int64)
+        if slots is None:
+            slots = np.array([self._slot(i) for i in ids[order][starts].tolist()], np.int64)
         fresh = ~self.live[slots]
         prior = np.zeros((len(starts), 5))       # information (a, b, c) and vector, per landmark
         old = slots[~fresh]
