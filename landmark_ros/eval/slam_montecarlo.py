@@ -18,11 +18,17 @@ Figures (Bar-Shalom, Li and Kirubarajan 2001, ch. 5.4):
   the NEES averaged over seeds and robots lies inside its chi-square interval
   (3 dof times seeds times robots);
 - map: the NEES of every confirmed landmark at the end of each seed, averaged over
-  seeds and landmarks, against the chi-square interval of that many 2-dof estimates.
+  seeds and landmarks, against the chi-square interval of that many 2-dof estimates;
+  and where its error lies: the RMSE left after the best rigid transform of each seed's
+  map onto the truth (``eval.slam_attribution.rigid_fit``), beside the RMSE its
+  covariances predict (square root of the mean trace).
 
 Consistent: 3 inside the pose interval, the map ANEES inside its interval.
 Run: ``python -m landmark_ros.eval.slam_montecarlo [--seeds 20] [--duration 60]
-[--precision-sources K]``; ``--long`` adds the 10-minute run (fewer seeds).
+[--precision-sources K]``; ``--long`` adds the 10-minute run (fewer seeds). Variants of
+the loop (``Variant``): ``--initial-stddev X Y YAW`` (the starting poses' error and its
+stated standard deviations), ``--source-correlation`` (the fuser's) and
+``--landmark-correlation`` (the localizers').
 """
 
 import argparse
@@ -32,6 +38,7 @@ import sys
 
 from landmark_ros.core.gating import mahalanobis_sq
 from landmark_ros.eval.metrics import anees_interval, chi2_quantile
+from landmark_ros.eval.slam_attribution import rigid_fit
 from landmark_ros.eval.slam_loop import LoopConfig, TeamLoop
 from landmark_ros.localizer import motion
 from landmark_ros.localizer.config import LocalizerConfig
@@ -58,19 +65,40 @@ class SeedResult:
     """Their position errors [m], shape (L,)."""
     position_errors: np.ndarray
     """Position errors of every robot at every stamp after 2 s [m], shape (K * robots,)."""
+    map_residuals: np.ndarray
+    """Distances left after the best rigid transform of the map onto the truth [m], (L,)."""
+    map_traces: np.ndarray
+    """Traces of the landmarks' covariances [m^2], shape (L,)."""
 
 
-def loop_config(precision_sources=1):
+@dataclass(frozen=True)
+class Variant:
+    """What a study changes in the loop (the defaults: the package's loop)."""
+
+    precision_sources: int = 1
+    """Sources per robot in the fuser (``LoopConfig.precision_sources``)."""
+    initial_stddev: tuple = INITIAL_STDDEV
+    """Standard deviations of the starting poses' error, drawn and stated [m, m, rad]."""
+    source_correlation: str = 'unknown'
+    """The fuser's ``source_correlation``."""
+    landmark_correlation: str = 'independent'
+    """The localizers' ``landmark_correlation``."""
+
+
+def loop_config(precision_sources=1, variant=None):
     """Return the loop's parameters: package defaults with the simulation's models."""
+    variant = variant or Variant(precision_sources)
     localizer = LocalizerConfig(odometry_alphas=ALPHAS, range_stddev=RANGE_STDDEV,
                                 range_stddev_per_m=0.0, bearing_stddev=BEARING_STDDEV,
-                                initial_stddev=INITIAL_STDDEV)
+                                initial_stddev=tuple(variant.initial_stddev),
+                                landmark_correlation=variant.landmark_correlation)
     observer = ObserverConfig(range_stddev=RANGE_STDDEV, range_stddev_per_m=0.0,
                               bearing_stddev=BEARING_STDDEV)
     # Change detection off, as in every loop (mrclam.slam.loop_config): the rows carry
     # the localizers' slow pose errors, not the white rows its test takes.
-    return LoopConfig(localizer, observer, FuserConfig(move_false_alarm_rate=0.0),
-                      precision_sources=precision_sources)
+    fuser = FuserConfig(move_false_alarm_rate=0.0,
+                        source_correlation=variant.source_correlation)
+    return LoopConfig(localizer, observer, fuser, precision_sources=variant.precision_sources)
 
 
 def _sightings(generator, pose, positions):
@@ -80,16 +108,18 @@ def _sightings(generator, pose, positions):
     return mask, z
 
 
-def run_seed(seed, robots=3, duration_s=60.0, rate_hz=20.0, precision_sources=1):
-    """Run one seed of the closed loop; return its ``SeedResult``."""
+def run_seed(seed, robots=3, duration_s=60.0, rate_hz=20.0, precision_sources=1,
+             variant=None):
+    """Run one seed of the closed loop (``variant``: None, the package's); its ``SeedResult``."""
+    variant = variant or Variant(precision_sources)
     generator = np.random.default_rng(seed)
     world = generate_world(15, 20.0, seed)
     paths = make_paths(robots, world.bounds, 0.5, seed)
     times = np.arange(0.0, duration_s, 1.0 / rate_hz)
     truth = [np.array(path.pose(times)).reshape(-1, 3) for path in paths]
     odom = [wheel_odometry(t, ALPHAS, generator) for t in truth]
-    loop = TeamLoop(loop_config(precision_sources), [f'robot{i + 1}' for i in range(robots)])
-    P0 = np.diag(np.square(INITIAL_STDDEV))
+    loop = TeamLoop(loop_config(variant=variant), [f'robot{i + 1}' for i in range(robots)])
+    P0 = np.diag(np.square(variant.initial_stddev))
     for i in range(robots):
         loop.start(i, 1, truth[i][0] + generator.multivariate_normal(np.zeros(3), P0), P0)
     every = int(round(0.4 * rate_hz))
@@ -121,7 +151,10 @@ def run_seed(seed, robots=3, duration_s=60.0, rate_hz=20.0, precision_sources=1)
     map_nees = np.array([float(mahalanobis_sq(truth_m[k], snapshot.m[k], snapshot.P[k]))
                          for k in range(len(snapshot.ids))])
     map_errors = np.linalg.norm(snapshot.m - truth_m, axis=1)
-    return SeedResult(np.array(nees), map_nees, map_errors, np.array(errors))
+    fit = rigid_fit(snapshot.m, truth_m, truth_m.mean(axis=0)) if len(truth_m) else None
+    return SeedResult(np.array(nees), map_nees, map_errors, np.array(errors),
+                      np.linalg.norm(fit.residual, axis=1) if fit else np.empty(0),
+                      np.trace(snapshot.P, axis1=1, axis2=2))
 
 
 def summarise(results, robots):
@@ -145,7 +178,15 @@ def summarise(results, robots):
             'map_anees_interval': [float(map_low), float(map_high)],
             'map_rmse_m': float(math.sqrt(np.mean(np.concatenate(
                 [r.map_errors for r in results]) ** 2))),
+            'map_rigid_residual_rmse_m': _rms(np.concatenate([r.map_residuals
+                                                              for r in results])),
+            'map_predicted_rmse_m': float(math.sqrt(np.mean(np.concatenate(
+                [r.map_traces for r in results])))),
             'landmarks_scored': int(len(map_nees))}
+
+
+def _rms(values):
+    return float(math.sqrt(np.mean(np.square(values)))) if len(values) else math.nan
 
 
 def consistent(summary):
@@ -164,7 +205,9 @@ def format_summary(name, s):
             f'interval {s["pose_stamps_inside_fraction"]:.3f}, position RMSE '
             f'{s["position_rmse_m"]:.3f} m; map ANEES {s["map_anees"]:.2f} (interval '
             f'{map_low:.2f} to {map_high:.2f}, {s["landmarks_scored"]} landmarks), map RMSE '
-            f'{s["map_rmse_m"]:.3f} m; {"consistent" if consistent(s) else "NOT consistent"}')
+            f'{s["map_rmse_m"]:.3f} m ({s["map_rigid_residual_rmse_m"]:.3f} m after a rigid '
+            f'transform, {s["map_predicted_rmse_m"]:.3f} m predicted); '
+            f'{"consistent" if consistent(s) else "NOT consistent"}')
 
 
 def main(argv=None):
@@ -179,13 +222,22 @@ def main(argv=None):
     parser.add_argument('--first-seed', type=int, default=0)
     parser.add_argument('--precision-sources', type=int, default=1,
                         help='sources per robot in the fuser (eval.slam_loop.LoopConfig)')
+    parser.add_argument('--initial-stddev', type=float, nargs=3, default=INITIAL_STDDEV,
+                        metavar=('X', 'Y', 'YAW'),
+                        help="the starting poses' error, drawn and stated [m, m, rad]")
+    parser.add_argument('--source-correlation', default='unknown',
+                        help="the fuser's source_correlation")
+    parser.add_argument('--landmark-correlation', default='independent',
+                        help="the localizers' landmark_correlation")
     args = parser.parse_args(argv)
+    variant = Variant(args.precision_sources, tuple(args.initial_stddev),
+                      args.source_correlation, args.landmark_correlation)
     runs = [('short', args.seeds, args.duration)] if args.seeds > 0 else []
     if args.long:
         runs.append(('long', args.long_seeds, 600.0))
     ok = True
     for name, seeds, duration in runs:
-        results = [run_seed(seed, args.robots, duration, precision_sources=args.precision_sources)
+        results = [run_seed(seed, args.robots, duration, variant=variant)
                    for seed in range(args.first_seed, args.first_seed + seeds)]
         summary = summarise(results, args.robots)
         print(format_summary(f'{name} ({duration:.0f} s)', summary))

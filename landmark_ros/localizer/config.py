@@ -12,6 +12,8 @@ ASSOCIATION_METHODS = ('none', 'nn', 'jcbb')
 
 CORRELATIONS = ('independent', 'split_ci', 'consider')
 """Values of ``correlation``: how the map's errors relate to the pose's (``update``)."""
+LANDMARK_CORRELATIONS = ('independent', 'unknown')
+"""Values of ``landmark_correlation``: how the errors of one update's landmarks relate."""
 CORRELATED_NOISE = ('count', 'dependent')
 """Values of ``correlated_noise``: where the time-correlated noise and the bias go."""
 
@@ -108,6 +110,12 @@ class LocalizerConfig(ConfigBase):
         "a map built from this robot's poses) or consider (Schmidt-Kalman, the landmarks as "
         "consider states: exact for a map whose errors are independent of the robot's, a "
         'surveyed map or one built from other poses; localizer.consider)')
+    landmark_correlation: str = param(
+        'independent', 'how the errors of the landmarks of one update relate: independent '
+        '(each landmark its own error, as in a surveyed map) or unknown (correlated in any '
+        'way, as in a map the team builds from its own poses: covariance intersection '
+        'across the rows, update.landmark_bound: never over-confident, conservative); '
+        'ignored with consider')
     correlated_noise: str = param(
         'count', 'how the time-correlated noise and the bias enter an update: count (in the '
         'independent noise, the correlated variance times the sightings of the landmark '
@@ -166,6 +174,9 @@ class LocalizerConfig(ConfigBase):
         if self.correlation not in CORRELATIONS:
             raise ValueError(f'correlation must be one of {CORRELATIONS}, '
                              f'got {self.correlation!r}')
+        if self.landmark_correlation not in LANDMARK_CORRELATIONS:
+            raise ValueError(f'landmark_correlation must be one of {LANDMARK_CORRELATIONS}, '
+                             f'got {self.landmark_correlation!r}')
         if self.correlated_noise not in CORRELATED_NOISE:
             raise ValueError(f'correlated_noise must be one of {CORRELATED_NOISE}, '
                              f'got {self.correlated_noise!r}')

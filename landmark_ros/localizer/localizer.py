@@ -114,7 +114,8 @@ class Localizer:
         self._association = None  # rebuilt with the new association parameters
         self.settings = UpdateSettings(
             chi2_threshold(1, config.gate_probability), chi2_threshold(2, config.gate_probability),
-            config.correlation, config.iterate_threshold, config.max_iterations)
+            config.correlation, config.iterate_threshold, config.max_iterations,
+            config.landmark_correlation)
         self._alphas = tuple(config.odometry_alphas)
         self._floor = np.eye(3) * config.min_step_variance
         j = np.square(np.array([config.jump_position_stddev, config.jump_position_stddev,

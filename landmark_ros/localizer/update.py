@@ -139,6 +139,9 @@ class UpdateSettings:
     correlation: str = 'split_ci'
     iterate_threshold: float = 0.1
     max_iterations: int = 5
+    landmark_correlation: str = 'independent'
+    """``independent`` (the landmarks of one update have independent errors) or
+    ``unknown`` (correlated in any way: ``landmark_bound``)."""
 
 
 def correct_ranges(z: NDArray[np.float64], kind: NDArray[np.int64],
@@ -339,6 +342,34 @@ def stacked_blocks(M_rows: NDArray[np.float64], rows: NDArray[np.intp],
     return np.where(same, M_rows[rows[:, None], comps[:, None], comps[None, :]], 0.0)
 
 
+def landmark_bound(M: NDArray[np.float64]) -> NDArray[np.float64]:
+    """
+    Return per-row map terms that bound the rows' map errors for any correlation.
+
+    The landmarks of a fused map share the errors of the poses they were placed from,
+    so the stacked map errors of one update are correlated in a way nobody tracks. For
+    any weights ``v_i > 0`` summing to one, ``Cov(stacked) <= blockdiag(M_i / v_i)``
+    (Cauchy-Schwarz, the covariance intersection inequality); with ``v_i``
+    proportional to ``c_i = sqrt(trace(M_i))`` it is ``M_i C / c_i``, ``C = sum c_i``.
+    A row without map term (``c_i = 0``) keeps zero. One row is returned unchanged.
+
+    Parameters
+    ----------
+    M : ndarray, shape (N, 2, 2)
+        Map terms ``J_z_m P_m J_z_m^T`` of the rows.
+
+    Returns
+    -------
+    ndarray, shape (N, 2, 2)
+
+    """
+    if len(M) < 2:
+        return M
+    c = np.sqrt(np.maximum(M[:, 0, 0] + M[:, 1, 1], 0.0))
+    scale = np.divide(c.sum(), c, out=np.zeros_like(c), where=c > 0.0)
+    return M * scale[:, None, None]
+
+
 def _posterior_logdets(P_inv, H, R_s, M_s, w):
     """Return ``-log det`` of the information after the update, for each weight ``w`` (K,)."""
     W = w[:, None, None]
@@ -433,7 +464,10 @@ def update(x: NDArray[np.float64], P: NDArray[np.float64], m: NDArray[np.float64
     rows, comps = stacked_components(kind[idx])
     rows_g = idx[rows]
     _, _, J_z_m = observe(x, m[idx])
-    M_rows = J_z_m @ P_m[idx] @ J_z_m.transpose(0, 2, 1) + noise.R_dep[idx]
+    M_rows = J_z_m @ P_m[idx] @ J_z_m.transpose(0, 2, 1)
+    if settings.landmark_correlation == 'unknown':
+        M_rows = landmark_bound(M_rows)
+    M_rows = M_rows + noise.R_dep[idx]
     R_s, M_s = stacked_blocks(noise.R[idx], rows, comps), stacked_blocks(M_rows, rows, comps)
     if noise.R_shared is not None:  # one error in every row: the full block
         M_s = M_s + noise.R_shared[comps[:, None], comps[None, :]]

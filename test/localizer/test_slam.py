@@ -166,6 +166,24 @@ def test_monte_carlo_of_the_loop_is_not_over_confident():
     assert summary['landmarks_scored'] >= 20
 
 
+def test_monte_carlo_variants_reach_the_loop():
+    # The landmark bound makes the same seeds' poses and map less confident; the best
+    # rigid transform of the map onto the truth leaves at most its error.
+    bound = slam_montecarlo.Variant(landmark_correlation='unknown')
+    plain = [slam_montecarlo.run_seed(seed, robots=2, duration_s=12.0) for seed in (0, 1)]
+    tight = [slam_montecarlo.run_seed(seed, robots=2, duration_s=12.0, variant=bound)
+             for seed in (0, 1)]
+    a, b = (slam_montecarlo.summarise(r, 2) for r in (plain, tight))
+    assert b['pose_anees'] < a['pose_anees'] and b['map_anees'] < a['map_anees']
+    assert 0.0 < a['map_rigid_residual_rmse_m'] <= a['map_rmse_m']
+    assert a['map_predicted_rmse_m'] > 0.0
+    config = slam_montecarlo.loop_config(variant=slam_montecarlo.Variant(
+        2, (0.01, 0.02, 0.003), 'independent', 'unknown'))
+    assert config.precision_sources == 2 and config.fuser.source_correlation == 'independent'
+    assert config.localizer.initial_stddev == (0.01, 0.02, 0.003)
+    assert config.localizer.landmark_correlation == 'unknown'
+
+
 @pytest.mark.skipif(not DATASET.is_dir(), reason='needs ../shared MRCLAM dataset 6')
 def test_mrclam_slam_on_the_first_minute_reports_the_issue_keys(tmp_path):
     dataset = load_dataset(DATASET)
