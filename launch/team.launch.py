@@ -55,10 +55,11 @@ FUSER_INPUTS = {
 robot: the one place that names the per-robot topics the fuser subscribes."""
 
 SIM_TOPICS = ('pose', 'true_pose', 'observations', 'odometry')
+"""The per-robot topics of landmark_sim, remapped to the robot names given."""
 SIM_WAIT_S = 60.0
 """With ``localize:=true`` the simulator waits up to this long [wall s] for every
-subscriber, the localizers' odometry included, before its first step."""
-"""The per-robot topics of landmark_sim, remapped to the robot names given."""
+subscriber, the localizers' odometry included (not its own pose, which nobody takes
+then), before its first step."""
 
 STOP_TIMEOUT_S = '20'
 """Seconds a team process has between Ctrl-C (SIGINT) and SIGTERM: a node that loaded
@@ -297,6 +298,7 @@ def team_nodes(robots, arguments):
         sim_overrides = {'robots': len(robots)}
         if localize:  # the localizers start at the first pose: they need the first odometry
             sim_overrides.update(wait_for_odometry_subscribers=True,
+                                 wait_for_pose_subscribers=False,   # sim_pose: unused
                                  wait_for_subscribers_s=SIM_WAIT_S)
         nodes.append(Node(executable='landmark_sim', name='landmark_sim',
                           parameters=[arguments['sim_params'], sim_overrides],

@@ -356,6 +356,17 @@ def announce(args, config, monitor, log_dir):
               'is the safe choice)')
 
 
+def sim_waits(args):
+    """Return the simulator's ``wait_for_*`` overrides for the demo's mode (a dict)."""
+    if not (getattr(args, 'localize', False) or getattr(args, 'slam', False)):
+        return {}
+    # The localizers start from the first pose: they must get the first odometry; the
+    # monitor must get every true pose to pair with the localized ones; with --slam the
+    # simulator's reported pose goes to sim_pose, which nobody takes.
+    return {'wait_for_odometry_subscribers': True, 'wait_for_true_pose_subscribers': True,
+            'wait_for_pose_subscribers': not getattr(args, 'slam', False)}
+
+
 def execute(args, config, paths):
     """
     Run the processes and follow them; return ``(exit code or None, monitor)``.
@@ -367,10 +378,7 @@ def execute(args, config, paths):
                                  getattr(args, 'slam', False))
     if getattr(args, 'localize', False) or getattr(args, 'slam', False):
         parameters.update(localizer_parameters(config, Simulation(config)))
-        # the localizers start from the first pose: they must get the first odometry
-        parameters['/landmark_sim']['wait_for_odometry_subscribers'] = True
-        # and the monitor must get every true pose to pair with the localized ones
-        parameters['/landmark_sim']['wait_for_true_pose_subscribers'] = True
+    parameters['/landmark_sim'].update(sim_waits(args))
     write_params_file(paths.params_path, parameters)
     progress = progress_bar(config.duration_s, False if args.no_progress else None)
     removed_shm = []

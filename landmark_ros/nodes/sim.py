@@ -117,10 +117,11 @@ class LandmarkSim(Node):
         if wait <= 0.0 or (now_ns - self._created_ns) * 1e-9 >= wait:
             return True
         cfg = self.config
+        poses = self.pose_pubs if cfg.wait_for_pose_subscribers else []
         odometry = self.odometry_pubs if cfg.wait_for_odometry_subscribers else []
         truth = self.true_pose_pubs if cfg.wait_for_true_pose_subscribers else []
         return all(pub.get_subscription_count() > 0
-                   for pub in self.pose_pubs + self.observation_pubs + odometry + truth)
+                   for pub in poses + self.observation_pubs + odometry + truth)
 
     def step(self):
         """Publish every pose and observation whose stamp the simulated time reached."""

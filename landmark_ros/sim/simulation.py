@@ -131,8 +131,13 @@ class SimConfig(ConfigBase):
                        read_only=True)
     wait_for_subscribers_s: float = param(
         0.0, 'Before starting the simulated clock, wait up to this long for a subscriber '
-        'on every pose and observations topic [wall s]; 0 starts at once.',
+        'on every observations and pose topic (and those the wait_for_* flags name) '
+        '[wall s]; 0 starts at once.',
         read_only=True, low=0.0, high=3600.0)
+    wait_for_pose_subscribers: bool = param(
+        True, 'wait_for_subscribers_s waits for a subscriber on every pose topic; false when '
+        'nothing takes the reported pose (the team without motion capture, whose localizers '
+        'publish the poses the observers take).', read_only=True)
     wait_for_odometry_subscribers: bool = param(
         False, 'wait_for_subscribers_s also waits for a subscriber on every odometry topic '
         '(localizers that must see the first odometry message).', read_only=True)

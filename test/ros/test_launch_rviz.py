@@ -199,6 +199,10 @@ def test_localize_starts_a_localizer_per_robot_and_moves_the_sim_pose(fake_launc
     sim = nodes[-1] if nodes[-1].kwargs['executable'] == 'landmark_sim' else [
         n for n in nodes if n.kwargs.get('executable') == 'landmark_sim'][0]
     assert ('robot1/pose', '/alpha/sim_pose') in sim.kwargs['remappings']
+    # sim_pose has no reader: the simulator waits for the localizers' odometry, not for it
+    waits = sim.kwargs['parameters'][1]
+    assert waits['wait_for_pose_subscribers'] is False
+    assert waits['wait_for_odometry_subscribers'] is True
     # The observer's pose is the localizer's (volatile): only its observations are replayed.
     observer = nodes[0]
     assert observer.kwargs['parameters'][1] == {

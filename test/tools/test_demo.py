@@ -460,3 +460,15 @@ def test_the_slam_demo_runs_the_fuser_without_change_detection(tmp_path):
                                 args.slam)['/landmark_fuser']
         assert fuser.get('move_false_alarm_rate') == rate     # None: the package default
     assert args.fusion == 'split_covariance_intersection'     # --slam's default fusion
+
+
+def test_the_simulator_waits_for_the_readers_each_mode_has():
+    from landmark_ros.demo.run import parse_args as parse, sim_waits
+    assert sim_waits(parse([])) == {}
+    localize = sim_waits(parse(['--localize']))
+    assert localize == {'wait_for_odometry_subscribers': True,
+                        'wait_for_true_pose_subscribers': True,
+                        'wait_for_pose_subscribers': True}
+    # --slam: the reported pose goes to sim_pose, which no node reads
+    assert sim_waits(parse(['--slam']))['wait_for_pose_subscribers'] is False
+
