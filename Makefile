@@ -21,6 +21,7 @@ PYTEST := $(VPY) -m pytest -q -p no:cacheprovider -ra
 help:
 	@echo 'landmark_ros make targets:'
 	@echo '  venv   create/update .venv (ROS Jazzy wheels, dev tools, package editable)'
+	@echo '  ros-tools  the ros2 CLI, launch and launch_ros into .venv from ../shared/ros-tools (when there)'
 	@echo '  test   run the whole test suite (extra pytest args: PYTEST_ARGS="...")'
 	@echo '  lint   run only the flake8 / pep257 linter tests'
 	@echo '  bench  run every bench/bench_*.py, then one summary (also docs/benchmarks.md)'

@@ -87,6 +87,24 @@ def slam_defaults(args):
     return args
 
 
+def sim_waits(args):
+    """Return the simulator's ``wait_for_*`` overrides for the demo's mode (a dict)."""
+    if not (getattr(args, 'localize', False) or getattr(args, 'slam', False)):
+        return {}
+    # The localizers start from the first pose: they must get the first odometry; the
+    # monitor must get every true pose to pair with the localized ones; with --slam the
+    # simulator's reported pose goes to sim_pose, which nobody takes.
+    return {'wait_for_odometry_subscribers': True, 'wait_for_true_pose_subscribers': True,
+            'wait_for_pose_subscribers': not getattr(args, 'slam', False)}
+
+
+SLAM_VERDICT = ("--slam: the map's average NEES is not judged here: the landmarks of one "
+                'run share the frame error of the poses that placed them, so it does not '
+                'follow the interval of independent landmarks; consistency is judged over '
+                'seeds by python -m landmark_ros.eval.slam_montecarlo (docs/slam.md)')
+"""What ``--slam`` prints instead of judging the map's average NEES."""
+
+
 class LocalizationCollector:
     """
     Every true and localized pose of every robot, by stamp (on the demo's node).
@@ -96,8 +114,8 @@ class LocalizationCollector:
     simulator's wait for subscribers covers it.
     """
 
-    def __init__(self, node, robots):
-        """Subscribe to every robot's localized pose on ``node``."""
+    def __init__(self, node, robots, topic='localized_pose'):
+        """Subscribe to every robot's localized pose (``robotN/<topic>``) on ``node``."""
         from geometry_msgs.msg import PoseWithCovarianceStamped
         from landmark_ros.ros.qos import reliable_output
         self.node, self.robots = node, robots
@@ -105,7 +123,7 @@ class LocalizationCollector:
         self.estimates = [{} for _ in range(robots)]
         self.read_errors = 0
         self.subscriptions = [
-            node.create_subscription(PoseWithCovarianceStamped, f'/robot{i + 1}/localized_pose',
+            node.create_subscription(PoseWithCovarianceStamped, f'/robot{i + 1}/{topic}',
                                      lambda msg, i=i: self._on_estimate(i, msg),
                                      reliable_output(1000))
             for i in range(robots)]

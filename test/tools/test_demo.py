@@ -463,7 +463,8 @@ def test_the_slam_demo_runs_the_fuser_without_change_detection(tmp_path):
 
 
 def test_the_simulator_waits_for_the_readers_each_mode_has():
-    from landmark_ros.demo.run import parse_args as parse, sim_waits
+    from landmark_ros.demo.localize import sim_waits
+    from landmark_ros.demo.run import parse_args as parse
     assert sim_waits(parse([])) == {}
     localize = sim_waits(parse(['--localize']))
     assert localize == {'wait_for_odometry_subscribers': True,
@@ -472,3 +473,13 @@ def test_the_simulator_waits_for_the_readers_each_mode_has():
     # --slam: the reported pose goes to sim_pose, which no node reads
     assert sim_waits(parse(['--slam']))['wait_for_pose_subscribers'] is False
 
+
+def test_slam_prints_the_maps_nees_without_judging_it():
+    from types import SimpleNamespace
+    from landmark_ros.demo.run import failures_of
+    summary = SimpleNamespace(consistent=False, anees=9.0, anees_interval=(1.2, 3.0))
+    evaluation = ([object()], summary, set(), [], None)
+    assert 'overconfident' in failures_of(evaluation, [])[0]
+    assert failures_of(evaluation, [], judge_anees=False) == []
+    assert failures_of(evaluation, [3], judge_anees=False) == [
+        'landmarks measured but not fused: [3]']

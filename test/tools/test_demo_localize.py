@@ -26,3 +26,24 @@ def test_short_demo_run_localizes_every_robot_on_odometry(tmp_path):
     modules = sorted(re.search(r'-m (\S+)', cmd).group(1) for cmd in children.values())
     assert modules.count('landmark_ros.nodes.localizer') == 3, children
     assert_nothing_left(children, shm, domain_of(output), ports_before)
+
+
+def test_short_slam_demo_scores_the_localizers_that_pose_the_observers(tmp_path):
+    ports_before = set().union(*(port_files(d) for d in range(150, 200)))
+    code, output, children, shm = run_demo(
+        tmp_path, '--duration', '8', '--landmarks', '12', '--seed', '3', '--slam',
+        '--no-plot')
+    assert code == 0, output
+    # The localizers' own pose topic (what the observers take) is scored, at 20 Hz.
+    match = re.search(r'Localization on wheel odometry against the fused map \(poses '
+                      r'robot 1: (\d+), robot 2: (\d+), robot 3: (\d+)[;)]', output)
+    assert match and all(int(n) >= 100 for n in match.groups()), output
+    rows = re.findall(r'^fused \(live\)\s+False\s+(\S+)\s+(\d+\.\d+)', output, re.M)
+    assert [r[0] for r in rows] == ['1', '2', '3', 'all'], output
+    assert all(float(rmse) < 0.8 for _, rmse in rows), output
+    assert "--slam: the map's average NEES is not judged here" in output
+    assert re.search(r'^OK: all \d+ measured landmarks fused \(split_covariance', output,
+                     re.M), output
+    modules = sorted(re.search(r'-m (\S+)', cmd).group(1) for cmd in children.values())
+    assert modules.count('landmark_ros.nodes.localizer') == 3, children
+    assert_nothing_left(children, shm, domain_of(output), ports_before)
