@@ -100,8 +100,13 @@ def export_mrclam(dataset, output, config):
 
 
 def _progress_bar(enabled):
-    """Return ``(callback, close)`` driving a tqdm bar on stderr (or doing nothing)."""
-    if not enabled:
+    """
+    Return ``(callback, close)`` driving a tqdm bar on stderr (or doing nothing).
+
+    ``enabled``: False never draws; True draws only when stderr is a terminal (nothing
+    in logs and pipes), as the replay's and the demo's bars.
+    """
+    if not enabled or not sys.stderr.isatty():
         return None, lambda: None
     from tqdm import tqdm
     bar = tqdm(total=0, unit='msg', unit_scale=True, file=sys.stderr, desc=PROG,

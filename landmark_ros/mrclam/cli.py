@@ -210,7 +210,8 @@ def parse_args(argv=None):
                         help='localize every robot from odometry and sightings (surveyed '
                         'and fused maps, with and without robot sightings)')
     parser.add_argument('--duration', type=float, default=None, metavar='SECONDS',
-                        help='--localize: only the first SECONDS of the run')
+                        help='--localize and --slam (with --through-nodes too): only the '
+                        'first SECONDS of the run')
     parser.add_argument('--slam', action='store_true',
                         help='the team without motion capture: localizers, observers and '
                         'the fuser in a closed loop (with and without IDs and anchors)')

@@ -122,18 +122,25 @@ def _landmark_lines(records, truth):
 
 def main(argv=None):
     """Run one ``--slam`` mode (module docstring); return the exit code."""
-    parser = argparse.ArgumentParser(description='landmark_mrclam --slam, one mode.')
-    parser.add_argument('dataset', nargs='?', type=Path, default=None)
-    parser.add_argument('--config', type=Path, default=None)
-    parser.add_argument('--hide-ids', action='store_true')
+    parser = argparse.ArgumentParser(prog='python -m landmark_ros.mrclam.slam_cli',
+                                     description='landmark_mrclam --slam, one mode.')
+    parser.add_argument('dataset', nargs='?', type=Path, default=None,
+                        help='MRCLAM dataset directory (default: shared/data/mrclam/dataset6 '
+                        'beside the repository)')
+    parser.add_argument('--config', type=Path, default=None,
+                        help='ROS params file (default: config/mrclam.yaml)')
+    parser.add_argument('--hide-ids', action='store_true',
+                        help='sightings without IDs: the loop associates them')
     parser.add_argument('--anchors', action='store_true',
                         help='anchor the frame with slam_anchor_ids of the config')
-    parser.add_argument('--duration', type=float, default=None, metavar='SECONDS')
+    parser.add_argument('--duration', type=float, default=None, metavar='SECONDS',
+                        help='only SECONDS of the run (from --start)')
     parser.add_argument('--start', type=float, default=0.0, metavar='SECONDS',
                         help='start this long after the first sighting (the robots at '
                         'their true pose then, an empty map): --start 443 is the second '
                         'half of dataset 6')
-    parser.add_argument('--json', type=Path, default=None)
+    parser.add_argument('--json', type=Path, default=None,
+                        help='write the figures (a slam entry) as JSON')
     args = parser.parse_args(argv)
     replay_config = load_config(args.config)
     dataset = load_dataset(args.dataset or default_dataset_path(), replay_config.pose_stddev)

@@ -14,6 +14,7 @@ from dataclasses import replace
 import json
 import os
 from pathlib import Path
+import sys
 
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseWithCovarianceStamped
@@ -153,10 +154,11 @@ def test_export_refuses_an_existing_output(noisy):
 
 # Processing: the replay's map ------------------------------------------------------------
 
-def test_bag_gives_the_offline_replay_map(noisy, tmp_path, capsys):
+def test_bag_gives_the_offline_replay_map(noisy, tmp_path, capsys, monkeypatch):
     directory, bag = noisy
     out, report = tmp_path / 'out', tmp_path / 'report.json'
     config = static_config(tmp_path / 'static.yaml')   # the same map whatever the batches
+    monkeypatch.setattr(sys.stderr, 'isatty', lambda: True)    # a terminal: the bar shows
     code = bag_cli.main([str(bag), '-o', str(out), '--config', str(config), '--json',
                          str(report)])
     captured = capsys.readouterr()
@@ -436,3 +438,15 @@ def test_unknown_storage_is_a_usage_error(noisy, tmp_path, capsys):
     with pytest.raises(ValueError, match='storage must be one of'):
         BagOutput(tmp_path / 'out', 'parquet')
     assert_nothing_left(tmp_path, tmp_path / 'out')
+
+
+def test_no_progress_bar_into_a_pipe(monkeypatch, capsys):
+    monkeypatch.setattr(sys.stderr, 'isatty', lambda: False)
+    update, close = bag_cli._progress_bar(True)
+    close()
+    assert update is None and capsys.readouterr().err == ''
+    monkeypatch.setattr(sys.stderr, 'isatty', lambda: True)
+    update, close = bag_cli._progress_bar(True)
+    update(3, 10)
+    close()
+    assert '30%' in capsys.readouterr().err
