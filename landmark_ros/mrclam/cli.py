@@ -160,7 +160,8 @@ import time
 
 from landmark_ros.fusion.landmark_map import FUSION_METHODS
 from landmark_ros.mrclam.calibrate import calibrate, format_calibration
-from landmark_ros.mrclam.config import config_values, default_dataset_path, load_config
+from landmark_ros.mrclam.config import (add_dataset_arguments, config_values,
+                                        default_dataset_path, load_config)
 from landmark_ros.mrclam.crossval import (cross_validate, cross_validate_localize,
                                           format_entry, format_localize_entry, HEADER,
                                           LOCALIZE_HEADER, LOCALIZE_MODES, MODES, SCHEMES)
@@ -178,11 +179,7 @@ def parse_args(argv=None):
     parser = argparse.ArgumentParser(
         prog='landmark_mrclam',
         description='Replay a UTIAS MRCLAM dataset through the landmark observer and fuser.')
-    parser.add_argument('dataset', nargs='?', type=Path, default=None,
-                        help='MRCLAM dataset directory (default: shared/data/mrclam/dataset6 '
-                        'beside the repository)')
-    parser.add_argument('--config', type=Path, default=None,
-                        help='ROS params file (default: config/mrclam.yaml)')
+    add_dataset_arguments(parser)
     parser.add_argument('--fusion', choices=FUSION_METHODS, default=None,
                         help='one fusion method (default: all three)')
     parser.add_argument('--sensor', choices=SENSORS, default='rb',

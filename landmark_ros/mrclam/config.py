@@ -81,6 +81,15 @@ def default_config_path():
     return local if share is None else share / 'config' / DEFAULT_CONFIG_NAME
 
 
+def add_dataset_arguments(parser) -> None:
+    """Add the positional ``dataset`` and ``--config`` of the replay's command lines."""
+    parser.add_argument('dataset', nargs='?', type=Path, default=None,
+                        help='MRCLAM dataset directory (default: shared/data/mrclam/dataset6 '
+                        'beside the repository)')
+    parser.add_argument('--config', type=Path, default=None,
+                        help='ROS params file (default: config/mrclam.yaml)')
+
+
 def default_dataset_path():
     """Return ``shared/data/mrclam/dataset6`` beside the repository (or the cwd)."""
     candidates = [PACKAGE_ROOT.parent / DEFAULT_DATASET, Path.cwd() / DEFAULT_DATASET,

@@ -22,7 +22,8 @@ from dataclasses import replace
 from pathlib import Path
 
 from landmark_ros.mrclam import slam
-from landmark_ros.mrclam.config import default_dataset_path, load_config
+from landmark_ros.mrclam.config import (add_dataset_arguments, default_dataset_path,
+                                        load_config)
 from landmark_ros.mrclam.data import load_dataset
 from landmark_ros.mrclam.localize import localizer_config
 from landmark_ros.mrclam.localize_cli import _Bar, _sections
@@ -124,11 +125,7 @@ def main(argv=None):
     """Run one ``--slam`` mode (module docstring); return the exit code."""
     parser = argparse.ArgumentParser(prog='python -m landmark_ros.mrclam.slam_cli',
                                      description='landmark_mrclam --slam, one mode.')
-    parser.add_argument('dataset', nargs='?', type=Path, default=None,
-                        help='MRCLAM dataset directory (default: shared/data/mrclam/dataset6 '
-                        'beside the repository)')
-    parser.add_argument('--config', type=Path, default=None,
-                        help='ROS params file (default: config/mrclam.yaml)')
+    add_dataset_arguments(parser)
     parser.add_argument('--hide-ids', action='store_true',
                         help='sightings without IDs: the loop associates them')
     parser.add_argument('--anchors', action='store_true',
