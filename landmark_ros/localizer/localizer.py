@@ -385,8 +385,12 @@ class Localizer:
             unknown = ids == UNKNOWN_ID
         index = np.array([self._map_index.get(int(i), -1) for i in ids], np.intp)
         missing = (index < 0) & ~unknown
-        self.counters.add('landmark_not_in_map', int(missing.sum()),
-                          detail='rows of landmarks that are not in the map skipped')
+        if self._map_index:
+            self.counters.add('landmark_not_in_map', int(missing.sum()),
+                              detail='rows of landmarks that are not in the map skipped')
+        else:   # no map yet: a team that builds its map starts so
+            self.counters.add('map_empty', int(missing.sum()),
+                              detail='rows skipped: no landmark in the map yet')
         keep = index >= 0
         if not keep.any():
             return 0

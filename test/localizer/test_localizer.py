@@ -252,6 +252,12 @@ def test_missing_and_unlabelled_landmarks_are_counted_and_skipped():
     assert loc.add_observations(0, np.array([1, 7, UNKNOWN_ID]), z) == 1
     assert loc.counters['landmark_not_in_map'] == 1 and loc.counters['no_id'] == 1
     assert loc.counters['rows_used'] == 1
+    # before any map: its own reason, not a landmark missing from a map
+    loc = Localizer()
+    loc.initialize(0, np.zeros(3), np.eye(3) * 0.01)
+    loc.add_odometry(0, twist=np.zeros(2))
+    assert loc.add_observations(0, np.array([1, 7]), z[:2]) == 0
+    assert loc.counters['map_empty'] == 2 and loc.counters['landmark_not_in_map'] == 0
 
 
 def test_status_reports_lost_and_stale():
