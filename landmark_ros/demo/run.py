@@ -32,8 +32,8 @@ upper bound of the association accuracy). Success then also needs no extra track
 
 The exit code is 0 only when every landmark the robots measured was fused and the
 average NEES lies in its interval (not judged with ``--slam``; with ``--localize`` and
-``--slam`` every robot also needs localized poses); 1 when the evaluation fails; 2 when the run
-itself fails (a process died, nothing arrived in time); 130 on Ctrl-C.
+``--slam`` every robot also needs localized poses); 1 when the evaluation fails; 2 when
+the run itself fails (a process died, nothing arrived in time); 130 on Ctrl-C.
 
 The noise model is exactly known to the observers. Without per-robot biases
 (the default) the errors of different observations are independent, so the
@@ -371,27 +371,25 @@ def execute(args, config, paths):
     The exit code is 2 when the run failed, 130 on Ctrl-C, None when the run can be
     evaluated (the monitor then holds what it saw).
     """
-    parameters = node_parameters(config, args.fusion, paths.map_path,
-                                 getattr(args, 'slam', False))
-    if getattr(args, 'localize', False) or getattr(args, 'slam', False):
+    slam = getattr(args, 'slam', False)
+    localized = slam or getattr(args, 'localize', False)
+    parameters = node_parameters(config, args.fusion, paths.map_path, slam)
+    if localized:
         parameters.update(localizer_parameters(config, Simulation(config)))
     parameters['/landmark_sim'].update(sim_waits(args))
     write_params_file(paths.params_path, parameters)
     progress = progress_bar(config.duration_s, False if args.no_progress else None)
     removed_shm = []
     monitor = launcher = None
-    localized = getattr(args, 'localize', False) or getattr(args, 'slam', False)
     try:
         monitor = Monitor(args.domain_id, config.robots, partial_robots(config),
                           every_true_pose=localized)
         if localized:   # --slam: the localizers' pose is the one the observers take
             monitor.localization = LocalizationCollector(
-                monitor.node, config.robots,
-                'pose' if getattr(args, 'slam', False) else 'localized_pose')
+                monitor.node, config.robots, 'pose' if slam else 'localized_pose')
         announce(args, config, monitor, paths.log_dir)
         with Launcher(paths.log_dir, monitor.domain_id) as launcher:
-            drained = drive(config, launcher, monitor, paths.params_path, progress,
-                            getattr(args, 'slam', False))
+            drained = drive(config, launcher, monitor, paths.params_path, progress, slam)
             monitor.spin(0.0)
             codes = launcher.stop()
             removed_shm += launcher.removed_shm

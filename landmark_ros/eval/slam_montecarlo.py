@@ -85,9 +85,9 @@ class Variant:
     """The localizers' ``landmark_correlation``."""
 
 
-def loop_config(precision_sources=1, variant=None):
+def loop_config(variant=None):
     """Return the loop's parameters: package defaults with the simulation's models."""
-    variant = variant or Variant(precision_sources)
+    variant = variant or Variant()
     localizer = LocalizerConfig(odometry_alphas=ALPHAS, range_stddev=RANGE_STDDEV,
                                 range_stddev_per_m=0.0, bearing_stddev=BEARING_STDDEV,
                                 initial_stddev=tuple(variant.initial_stddev),
@@ -108,10 +108,9 @@ def _sightings(generator, pose, positions):
     return mask, z
 
 
-def run_seed(seed, robots=3, duration_s=60.0, rate_hz=20.0, precision_sources=1,
-             variant=None):
+def run_seed(seed, robots=3, duration_s=60.0, rate_hz=20.0, variant=None):
     """Run one seed of the closed loop (``variant``: None, the package's); its ``SeedResult``."""
-    variant = variant or Variant(precision_sources)
+    variant = variant or Variant()
     generator = np.random.default_rng(seed)
     world = generate_world(15, 20.0, seed)
     paths = make_paths(robots, world.bounds, 0.5, seed)
