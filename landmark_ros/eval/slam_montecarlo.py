@@ -40,8 +40,9 @@ from landmark_ros.core.gating import mahalanobis_sq
 from landmark_ros.eval.metrics import anees_interval, chi2_quantile
 from landmark_ros.eval.slam_attribution import rigid_fit
 from landmark_ros.eval.slam_loop import LoopConfig, TeamLoop
+from landmark_ros.fusion.methods import SOURCE_CORRELATIONS
 from landmark_ros.localizer import motion
-from landmark_ros.localizer.config import LocalizerConfig
+from landmark_ros.localizer.config import LANDMARK_CORRELATIONS, LocalizerConfig
 from landmark_ros.pipeline.config import FuserConfig, ObserverConfig
 from landmark_ros.sim.odometry import wheel_odometry
 from landmark_ros.sim.world import generate_world, make_paths, visible
@@ -172,11 +173,10 @@ def summarise(results, robots):
             'pose_anees_interval': [float(means.mean() - half), float(means.mean() + half)],
             'pose_stamps_inside_fraction': inside,
             'pose_stamp_interval': [float(low), float(high)],
-            'position_rmse_m': float(math.sqrt(np.mean(errors ** 2))),
+            'position_rmse_m': _rms(errors),
             'map_anees': float(map_nees.mean()),
             'map_anees_interval': [float(map_low), float(map_high)],
-            'map_rmse_m': float(math.sqrt(np.mean(np.concatenate(
-                [r.map_errors for r in results]) ** 2))),
+            'map_rmse_m': _rms(np.concatenate([r.map_errors for r in results])),
             'map_rigid_residual_rmse_m': _rms(np.concatenate([r.map_residuals
                                                               for r in results])),
             'map_predicted_rmse_m': float(math.sqrt(np.mean(np.concatenate(
@@ -185,6 +185,7 @@ def summarise(results, robots):
 
 
 def _rms(values):
+    """Return the root mean square of ``values`` (NaN when empty)."""
     return float(math.sqrt(np.mean(np.square(values)))) if len(values) else math.nan
 
 
@@ -225,8 +226,9 @@ def main(argv=None):
                         metavar=('X', 'Y', 'YAW'),
                         help="the starting poses' error, drawn and stated [m, m, rad]")
     parser.add_argument('--source-correlation', default='unknown',
-                        help="the fuser's source_correlation")
+                        choices=SOURCE_CORRELATIONS, help="the fuser's source_correlation")
     parser.add_argument('--landmark-correlation', default='independent',
+                        choices=LANDMARK_CORRELATIONS,
                         help="the localizers' landmark_correlation")
     args = parser.parse_args(argv)
     variant = Variant(args.precision_sources, tuple(args.initial_stddev),
