@@ -225,6 +225,18 @@ class TeamLoop:
         """Return the fused map's confirmed landmarks (``LandmarkMap.to_records``)."""
         return self.fuser.map.to_records()
 
+    def map_snapshot(self):
+        """Return the fused map the localizers get (``Fuser.snapshot``: ids, m, P)."""
+        return self.fuser.snapshot()
+
+    def estimate(self, robot: int) -> Optional[Estimate]:
+        """Return the robot's current pose and covariance (``Localizer.estimate``)."""
+        return self.localizers[robot].estimate()
+
+    def robot_counts(self, robot: int) -> dict:
+        """Return a robot's localizer counters (``rows_used``, ``rows_gated``...)."""
+        return dict(self.localizers[robot].counters.counts)
+
 
 def dependent_stddev(P_dep: NDArray[np.float64]) -> float:
     """

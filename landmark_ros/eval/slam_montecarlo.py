@@ -40,6 +40,7 @@ from landmark_ros.core.gating import mahalanobis_sq
 from landmark_ros.eval.metrics import anees_interval, chi2_quantile
 from landmark_ros.eval.slam_attribution import rigid_fit
 from landmark_ros.eval.slam_loop import LoopConfig, TeamLoop
+from landmark_ros.eval.team_ekf import TeamEKF
 from landmark_ros.fusion.methods import SOURCE_CORRELATIONS
 from landmark_ros.localizer import motion
 from landmark_ros.localizer.config import LANDMARK_CORRELATIONS, LocalizerConfig
@@ -52,6 +53,8 @@ ALPHAS = (0.05, 0.5, 0.05, 0.01)
 RANGE_STDDEV, BEARING_STDDEV = 0.05, 0.02
 INITIAL_STDDEV = (0.05, 0.05, 0.02)
 MAX_RANGE, FOV = 8.0, 2.0 * math.pi
+ESTIMATORS = {'loop': TeamLoop, 'team_ekf': TeamEKF}
+"""What ``Variant.estimator`` names."""
 
 
 @dataclass(frozen=True)
@@ -70,6 +73,8 @@ class SeedResult:
     """Distances left after the best rigid transform of the map onto the truth [m], (L,)."""
     map_traces: np.ndarray
     """Traces of the landmarks' covariances [m^2], shape (L,)."""
+    map_joint_nees: float = math.nan
+    """NEES of all landmarks at once with their joint covariance (``team_ekf`` only)."""
 
 
 @dataclass(frozen=True)
@@ -84,6 +89,9 @@ class Variant:
     """The fuser's ``source_correlation``."""
     landmark_correlation: str = 'independent'
     """The localizers' ``landmark_correlation``."""
+    estimator: str = 'loop'
+    """``loop`` (``TeamLoop``, the nodes' pipeline) or ``team_ekf`` (``eval.team_ekf``,
+    the reference that keeps every correlation)."""
 
 
 def loop_config(variant=None):
@@ -118,7 +126,8 @@ def run_seed(seed, robots=3, duration_s=60.0, rate_hz=20.0, variant=None):
     times = np.arange(0.0, duration_s, 1.0 / rate_hz)
     truth = [np.array(path.pose(times)).reshape(-1, 3) for path in paths]
     odom = [wheel_odometry(t, ALPHAS, generator) for t in truth]
-    loop = TeamLoop(loop_config(variant=variant), [f'robot{i + 1}' for i in range(robots)])
+    names = [f'robot{i + 1}' for i in range(robots)]
+    loop = ESTIMATORS[variant.estimator](loop_config(variant=variant), names)
     P0 = np.diag(np.square(variant.initial_stddev))
     for i in range(robots):
         loop.start(i, 1, truth[i][0] + generator.multivariate_normal(np.zeros(3), P0), P0)
@@ -140,13 +149,13 @@ def run_seed(seed, robots=3, duration_s=60.0, rate_hz=20.0, variant=None):
         if t >= 2.0:
             step_nees = []
             for i in range(robots):
-                est = loop.localizers[i].estimate()
+                est = loop.estimate(i)
                 e = est.x - truth[i][k]
                 e[2] = motion.wrap(e[2])
                 step_nees.append(float(e @ np.linalg.solve(est.P, e)))
                 errors.append(math.hypot(e[0], e[1]))
             nees.append(np.mean(step_nees))
-    snapshot = loop.fuser.snapshot()
+    snapshot = loop.map_snapshot()
     truth_m = world.positions[np.searchsorted(world.ids, snapshot.ids)]
     map_nees = np.array([float(mahalanobis_sq(truth_m[k], snapshot.m[k], snapshot.P[k]))
                          for k in range(len(snapshot.ids))])
@@ -154,7 +163,16 @@ def run_seed(seed, robots=3, duration_s=60.0, rate_hz=20.0, variant=None):
     fit = rigid_fit(snapshot.m, truth_m, truth_m.mean(axis=0)) if len(truth_m) else None
     return SeedResult(np.array(nees), map_nees, map_errors, np.array(errors),
                       np.linalg.norm(fit.residual, axis=1) if fit else np.empty(0),
-                      np.trace(snapshot.P, axis1=1, axis2=2))
+                      np.trace(snapshot.P, axis1=1, axis2=2), _joint_nees(loop, world))
+
+
+def _joint_nees(loop, world):
+    """Return the map's NEES with its joint covariance (NaN without one)."""
+    if not hasattr(loop, 'joint_map'):
+        return math.nan
+    ids, m, P = loop.joint_map()
+    e = (m - world.positions[np.searchsorted(world.ids, ids)]).reshape(-1)
+    return float(e @ np.linalg.solve(P, e)) if len(e) else math.nan
 
 
 def summarise(results, robots):
@@ -181,7 +199,19 @@ def summarise(results, robots):
                                                               for r in results])),
             'map_predicted_rmse_m': float(math.sqrt(np.mean(np.concatenate(
                 [r.map_traces for r in results])))),
-            'landmarks_scored': int(len(map_nees))}
+            'landmarks_scored': int(len(map_nees)),
+            **_joint_summary(results)}
+
+
+def _joint_summary(results):
+    """Return the joint map NEES per degree of freedom over seeds and its interval."""
+    joint = np.array([r.map_joint_nees for r in results])
+    if not np.all(np.isfinite(joint)):
+        return {}
+    dof = int(sum(2 * len(r.map_nees) for r in results))
+    return {'map_joint_anees': float(joint.sum() / dof),
+            'map_joint_anees_interval': [chi2_quantile(dof, 0.025) / dof,
+                                         chi2_quantile(dof, 0.975) / dof]}
 
 
 def _rms(values):
@@ -207,7 +237,10 @@ def format_summary(name, s):
             f'{map_low:.2f} to {map_high:.2f}, {s["landmarks_scored"]} landmarks), map RMSE '
             f'{s["map_rmse_m"]:.3f} m ({s["map_rigid_residual_rmse_m"]:.3f} m after a rigid '
             f'transform, {s["map_predicted_rmse_m"]:.3f} m predicted); '
-            f'{"consistent" if consistent(s) else "NOT consistent"}')
+            + (f'joint map NEES per dof {s["map_joint_anees"]:.2f} (interval '
+               f'{s["map_joint_anees_interval"][0]:.2f} to '
+               f'{s["map_joint_anees_interval"][1]:.2f}); ' if 'map_joint_anees' in s else '')
+            + f'{"consistent" if consistent(s) else "NOT consistent"}')
 
 
 def main(argv=None):
@@ -230,9 +263,12 @@ def main(argv=None):
     parser.add_argument('--landmark-correlation', default='independent',
                         choices=LANDMARK_CORRELATIONS,
                         help="the localizers' landmark_correlation")
+    parser.add_argument('--estimator', default='loop', choices=tuple(ESTIMATORS),
+                        help='loop: the pipeline of the nodes; team_ekf: one EKF keeping every '
+                        'correlation (eval.team_ekf), the reference')
     args = parser.parse_args(argv)
     variant = Variant(args.precision_sources, tuple(args.initial_stddev),
-                      args.source_correlation, args.landmark_correlation)
+                      args.source_correlation, args.landmark_correlation, args.estimator)
     runs = [('short', args.seeds, args.duration)] if args.seeds > 0 else []
     if args.long:
         runs.append(('long', args.long_seeds, 600.0))

@@ -30,7 +30,7 @@ import tempfile
 import time
 from typing import List, Optional, Sequence
 
-from landmark_ros.eval.metrics import match_tracks
+from landmark_ros.eval.metrics import chi2_quantile, match_tracks
 from landmark_ros.eval.slam_loop import LoopConfig, TeamLoop
 from landmark_ros.fuser import map_file
 from landmark_ros.localizer.config import LocalizerConfig
@@ -165,12 +165,12 @@ def run(dataset, extras, loop_config: LoopConfig, delay_s=0.0, progress=None,
 def pose_tracks(dataset, loop) -> List[Track]:
     """Return one ``localize.Track`` per robot: estimates and truth at odometry stamps."""
     out = []
-    for robot, track, loc in zip(dataset.robots, loop.tracks, loop.localizers):
+    for i, (robot, track) in enumerate(zip(dataset.robots, loop.tracks)):
         stamps, x, P = track.arrays()
         times = stamps * 1e-9
         truth, inside = interpolate_poses(robot.gt_times, robot.gt_poses, times)
         out.append(Track(robot.number, times[inside], x[inside], P[inside], truth[inside],
-                         dict(loc.counters.counts)))
+                         loop.robot_counts(i)))
     return out
 
 
@@ -198,6 +198,24 @@ def map_entry(dataset, records, hide_ids, max_distance_m=1.0):
                      'true_landmarks': len(dataset.landmarks)}
 
 
+def joint_map_entry(dataset, ids, m, P):
+    """
+    Return the map's NEES with its joint covariance, against the surveyed landmarks.
+
+    ``ids`` (L,), ``m`` (L, 2), ``P`` (2L, 2L); the landmarks with a survey are scored
+    at once: ``map_joint_nees``, its degrees of freedom and the 95 % chi-square interval.
+    """
+    keep = [k for k, i in enumerate(ids.tolist()) if i in dataset.landmarks]
+    cols = np.array([[2 * k, 2 * k + 1] for k in keep], np.int64).reshape(-1)
+    truth = np.array([dataset.landmarks[int(ids[k])] for k in keep]).reshape(-1)
+    e = m[keep].reshape(-1) - truth
+    dof = len(e)
+    nees = float(e @ np.linalg.solve(P[np.ix_(cols, cols)], e)) if dof else math.nan
+    return {'map_joint_nees': nees, 'map_joint_dof': dof,
+            'map_joint_nees_interval': [chi2_quantile(dof, 0.025), chi2_quantile(dof, 0.975)]
+            if dof else [math.nan, math.nan]}
+
+
 def _percentiles(values):
     """Return min, median and 95th percentile of ``values`` [m] (NaN when empty)."""
     if not len(values):
@@ -207,23 +225,32 @@ def _percentiles(values):
 
 
 def run_mode(dataset, extras, loop_config, mode: SlamMode, delay_s=0.0,
-             anchor_path: Optional[str] = None, progress=None) -> SlamResult:
-    """Run one mode; return its tracks, map records and JSON entry."""
+             anchor_path: Optional[str] = None, progress=None,
+             loop_class=TeamLoop) -> SlamResult:
+    """
+    Run one mode; return its tracks, map records and JSON entry.
+
+    ``loop_class``: ``TeamLoop`` or ``eval.team_ekf.TeamEKF`` (the reference: IDs,
+    no anchors; its entry adds the map's joint NEES, ``joint_map_entry``).
+    """
     fuser = loop_config.fuser
     if mode.anchors:
         fuser = replace(fuser, map_file=str(anchor_path))
     config = replace(loop_config, fuser=fuser, hide_ids=mode.hide_ids)
     t0, cpu0 = time.monotonic(), time.process_time()
-    loop = run(dataset, extras, config, delay_s, progress)
+    loop = run(dataset, extras, config, delay_s, progress, loop_class)
     tracks = pose_tracks(dataset, loop)
     robots, overall = metrics(tracks)
     records, scores = map_entry(dataset, loop.map_records(), mode.hide_ids)
+    if hasattr(loop, 'joint_map'):
+        scores.update(joint_map_entry(dataset, *loop.joint_map()))
     entry = {'ids_hidden': mode.hide_ids, 'anchors': mode.anchors,
              **{key: overall[key] for key in KEYS}, **scores,
              'rows_used': overall['rows_used'], 'rows_gated': overall['rows_gated'],
              'robot_rows_used': overall['robot_rows_used'],
              'loop_counts': dict(loop.counts),
-             'dependent_stddev_m': _percentiles(loop.dependent_stddevs),
+             **({'dependent_stddev_m': _percentiles(loop.dependent_stddevs)}
+                if getattr(loop, 'dependent_stddevs', None) else {}),
              'seconds': time.monotonic() - t0, 'cpu_seconds': time.process_time() - cpu0,
              'robots': robots}
     return SlamResult(mode, tracks, records, entry)
@@ -268,7 +295,13 @@ def format_table(results: Sequence[SlamResult], duration_s: float) -> str:
                      f'confirmed of {entry["true_landmarks"]} true landmarks; '
                      f'{entry["seconds"]:.0f} s wall, {entry["cpu_seconds"]:.0f} s CPU '
                      f'({duration_s / entry["cpu_seconds"]:.0f}x real time by CPU time)')
-        dep = entry['dependent_stddev_m']
+        if 'map_joint_nees' in entry:
+            low, high = entry['map_joint_nees_interval']
+            lines.append(f'  map joint NEES {entry["map_joint_nees"]:.1f} '
+                         f'({entry["map_joint_dof"]} dof, interval {low:.1f} to {high:.1f})')
+        dep = entry.get('dependent_stddev_m')
+        if dep is None:
+            continue
         lines.append(f'  messages\' dependent standard deviation [m]: min {dep["min"]:.3f}, '
                      f'median {dep["median"]:.3f}, 95th percentile {dep["p95"]:.3f}')
     return '\n'.join(lines)

@@ -51,13 +51,15 @@ def _plot(args, dataset, results):
         print(f'wrote {out}')
 
 
-def _setup(replay_config, dataset, duration, start_s=0.0):
+def _setup(replay_config, dataset, duration, start_s=0.0, overrides=None):
     """
     Return the loop config, odometry delay, anchor IDs, dataset and extras (sliced).
 
-    ``duration`` [s] (None: to the end) from ``start_s`` [s] after the first sighting.
+    ``duration`` [s] (None: to the end) from ``start_s`` [s] after the first sighting;
+    ``overrides``: values of the ``landmark_mrclam`` section to replace.
     """
     localizer_values, replay_values = _sections(replay_config.path)
+    replay_values = {**replay_values, **(overrides or {})}
     config = slam.loop_config(replay_config, localizer_config(localizer_values),
                               replay_values)
     delay_s = float(replay_values.get('odometry_delay_s', 0.0))
@@ -138,13 +140,27 @@ def main(argv=None):
                         'half of dataset 6')
     parser.add_argument('--json', type=Path, default=None,
                         help='write the figures (a slam entry) as JSON')
+    parser.add_argument('--range-scale-state', action='store_true',
+                        help='the localizers keep the range scale states of the localizer '
+                        'section (slam_range_scale_state: true)')
+    parser.add_argument('--estimator', default='loop', choices=('loop', 'team_ekf'),
+                        help='loop: the pipeline of the nodes (TeamLoop); team_ekf: the reference '
+                        'that keeps every correlation (eval.team_ekf; IDs, no anchors)')
     args = parser.parse_args(argv)
+    if args.estimator == 'team_ekf' and (args.hide_ids or args.anchors):
+        parser.error('--estimator team_ekf needs the IDs and no anchors')
     replay_config = load_config(args.config)
     dataset = load_dataset(args.dataset or default_dataset_path(), replay_config.pose_stddev)
+    overrides = {'slam_range_scale_state': True} if args.range_scale_state else None
     config, delay_s, anchor_ids, dataset, extras = _setup(replay_config, dataset,
-                                                          args.duration, args.start)
+                                                          args.duration, args.start, overrides)
     mode = slam.SlamMode(args.hide_ids, args.anchors)
-    result, = slam.run_all(dataset, extras, config, anchor_ids, delay_s, (mode,))
+    if args.estimator == 'team_ekf':
+        from landmark_ros.eval.team_ekf import TeamEKF
+        result = slam.run_mode(dataset, extras, config, mode, delay_s, loop_class=TeamEKF)
+    else:
+        result, = slam.run_all(dataset, extras, config, anchor_ids, delay_s, (mode,))
+    result.entry['estimator'] = args.estimator
     print(slam.format_table([result], dataset.duration))
     print('\n'.join(_landmark_lines(result.records, dataset.landmarks)))
     if args.json:
