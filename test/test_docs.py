@@ -21,7 +21,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = ROOT / 'docs'
 PAGES = ('nodes', 'parameters', 'sensors', 'association', 'bad-input', 'evaluation',
-         'architecture', 'benchmarks', 'localization', 'slam')
+         'architecture', 'benchmarks', 'localization', 'slam', 'slam-analysis')
 
 
 def _load(path, name):

@@ -107,7 +107,7 @@ class TeamEKF:
         self.rows_per_landmark: Counter = Counter()
         self.tracks = [PoseTrack() for _ in names]
         self.counts: Counter = Counter()
-        self.robot_counters = [Counter() for _ in names]
+        self.tallies = [Counter() for _ in names]
         self._chains = [_Chain(0, np.zeros(3), np.eye(3), np.zeros((3, 3))) for _ in names]
         self._seen: List[dict] = [{} for _ in names]
         self._gate = chi2_threshold(2, cfg.gate_probability)
@@ -226,7 +226,7 @@ class TeamEKF:
 
     def robot_counts(self, robot: int) -> dict:
         """Return a robot's row counts (``rows_used``, ``rows_gated``, ``robot_rows_*``)."""
-        return dict(self.robot_counters[robot])
+        return dict(self.tallies[robot])
 
     def _pose(self, robot):
         """Return the slice of a robot's pose in the state."""
@@ -315,7 +315,7 @@ class TeamEKF:
             S = S + J_z_m @ P_extra @ J_z_m.T
         S_inv = np.linalg.inv(0.5 * (S + S.T))
         if float(y @ S_inv @ y) > self._gate:
-            self.robot_counters[robot][f'{label}_gated'] += 1
+            self.tallies[robot][f'{label}_gated'] += 1
             return False
         K = PHt @ S_inv
         dx = K @ y
@@ -327,7 +327,7 @@ class TeamEKF:
             self.x[c.start + 2] = wrap_angle(self.x[c.start + 2])
             chain.pose = chain.pose + chain.F @ dx[c]
             chain.pose[2] = wrap_angle(chain.pose[2])
-        self.robot_counters[robot][f'{label}_used'] += 1
+        self.tallies[robot][f'{label}_used'] += 1
         return True
 
     def _add_landmark(self, robot, landmark_id, z, R):
@@ -345,7 +345,7 @@ class TeamEKF:
         P[n:, n:] = 0.5 * (P_m + P_m.T)
         self.P = P
         self.landmarks[int(landmark_id)] = n
-        self.robot_counters[robot]['rows_used'] += 1
+        self.tallies[robot]['rows_used'] += 1
 
 
 def place(x: NDArray[np.float64], z: NDArray[np.float64]
