@@ -17,9 +17,15 @@ until the next message, scaled and with the noise of ``localizer.motion`` (per s
 (``update.correct_ranges``), the range and bearing noise, its time-correlated part and
 the bias counted as the localizer counts them (``update.row_noise`` with
 ``steps.count_shared``); a row gated at ``gate_probability`` (2 dof); a sighting of
-another robot with ``robot_stddev_floor`` on its position. A landmark enters the state
+another robot with ``robot_stddev_floor`` on its position. With
+``range_scale_state_stddev`` (and ``range_scale_bearing_state_stddev``) each robot's
+block holds its range scale states after its pose (``update.observe``; ``place`` is the
+inverse). A landmark enters the state
 at its first row (its mean and covariance from ``core.sensors``' inverse model and the
-rows' Jacobians, cross-covariances included); IDs are required.
+rows' Jacobians, cross-covariances included). Without IDs the rows are paired by joint
+compatibility on the joint state (``TeamEKF._name_rows``). Anchors: the landmarks
+of the fuser's ``map_file`` (``LoopConfig.fuser``) start in the state with their
+covariance, independent of everything else.
 
 Inputs are those of ``TeamLoop`` (``start``, ``odometry``, ``sightings``,
 ``robot_sighting``), so ``mrclam.slam.run`` and ``eval.slam_montecarlo`` drive either.
@@ -37,6 +43,7 @@ from landmark_ros.core import sensors
 from landmark_ros.core.gating import chi2_threshold
 from landmark_ros.core.pose2 import wrap_angle
 from landmark_ros.eval.slam_loop import LoopConfig, PoseTrack
+from landmark_ros.fuser import map_file
 from landmark_ros.localizer import motion
 from landmark_ros.localizer.steps import count_shared, Estimate
 from landmark_ros.localizer.update import correct_ranges, RANGE_BEARING, row_noise
@@ -46,6 +53,10 @@ from numpy.typing import NDArray
 
 MIN_RANGE_M = 0.05
 """Rows closer than this [m] are skipped (no bearing to place them with)."""
+FIRST_TRACK_ID = 1_000_000
+"""Without IDs, the first landmark's track ID (then one up per new landmark)."""
+SKIP = -1
+"""A row without ID that is neither paired nor new (ambiguous): not used."""
 
 
 @dataclass
@@ -78,20 +89,20 @@ class TeamEKF:
     Parameters
     ----------
     config : LoopConfig
-        Its ``localizer`` section gives every model; ``hide_ids`` must be false.
+        Its ``localizer`` section gives every model; with ``hide_ids`` the rows are
+        named by ``_name_rows``; the ``fuser`` section's ``map_file`` (anchors) and
+        ``min_observations`` (a confirmed track without IDs).
     names : sequence of str
         Robot names.
 
     Raises
     ------
-    ValueError
-        With ``hide_ids``: the reference needs the landmarks' IDs.
+    map_file.MapFileError
+        If the anchors' map file is not one.
 
     """
 
     def __init__(self, config: LoopConfig, names: Sequence[str]) -> None:
-        if config.hide_ids:
-            raise ValueError('the team EKF needs the IDs (hide_ids is set)')
         self.config = config
         self.names = list(names)
         cfg = config.localizer
@@ -105,6 +116,7 @@ class TeamEKF:
         self.landmarks: Dict[int, int] = {}
         """Landmark ID -> its first column in the state."""
         self.rows_per_landmark: Counter = Counter()
+        self._next_track = FIRST_TRACK_ID
         self.tracks = [PoseTrack() for _ in names]
         self.counts: Counter = Counter()
         self.tallies = [Counter() for _ in names]
@@ -115,6 +127,11 @@ class TeamEKF:
         self._parts = (np.sqrt(np.outer(1.0 - share, 1.0 - share)),
                        np.sqrt(np.outer(share, share)))
         self._R_bias = np.diag([cfg.range_bias_stddev ** 2, cfg.bearing_bias_stddev ** 2])
+        if config.fuser.map_file:
+            document = map_file.load(config.fuser.map_file, config.fuser.world_frame)
+            for record in document['landmarks']:
+                self._insert(int(record['id']), np.asarray(record['mean'], np.float64),
+                             np.asarray(record['covariance'], np.float64))
 
     # --------------------------------------------------------------------- inputs
     def start(self, robot: int, stamp_ns: int, x: NDArray[np.float64],
@@ -169,8 +186,12 @@ class TeamEKF:
             return
         self._advance(robot, stamp_ns)
         self._apply(robot)
+        if self.config.hide_ids:
+            ids = self._name_rows(robot, z)
         z, R = self._noise(robot, stamp_ns, ids.tolist(), z, bias=True)
         for k, landmark_id in enumerate(ids.tolist()):
+            if landmark_id < 0:
+                continue
             if landmark_id not in self.landmarks:
                 self._add_landmark(robot, landmark_id, z[k], R[k])
             else:
@@ -218,11 +239,18 @@ class TeamEKF:
         return ids, self.x[cols].reshape(-1, 2), self.P[np.ix_(cols, cols)]
 
     def map_records(self) -> List[dict]:
-        """Return the landmarks as map records (mean, marginal covariance)."""
+        """
+        Return the landmarks as map records (mean, marginal covariance).
+
+        Without IDs only those with ``min_observations`` rows of the fuser's config (the
+        confirmed tracks); with IDs every landmark.
+        """
         snap = self.map_snapshot()
+        least = self.config.fuser.min_observations if self.config.hide_ids else 0
         return [{'id': int(i), 'mean': m.tolist(), 'covariance': P.tolist(),
                  'observations': self.rows_per_landmark[int(i)], 'rejections': 0}
-                for i, m, P in zip(snap.ids.tolist(), snap.m, snap.P)]
+                for i, m, P in zip(snap.ids.tolist(), snap.m, snap.P)
+                if self.rows_per_landmark[int(i)] >= least]
 
     def robot_counts(self, robot: int) -> dict:
         """Return a robot's row counts (``rows_used``, ``rows_gated``, ``robot_rows_*``)."""
@@ -286,32 +314,94 @@ class TeamEKF:
         cfg = self.config.localizer
         kind = np.full(len(z), RANGE_BEARING)
         z, _ = correct_ranges(z, kind, None, cfg.range_scale_coeffs, cfg.range_scale_per_m)
-        R = np.zeros((len(z), 2, 2))
-        R[:, 0, 0] = sensors.range_noise_variance(z[:, 0], cfg.range_stddev ** 2,
-                                                  cfg.range_stddev_per_m ** 2,
-                                                  cfg.range_stddev_per_m2 ** 2)
-        R[:, 1, 1] = cfg.bearing_stddev ** 2
+        R = self._sensor_noise(z)
         tau_ns = int(cfg.noise_correlation_time_s * 1e9)
         shared = count_shared(self._seen[robot], stamp_ns, keys, tau_ns)
         shared_bias = (count_shared(self._seen[robot], stamp_ns, [None] * len(keys), tau_ns)
                        if bias else None)
         return z, row_noise(R, self._parts, self._R_bias, shared, shared_bias, False)
 
-    def _update(self, robot, cols, z, R, P_extra=None, label='rows'):
-        """Update with one row of robot ``robot`` seeing the point at ``cols``; return used."""
+    def _row_model(self, robot, cols, z):
+        """Return a row's innovation (2,), Jacobian (2, k + 2) and its state columns."""
         bc = np.arange(self._k * robot, self._k * (robot + 1))
         block, point = self.x[bc], self.x[cols]
         if np.hypot(*(point - block[:2])) <= MIN_RANGE_M:
-            return False
+            return None
         h, J_z_x, J_z_m = update_observe(block, point[None])
         y = z - h[0]
         y[1] = wrap_angle(y[1])
-        J_z_m = J_z_m[0]
-        idx = np.concatenate([bc, cols])
-        H = np.hstack([J_z_x[0], J_z_m])
+        return y, np.hstack([J_z_x[0], J_z_m[0]]), np.concatenate([bc, cols])
+
+    def _name_rows(self, robot, z):
+        """
+        Return track IDs (N,) for rows ``z`` (N, 2) without IDs: JCBB on the joint state.
+
+        A row joins a landmark individually compatible with it (``association_probability``
+        of the localizer) in the pairing with the most pairs jointly compatible, then the
+        least joint NEES (``_joint_hypothesis``); a row compatible with no landmark starts
+        a new one; the others are ``SKIP``. The gates use the sensor noise with its bias
+        once (the rows' counts need their IDs).
+        """
+        cfg = self.config.localizer
+        z, _ = correct_ranges(z, np.full(len(z), RANGE_BEARING), None, cfg.range_scale_coeffs,
+                              cfg.range_scale_per_m)
+        R = row_noise(self._sensor_noise(z), self._parts, self._R_bias, None,
+                      np.ones(len(z)), False)
+        models, compatible = {}, []
+        gate = chi2_threshold(2, cfg.association_probability)
+        for k in range(len(z)):
+            scored = []
+            for key, c in self.landmarks.items():
+                model = self._row_model(robot, np.arange(c, c + 2), z[k])
+                if model is None:
+                    continue
+                y, H, idx = model
+                d2 = float(y @ np.linalg.solve(H @ self.P[np.ix_(idx, idx)] @ H.T + R[k], y))
+                if d2 <= gate:
+                    models[(k, key)] = model
+                    scored.append((d2, key))
+            compatible.append([key for _, key in sorted(scored)])
+
+        def joint_nees(pairs):
+            cols = np.unique(np.concatenate([models[p][2] for p in pairs]))
+            H = np.zeros((2 * len(pairs), len(cols)))
+            for n, pair in enumerate(pairs):
+                H[2 * n:2 * n + 2, np.searchsorted(cols, models[pair][2])] = models[pair][1]
+            y = np.concatenate([models[p][0] for p in pairs])
+            S = H @ self.P[np.ix_(cols, cols)] @ H.T
+            for n, (k, _) in enumerate(pairs):
+                S[2 * n:2 * n + 2, 2 * n:2 * n + 2] += R[k]
+            return float(y @ np.linalg.solve(S, y))
+
+        ids = np.full(len(z), SKIP, np.int64)
+        p = cfg.association_probability
+        for k, key in _joint_hypothesis(joint_nees, compatible,
+                                        lambda n: chi2_threshold(2 * n, p)):
+            ids[k] = key
+        for k in np.flatnonzero((ids == SKIP) & np.array([not c for c in compatible], bool)):
+            ids[k], self._next_track = self._next_track, self._next_track + 1
+        return ids
+
+    def _sensor_noise(self, z):
+        """Return the range and bearing noise (N, 2, 2) of corrected readings ``z``."""
+        cfg = self.config.localizer
+        R = np.zeros((len(z), 2, 2))
+        R[:, 0, 0] = sensors.range_noise_variance(z[:, 0], cfg.range_stddev ** 2,
+                                                  cfg.range_stddev_per_m ** 2,
+                                                  cfg.range_stddev_per_m2 ** 2)
+        R[:, 1, 1] = cfg.bearing_stddev ** 2
+        return R
+
+    def _update(self, robot, cols, z, R, P_extra=None, label='rows'):
+        """Update with one row of robot ``robot`` seeing the point at ``cols``; return used."""
+        model = self._row_model(robot, cols, z)
+        if model is None:
+            return False
+        y, H, idx = model
         PHt = self.P[:, idx] @ H.T
         S = H @ PHt[idx] + R
         if P_extra is not None:
+            J_z_m = H[:, -2:]
             S = S + J_z_m @ P_extra @ J_z_m.T
         S_inv = np.linalg.inv(0.5 * (S + S.T))
         if float(y @ S_inv @ y) > self._gate:
@@ -336,16 +426,21 @@ class TeamEKF:
         m, J_m_x, J_m_z = place(self.x[bc], z)
         cross = J_m_x @ self.P[bc, :]
         P_m = cross[:, bc] @ J_m_x.T + J_m_z @ R @ J_m_z.T
+        self._insert(landmark_id, m, P_m, cross)
+        self.tallies[robot]['rows_used'] += 1
+
+    def _insert(self, landmark_id, m, P_m, cross=None):
+        """Append a landmark ``m`` (2,), ``P_m`` (2, 2), ``cross`` (2, n) with the state."""
         n = len(self.x)
         self.x = np.concatenate([self.x, m])
         P = np.zeros((n + 2, n + 2))
         P[:n, :n] = self.P
-        P[n:, :n] = cross
-        P[:n, n:] = cross.T
+        if cross is not None:
+            P[n:, :n] = cross
+            P[:n, n:] = cross.T
         P[n:, n:] = 0.5 * (P_m + P_m.T)
         self.P = P
         self.landmarks[int(landmark_id)] = n
-        self.tallies[robot]['rows_used'] += 1
 
 
 def place(x: NDArray[np.float64], z: NDArray[np.float64]
@@ -383,3 +478,35 @@ def place(x: NDArray[np.float64], z: NDArray[np.float64]
     if len(x) > 4:
         J_m_x[:, 4] = J_m_polar[:, 0] * (-r * b / g ** 2)
     return m, J_m_x, J_m_polar @ J_d
+
+
+def _joint_hypothesis(innovations, compatible, threshold_of):
+    """
+    Return the rows' pairing with the most pairs, then the least joint NEES (JCBB).
+
+    ``compatible[k]`` lists row k's candidate landmarks; ``innovations(pairs)`` returns
+    the joint NEES of a list of ``(row, landmark)`` pairs; ``threshold_of(n)`` the
+    joint gate for n pairs. Exhaustive over the candidates (a message holds a few rows);
+    Neira and Tardos 2001.
+    """
+    best = ([], 0.0)
+
+    def search(row, pairs, used, d2):
+        nonlocal best
+        if len(pairs) + (len(compatible) - row) < len(best[0]):
+            return
+        if row == len(compatible):
+            if len(pairs) > len(best[0]) or (len(pairs) == len(best[0]) and d2 < best[1]):
+                best = (list(pairs), d2)
+            return
+        for j in compatible[row]:
+            if j in used:
+                continue
+            trial = pairs + [(row, j)]
+            joint = innovations(trial)
+            if joint <= threshold_of(len(trial)):
+                search(row + 1, trial, used | {j}, joint)
+        search(row + 1, pairs, used, d2)
+
+    search(0, [], frozenset(), 0.0)
+    return best[0]

@@ -230,8 +230,8 @@ def run_mode(dataset, extras, loop_config, mode: SlamMode, delay_s=0.0,
     """
     Run one mode; return its tracks, map records and JSON entry.
 
-    ``loop_class``: ``TeamLoop`` or ``eval.team_ekf.TeamEKF`` (the reference: IDs,
-    no anchors; its entry adds the map's joint NEES, ``joint_map_entry``).
+    ``loop_class``: ``TeamLoop`` or ``eval.team_ekf.TeamEKF`` (the reference, IDs
+    only; its entry adds the map's joint NEES, ``joint_map_entry``).
     """
     fuser = loop_config.fuser
     if mode.anchors:
@@ -243,7 +243,11 @@ def run_mode(dataset, extras, loop_config, mode: SlamMode, delay_s=0.0,
     robots, overall = metrics(tracks)
     records, scores = map_entry(dataset, loop.map_records(), mode.hide_ids)
     if hasattr(loop, 'joint_map'):
-        scores.update(joint_map_entry(dataset, *loop.joint_map()))
+        ids, m, P = loop.joint_map()
+        if mode.hide_ids:  # the tracks matched to a true landmark take its ID
+            true_id = {r['track_id']: r['id'] for r in records}
+            ids = np.array([true_id.get(i, -1) for i in ids.tolist()], np.int64)
+        scores.update(joint_map_entry(dataset, ids, m, P))
     entry = {'ids_hidden': mode.hide_ids, 'anchors': mode.anchors,
              **{key: overall[key] for key in KEYS}, **scores,
              'rows_used': overall['rows_used'], 'rows_gated': overall['rows_gated'],
@@ -261,8 +265,12 @@ MODES = (SlamMode(False, False), SlamMode(True, False), SlamMode(False, True),
 
 
 def run_all(dataset, extras, loop_config, anchor_ids: Sequence[int], delay_s=0.0,
-            modes=MODES, progress_factory=None) -> List[SlamResult]:
-    """Run every mode (anchors from ``anchor_ids``, written to a temporary map file)."""
+            modes=MODES, progress_factory=None, loop_class=TeamLoop) -> List[SlamResult]:
+    """
+    Run every mode (anchors from ``anchor_ids``, written to a temporary map file).
+
+    ``loop_class``: as ``run_mode``.
+    """
     results = []
     with tempfile.TemporaryDirectory(prefix='landmark_slam_') as directory:
         anchor_path = os.path.join(directory, 'anchors.json')
@@ -271,7 +279,7 @@ def run_all(dataset, extras, loop_config, anchor_ids: Sequence[int], delay_s=0.0
         for mode in modes:
             progress = progress_factory(mode.label) if progress_factory else None
             results.append(run_mode(dataset, extras, loop_config, mode, delay_s, anchor_path,
-                                    progress.update if progress else None))
+                                    progress.update if progress else None, loop_class))
             if progress:
                 progress.close()
     return results

@@ -145,21 +145,20 @@ def main(argv=None):
                         'section (slam_range_scale_state: true)')
     parser.add_argument('--estimator', default='loop', choices=('loop', 'team_ekf'),
                         help='loop: the pipeline of the nodes (TeamLoop); team_ekf: the reference '
-                        'that keeps every correlation (eval.team_ekf; IDs, no anchors)')
+                        'that keeps every correlation (eval.team_ekf)')
     args = parser.parse_args(argv)
-    if args.estimator == 'team_ekf' and (args.hide_ids or args.anchors):
-        parser.error('--estimator team_ekf needs the IDs and no anchors')
     replay_config = load_config(args.config)
     dataset = load_dataset(args.dataset or default_dataset_path(), replay_config.pose_stddev)
     overrides = {'slam_range_scale_state': True} if args.range_scale_state else None
     config, delay_s, anchor_ids, dataset, extras = _setup(replay_config, dataset,
                                                           args.duration, args.start, overrides)
     mode = slam.SlamMode(args.hide_ids, args.anchors)
+    loop_class = slam.TeamLoop
     if args.estimator == 'team_ekf':
         from landmark_ros.eval.team_ekf import TeamEKF
-        result = slam.run_mode(dataset, extras, config, mode, delay_s, loop_class=TeamEKF)
-    else:
-        result, = slam.run_all(dataset, extras, config, anchor_ids, delay_s, (mode,))
+        loop_class = TeamEKF
+    result, = slam.run_all(dataset, extras, config, anchor_ids, delay_s, (mode,),
+                           loop_class=loop_class)
     result.entry['estimator'] = args.estimator
     print(slam.format_table([result], dataset.duration))
     print('\n'.join(_landmark_lines(result.records, dataset.landmarks)))

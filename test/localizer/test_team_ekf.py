@@ -7,7 +7,7 @@ import math
 from landmark_ros.core.pose2 import wrap_angle
 from landmark_ros.eval import slam_montecarlo
 from landmark_ros.eval.slam_loop import LoopConfig
-from landmark_ros.eval.team_ekf import place, TeamEKF
+from landmark_ros.eval.team_ekf import _joint_hypothesis, FIRST_TRACK_ID, place, SKIP, TeamEKF
 from landmark_ros.localizer import motion
 from landmark_ros.localizer.config import LocalizerConfig
 from landmark_ros.localizer.update import observe
@@ -102,8 +102,6 @@ def test_a_new_landmark_carries_its_cross_covariance_with_the_poses():
     # The second robot's sighting of it correlates the two robots' poses.
     ekf.sightings(1, 3 * MS, np.array([9]), np.array([[1.5, 0.6]]))
     assert np.abs(ekf.P[:3, 3:6]).max() > 1e-5
-    with pytest.raises(ValueError, match='IDs'):
-        TeamEKF(replace(_config(), hide_ids=True), ['robot1'])
 
 
 class _NoCrossCovariance(TeamEKF):
@@ -154,14 +152,65 @@ def test_robot_sightings_move_both_poses_and_keep_the_heading_wrapped():
 
 
 @pytest.mark.skipif(not DATASET.is_dir(), reason='needs ../shared MRCLAM dataset 6')
-def test_mrclam_reference_runs_the_first_minute_and_scores_the_joint_map(tmp_path, capsys):
+@pytest.mark.parametrize('mode', [[], ['--anchors'], ['--hide-ids']])
+def test_mrclam_reference_runs_the_first_minute_and_scores_the_joint_map(
+        tmp_path, capsys, mode):
     out = tmp_path / 'ekf.json'
-    assert slam_cli.main([str(DATASET), '--duration', '60', '--estimator',
-                          'team_ekf', '--range-scale-state', '--json', str(out)]) == 0
+    assert slam_cli.main([str(DATASET), '--duration', '60', '--estimator', 'team_ekf',
+                          '--range-scale-state', '--json', str(out)] + mode) == 0
     entry, = json.loads(out.read_text())['slam']
     assert entry['estimator'] == 'team_ekf'
+    assert entry['anchors'] == ('--anchors' in mode)
+    assert entry['ids_hidden'] == ('--hide-ids' in mode)
     assert entry['map_joint_dof'] == 2 * entry['map_landmarks_scored'] > 0
     assert entry['map_joint_nees'] > 0.0 and entry['position_rmse_m'] < 0.3
+    assert entry['map_rmse_m'] < (0.05 if mode == ['--anchors'] else 0.3)
     assert 'map joint NEES' in capsys.readouterr().out
-    with pytest.raises(SystemExit):
-        slam_cli.main([str(DATASET), '--estimator', 'team_ekf', '--hide-ids'])
+
+
+def test_the_joint_hypothesis_takes_the_most_pairs_then_the_least_nees():
+    cost = {(0, 'a'): 1.0, (0, 'b'): 0.5, (1, 'a'): 0.2, (1, 'b'): 3.0}
+
+    def nees(pairs):
+        return sum(cost[p] for p in pairs)
+
+    # Two pairs beat one; of the two-pair hypotheses the cheaper (0-b, 1-a).
+    assert _joint_hypothesis(nees, [['a', 'b'], ['a', 'b']], lambda n: 10.0) == [
+        (0, 'b'), (1, 'a')]
+    # A joint gate that two pairs cannot pass: one pair, the cheapest.
+    assert _joint_hypothesis(nees, [['a', 'b'], ['a', 'b']], lambda n: 0.9 if n == 1 else
+                             0.0) == [(1, 'a')]
+    assert _joint_hypothesis(nees, [[], []], lambda n: 10.0) == []
+
+
+def _reading(pose, m):
+    d = np.asarray(m) - pose[:2]
+    return np.array([np.hypot(*d), wrap_angle(math.atan2(d[1], d[0]) - pose[2])])
+
+
+def test_without_ids_rows_start_tracks_then_join_them_and_ambiguous_rows_wait():
+    ekf = TeamEKF(replace(_config(), hide_ids=True), ['robot1'])
+    pose = np.array([0.0, 0.0, 0.0])
+    ekf.start(0, 1 * MS, pose, np.diag([1e-6, 1e-6, 1e-6]))
+    far = [(3.0, 1.0), (2.0, -2.0)]
+    z = np.array([_reading(pose, m) for m in far])
+    ekf.sightings(0, 2 * MS, np.array([0, 0]), z)
+    assert sorted(ekf.landmarks) == [FIRST_TRACK_ID, FIRST_TRACK_ID + 1]
+    assert ekf.map_records() == []  # one row each: not confirmed yet (min_observations)
+    ekf.sightings(0, 3 * MS, np.array([0, 0]), z[::-1])  # the same two, order swapped
+    assert len(ekf.landmarks) == 2
+    assert {r['id'] for r in ekf.map_records()} == {FIRST_TRACK_ID, FIRST_TRACK_ID + 1}
+    # Two rows compatible with one landmark only: one pairs with it, the other is
+    # neither paired nor new (SKIP); a row far from both landmarks starts a track.
+    one = TeamEKF(replace(_config(), hide_ids=True), ['robot1'])
+    one.start(0, 1 * MS, pose, np.diag([1e-6, 1e-6, 1e-6]))
+    one._insert(5, np.array([3.0, 0.0]), np.eye(2) * 0.01)
+    one._insert(6, np.array([0.0, 3.0]), np.eye(2) * 0.01)
+    rows = np.array([_reading(pose, (3.02, 0.0)), _reading(pose, (3.0, 0.01)),
+                     _reading(pose, (-3.0, 0.0))])
+    ids = one._name_rows(0, rows)
+    assert sorted(ids[:2].tolist()) == [SKIP, 5]
+    assert ids[2] == FIRST_TRACK_ID and FIRST_TRACK_ID not in one.landmarks
+    one.sightings(0, 2 * MS, np.array([0, 0, 0]), rows)
+    assert sorted(one.landmarks) == [5, 6, FIRST_TRACK_ID + 1]
+    assert one.rows_per_landmark[5] == 1
