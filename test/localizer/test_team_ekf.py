@@ -214,3 +214,12 @@ def test_without_ids_rows_start_tracks_then_join_them_and_ambiguous_rows_wait():
     one.sightings(0, 2 * MS, np.array([0, 0, 0]), rows)
     assert sorted(one.landmarks) == [5, 6, FIRST_TRACK_ID + 1]
     assert one.rows_per_landmark[5] == 1
+
+
+def test_the_monte_carlo_judges_a_joint_map_by_its_joint_nees():
+    summary = {'pose_anees_interval': [2.5, 3.5], 'map_anees': 1.0,
+               'map_anees_interval': [1.8, 2.2]}
+    assert not slam_montecarlo.consistent(summary)
+    joint = dict(summary, map_joint_anees=1.0, map_joint_anees_interval=[0.9, 1.1])
+    assert slam_montecarlo.consistent(joint)
+    assert not slam_montecarlo.consistent(dict(joint, map_joint_anees=1.2))
