@@ -77,6 +77,12 @@ class PoseTrack:
     x: List[NDArray[np.float64]] = field(default_factory=list)
     P: List[NDArray[np.float64]] = field(default_factory=list)
 
+    def append(self, est: Estimate) -> None:
+        """Record one estimate."""
+        self.stamps_ns.append(est.stamp_ns)
+        self.x.append(est.x)
+        self.P.append(est.P)
+
     def arrays(self) -> Tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64]]:
         """Return stamps (K,) [ns], poses (K, 3) and covariances (K, 3, 3)."""
         return (np.array(self.stamps_ns, np.int64), np.array(self.x).reshape(-1, 3),
@@ -140,10 +146,7 @@ class TeamLoop:
         for batch in self.observers[robot].add_pose(stamp_ns, est.x, est.P, now_ns=stamp_ns):
             self._place(robot, batch)
         est = loc.estimate()
-        track = self.tracks[robot]
-        track.stamps_ns.append(est.stamp_ns)
-        track.x.append(est.x)
-        track.P.append(est.P)
+        self.tracks[robot].append(est)
         return est
 
     def sightings(self, robot: int, stamp_ns: int, ids: NDArray[np.int64],

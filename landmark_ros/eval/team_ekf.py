@@ -167,10 +167,7 @@ class TeamEKF:
             chain.twist = np.asarray(twist, np.float64)
             chain.odom = np.zeros(3)  # the chain has started
         est = self.estimate(robot)
-        track = self.tracks[robot]
-        track.stamps_ns.append(est.stamp_ns)
-        track.x.append(est.x)
-        track.P.append(est.P)
+        self.tracks[robot].append(est)
         return est
 
     def sightings(self, robot: int, stamp_ns: int, ids: NDArray[np.int64],
@@ -282,10 +279,9 @@ class TeamEKF:
         delta = motion.scale_motion(delta, dt, cfg.odometry_speed_scale,
                                     cfg.odometry_yaw_rate_scale,
                                     cfg.odometry_speed_scale_per_yaw_rate, cfg.odometry_yaw_per_m)
-        Q = motion.odometry_noise(delta, tuple(cfg.odometry_alphas))
-        if cfg.odometry_alphas_period_s > 0.0:
-            Q = Q * (cfg.odometry_alphas_period_s / dt)
-        Q = Q + np.eye(3) * cfg.min_step_variance
+        Q = (motion.odometry_noise(delta, tuple(cfg.odometry_alphas))
+             * motion.step_noise_scale(dt, cfg.odometry_alphas_period_s)
+             + np.eye(3) * cfg.min_step_variance)
         if dt > cfg.max_odometry_gap_s:
             extra = cfg.gap_position_stddev_per_s ** 2 * dt
             Q = Q + np.diag([extra, extra, 0.0])
