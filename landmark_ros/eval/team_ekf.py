@@ -150,12 +150,16 @@ class TeamEKF:
         """
         Predict a robot to an odometry message (its ``pose`` (3,) or its ``twist`` (2,)).
 
-        Returns the robot's estimate at ``stamp_ns`` (None when the stamp is not later
-        than the last one).
+        Returns the robot's estimate at ``stamp_ns``; None, the message skipped and
+        counted in ``counts['odometry_skipped']``, when the stamp is not later than the
+        last one or the message holds no finite pose or twist.
         """
         chain = self._chains[robot]
         stamp_ns = int(stamp_ns)
-        if stamp_ns <= chain.stamp_ns and chain.odom is not None:
+        given = pose if pose is not None else twist
+        if ((stamp_ns <= chain.stamp_ns and chain.odom is not None) or given is None
+                or not np.all(np.isfinite(given))):
+            self.counts.update(['odometry_skipped'])
             return None
         if pose is not None:
             odom = np.asarray(pose, np.float64)

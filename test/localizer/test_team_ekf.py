@@ -149,6 +149,13 @@ def test_robot_sightings_move_both_poses_and_keep_the_heading_wrapped():
     assert np.trace(ekf.P[3:5, 3:5]) < np.trace(before[3:5, 3:5])
     assert -math.pi <= ekf.x[2] <= math.pi
     assert not ekf.robot_sighting(0, 3 * MS, 1, np.array([np.nan, 0.0]))
+    # Odometry without a finite motion, or stamped back in time, is skipped and counted.
+    ekf.odometry(0, 4 * MS, twist=np.array([0.1, 0.0]))
+    assert ekf.odometry(0, 5 * MS, twist=np.array([np.nan, 0.0])) is None
+    assert ekf.odometry(0, 3 * MS, twist=np.array([0.1, 0.0])) is None
+    assert ekf.odometry(0, 6 * MS) is None
+    assert ekf.counts['odometry_skipped'] == 3
+    assert np.all(np.isfinite(ekf.estimate(0).x))
 
 
 @pytest.mark.skipif(not DATASET.is_dir(), reason='needs ../shared MRCLAM dataset 6')
