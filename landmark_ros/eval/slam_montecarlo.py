@@ -240,7 +240,7 @@ def format_summary(name, s):
     low, high = s['pose_anees_interval']
     map_low, map_high = s['map_anees_interval']
     return (f'{name}: {s["seeds"]} seeds; pose ANEES {s["pose_anees"]:.2f} (95 % interval '
-            f'{low:.2f} to {high:.2f}; 3 is consistent), stamps inside the chi-square '
+            f'{low:.2f} to {high:.2f}; consistent if it holds 3), stamps inside the chi-square '
             f'interval {s["pose_stamps_inside_fraction"]:.3f}, position RMSE '
             f'{s["position_rmse_m"]:.3f} m; map ANEES {s["map_anees"]:.2f} (interval '
             f'{map_low:.2f} to {map_high:.2f}, {s["landmarks_scored"]} landmarks), map RMSE '
@@ -249,19 +249,24 @@ def format_summary(name, s):
             + (f'joint map NEES per dof {s["map_joint_anees"]:.2f} (interval '
                f'{s["map_joint_anees_interval"][0]:.2f} to '
                f'{s["map_joint_anees_interval"][1]:.2f}); ' if 'map_joint_anees' in s else '')
-            + f'{"consistent" if consistent(s) else "NOT consistent"}')
+            + f'{"consistent" if consistent(s) else "NOT consistent"}'
+            + (' (map judged by its joint NEES)' if 'map_joint_anees' in s else ''))
 
 
 def main(argv=None):
     """Print the Monte Carlo figures; exit 1 when a run is not consistent."""
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[1])
-    parser.add_argument('--seeds', type=int, default=20)
-    parser.add_argument('--robots', type=int, default=3)
+    parser = argparse.ArgumentParser(
+        prog='python -m landmark_ros.eval.slam_montecarlo',
+        description=__doc__.splitlines()[1] + ' Exits 1 when a run is not consistent.',
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    parser.add_argument('--seeds', type=int, default=20, help='seeds of the short run '
+                        '(0: none)')
+    parser.add_argument('--robots', type=int, default=3, help='robots per seed')
     parser.add_argument('--duration', type=float, default=60.0, help='[s] per seed')
     parser.add_argument('--long', action='store_true',
                         help='add a 600 s run over --long-seeds seeds')
-    parser.add_argument('--long-seeds', type=int, default=2)
-    parser.add_argument('--first-seed', type=int, default=0)
+    parser.add_argument('--long-seeds', type=int, default=2, help='seeds of the long run')
+    parser.add_argument('--first-seed', type=int, default=0, help='the first seed')
     parser.add_argument('--precision-sources', type=int, default=1,
                         help='sources per robot in the fuser (eval.slam_loop.LoopConfig)')
     parser.add_argument('--initial-stddev', type=float, nargs=3, default=INITIAL_STDDEV,

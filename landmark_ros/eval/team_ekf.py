@@ -12,15 +12,18 @@ models, what the information would give if nothing were bounded: the accuracy th
 gives up and whether the models hold when fully used.
 
 The same models as the loop's localizers (``LocalizerConfig``): the odometry twist held
-until the next message, scaled and with the noise of ``localizer.motion`` (per step as
+until the next message, its calibrated systematic error removed (``motion.scale_motion``)
+and with the noise of ``localizer.motion`` (per step as
 ``Localizer`` does it); sightings with the range scale correction
 (``update.correct_ranges``), the range and bearing noise, its time-correlated part and
 the bias counted as the localizer counts them (``update.row_noise`` with
 ``steps.count_shared``); a row gated at ``gate_probability`` (2 dof); a sighting of
-another robot with ``robot_stddev_floor`` on its position. With
-``range_scale_state_stddev`` (and ``range_scale_bearing_state_stddev``) each robot's
-block holds its range scale states after its pose (``update.observe``; ``place`` is the
-inverse). A landmark enters the state
+another robot with ``robot_stddev_floor`` on its position (the marker the camera sees
+is not the point the other's pose names). With ``range_scale_state_stddev`` (and
+``range_scale_bearing_state_stddev``) each robot's block holds its range scale states
+after its pose (``update.observe``; ``place`` is the inverse); the MRCLAM loop's config
+sets them only with ``slam_range_scale_state`` (``slam_cli --range-scale-state``). A
+row is one reading of one message (range and bearing). A landmark enters the state
 at its first row (its mean and covariance from ``core.sensors``' inverse model and the
 rows' Jacobians, cross-covariances included). Without IDs the rows are paired by joint
 compatibility on the joint state (``TeamEKF._name_rows``). Anchors: the landmarks

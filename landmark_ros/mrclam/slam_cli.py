@@ -13,8 +13,12 @@ picture per mode (``FILE`` stem + ``-ids|-noids`` + ``-anchors``).
 
 One mode in its own process (a whole run takes minutes; one mode per process keeps the
 runs apart): ``python -m landmark_ros.mrclam.slam_cli [--hide-ids] [--anchors]
-[--duration S] [--start S] [--json OUT] [DATASET]`` prints the same table and the map's landmarks
-one per line (error, NEES).
+[--duration S] [--start S] [--range-scale-state] [--estimator loop|team_ekf] [--json OUT]
+[DATASET]`` prints the same table and the map's landmarks one per line (error, NEES);
+``--estimator team_ekf`` runs the reference that keeps every correlation
+(``eval.team_ekf``, docs/slam-analysis.md) instead of the loop. The ``ok`` column: the
+robot is consistent (pose ANEES 1.5 to 4.5 and at least 90 % of its poses inside their
+95 % ellipse, ``localize.consistent``).
 """
 
 import argparse
@@ -129,9 +133,11 @@ def main(argv=None):
                                      description='landmark_mrclam --slam, one mode.')
     add_dataset_arguments(parser)
     parser.add_argument('--hide-ids', action='store_true',
-                        help='sightings without IDs: the loop associates them')
+                        help='sightings without IDs: the loop (or the team EKF) associates '
+                        'them')
     parser.add_argument('--anchors', action='store_true',
-                        help='anchor the frame with slam_anchor_ids of the config')
+                        help='anchor the frame with slam_anchor_ids of the config (default 6, '
+                        '11, 19)')
     parser.add_argument('--duration', type=float, default=None, metavar='SECONDS',
                         help='only SECONDS of the run (from --start)')
     parser.add_argument('--start', type=float, default=0.0, metavar='SECONDS',
@@ -141,8 +147,8 @@ def main(argv=None):
     parser.add_argument('--json', type=Path, default=None,
                         help='write the figures (a slam entry) as JSON')
     parser.add_argument('--range-scale-state', action='store_true',
-                        help='the localizers keep the range scale states of the localizer '
-                        'section (slam_range_scale_state: true)')
+                        help='the localizers (or the team EKF) keep the range scale states '
+                        'of the localizer section (slam_range_scale_state: true)')
     parser.add_argument('--estimator', default='loop', choices=('loop', 'team_ekf'),
                         help='loop: the pipeline of the nodes (TeamLoop); team_ekf: the reference '
                         'that keeps every correlation (eval.team_ekf)')
@@ -163,7 +169,10 @@ def main(argv=None):
     print(slam.format_table([result], dataset.duration))
     print('\n'.join(_landmark_lines(result.records, dataset.landmarks)))
     if args.json:
-        write_json(args.json, {'slam': [result.entry]})
+        options = {'range_scale_state': args.range_scale_state, 'duration_s': args.duration,
+                   'start_s': args.start, 'dataset': str(dataset.path)}
+        write_json(args.json, {'slam': [dict(result.entry, options=options)]})
+        print(f'wrote {args.json}')
     return 0
 
 
