@@ -117,7 +117,8 @@ offline (default)
 ``--calibrate``
     Estimate the camera delay and the sensor model from ground truth and print
     suggested YAML values (``landmark_ros.mrclam.calibrate.calibrate`` documents the
-    procedure; ``camera_delay_s`` goes in the ``landmark_mrclam`` section).
+    procedure; ``camera_delay_s`` goes in the ``landmark_mrclam`` section), then the
+    landmarks' apparent offsets (``landmark_ros.mrclam.landmark_offsets``).
 ``--export-bag OUT`` (deprecated, removed in the next release)
     Runs ``landmark_bag --from-mrclam DATASET -o OUT --config CONFIG`` (the bag tool
     owns the export; this replay does not import it) after a deprecation warning on
@@ -146,8 +147,8 @@ with its 95 % interval, then a summary table, one row per method.
                             "same_track_ids"}},  # through_nodes; the last with --hide-ids
      "nodes": {...}}                   # through_nodes: counters, diagnostics, CPU time
 
-With ``--calibrate`` the object is ``{"calibration": {...}, "dataset": {...}}``
-(``Calibration.to_dict``).
+With ``--calibrate`` the object is ``{"calibration": {...}, "landmark_offsets": {...},
+"dataset": {...}}`` (``Calibration.to_dict``, ``landmark_offsets.apparent_offsets``).
 ``--plot FILE`` draws the robot paths, the true landmarks and the fused landmarks with
 their 2-sigma ellipses (matplotlib, ``landmark_ros.eval.plotting``).
 """
@@ -166,6 +167,7 @@ from landmark_ros.mrclam.crossval import (cross_validate, cross_validate_localiz
                                           format_entry, format_localize_entry, HEADER,
                                           LOCALIZE_HEADER, LOCALIZE_MODES, MODES, SCHEMES)
 from landmark_ros.mrclam.data import load_dataset
+from landmark_ros.mrclam.landmark_offsets import apparent_offsets, format_offsets
 from landmark_ros.mrclam.offline import run_offline, SENSORS
 from landmark_ros.mrclam.replay_plan import PlayOptions
 from landmark_ros.mrclam.report import (agreement, dataset_dict, dataset_report,
@@ -268,9 +270,12 @@ def calibrate_command(args, dataset):
         print(f'landmark_mrclam: {error}', file=sys.stderr)
         return 2
     print(format_calibration(calibration))
+    offsets = apparent_offsets(dataset.with_camera_delay(calibration.camera_delay_s),
+                               calibration.range_scale_coeffs, calibration.range_scale_per_m)
+    print(format_offsets(offsets))
     if args.json:
         write_json(args.json, {'calibration': calibration.to_dict(),
-                               'dataset': dataset_dict(dataset)})
+                               'landmark_offsets': offsets, 'dataset': dataset_dict(dataset)})
     return 0
 
 
