@@ -230,8 +230,9 @@ def run_mode(dataset, extras, loop_config, mode: SlamMode, delay_s=0.0,
     """
     Run one mode; return its tracks, map records and JSON entry.
 
-    ``loop_class``: ``TeamLoop`` or ``eval.team_ekf.TeamEKF`` (the reference, IDs
-    only; its entry adds the map's joint NEES, ``joint_map_entry``).
+    ``loop_class``: ``TeamLoop`` or ``eval.team_ekf.TeamEKF`` (the reference; its
+    entry adds the map's joint NEES, ``joint_map_entry``, without IDs over the tracks
+    matched to a true landmark).
     """
     fuser = loop_config.fuser
     if mode.anchors:
