@@ -49,7 +49,8 @@ from landmark_ros.eval.slam_loop import LoopConfig, PoseTrack
 from landmark_ros.fuser import map_file
 from landmark_ros.localizer import motion
 from landmark_ros.localizer.steps import count_shared, Estimate
-from landmark_ros.localizer.update import correct_ranges, RANGE_BEARING, row_noise
+from landmark_ros.localizer.update import (correct_ranges, RANGE_BEARING, row_noise,
+                                           sensor_noise)
 from landmark_ros.localizer.update import observe as update_observe
 import numpy as np
 from numpy.typing import NDArray
@@ -317,7 +318,7 @@ class TeamEKF:
         cfg = self.config.localizer
         kind = np.full(len(z), RANGE_BEARING)
         z, _ = correct_ranges(z, kind, None, cfg.range_scale_coeffs, cfg.range_scale_per_m)
-        R = self._sensor_noise(z)
+        R = sensor_noise(self.config.localizer, z)
         tau_ns = int(cfg.noise_correlation_time_s * 1e9)
         shared = count_shared(self._seen[robot], stamp_ns, keys, tau_ns)
         shared_bias = (count_shared(self._seen[robot], stamp_ns, [None] * len(keys), tau_ns)
@@ -348,7 +349,7 @@ class TeamEKF:
         cfg = self.config.localizer
         z, _ = correct_ranges(z, np.full(len(z), RANGE_BEARING), None, cfg.range_scale_coeffs,
                               cfg.range_scale_per_m)
-        R = row_noise(self._sensor_noise(z), self._parts, self._R_bias, None,
+        R = row_noise(sensor_noise(self.config.localizer, z), self._parts, self._R_bias, None,
                       np.ones(len(z)), False)
         models, compatible = {}, []
         gate = chi2_threshold(2, cfg.association_probability)
@@ -384,16 +385,6 @@ class TeamEKF:
         for k in np.flatnonzero((ids == SKIP) & np.array([not c for c in compatible], bool)):
             ids[k], self._next_track = self._next_track, self._next_track + 1
         return ids
-
-    def _sensor_noise(self, z):
-        """Return the range and bearing noise (N, 2, 2) of corrected readings ``z``."""
-        cfg = self.config.localizer
-        R = np.zeros((len(z), 2, 2))
-        R[:, 0, 0] = sensors.range_noise_variance(z[:, 0], cfg.range_stddev ** 2,
-                                                  cfg.range_stddev_per_m ** 2,
-                                                  cfg.range_stddev_per_m2 ** 2)
-        R[:, 1, 1] = cfg.bearing_stddev ** 2
-        return R
 
     def _update(self, robot, cols, z, R, P_extra=None, label='rows'):
         """Update with one row of robot ``robot`` seeing the point at ``cols``; return used."""

@@ -49,15 +49,14 @@ import math
 from typing import Any, Callable, List, Optional, Tuple
 
 from landmark_ros.core.gating import chi2_threshold
-from landmark_ros.core.sensors import range_noise_variance
 from landmark_ros.localizer import motion
 from landmark_ros.localizer.association import label_rows, MapAssociation
 from landmark_ros.localizer.config import LocalizerConfig
 from landmark_ros.localizer.consider import ConsiderRows, ConsiderSlots, select, update_consider
 from landmark_ros.localizer.mixture import alternatives, update_mixture
 from landmark_ros.localizer.steps import Batch, count_shared, Estimate, Step as _Step
-from landmark_ros.localizer.update import (correct_ranges, RANGE_BEARING, row_noise, update,
-                                           UpdateSettings)
+from landmark_ros.localizer.update import (correct_ranges, RANGE_BEARING, row_noise,
+                                           sensor_noise, update, UpdateSettings)
 from landmark_ros.pipeline.counters import Counters, Status
 from landmark_ros.pipeline.rows import landmark_row_problems
 import numpy as np
@@ -460,13 +459,7 @@ class Localizer:
 
     def sensor_noise(self, z: NDArray[np.float64]) -> NDArray[np.float64]:
         """Return the config's noise of observations ``z`` (N, 2), shape (N, 2, 2)."""
-        cfg = self.config
-        r = np.nan_to_num(z[:, 0])
-        R = np.zeros((len(z), 2, 2))
-        R[:, 0, 0] = range_noise_variance(r, cfg.range_stddev ** 2, cfg.range_stddev_per_m ** 2,
-                                          cfg.range_stddev_per_m2 ** 2)
-        R[:, 1, 1] = cfg.bearing_stddev ** 2
-        return R
+        return sensor_noise(self.config, z)
 
     def _apply_at(self, batch: Batch) -> None:
         if not self._steps:

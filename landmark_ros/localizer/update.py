@@ -191,6 +191,23 @@ def correct_ranges(z: NDArray[np.float64], kind: NDArray[np.int64],
     return z, R
 
 
+def sensor_noise(config, z: NDArray[np.float64]) -> NDArray[np.float64]:
+    """
+    Return the noise of observations ``z`` (N, 2) under ``config``, shape (N, 2, 2).
+
+    ``config`` is a ``LocalizerConfig`` (its ``range_stddev*`` and ``bearing_stddev``):
+    the range variance grows with the range (``sensors.range_noise_variance``; a
+    non-finite range counts as 0), the bearing's is constant; no cross term.
+    """
+    r = np.nan_to_num(z[:, 0])
+    R = np.zeros((len(z), 2, 2))
+    R[:, 0, 0] = sensors.range_noise_variance(r, config.range_stddev ** 2,
+                                              config.range_stddev_per_m ** 2,
+                                              config.range_stddev_per_m2 ** 2)
+    R[:, 1, 1] = config.bearing_stddev ** 2
+    return R
+
+
 def row_noise(R: NDArray[np.float64], parts: Tuple[NDArray[np.float64], NDArray[np.float64]],
               R_bias: NDArray[np.float64], shared: Optional[NDArray[np.float64]],
               shared_bias: Optional[NDArray[np.float64]],
