@@ -10,7 +10,9 @@ Each observer runs in its robot's namespace (``/<robot>/landmark_observer``: ``p
 or ``odometry`` and ``observations`` in, ``landmarks`` and the partial observations
 out) with ``observer_params``. The fuser reads ``fuser_params`` and fuses the outputs
 of every robot named in ``robots``: its per-robot topic parameters (``FUSER_INPUTS``)
-follow ``robots``, whatever the file says. The parameter files key on the node names
+follow ``robots``, whatever the file says (with the observers' ``precision_sources``
+from ``observer_params``, each robot's ``landmarks/precision_k`` topics too). The
+parameter files key on the node names
 ``landmark_observer``, ``landmark_fuser`` and ``landmark_sim``, as the shipped ones do.
 
 ``sim:=true`` also starts ``landmark_sim`` with ``sim_params`` and as many robots as
@@ -102,7 +104,7 @@ def robot_names(text):
     return names
 
 
-def fuser_topics(robots):
+def fuser_topics(robots, precision_sources=1):
     """
     Return the fuser's per-robot topic parameters for ``robots``.
 
@@ -110,6 +112,9 @@ def fuser_topics(robots):
     ----------
     robots : list of str
         Robot names.
+    precision_sources : int
+        The observers' ``precision_sources``: each robot's landmark topics
+        (``landmarks`` and ``landmarks/precision_k``, ``observer.precision``).
 
     Returns
     -------
@@ -117,8 +122,32 @@ def fuser_topics(robots):
         ``FUSER_INPUTS`` parameter -> ``/<robot>/<topic>`` for each robot, in order.
 
     """
-    return {parameter: [f'/{robot}/{topic}' for robot in robots]
-            for parameter, topic in FUSER_INPUTS.items()}
+    from landmark_ros.observer.precision import precision_topics
+    out = {parameter: [f'/{robot}/{topic}' for robot in robots]
+           for parameter, topic in FUSER_INPUTS.items()}
+    out['input_topics'] = [topic for robot_topic in out['input_topics']
+                           for topic in precision_topics(robot_topic, precision_sources)]
+    return out
+
+
+def node_section(path, node):
+    """Return the ``ros__parameters`` of ``node`` in the parameter file ``path`` (merged)."""
+    with open(path, encoding='utf-8') as stream:
+        document = yaml.safe_load(stream) or {}
+    values = {}
+    for key, section in document.items():
+        if str(key).rstrip('/').split('/')[-1] == node:
+            values.update((section or {}).get('ros__parameters') or {})
+    return values
+
+
+def precision_sources_of(path):
+    """Return the observers' ``precision_sources`` in ``path``; TeamError if not 1 to 16."""
+    value = node_section(path, 'landmark_observer').get('precision_sources', 1)
+    if isinstance(value, bool) or not isinstance(value, int) or not 1 <= value <= 16:
+        raise TeamError(f'observer_params: precision_sources must be an integer from 1 to '
+                        f'16, got {value!r} in {path}')
+    return value
 
 
 def sim_remappings(robots, localize=False):
@@ -151,12 +180,7 @@ def localizer_overrides(robots, sim_params=None):
     if sim_params is None:
         return out
     from landmark_ros.sim.simulation import SimConfig, Simulation
-    with open(sim_params, encoding='utf-8') as stream:
-        document = yaml.safe_load(stream) or {}
-    values = {}
-    for key, section in document.items():
-        if str(key).rstrip('/').split('/')[-1] == 'landmark_sim':
-            values.update((section or {}).get('ros__parameters') or {})
+    values = node_section(sim_params, 'landmark_sim')
     values['robots'] = len(robots)
     sim = Simulation(SimConfig.from_values(values))
     config = sim.config
@@ -224,7 +248,8 @@ def check_team(arguments):
     ------
     TeamError
         With one line naming the argument: no robot or a repeated one, a parameter
-        file that is missing or not YAML, an unknown fusion method, ``sim`` or
+        file that is missing or not YAML, the observers' ``precision_sources`` not an
+        integer from 1 to 16, an unknown fusion method, ``sim`` or
         ``rviz`` neither true nor false, or ``rviz:=true`` without rviz2 installed.
 
     """
@@ -243,6 +268,7 @@ def check_team(arguments):
         files.append('localizer_params')
     for name in files:
         check_params_file(name, arguments[name])
+    precision_sources_of(arguments['observer_params'])
     methods = fusion_methods()
     if arguments['fusion'] and methods is not None and arguments['fusion'] not in methods:
         raise TeamError(f"fusion: {arguments['fusion']!r} is not one of {', '.join(methods)}")
@@ -285,7 +311,7 @@ def team_nodes(robots, arguments):
                   parameters=[arguments['observer_params'],
                               *replayed_inputs(robot, from_sim, sim)],
                   **common) for robot in robots]
-    overrides = fuser_topics(robots)
+    overrides = fuser_topics(robots, precision_sources_of(arguments['observer_params']))
     if localize:    # the loop's rows carry slow pose errors: no change detection (slam.md)
         overrides['move_false_alarm_rate'] = 0.0
     if arguments['fusion']:

@@ -58,6 +58,7 @@ REQUIRED = [
     'landmark_ros.observer',
     'landmark_ros.observer.observer',
     'landmark_ros.observer.partial',
+    'landmark_ros.observer.precision',
     'landmark_ros.observer.rows',
     'landmark_ros.fuser',
     'landmark_ros.fuser.change_detection',

@@ -40,6 +40,7 @@ from landmark_ros.fuser.sources import LandmarkMessage
 from landmark_ros.localizer.config import LocalizerConfig
 from landmark_ros.localizer.localizer import Estimate, Localizer, UNKNOWN_ID
 from landmark_ros.observer.observer import LandmarkBatch, ObservationMessage, Observer
+from landmark_ros.observer.precision import dependent_stddev, precision_level, precision_topics
 from landmark_ros.pipeline.config import FuserConfig, ObserverConfig
 import numpy as np
 from numpy.typing import NDArray
@@ -54,14 +55,6 @@ class LoopConfig:
     fuser: FuserConfig
     hide_ids: bool = False
     """Send the sightings without IDs: the fuser's association names the landmarks."""
-    precision_sources: int = 1
-    """Sources per robot: 1 is one source per robot (``/NAME/landmarks``, as the
-    nodes); k > 1 gives each robot k sources by the size of a message's dependent part
-    (``precision_source``), so that its precise rows are not averaged with its loose ones
-    inside one source."""
-    precision_base_m: float = 0.02
-    """Dependent standard deviation [m] of the first precision source; each next one
-    doubles it."""
     association: str = 'fuser'
     """With ``hide_ids``, who names the rows for the localizer: ``localizer`` (its own
     association in the robot frame, the pose covariance included, against the map it
@@ -106,9 +99,8 @@ class TeamLoop:
         self.names = list(names)
         self.localizers = [Localizer(config.localizer) for _ in names]
         self.observers = [Observer(config.observer) for _ in names]
-        levels = max(1, int(config.precision_sources))
-        self.sources = [[f'/{name}/landmarks'] + [f'/{name}/landmarks/{k}'
-                                                  for k in range(1, levels)]
+        self.sources = [precision_topics(f'/{name}/landmarks',
+                                         config.observer.precision_sources)
                         for name in names]
         self.fuser = Fuser(config.fuser, [s for robot in self.sources for s in robot])
         self.fuser.load()
@@ -211,18 +203,9 @@ class TeamLoop:
         self.counts['rows_to_localizer'] += loc.add_observations(batch.stamp_ns, ids, z)
 
     def precision_source(self, P_dep: NDArray[np.float64]) -> int:
-        """
-        Return the precision source of a message with dependent parts ``P_dep`` (K, 2, 2).
-
-        ``floor(log2(s / precision_base_m))`` clipped to the sources, with ``s`` =
-        ``dependent_stddev(P_dep)``.
-        """
-        levels = max(1, int(self.config.precision_sources))
-        if levels == 1 or not len(P_dep):
-            return 0
-        s = dependent_stddev(P_dep)
-        level = int(np.floor(np.log2(max(s, 1e-12) / self.config.precision_base_m)))
-        return min(max(level, 0), levels - 1)
+        """Return the precision level of a message (``observer.precision``) by its ``P_dep``."""
+        observer = self.config.observer
+        return precision_level(P_dep, observer.precision_sources, observer.precision_base_m)
 
     def map_records(self) -> List[dict]:
         """Return the fused map's confirmed landmarks (``LandmarkMap.to_records``)."""
@@ -239,13 +222,3 @@ class TeamLoop:
     def robot_counts(self, robot: int) -> dict:
         """Return a robot's localizer counters (``rows_used``, ``rows_gated``...)."""
         return dict(self.localizers[robot].counters.counts)
-
-
-def dependent_stddev(P_dep: NDArray[np.float64]) -> float:
-    """
-    Return a message's dependent standard deviation [m] from its rows' ``P_dep`` (K, 2, 2).
-
-    The square root of the median over the rows of the largest eigenvalue of the
-    dependent part (the pose error at the sighting, placed at the landmark); K >= 1.
-    """
-    return float(np.sqrt(np.median(np.linalg.eigvalsh(P_dep)[:, -1])))

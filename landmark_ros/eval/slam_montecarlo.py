@@ -85,7 +85,7 @@ class Variant:
     """What a study changes in the loop (the defaults: the package's loop)."""
 
     precision_sources: int = 1
-    """Sources per robot in the fuser (``LoopConfig.precision_sources``)."""
+    """Sources per robot in the fuser (the observers' ``precision_sources``)."""
     initial_stddev: tuple = INITIAL_STDDEV
     """Standard deviations of the starting poses' error, drawn and stated [m, m, rad]."""
     source_correlation: str = 'unknown'
@@ -105,12 +105,13 @@ def loop_config(variant=None):
                                 initial_stddev=tuple(variant.initial_stddev),
                                 landmark_correlation=variant.landmark_correlation)
     observer = ObserverConfig(range_stddev=RANGE_STDDEV, range_stddev_per_m=0.0,
-                              bearing_stddev=BEARING_STDDEV)
+                              bearing_stddev=BEARING_STDDEV,
+                              precision_sources=variant.precision_sources)
     # Change detection off, as in every loop (mrclam.slam.loop_config): the rows carry
     # the localizers' slow pose errors, not the white rows its test takes.
     fuser = FuserConfig(move_false_alarm_rate=0.0,
                         source_correlation=variant.source_correlation)
-    return LoopConfig(localizer, observer, fuser, precision_sources=variant.precision_sources)
+    return LoopConfig(localizer, observer, fuser)
 
 
 def _sightings(generator, pose, positions):

@@ -341,8 +341,9 @@ def loop_config(replay_config, localizer: LocalizerConfig,
     Return the loop's parameters: the params file's observer and fuser sections.
 
     From ``replay_values`` (the ``landmark_mrclam`` section), the precision sources:
-    ``slam_precision_sources`` (``LoopConfig.precision_sources``, default 1) and
-    ``slam_precision_base_m`` (``LoopConfig.precision_base_m``, default 0.02 m); and
+    ``slam_precision_sources`` and ``slam_precision_base_m``, the observers'
+    ``precision_sources`` and ``precision_base_m`` in the loop (default: the observer
+    section's; ``observer.precision``); and
     ``slam_correlated_noise``, the localizers' ``correlated_noise`` in the loop (default:
     the localizer section's);
     ``slam_association`` (``LoopConfig.association``, default ``fuser``): with IDs
@@ -377,7 +378,8 @@ def loop_config(replay_config, localizer: LocalizerConfig,
     # rows carry the localizers' pose errors, slow per robot: change detection's white
     # reference model does not hold for them.
     fuser = replace(replay_config.fuser, source_correlation='unknown', move_false_alarm_rate=0.0)
-    return LoopConfig(localizer, replay_config.observer, fuser,
-                      precision_sources=int(values.get('slam_precision_sources', 1)),
-                      precision_base_m=float(values.get('slam_precision_base_m', 0.02)),
-                      association=association)
+    observer = replay_config.observer
+    observer = replace(observer, precision_sources=int(values.get(
+        'slam_precision_sources', observer.precision_sources)), precision_base_m=float(
+        values.get('slam_precision_base_m', observer.precision_base_m)))
+    return LoopConfig(localizer, observer, fuser, association=association)

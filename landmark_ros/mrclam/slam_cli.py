@@ -104,8 +104,8 @@ def run_slam(args, dataset, replay_config, document):
     code = 0
     if args.through_nodes:
         from landmark_ros.mrclam.slam_nodes_cli import through_nodes
-        # The nodes publish one source per robot (/NAME/landmarks): no precision sources.
-        nodes_config = replace(config, precision_sources=1, hide_ids=bool(args.hide_ids))
+        # The observers publish the loop's precision sources (landmarks/precision_k).
+        nodes_config = replace(config, hide_ids=bool(args.hide_ids))
         code = through_nodes(args, (dataset, extras, nodes_config, replay_config.path,
                                     delay_s), results, document)
     if args.json:

@@ -7,7 +7,8 @@ interface), each with ``--params-file`` the replay's config: per robot a
 odometry stamp, its map from the fuser's ``fused_landmarks``) and a
 ``landmark_observer`` (its ``pose`` input is the localizer's ``pose`` output); one
 ``landmark_fuser`` (``/mrclam/slam``, the loop's fusion method, inputs
-``/robotN/landmarks``). The player in this process publishes each robot's odometry
+``/robotN/landmarks`` and, with the observers' ``precision_sources``, each robot's
+``landmarks/precision_k``). The player in this process publishes each robot's odometry
 (twist only) into its localizer and each sighting message into its localizer and its
 observer, and follows the outputs.
 
@@ -25,7 +26,7 @@ robot ``r``) at a time:
 4. the same cloud to the observer (a *stale* step, which the loop's observer placed
    with its newest pose after ``max_wait_s`` of stamps, with the odometry held and the
    observer's ``max_wait_s`` briefly set short: it gives up waiting the same way);
-   wait for its ``landmarks`` output; a mirror
+   wait for its ``landmarks`` output (on the topic of its precision level); a mirror
    ``Fuser`` in the player fed with that very cloud says whether the map changes: if
    so, wait for the fuser's next ``fused_landmarks``, else until the fuser's
    diagnostics (every 50 ms) count as many messages in from ``r``'s observer as the
@@ -67,6 +68,7 @@ from landmark_ros.mrclam.player import stamp_msg
 from landmark_ros.mrclam.replay_plan import (cpu_seconds, observer_arguments,
                                              OBSERVER_TRANSPORT, ReplayError)
 from landmark_ros.mrclam.slam_plan import plan, start_pose
+from landmark_ros.observer.precision import precision_topics
 from landmark_ros.pipeline.rows import UNKNOWN_ID
 from landmark_ros.ros import qos
 from landmark_ros.ros.conversions import stamp_ns
@@ -149,11 +151,22 @@ class _Robot:
     """Clouds sent to the localizer (the empty one of ``connect`` included)."""
     map_stamp: int = -1
     """``map_stamp_ns`` of the localizer's newest diagnostics."""
-    fused: tuple = (-1, -1)
-    """``messages_in`` and ``queued_messages`` of the fuser's diagnostics of this source."""
+    topics: tuple = ()
+    """The robot's landmark topics, one per precision level (``observer.precision``)."""
 
     def __post_init__(self):
-        self.poses, self.outputs, self.counts, self.diagnostics = [], [], None, 0
+        self.poses, self.counts, self.diagnostics = [], None, 0
+        self.outputs = []
+        """``(topic, cloud)`` of every landmark message of the observer, in arrival order."""
+        self.fused = {}
+        """Per topic ``messages_in`` and ``queued_messages`` of the fuser's diagnostics."""
+
+    def fused_in(self):
+        """Return the messages the fuser took from this robot, and how many are queued."""
+        if len(self.fused) < len(self.topics):
+            return -1, -1
+        return (sum(a for a, _ in self.fused.values()),
+                sum(b for _, b in self.fused.values()))
 
 
 class SlamPlayer:
@@ -178,7 +191,9 @@ class SlamPlayer:
         self.robots = []
         for robot in dataset.robots:
             ex, ns = extras[robot.number], f'/{robot.name}'
-            s = _Robot(robot, ex, seconds_to_stamps_ns(ex.odom_times + delay_s))
+            s = _Robot(robot, ex, seconds_to_stamps_ns(ex.odom_times + delay_s),
+                       topics=tuple(precision_topics(
+                           f'{ns}/landmarks', loop_config.observer.precision_sources)))
             s.odom_pub = node.create_publisher(Odometry, f'{ns}/odometry', depth)
             s.loc_pub = node.create_publisher(PointCloud2, f'{ns}/localizer_observations',
                                               depth)
@@ -189,8 +204,9 @@ class SlamPlayer:
                 SetParameters, f'{ns}/landmark_observer/set_parameters')
             node.create_subscription(PoseWithCovarianceStamped, f'{ns}/pose',
                                      lambda m, s=s: s.poses.append(m), depth)
-            node.create_subscription(PointCloud2, f'{ns}/landmarks',
-                                     lambda m, s=s: s.outputs.append(m), depth)
+            for topic in s.topics:
+                node.create_subscription(PointCloud2, topic, lambda m, s=s, t=topic:
+                                         s.outputs.append((t, m)), depth)
             self.robots.append(s)
         self.maps = []
         node.create_subscription(PointCloud2, f'{FUSER_NS}/fused_landmarks',
@@ -198,11 +214,11 @@ class SlamPlayer:
         self.fuser_client = node.create_client(
             GetParameters, f'{FUSER_NS}/landmark_fuser/get_parameters')
         by_name = {f'/{s.robot.name}/landmark_localizer': s for s in self.robots}
-        by_name.update({f'{FUSER_NS}/landmark_fuser: /{s.robot.name}/landmarks': s
-                        for s in self.robots})
+        by_name.update({f'{FUSER_NS}/landmark_fuser: {topic}': (s, topic)
+                        for s in self.robots for topic in s.topics})
         node.create_subscription(DiagnosticArray, '/diagnostics',
                                  lambda msg: self._diagnostics(msg, by_name), qos.DIAGNOSTICS)
-        self.sources = [f'/{r.name}/landmarks' for r in dataset.robots]
+        self.sources = [topic for s in self.robots for topic in s.topics]
         self.mirror = Fuser(loop_config.fuser, self.sources)
         self.mirror.load()
         self._odom = Odometry()
@@ -220,7 +236,9 @@ class SlamPlayer:
                 continue
             values = {kv.key: kv.value for kv in status.values}
             if status.name.startswith(FUSER_NS):
-                state.fused = (int(values.get('messages_in', 0)), int(values['queued_messages']))
+                state, topic = state
+                state.fused[topic] = (int(values.get('messages_in', 0)),
+                                      int(values['queued_messages']))
                 continue
             state.counts = values
             state.map_stamp = int(values.get('map_stamp_ns', -1))
@@ -286,8 +304,8 @@ class SlamPlayer:
                         and s.obs_pub.get_subscription_count()
                         and graph.count_subscribers(f'{ns}/pose') >= 2
                         and graph.count_publishers(f'{ns}/pose') >= 1
-                        and graph.count_subscribers(f'{ns}/landmarks') >= 2
-                        and graph.count_publishers(f'{ns}/landmarks') >= 1):
+                        and all(graph.count_subscribers(t) >= 2 and graph.count_publishers(t)
+                                for t in s.topics)):
                     return False
             return (self.fuser_client.service_is_ready() and graph.count_subscribers(
                 f'{FUSER_NS}/fused_landmarks') >= len(self.robots) + 1)
@@ -380,14 +398,16 @@ class SlamPlayer:
             s.obs_pub.publish(self._cloud(i))
             self.wait(lambda: len(s.outputs) > before_outputs, f'{name} landmarks',
                       phase='landmarks')
-        if self._mirror(s.outputs[before_outputs], f'/{name}/landmarks'):
+        topic, cloud = s.outputs[before_outputs]
+        if self._mirror(cloud, topic):
             self.info['maps_expected'] += 1
             self.wait(lambda: len(self.maps) > before_maps, 'the fused map', phase='map')
             return
         # No new map: the fuser fuses the cloud all the same before the next step's.
-        if s.fused[0] < len(s.outputs) or s.fused[1]:
+        fused, queued = s.fused_in()
+        if fused < len(s.outputs) or queued:
             self.info['fuser_waits'] += 1
-            self.wait(lambda: s.fused[0] >= len(s.outputs) and not s.fused[1],
+            self.wait(lambda: s.fused_in()[0] >= len(s.outputs) and not s.fused_in()[1],
                       f'the fuser to fuse {name} landmarks', phase='fused')
         if len(self.maps) > before_maps:
             self.info['maps_unexpected'] += 1
@@ -449,10 +469,14 @@ def start_nodes(launcher, dataset, extras, setup):
 
     ``setup`` is ``(config_path, work, delay_s, loop_config)``; the localizers take the
     loop's range scale states, range bias and map correlation (``slam.loop_config``)
-    over the file's.
+    over the file's, the observers its precision sources, the fuser each robot's
+    precision topics.
     """
     config_path, work, delay_s, loop_config = setup
     fusion, loc = loop_config.fuser.fusion, loop_config.localizer
+    observer = loop_config.observer
+    precision = (_param('precision_sources', observer.precision_sources)
+                 + _param('precision_base_m', observer.precision_base_m))
     for robot in dataset.robots:
         params = work / f'localizer_{robot.name}.yaml'
         write_params_file(params, {f'/{robot.name}/landmark_localizer': {
@@ -464,9 +488,11 @@ def start_nodes(launcher, dataset, extras, setup):
         launcher.start_module(f'localizer_{robot.name}', 'landmark_ros.nodes.localizer',
                               localizer_arguments(robot, config_path, params))
         launcher.start_module(f'observer_{robot.name}', 'landmark_ros.nodes.observer',
-                              observer_arguments(robot, config_path))
-    launcher.start_module('fuser', 'landmark_ros.nodes.fuser', fuser_arguments(
-        [f'/{r.name}/landmarks' for r in dataset.robots], config_path, fusion))
+                              observer_arguments(robot, config_path) + precision)
+    topics = [t for r in dataset.robots
+              for t in precision_topics(f'/{r.name}/landmarks', observer.precision_sources)]
+    launcher.start_module('fuser', 'landmark_ros.nodes.fuser',
+                          fuser_arguments(topics, config_path, fusion))
 
 
 def run_through_nodes(dataset, extras, loop_config, paths, delay_s, domain_id,

@@ -5,7 +5,8 @@ Subscribes ``pose`` (geometry_msgs/PoseWithCovarianceStamped; with ``pose_type:
 odometry`` ``odometry``, nav_msgs/Odometry, instead) and ``observations``
 (sensor_msgs/PointCloud2 with ``id``, ``range``, ``bearing`` and optional noise
 fields); publishes ``landmarks`` (PointCloud2: ``id``, ``x``, ``y``, ``z``,
-``cov_xx``, ``cov_xy``, ``cov_yy`` and the dependent part ``cov_dep_*``),
+``cov_xx``, ``cov_xy``, ``cov_yy`` and the dependent part ``cov_dep_*``; with
+``precision_sources`` > 1 also ``landmarks/precision_k``, ``observer.precision``),
 ``partial_observations`` (the partial rows: range-only and bearing-only, see
 ``observer.partial``), ``landmark_markers`` and ``/diagnostics``.
 The node only converts messages: the work is ``landmark_ros.observer.observer.Observer``.
@@ -17,6 +18,7 @@ from types import SimpleNamespace
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from landmark_ros.nodes.start import finish, lazy
+from landmark_ros.observer.precision import precision_level, precision_topics
 from landmark_ros.pipeline.config import ObserverConfig
 from landmark_ros.ros import diagnostics, fast_io, guard, qos, runner
 from landmark_ros.ros.cloud import CloudError, read_columns
@@ -60,9 +62,12 @@ class LandmarkObserver(Node):
             PointCloud2, ['observations'], qos.sensor_input(config.input_depth),
             lambda: self.config.max_batch_messages, qos_overriding_options=overrides,
             on_lost=self.on_lost), self.on_observations, self._guard, self._fast)
-        self.landmark_pub = self.create_publisher(
-            PointCloud2, 'landmarks', qos.reliable_output(config.output_depth),
+        # One landmark topic per precision level (observer.precision): landmarks first.
+        self.landmark_pubs = [self.create_publisher(
+            PointCloud2, topic, qos.reliable_output(config.output_depth),
             qos_overriding_options=overrides)
+            for topic in precision_topics('landmarks', config.precision_sources)]
+        self.landmark_pub = self.landmark_pubs[0]
         self.partial_pub = self.create_publisher(
             PointCloud2, 'partial_observations', qos.reliable_output(config.output_depth),
             qos_overriding_options=overrides)
@@ -170,14 +175,21 @@ class LandmarkObserver(Node):
     # Outputs ------------------------------------------------------------------
 
     def publish(self, batches):
-        """Publish one landmark cloud per placed observation message."""
+        """
+        Publish one landmark cloud per placed observation message.
+
+        On ``landmarks``, or with ``precision_sources`` > 1 on the topic of the message's
+        precision level (``observer.precision.precision_level``).
+        """
         if not batches:
             return
         keep = self.config.marker_rate_hz > 0.0 and self.marker_pub.get_subscription_count()
         for batch in batches:
             header = batch.token  # the received message's own header, reused
             header.frame_id = self.config.world_frame
-            self.landmark_pub.publish(schemas.landmark_message(
+            level = precision_level(batch.P_dep, len(self.landmark_pubs),
+                                    self.config.precision_base_m)
+            self.landmark_pubs[level].publish(schemas.landmark_message(
                 header, batch.ids, batch.m, batch.P, batch.P_dep, out=self._landmark_msg,
                 classes=batch.classes, scan=batch.scan))
             if len(batch.partial_observations):

@@ -232,6 +232,17 @@ class ObserverConfig(ConfigBase):
     log_throttle_s: float = param(
         5.0, 'Shortest interval between two log lines about the same problem [s].',
         low=0.0, high=3600.0)
+    precision_sources: int = param(
+        1, 'Topics the landmark messages are split over by the size of their dependent '
+        'part (observer.precision): a message whose dependent standard deviation s gives '
+        'floor(log2(s / precision_base_m)) = k (clipped to 0 .. precision_sources - 1) '
+        'goes to landmarks (k = 0) or landmarks/precision_k, so that a fuser taking each '
+        'as its own source keeps the precise rows apart from the loose ones. 1: every '
+        'message on landmarks.', read_only=True, low=1, high=16)
+    precision_base_m: float = param(
+        0.02, 'Dependent standard deviation [m] below which a message goes to landmarks '
+        'when precision_sources > 1; each next level doubles it.', read_only=True,
+        low=1e-6, high=1000.0)
     publish_landmark_constraints: bool = param(
         False, 'Deprecated, removed in the next release: also publish the partial '
         'observations on their former topic landmark_constraints, for fusers still '

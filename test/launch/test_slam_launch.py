@@ -19,6 +19,7 @@ import pytest
 from rosutil import Collector, next_domain_id, RosEnv
 from sensor_msgs.msg import PointCloud2
 from test_team_launch import MAP_DEADLINE_S, stop_cleanly
+import yaml
 
 pytestmark = pytest.mark.slow
 
@@ -60,8 +61,16 @@ def _offset(estimates, truths):
 
 
 def test_closed_loop_team_localizes_and_fuses_a_map(install, tmp_path):
-    with Launch(install, ['sim:=true', 'localize:=true'], next_domain_id(),
-                tmp_path / 'launch.log') as team:
+    # Two precision sources per robot (observer.precision): the launch lists each
+    # robot's landmarks/precision_1 among the fuser's inputs.
+    observer = yaml.safe_load((install / 'landmark_ros/share/landmark_ros/config/observer.yaml')
+                              .read_text())
+    section = observer['/**/landmark_observer']['ros__parameters']
+    section.update(precision_sources=2, precision_base_m=0.1)
+    observer_params = tmp_path / 'observer.yaml'
+    observer_params.write_text(yaml.safe_dump(observer))
+    with Launch(install, ['sim:=true', 'localize:=true', f'observer_params:={observer_params}'],
+                next_domain_id(), tmp_path / 'launch.log') as team:
         env = RosEnv(domain_id=team.domain_id)
         try:
             node = env.node('watcher')
@@ -70,12 +79,15 @@ def test_closed_loop_team_localizes_and_fuses_a_map(install, tmp_path):
                      for i in (1, 2, 3)]
             truths = [Collector(node, PoseStamped, f'/robot{i}/true_pose') for i in (1, 2, 3)]
             observed = [Collector(node, PointCloud2, f'/robot{i}/landmarks') for i in (1, 2, 3)]
+            precise = [Collector(node, PointCloud2, f'/robot{i}/landmarks/precision_1')
+                       for i in (1, 2, 3)]
 
             def ready():
                 return (team.popen.poll() is not None or (
                     maps.messages and len(read_landmarks(maps.messages[-1]).ids) >= 5
                     and all(len(p.messages) > 20 for p in poses)
-                    and all(o.messages for o in observed)))
+                    and all(o.messages for o in observed)
+                    and any(p.messages for p in precise)))
 
             assert env.spin_until(ready, MAP_DEADLINE_S), team.output()[-3000:]
             assert team.popen.poll() is None, team.output()[-3000:]
@@ -87,6 +99,9 @@ def test_closed_loop_team_localizes_and_fuses_a_map(install, tmp_path):
                 assert env.spin_until(lambda: _near(estimates.messages, true.messages), 30.0), (
                     _offset(estimates.messages, true.messages))
             assert len(read_landmarks(maps.messages[-1]).ids) >= 5
+            for i in (1, 2, 3):     # the fuser and the watcher on every level's topic
+                for topic in (f'/robot{i}/landmarks', f'/robot{i}/landmarks/precision_1'):
+                    assert node.count_subscribers(topic) == 2, topic
             # The simulator waits for the localizers' odometry, not for its own pose,
             # which nobody reads here: it starts long before its 60 s limit.
             started = re.search(r'simulation started after ([0-9.]+) s', team.output())

@@ -149,3 +149,14 @@ def test_unknown_fusion_method_fails_before_anything_starts(install, tmp_path):
     with launch(install, tmp_path, 'fusion:=average') as team:
         check_failed_before_start(team, r"fusion: 'average' is not one of .*"
                                         r'covariance_intersection')
+
+
+def test_bad_precision_sources_fail_before_anything_starts(install, tmp_path):
+    observer = yaml.safe_load((install / 'landmark_ros/share/landmark_ros/config/observer.yaml')
+                              .read_text())
+    observer['/**/landmark_observer']['ros__parameters']['precision_sources'] = 'four'
+    path = tmp_path / 'observer.yaml'
+    path.write_text(yaml.safe_dump(observer))
+    with launch(install, tmp_path, f'observer_params:={path}') as team:
+        check_failed_before_start(team, 'observer_params: precision_sources must be an '
+                                        "integer from 1 to 16, got 'four'")

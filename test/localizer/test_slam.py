@@ -5,11 +5,12 @@ import json
 from pathlib import Path
 
 from landmark_ros.eval import slam_montecarlo
-from landmark_ros.eval.slam_loop import dependent_stddev, LoopConfig, TeamLoop
+from landmark_ros.eval.slam_loop import LoopConfig, TeamLoop
 from landmark_ros.localizer.config import LocalizerConfig
 from landmark_ros.mrclam import slam
 from landmark_ros.mrclam.data import load_dataset
 from landmark_ros.mrclam.localize_data import load_all_extras
+from landmark_ros.observer.precision import dependent_stddev
 from landmark_ros.pipeline.config import FuserConfig, ObserverConfig
 import numpy as np
 import pytest
@@ -20,9 +21,10 @@ MS = 1_000_000
 
 def _loop(hide_ids=False, precision_sources=1, association='localizer'):
     config = LoopConfig(LocalizerConfig(initial_stddev=(0.01, 0.01, 0.01)),
-                        ObserverConfig(range_stddev=0.05, bearing_stddev=0.02),
+                        ObserverConfig(range_stddev=0.05, bearing_stddev=0.02,
+                                       precision_sources=precision_sources),
                         FuserConfig(min_observations=2, false_track_probability=0.49),
-                        hide_ids, precision_sources, association=association)
+                        hide_ids, association=association)
     loop = TeamLoop(config, ['robot1'])
     loop.start(0, 1 * MS, np.zeros(3), np.diag([1e-4, 1e-4, 1e-4]))
     return loop
@@ -75,7 +77,8 @@ def test_precision_sources_split_a_robot_by_its_dependent_part():
     loop = _loop(precision_sources=4)
     assert [loop.precision_source(np.eye(2)[None] * s ** 2) for s in
             (0.001, 0.03, 0.05, 0.1, 10.0)] == [0, 0, 1, 2, 3]
-    assert len(loop.fuser.sources) == 4
+    assert list(loop.fuser.sources) == ['/robot1/landmarks'] + [
+        f'/robot1/landmarks/precision_{k}' for k in (1, 2, 3)]
     assert _loop().precision_source(np.eye(2)[None]) == 0
 
 
@@ -95,10 +98,11 @@ def test_the_replay_section_sets_the_precision_sources():
     from types import SimpleNamespace
     replay = SimpleNamespace(observer=ObserverConfig(), fuser=FuserConfig())
     default = slam.loop_config(replay, LocalizerConfig())
-    assert (default.precision_sources, default.precision_base_m) == (1, 0.02)
+    observer = default.observer
+    assert (observer.precision_sources, observer.precision_base_m) == (1, 0.02)
     config = slam.loop_config(replay, LocalizerConfig(), {'slam_precision_sources': 4,
                                                           'slam_precision_base_m': 0.1})
-    assert (config.precision_sources, config.precision_base_m) == (4, 0.1)
+    assert (config.observer.precision_sources, config.observer.precision_base_m) == (4, 0.1)
     assert config.localizer.correlated_noise == 'count'     # the localizer section's
     dependent = slam.loop_config(replay, LocalizerConfig(),
                                  {'slam_correlated_noise': 'dependent'})
@@ -145,8 +149,9 @@ def test_the_mrclam_config_gives_the_loop_its_precision_sources():
     localizer_values, replay_values = _sections(replay.path)
     assert localizer_config(localizer_values).range_scale_state_stddev > 0.0
     config = slam.loop_config(replay, localizer_config(localizer_values), replay_values)
-    assert config.precision_sources == int(replay_values['slam_precision_sources']) > 1
-    assert config.precision_base_m == float(replay_values['slam_precision_base_m'])
+    observer = config.observer
+    assert observer.precision_sources == int(replay_values['slam_precision_sources']) > 1
+    assert observer.precision_base_m == float(replay_values['slam_precision_base_m'])
     assert replay_values['slam_range_scale_state'] is False
     assert config.localizer.range_scale_state_stddev == 0.0
     assert config.localizer.range_bias_stddev == replay.observer.range_bias_stddev > 0.0
@@ -179,7 +184,8 @@ def test_monte_carlo_variants_reach_the_loop():
     assert a['map_predicted_rmse_m'] > 0.0
     config = slam_montecarlo.loop_config(variant=slam_montecarlo.Variant(
         2, (0.01, 0.02, 0.003), 'independent', 'unknown'))
-    assert config.precision_sources == 2 and config.fuser.source_correlation == 'independent'
+    assert config.observer.precision_sources == 2
+    assert config.fuser.source_correlation == 'independent'
     assert config.localizer.initial_stddev == (0.01, 0.02, 0.003)
     assert config.localizer.landmark_correlation == 'unknown'
 

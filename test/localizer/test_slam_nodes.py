@@ -15,6 +15,7 @@ from landmark_ros.mrclam.localize_data import RobotExtras
 from landmark_ros.mrclam.localize_plan import batches
 from landmark_ros.mrclam.slam_plan import offline_reference, plan, start_pose
 from landmark_ros.observer.observer import ObservationMessage, Observer
+from landmark_ros.observer.precision import precision_level, precision_topics
 from landmark_ros.pipeline.config import FuserConfig, ObserverConfig
 import numpy as np
 import pytest
@@ -81,7 +82,11 @@ class _Nodes:
         self.locs = [Localizer(replace(config.localizer, initial_pose=tuple(
             start_pose(r, extras, delay_s)))) for r in dataset.robots]
         self.observers = [Observer(config.observer) for _ in dataset.robots]
-        self.fuser = Fuser(config.fuser, [f'/{r.name}/landmarks' for r in dataset.robots])
+        self.topics = [precision_topics(f'/{r.name}/landmarks',
+                                        config.observer.precision_sources)
+                       for r in dataset.robots]
+        self.fuser = Fuser(config.fuser, [t for topics in self.topics for t in topics])
+        self.observer_config = config.observer
         self.hide_ids = config.hide_ids
         self.held = [None] * len(self.robots)
         self.the_map = self.fuser.snapshot()
@@ -119,7 +124,9 @@ class _Nodes:
             placed = self.odometry(r, self.sent[r] + 1)
         (batch,) = placed
         if len(batch.ids):
-            self.fuser.add_landmarks(f'/{self.robots[r].name}/landmarks', LandmarkMessage(
+            level = precision_level(batch.P_dep, self.observer_config.precision_sources,
+                                    self.observer_config.precision_base_m)
+            self.fuser.add_landmarks(self.topics[r][level], LandmarkMessage(
                 batch.stamp_ns, batch.ids, batch.m, batch.P, batch.P_dep,
                 classes=batch.classes, scan=batch.scan))
             self.fuser.fuse_queued()
@@ -180,6 +187,23 @@ def test_the_steps_make_the_offline_loops_calls(seed, delay_s):
     _assert_same(reference, nodes)
 
 
+def test_the_steps_with_precision_sources_make_the_offline_loops_calls():
+    # Each observer sends a message to the topic of its precision level, the fuser
+    # takes each topic as a source: as the loop splits a robot's rows.
+    config = replace(CONFIG, observer=replace(CONFIG.observer, precision_sources=3,
+                                              precision_base_m=0.01))
+    dataset, extras = _synthetic(5)
+    reference = offline_reference(dataset, extras, config, 0.0)
+    _, nodes = _play(dataset, extras, 0.0, np.random.default_rng(5), config)
+    sources = reference.loop.fuser.sources
+    assert list(sources) == [t for topics in nodes.topics for t in topics]
+    fed = [name for name, source in sources.items() if source.counts['fused']]
+    assert len(fed) > len(dataset.robots) and any('precision_2' in name for name in fed)
+    assert {n: s.counts['fused'] for n, s in nodes.fuser.sources.items()} == {
+        n: s.counts['fused'] for n, s in sources.items()}
+    _assert_same(reference, nodes)
+
+
 @pytest.mark.parametrize('seed', [0, 4])
 def test_the_steps_without_ids_make_the_offline_loops_calls(seed):
     # The localizer names the rows itself against the map it holds (the node's own
@@ -211,9 +235,10 @@ def test_the_steps_on_mrclam_make_the_offline_loops_calls(hide_ids):
     extras = without_robot_sightings(load_all_extras(dataset))
     dataset, extras = slice_run(dataset, extras, 45.0)  # robot5 drops two messages
     localizer_values, replay_values = _sections(replay.path)
-    # The file's loop, one source per robot as the nodes publish (slam_cli).
+    # The file's loop, its precision sources as the observers publish them (slam_cli).
     config = replace(slam.loop_config(replay, localizer_config(localizer_values),
-                                      replay_values), precision_sources=1, hide_ids=hide_ids)
+                                      replay_values), hide_ids=hide_ids)
+    assert config.observer.precision_sources > 1
     assert config.association == 'localizer'  # config/mrclam.yaml: the node wiring
     delay_s = float(replay_values['odometry_delay_s'])
     reference = offline_reference(dataset, extras, config, delay_s)
