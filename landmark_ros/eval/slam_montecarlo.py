@@ -269,7 +269,8 @@ def main(argv=None):
     parser.add_argument('--long-seeds', type=int, default=2, help='seeds of the long run')
     parser.add_argument('--first-seed', type=int, default=0, help='the first seed')
     parser.add_argument('--precision-sources', type=int, default=1,
-                        help='sources per robot in the fuser (eval.slam_loop.LoopConfig)')
+                        help="sources per robot in the fuser: the observers' "
+                        'precision_sources (observer.precision)')
     parser.add_argument('--initial-stddev', type=float, nargs=3, default=INITIAL_STDDEV,
                         metavar=('X', 'Y', 'YAW'),
                         help="the starting poses' error, drawn and stated [m, m, rad]")

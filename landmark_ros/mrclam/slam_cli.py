@@ -13,10 +13,11 @@ picture per mode (``FILE`` stem + ``-ids|-noids`` + ``-anchors``).
 
 One mode in its own process (a whole run takes minutes; one mode per process keeps the
 runs apart): ``python -m landmark_ros.mrclam.slam_cli [--hide-ids] [--anchors]
-[--duration S] [--start S] [--range-scale-state] [--estimator loop|team_ekf] [--json OUT]
-[DATASET]`` prints the same table and the map's landmarks one per line (error, NEES);
-``--estimator team_ekf`` runs the reference that keeps every correlation
-(``eval.team_ekf``, docs/slam-analysis.md) instead of the loop. The ``ok`` column: the
+[--duration S] [--start S] [--range-scale-state] [--precision-sources K]
+[--no-robot-sightings] [--estimator loop|team_ekf] [--json OUT] [DATASET]`` prints the
+same table and the map's landmarks one per line (error, NEES); ``--estimator team_ekf``
+runs the reference that keeps every correlation (``eval.team_ekf``,
+docs/slam-analysis.md) instead of the loop. The ``ok`` column: the
 robot is consistent (pose ANEES 1.5 to 4.5 and at least 90 % of its poses inside their
 95 % ellipse, ``localize.consistent``).
 """
@@ -34,6 +35,7 @@ from landmark_ros.mrclam.localize_cli import _Bar, _sections
 from landmark_ros.mrclam.localize_data import load_all_extras, with_camera_delay
 from landmark_ros.mrclam.localize_plan import slice_run
 from landmark_ros.mrclam.report import write_json
+from landmark_ros.mrclam.slam_plan import without_robot_sightings
 import numpy as np
 
 
@@ -149,15 +151,25 @@ def main(argv=None):
     parser.add_argument('--range-scale-state', action='store_true',
                         help='the localizers (or the team EKF) keep the range scale states '
                         'of the localizer section (slam_range_scale_state: true)')
+    parser.add_argument('--precision-sources', type=int, default=None, metavar='K',
+                        help="the observers' precision sources in the loop "
+                        '(slam_precision_sources of the config; 1: one source per robot)')
+    parser.add_argument('--no-robot-sightings', action='store_true',
+                        help="leave out the robots' sightings of each other (as "
+                        '--through-nodes does)')
     parser.add_argument('--estimator', default='loop', choices=('loop', 'team_ekf'),
                         help='loop: the pipeline of the nodes (TeamLoop); team_ekf: the reference '
                         'that keeps every correlation (eval.team_ekf)')
     args = parser.parse_args(argv)
     replay_config = load_config(args.config)
     dataset = load_dataset(args.dataset or default_dataset_path(), replay_config.pose_stddev)
-    overrides = {'slam_range_scale_state': True} if args.range_scale_state else None
+    overrides = {'slam_range_scale_state': True} if args.range_scale_state else {}
+    if args.precision_sources is not None:
+        overrides['slam_precision_sources'] = args.precision_sources
     config, delay_s, anchor_ids, dataset, extras = _setup(replay_config, dataset,
                                                           args.duration, args.start, overrides)
+    if args.no_robot_sightings:
+        extras = without_robot_sightings(extras)
     mode = slam.SlamMode(args.hide_ids, args.anchors)
     loop_class = slam.TeamLoop
     if args.estimator == 'team_ekf':
@@ -170,7 +182,9 @@ def main(argv=None):
     print('\n'.join(_landmark_lines(result.records, dataset.landmarks)))
     if args.json:
         options = {'range_scale_state': args.range_scale_state, 'duration_s': args.duration,
-                   'start_s': args.start, 'dataset': str(dataset.path)}
+                   'start_s': args.start, 'dataset': str(dataset.path),
+                   'precision_sources': config.observer.precision_sources,
+                   'robot_sightings': not args.no_robot_sightings}
         write_json(args.json, {'slam': [dict(result.entry, options=options)]})
         print(f'wrote {args.json}')
     return 0

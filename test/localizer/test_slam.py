@@ -301,3 +301,20 @@ def test_equal_rows_keep_their_dependent_part_and_rows_of_one_shape_average_sqrt
              np.tile(np.diag([0.01, 0.04]), (3, 1, 1)), np.tile(np.diag([0.2, 0.1]), (3, 1, 1)))
     np.testing.assert_allclose(sums.fold(np.array([0])).P_dep[0], np.diag([0.2, 0.1]),
                                rtol=1e-12)
+
+
+@pytest.mark.skipif(not DATASET.is_dir(), reason='needs ../shared MRCLAM dataset 6')
+def test_slam_cli_takes_the_precision_sources_and_can_leave_out_robot_sightings(tmp_path):
+    from landmark_ros.mrclam import slam_cli
+    entries = []
+    for extra in ([], ['--precision-sources', '1', '--no-robot-sightings']):
+        out = tmp_path / f'slam{len(extra)}.json'
+        assert slam_cli.main([str(DATASET), '--duration', '30', '--json', str(out)]
+                             + extra) == 0
+        entries.append(json.loads(out.read_text())['slam'][0])
+    full, bare = entries
+    assert full['options']['precision_sources'] == 4 and full['options']['robot_sightings']
+    assert bare['options']['precision_sources'] == 1
+    assert not bare['options']['robot_sightings']
+    assert full['robot_rows_used'] > 0
+    assert bare['robot_rows_used'] == 0
